@@ -248,6 +248,79 @@ impl Client {
         let req = pb::WatchJobRequest { id: id.to_owned(), from_seq };
         Ok(self.jobs().watch_job(req).await?.into_inner())
     }
+
+    // -----------------------------------------------------------------------------------------
+    // Rewards
+
+    /// rho per item (and per window and per step when the request asks for them).
+    pub async fn score(&self, request: pb::ScoreRequest) -> Result<pb::ScoreResponse, ClientError> {
+        Ok(self.rewards().score(request).await?.into_inner())
+    }
+
+    /// grad_x rho(x_t, t) and rho for one batch.
+    pub async fn gradient(&self, request: pb::GradientRequest) -> Result<pb::GradientResponse, ClientError> {
+        Ok(self.rewards().gradient(request).await?.into_inner())
+    }
+
+    /// Opens a `GradientStream`: one stream per planner episode, one request per denoising
+    /// step. Responses may come in any order; match them by `request_id`.
+    pub async fn gradient_stream(&self) -> Result<GradientStream, ClientError> {
+        let (sender, rx) = mpsc::channel(GRADIENT_STREAM_BUFFER);
+        let responses = self.rewards().gradient_stream(ReceiverStream::new(rx)).await?.into_inner();
+        Ok(GradientStream { sender, responses })
+    }
+
+    /// Samples from a base diffusion model, guided by a reward model when the request names one.
+    /// Each sample arrives as its batch finishes, tagged with its `index`.
+    pub async fn sample(
+        &self,
+        request: pb::SampleRequest,
+    ) -> Result<tonic::Streaming<pb::SampleResponse>, ClientError> {
+        Ok(self.rewards().sample(request).await?.into_inner())
+    }
+}
+
+/// Requests queued on a [`GradientStream`] before [`GradientStream::send`] waits.
+const GRADIENT_STREAM_BUFFER: usize = 16;
+
+/// Both ends of an open `GradientStream` call. Dropping the sender (or calling
+/// [`GradientStream::close`]) ends the request side; the server then finishes the responses
+/// still owed and ends the stream.
+pub struct GradientStream {
+    sender: mpsc::Sender<pb::GradientRequest>,
+    responses: tonic::Streaming<pb::GradientResponse>,
+}
+
+impl GradientStream {
+    /// Queues one request (waits while the buffer is full). Fails only when the call has
+    /// ended; [`GradientStream::message`] then returns the status that ended it.
+    pub async fn send(&self, request: pb::GradientRequest) -> Result<(), ClientError> {
+        self.sender.send(request).await.map_err(|_| {
+            ClientError::Invalid("the gradient stream has ended; read its responses for the reason".into())
+        })
+    }
+
+    /// The next response, or `None` once the server has answered everything and the request
+    /// side is closed. A failed request comes back as a response whose `error` is set (see
+    /// [`stream_error_status`]); the stream goes on. An error here ends the call.
+    pub async fn message(&mut self) -> Result<Option<pb::GradientResponse>, ClientError> {
+        Ok(self.responses.message().await?)
+    }
+
+    /// Ends the request side and returns the response side alone.
+    pub fn close(self) -> tonic::Streaming<pb::GradientResponse> {
+        self.responses
+    }
+
+    /// A sender for other tasks (e.g. one per planner worker sharing the stream).
+    pub fn sender(&self) -> mpsc::Sender<pb::GradientRequest> {
+        self.sender.clone()
+    }
+}
+
+/// The status a per-request `StreamError` on `GradientStream` stands for.
+pub fn stream_error_status(error: &pb::StreamError) -> tonic::Status {
+    tonic::Status::new(tonic::Code::from_i32(error.code), error.message.clone())
 }
 
 /// Every item of a paged listing: calls `page` with each page request (server default size)

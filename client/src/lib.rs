@@ -4,10 +4,12 @@
 //! - [`tensor`]: the wire codec for `relreward.v1.Tensor` (shape + dtype + little-endian bytes).
 //!   The server uses the same codec, so both sides agree on what a valid tensor is.
 //! - [`client`]: [`Client`], a typed connection to every service, with helpers that hide
-//!   streaming details (chunked, digest-checked dataset and model uploads; paging; jobs).
+//!   streaming details (chunked, digest-checked dataset and model uploads; paging; jobs;
+//!   scores, gradients, the gradient stream and guided sampling).
 //! - [`watch`]: following a job's events across reconnects (resume bookkeeping, backoff).
 //! - [`upload`]: [`UploadSource`], where an upload's array bytes come from, and the chunker.
 //! - `npz` (feature `cli`): reads `.npz`/`.npy` files into an [`UploadSource`].
+//! - `npz_write` (feature `cli`): writes `.npz` archives (results of `score`, `grad`, `sample`).
 //!
 //! The library never links libtorch.
 
@@ -18,6 +20,8 @@ pub mod watch;
 
 #[cfg(feature = "cli")]
 pub mod npz;
+#[cfg(feature = "cli")]
+pub mod npz_write;
 
 pub use client::{Client, ClientError};
 pub use relreward_proto::v1 as pb;

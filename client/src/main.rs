@@ -30,6 +30,18 @@
 //! - `relreward job list [--state S]`, `job show ID`, `job cancel ID`,
 //!   `job watch ID [--from-seq N]`: a live progress bar until the job finishes (exit 0 if it
 //!   succeeded, 1 otherwise), resuming across reconnects.
+//! - `relreward score --model R --input FILE.npz [--key KEY] [--stride S] [--t T]
+//!   [--units raw|normalized] [--per-window] [--per-step] [--batch N] [--out OUT.npz]`: rho of
+//!   every item of `x` [B, H, D] (or [B, ...]), or of every window of a D4RL-style trajectories
+//!   file; `--out` writes `reward` [B] (with `per_window`, `per_step`, `window_start`).
+//! - `relreward grad --model R --input FILE.npz --t T [--key KEY] [--stride S]
+//!   [--units raw|normalized] [--gradient-units raw|normalized] [--omega W]
+//!   [--scale-by-posterior-variance-of BASE] [--batch N] [--out OUT.npz]`: grad_x rho; `--out`
+//!   writes `reward` [B] and `grad_x` [B, H, D].
+//! - `relreward sample --base B [--reward R --scale W [--t-stopgrad K] [--n-guide-steps N]
+//!   [--scale-grad-by-std]] [--condition INDEX=v1,v2,..].. [--n N] [--seed S] [--batch-size M]
+//!   [--out FILE.npz]`: samples (guided by R with omega = W); `--out` writes `x` [N, H, D] in
+//!   raw units, `x_normalized` and, with a reward model, `reward` [N].
 //!
 //! Global options: `--endpoint URL` (env `RELREWARD_ENDPOINT`, default
 //! `http://127.0.0.1:50051`) and `--json`, which prints one JSON document on stdout per command
@@ -81,6 +93,12 @@ enum Command {
     /// List, show, cancel and watch jobs.
     #[command(subcommand)]
     Job(cli::jobs::JobCommand),
+    /// Score items with a reward model: rho per item (and per window, per step).
+    Score(cli::serve::ScoreArgs),
+    /// Gradients of a reward model: grad_x rho(x_t, t) per item.
+    Grad(cli::serve::GradArgs),
+    /// Sample from a diffusion model, optionally guided by a reward model.
+    Sample(cli::serve::SampleArgs),
 }
 
 fn main() -> ExitCode {
@@ -128,6 +146,9 @@ async fn run(cli: Cli) -> Result<Report> {
         Command::Model(command) => cli::models::run(&ctx, command).await,
         Command::Train(command) => cli::jobs::run_train(&ctx, command).await,
         Command::Job(command) => cli::jobs::run(&ctx, command).await,
+        Command::Score(args) => cli::serve::score(&ctx, args).await,
+        Command::Grad(args) => cli::serve::grad(&ctx, args).await,
+        Command::Sample(args) => cli::serve::sample(&ctx, args).await,
     }
 }
 
@@ -212,6 +233,33 @@ mod tests {
         refused(&["discriminator", "--widths", "a"]);
         refused(&["discriminator", "--dataset", "d"]);
         refused(&["discriminator", "--arch", "transformer"]);
+        let serve_refused = |args: &[&str], flag: &str| {
+            let err = Cli::try_parse_from(std::iter::once("relreward").chain(args.iter().copied()))
+                .expect_err(&format!("{args:?} parsed"))
+                .to_string();
+            assert!(err.contains(flag), "{args:?}: {err}");
+        };
+        serve_refused(&["score", "--input", "x.npz"], "--model");
+        serve_refused(&["score", "--model", "r"], "--input");
+        serve_refused(&["score", "--model", "r", "--input", "x", "--batch", "0"], "--batch");
+        serve_refused(&["score", "--model", "r", "--input", "x", "--stride", "0"], "--stride");
+        serve_refused(&["score", "--model", "r", "--input", "x", "--t", "-1"], "--t");
+        serve_refused(&["score", "--model", "r", "--input", "x", "--units", "si"], "--units");
+        serve_refused(&["grad", "--model", "r", "--input", "x"], "--t");
+        serve_refused(&["grad", "--model", "r", "--input", "x", "--t", "1", "--omega", "big"], "--omega");
+        serve_refused(
+            &["grad", "--model", "r", "--input", "x", "--t", "1", "--gradient-units", "m"],
+            "--gradient-units",
+        );
+        serve_refused(&["sample"], "--base");
+        serve_refused(&["sample", "--base", "b", "--n", "0"], "--n");
+        serve_refused(&["sample", "--base", "b", "--batch-size", "0"], "--batch-size");
+        serve_refused(&["sample", "--base", "b", "--condition", "1"], "--condition");
+        serve_refused(&["sample", "--base", "b", "--condition", "a=1"], "--condition");
+        serve_refused(&["sample", "--base", "b", "--condition", "1=1,x"], "--condition");
+        serve_refused(&["sample", "--base", "b", "--seed", "-3"], "--seed");
+        serve_refused(&["sample", "--base", "b", "--n", "-3"], "--n");
+        serve_refused(&["score", "--model", "r", "--input", "x", "--batch", "-3"], "--batch");
     }
 
     #[test]
@@ -368,6 +416,89 @@ mod tests {
         };
         assert_eq!((id.as_str(), from_seq), ("j", 5));
         assert!(matches!(parse(&["job", "list", "--state", "running"]), Command::Job(_)));
+        let Command::Score(args) = parse(&[
+            "score",
+            "--model",
+            "r",
+            "--input",
+            "x.npz",
+            "--key",
+            "obs",
+            "--t",
+            "3",
+            "--units",
+            "normalized",
+            "--per-window",
+            "--per-step",
+            "--batch",
+            "64",
+            "--out",
+            "o.npz",
+        ]) else {
+            panic!("score")
+        };
+        assert_eq!((args.input.model.as_str(), args.input.key.as_deref(), args.t), ("r", Some("obs"), 3));
+        assert_eq!((args.input.units, args.input.batch), (cli::serve::UnitsArg::Normalized, 64));
+        assert!(args.per_window && args.per_step && args.input.out.is_some());
+        let Command::Score(args) = parse(&["score", "--model", "r", "--input", "t.npz", "--stride", "4"]) else {
+            panic!("score")
+        };
+        assert_eq!((args.t, args.input.stride, args.input.batch), (0, Some(4), 256));
+        assert_eq!(args.input.units, cli::serve::UnitsArg::Raw);
+        let Command::Grad(args) = parse(&[
+            "grad",
+            "--model",
+            "r",
+            "--input",
+            "x.npz",
+            "--t",
+            "5",
+            "--gradient-units",
+            "normalized",
+            "--omega",
+            "-0.5",
+            "--scale-by-posterior-variance-of",
+            "b",
+        ]) else {
+            panic!("grad")
+        };
+        assert_eq!((args.t, args.omega, args.scale_by_posterior_variance_of.as_deref()), (5, Some(-0.5), Some("b")));
+        assert_eq!(args.gradient_units, cli::serve::UnitsArg::Normalized);
+        let Command::Sample(args) = parse(&[
+            "sample",
+            "--base",
+            "b",
+            "--reward",
+            "r",
+            "--scale",
+            "0.1",
+            "--t-stopgrad",
+            "2",
+            "--n-guide-steps",
+            "3",
+            "--scale-grad-by-std",
+            "--condition",
+            "0=1,-2.5",
+            "--condition",
+            "7=-1,0",
+            "--n",
+            "4",
+            "--seed",
+            "9",
+            "--batch-size",
+            "2",
+            "--out",
+            "s.npz",
+        ]) else {
+            panic!("sample")
+        };
+        assert_eq!((args.base.as_str(), args.reward.as_deref(), args.scale), ("b", Some("r"), Some(0.1)));
+        assert_eq!((args.t_stopgrad, args.n_guide_steps, args.scale_grad_by_std), (Some(2), Some(3), true));
+        assert_eq!((args.n, args.seed, args.batch_size), (4, Some(9), Some(2)));
+        assert_eq!(args.conditions.len(), 2);
+        assert_eq!((args.conditions[1].index, args.conditions[1].state.clone()), (7, vec![-1.0, 0.0]));
+        let Command::Sample(args) = parse(&["sample", "--base", "b"]) else { panic!("sample") };
+        assert_eq!((args.n, args.seed, args.reward.is_none()), (1, None, true));
         assert!(matches!(parse(&["job", "show", "j"]), Command::Job(_)));
         assert!(matches!(parse(&["job", "cancel", "j"]), Command::Job(_)));
     }

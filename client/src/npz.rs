@@ -20,6 +20,7 @@
 //! - [`samples_from_npz_or_npy`]: one `[N, ...]` float array, sent as `samples`.
 //! - [`detect_kind`]: which of the two a file looks like.
 //! - [`read_npy_header`]: the checked header parser on its own (useful for fuzzing).
+//! - [`NpzSource::read_tensor`]: one array whole in memory (inputs of `score` and `grad`).
 
 use std::fmt;
 use std::fs::File;
@@ -378,6 +379,29 @@ impl NpzSource {
     /// Total data bytes of every array that will be sent.
     pub fn total_bytes(&self) -> u64 {
         self.entries.iter().map(|e| e.info.data_len).sum()
+    }
+
+    /// Reads array `index` whole into memory, as a wire tensor (its full shape and dtype).
+    /// For inputs that are sent in pieces of their own making (`score`, `grad`), not uploads.
+    pub fn read_tensor(&mut self, index: usize) -> io::Result<relreward_proto::v1::Tensor> {
+        let spec = self
+            .specs
+            .get(index)
+            .cloned()
+            .ok_or_else(|| io::Error::new(io::ErrorKind::NotFound, format!("no array {index}")))?;
+        let len = self.entries[index].info.data_len;
+        let len =
+            usize::try_from(len).map_err(|_| invalid_data(format!("array '{}' does not fit in memory", spec.name)))?;
+        let mut data = Vec::new();
+        data.try_reserve_exact(len).map_err(|_| {
+            io::Error::new(
+                io::ErrorKind::OutOfMemory,
+                format!("array '{}' ({len} bytes) does not fit in memory", spec.name),
+            )
+        })?;
+        self.open(index)?.read_to_end(&mut data)?;
+        let dtype = tensor::known_dtype(spec.dtype).map_err(|e| invalid_data(e.to_string()))?;
+        tensor::from_raw(&spec.shape, dtype, data).map_err(|e| invalid_data(format!("array '{}': {e}", spec.name)))
     }
 
     fn push(&mut self, name: &str, entry: Entry) {

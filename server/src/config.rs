@@ -21,6 +21,8 @@ pub struct Config {
     pub models: ModelsConfig,
     pub jobs: JobsConfig,
     pub engine: EngineConfig,
+    pub serving: ServingConfig,
+    pub metrics: MetricsConfig,
     pub log: LogConfig,
 }
 
@@ -83,6 +85,29 @@ pub struct EngineConfig {
     pub intra_op_threads: usize,
     /// Sampling requests computed at once (each on a blocking thread); more wait their turn.
     pub inference_workers: usize,
+}
+
+/// Score and Gradient serving: dynamic batching per reward model (see `serving`).
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ServingConfig {
+    /// Most items one request may carry (INVALID_ARGUMENT above it).
+    pub max_request_items: usize,
+    /// Most items merged into one forward/backward pass.
+    pub max_batch: usize,
+    /// How long a batch waits for more requests after its first one arrived, in microseconds
+    /// (0: take whatever is queued and go).
+    pub max_delay_us: u64,
+    /// Requests waiting per model; more are RESOURCE_EXHAUSTED at once.
+    pub queue_capacity: usize,
+}
+
+/// Prometheus metrics over plain HTTP (`GET /metrics`).
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MetricsConfig {
+    /// IP:port of the metrics endpoint; empty disables it. Port 0 picks a free port (logged).
+    pub listen: String,
 }
 
 #[derive(Debug, Clone, PartialEq, Deserialize)]
@@ -182,6 +207,24 @@ impl Config {
         }
         if self.engine.intra_op_threads > 1024 {
             return invalid("engine.intra_op_threads", "must be at most 1024 (0: one per core)".into());
+        }
+        if !(1..=1 << 20).contains(&self.serving.max_request_items) {
+            return invalid("serving.max_request_items", "must be between 1 and 1048576".into());
+        }
+        if !(1..=1 << 20).contains(&self.serving.max_batch) {
+            return invalid("serving.max_batch", "must be between 1 and 1048576".into());
+        }
+        if self.serving.max_delay_us > 1_000_000 {
+            return invalid("serving.max_delay_us", "must be at most 1000000 (one second)".into());
+        }
+        if !(1..=1 << 20).contains(&self.serving.queue_capacity) {
+            return invalid("serving.queue_capacity", "must be between 1 and 1048576".into());
+        }
+        if !self.metrics.listen.is_empty() && self.metrics.listen.parse::<SocketAddr>().is_err() {
+            return invalid(
+                "metrics.listen",
+                format!("'{}' is not an IP:port socket address (or empty to disable)", self.metrics.listen),
+            );
         }
         if !matches!(self.log.format.as_str(), "human" | "json") {
             return invalid("log.format", format!("'{}' is neither \"human\" nor \"json\"", self.log.format));

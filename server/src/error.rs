@@ -29,6 +29,9 @@ pub enum Error {
     /// The server is shutting down.
     #[error("{0}")]
     Unavailable(String),
+    /// The caller's deadline passed before the work was done (it was then not started).
+    #[error("{0}")]
+    DeadlineExceeded(String),
     /// Stored data failed an integrity check.
     #[error("{0}")]
     DataLoss(String),
@@ -75,6 +78,7 @@ impl From<Error> for Status {
             Error::FailedPrecondition(m) => (Code::FailedPrecondition, m),
             Error::Unimplemented(m) => (Code::Unimplemented, m),
             Error::Unavailable(m) => (Code::Unavailable, m),
+            Error::DeadlineExceeded(m) => (Code::DeadlineExceeded, m),
             Error::DataLoss(m) => (Code::DataLoss, m),
             Error::Internal(err) => {
                 let id = uuid::Uuid::new_v4().simple().to_string();

@@ -8,6 +8,7 @@
 //! - [`store`]: metadata ([`store::MetadataStore`]) and files ([`store::BlobStore`]),
 //!   dataset ingestion and crash recovery.
 //! - [`config`]: layered configuration and its validation.
+//! - [`metrics`]: Prometheus metrics, the per-call recording layer and the `/metrics` endpoint.
 //! - [`error`]: the one error type and its one mapping to gRPC status codes.
 //!
 //! Entry point: [`run`], which `main` calls with a bound listener and a shutdown future, and
@@ -18,6 +19,8 @@ pub mod config;
 pub mod engine;
 pub mod error;
 pub mod jobs;
+pub mod metrics;
+pub mod serving;
 pub mod store;
 
 use std::future::Future;
@@ -32,17 +35,33 @@ pub use config::Config;
 
 /// Serves until `shutdown` completes, then shuts down gracefully: health goes NOT_SERVING,
 /// the listener closes, in-flight calls get `server.shutdown_grace_secs` to finish.
+///
+/// Unless `metrics.listen` is empty, also serves Prometheus metrics there (bound first, so a
+/// taken port fails the start at once) and prints `relreward-server metrics on
+/// http://ADDR/metrics` on stdout, the line after `main`'s `listening on` line.
 pub async fn run(
     config: Config,
     listener: TcpListener,
     shutdown: impl Future<Output = ()> + Send,
 ) -> anyhow::Result<()> {
+    let metrics_listener = bind_metrics(&config).await?;
     engine::init(&config.engine);
     let store = store::Store::open(&config).await?;
     // On shutdown, jobs stop at their next step (checkpointing first) and resume at the next start.
     let job_manager = jobs::JobManager::start(store.clone(), config.jobs.clone(), CancellationToken::new()).await?;
     // Diffusion models, loaded from the store on demand and cached (models.cache_bytes).
     let registry = engine::registry::ModelRegistry::new(store.clone(), &config.models, tch::Device::Cpu);
+    // Inference compute (batched Score/Gradient passes and sampling runs) at once.
+    let slots = std::sync::Arc::new(tokio::sync::Semaphore::new(config.engine.inference_workers));
+    let metrics = metrics::Metrics::new();
+    let serving = serving::Serving::new(registry.clone(), config.serving.clone(), slots.clone(), metrics.clone());
+    // Stopped after the gRPC drain, or by the guard when `run` returns early.
+    let stop_metrics = CancellationToken::new();
+    let _stop_metrics_guard = stop_metrics.clone().drop_guard();
+    let metrics_endpoint = metrics_listener.map(|listener| {
+        let refresh = scrape_refresh(metrics.clone(), store.clone(), registry.clone());
+        tokio::spawn(metrics::serve_http(listener, metrics.clone(), refresh, stop_metrics.clone()))
+    });
 
     let (health, health_service) = tonic_health::server::health_reporter();
     for name in api::SERVICE_NAMES {
@@ -52,10 +71,12 @@ pub async fn run(
 
     let reflection_v1 = tonic_reflection::server::Builder::configure()
         .register_encoded_file_descriptor_set(relreward_proto::FILE_DESCRIPTOR_SET)
+        .register_encoded_file_descriptor_set(relreward_proto::INFERENCE_FILE_DESCRIPTOR_SET)
         .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
         .build_v1()?;
     let reflection_v1alpha = tonic_reflection::server::Builder::configure()
         .register_encoded_file_descriptor_set(relreward_proto::FILE_DESCRIPTOR_SET)
+        .register_encoded_file_descriptor_set(relreward_proto::INFERENCE_FILE_DESCRIPTOR_SET)
         .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
         .build_v1alpha()?;
 
@@ -63,7 +84,8 @@ pub async fn run(
     let server = {
         let token = stop_accepting.clone();
         tonic::transport::Server::builder()
-            .add_routes(api::routes(&config, store, job_manager.clone(), registry))
+            .layer(metrics::GrpcMetricsLayer::new(metrics))
+            .add_routes(api::routes(&config, store, job_manager.clone(), serving, slots))
             .add_service(health_service)
             .add_service(reflection_v1)
             .add_service(reflection_v1alpha)
@@ -89,6 +111,51 @@ pub async fn run(
             tracing::warn!(grace_secs = grace.as_secs(), "in-flight calls did not finish in time; exiting anyway")
         }
     }
+    stop_metrics.cancel();
+    if let Some(endpoint) = metrics_endpoint
+        && let Err(e) = endpoint.await
+    {
+        tracing::warn!(error = %e, "metrics endpoint task failed");
+    }
     tracing::info!("stopped");
     Ok(())
+}
+
+/// Binds `metrics.listen` (None when empty: disabled) and announces the address.
+async fn bind_metrics(config: &Config) -> anyhow::Result<Option<TcpListener>> {
+    let addr = config.metrics.listen.as_str();
+    if addr.is_empty() {
+        return Ok(None);
+    }
+    let listener =
+        TcpListener::bind(addr).await.map_err(|e| anyhow::anyhow!("cannot listen on {addr} (metrics.listen): {e}"))?;
+    let local = listener.local_addr()?;
+    tracing::info!(%local, "metrics endpoint listening");
+    // The second machine-readable line on stdout (tests bind port 0 and read it).
+    println!("relreward-server metrics on http://{local}/metrics");
+    Ok(Some(listener))
+}
+
+/// The gauges read at scrape time: jobs by state (a COUNT in the metadata store) and models
+/// in memory.
+fn scrape_refresh(
+    metrics: metrics::Metrics,
+    store: store::Store,
+    registry: engine::registry::ModelRegistry,
+) -> impl Fn() -> std::pin::Pin<Box<dyn Future<Output = ()> + Send>> + Clone + Send + Sync + 'static {
+    move || {
+        let (metrics, store, registry) = (metrics.clone(), store.clone(), registry.clone());
+        Box::pin(async move {
+            match store.meta.count_jobs_by_state().await {
+                Ok(counts) => {
+                    for (state, n) in counts {
+                        metrics.set_jobs(state.as_str(), usize::try_from(n).unwrap_or(usize::MAX));
+                    }
+                }
+                // The scrape still answers, with the previous job counts.
+                Err(e) => tracing::warn!(error = %e, "metrics: cannot count jobs"),
+            }
+            metrics.set_loaded_models(registry.cached_names().len());
+        })
+    }
 }

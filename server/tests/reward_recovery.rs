@@ -364,3 +364,177 @@ async fn the_discriminator_baseline_separates_base_from_expert() {
     let accuracy = (correct_base + correct_expert) as f64 / (2 * n) as f64;
     assert!(accuracy > 0.75, "accuracy {accuracy}");
 }
+
+/// The trained reward served over gRPC: Gradient agrees with finite differences of Score,
+/// bad input gets its status, and guided sampling from the base model moves the samples
+/// toward the expert mean as omega grows (with omega = 1 the guided base approximates the
+/// expert, the paper's premise).
+#[tokio::test(flavor = "multi_thread")]
+async fn the_served_reward_differentiates_rejects_bad_input_and_guides_sampling_toward_the_expert() {
+    let server = TestServer::start_with_env(&[
+        ("RELREWARD__MODELS__ALLOW_TORCHSCRIPT_UPLOAD", "true"),
+        ("RELREWARD__SERVING__MAX_REQUEST_ITEMS", "64"),
+    ]);
+    let client = setup(&server).await;
+    let spec = reward_spec("r-serve", pb::RewardTarget::Mean, pb::EvalPoint::XT, 1500, 1000);
+    client.jobs().submit_job(pb::SubmitJobRequest { spec: Some(spec), job_id: "serve".into() }).await.expect("submit");
+    assert!(succeeded(&wait_done(&client, "serve").await));
+    let mut rewards = client.rewards();
+    let d = M.len();
+    let tensor = |b: usize, v: &[f32]| relreward_client::tensor::encode_f32(&[b as u64, d as u64], v);
+    let score =
+        |x: pb::Tensor, t: Vec<u32>| pb::ScoreRequest { model: "r-serve".into(), x: Some(x), t, ..Default::default() };
+
+    // Gradient vs central differences of Score (identity normalizer: raw = normalized).
+    let x0 = normals(3 * d, 41);
+    let t = vec![2u32, 9, 15];
+    let grad = rewards
+        .gradient(pb::GradientRequest {
+            request_id: 7,
+            model: "r-serve".into(),
+            x: Some(tensor(3, &x0)),
+            t: t.clone(),
+            ..Default::default()
+        })
+        .await
+        .expect("gradient")
+        .into_inner();
+    assert_eq!(grad.request_id, 7);
+    let g = relreward_client::tensor::decode_finite_f32(grad.gradient.as_ref().expect("gradient")).expect("f32");
+    let eps = 1e-2f32;
+    for i in 0..x0.len() {
+        let (mut up, mut down) = (x0.clone(), x0.clone());
+        up[i] += eps;
+        down[i] -= eps;
+        let r = |x: Vec<f32>| {
+            let mut rewards = rewards.clone();
+            let req = score(tensor(3, &x), t.clone());
+            async move {
+                let resp = rewards.score(req).await.expect("score").into_inner();
+                relreward_client::tensor::decode_finite_f32(resp.rewards.as_ref().expect("rewards")).expect("f32")
+            }
+        };
+        let fd = (r(up).await[i / d] - r(down).await[i / d]) / (2.0 * eps);
+        assert!((fd - g[i]).abs() < 2e-3 + 2e-2 * g[i].abs(), "coordinate {i}: finite difference {fd} vs {}", g[i]);
+    }
+
+    // Bad input: each gets its status, with the field named, and the server stays healthy.
+    let int64 = pb::Tensor { shape: vec![1, d as u64], dtype: pb::Dtype::Int64 as i32, data: vec![0; 8 * d] };
+    let mut nan = normals(d, 1);
+    nan[2] = f32::NAN;
+    let cases: Vec<(pb::ScoreRequest, tonic::Code, &str)> = vec![
+        (score(tensor(1, &normals(d, 1)), vec![]), tonic::Code::Ok, ""),
+        (
+            score(relreward_client::tensor::encode_f32(&[1, d as u64 + 1], &normals(d + 1, 1)), vec![]),
+            tonic::Code::InvalidArgument,
+            "x: expected shape [B, 4]",
+        ),
+        (
+            score(relreward_client::tensor::encode_f32(&[0, d as u64], &[]), vec![]),
+            tonic::Code::InvalidArgument,
+            "B = 0",
+        ),
+        (score(tensor(65, &normals(65 * d, 1)), vec![]), tonic::Code::InvalidArgument, "max_request_items"),
+        (score(tensor(1, &normals(d, 1)), vec![T as u32]), tonic::Code::InvalidArgument, "t[0]: 20 is outside [0, 20)"),
+        (score(tensor(1, &nan), vec![]), tonic::Code::InvalidArgument, "x: element 2 is not finite"),
+        (score(int64, vec![]), tonic::Code::InvalidArgument, "x: dtype int64"),
+        (
+            pb::ScoreRequest { model: "nope".into(), ..score(tensor(1, &normals(d, 1)), vec![]) },
+            tonic::Code::NotFound,
+            "'nope'",
+        ),
+        (
+            pb::ScoreRequest { model: "base".into(), ..score(tensor(1, &normals(d, 1)), vec![]) },
+            tonic::Code::FailedPrecondition,
+            "not a reward",
+        ),
+        (
+            pb::ScoreRequest { x: None, ..score(tensor(1, &normals(d, 1)), vec![]) },
+            tonic::Code::InvalidArgument,
+            "x: missing",
+        ),
+    ];
+    for (req, code, message) in cases {
+        match rewards.score(req).await {
+            Ok(_) => assert_eq!(code, tonic::Code::Ok),
+            Err(status) => {
+                assert_eq!(status.code(), code, "{}", status.message());
+                assert!(status.message().contains(message), "{} should contain {message}", status.message());
+            }
+        }
+    }
+    assert_eq!(client.health().await.expect("health"), tonic_health::pb::health_check_response::ServingStatus::Serving);
+
+    // Guided sampling: the sample mean approaches the expert mean M as omega grows, and the
+    // reported reward rises with it.
+    let m = Tensor::from_slice(&M).to_kind(Kind::Double);
+    let mut distances = Vec::new();
+    let mut mean_rewards = Vec::new();
+    for omega in [0.0, 0.25, 0.5, 1.0] {
+        let req = pb::SampleRequest {
+            model: "base".into(),
+            reward_model: "r-serve".into(),
+            omega,
+            n: 512,
+            seed: Some(3),
+            ..Default::default()
+        };
+        let mut stream = rewards.sample(req).await.expect("sample").into_inner();
+        let (mut xs, mut rs) = (Vec::new(), Vec::new());
+        while let Some(item) = stream.next().await {
+            let item = item.expect("sample item");
+            xs.extend(relreward_client::tensor::decode_finite_f32(item.x.as_ref().expect("x")).expect("f32"));
+            rs.push(item.reward.expect("reward reported"));
+        }
+        let x = Tensor::from_slice(&xs).reshape([512, d as i64]).to_kind(Kind::Double);
+        let distance = (x.mean_dim(0, false, Kind::Double) - &m).norm().double_value(&[]);
+        eprintln!(
+            "omega {omega}: distance of the sample mean to the expert mean {distance:.3}, mean reward {:.4}",
+            rs.iter().sum::<f64>() / rs.len() as f64
+        );
+        distances.push(distance);
+        mean_rewards.push(rs.iter().sum::<f64>() / rs.len() as f64);
+    }
+    let norm_m = m.norm().double_value(&[]);
+    assert!(distances[0] > 0.8 * norm_m, "unguided samples sit near the base mean: {distances:?}");
+    assert!(distances.windows(2).all(|w| w[1] < w[0]), "distance must shrink as omega grows: {distances:?}");
+    assert!(mean_rewards.windows(2).all(|w| w[1] > w[0]), "reward must grow with omega: {mean_rewards:?}");
+    assert!(distances[3] < 0.25 * norm_m, "omega = 1 must land near the expert: {distances:?}");
+
+    // GradientStream: one stream, many requests, answers matched by request_id and equal to
+    // the unary answers; a bad request gets its error in its response and the stream goes on.
+    let requests: Vec<pb::GradientRequest> = (0..20u64)
+        .map(|id| pb::GradientRequest {
+            request_id: 1000 + id,
+            model: if id == 13 { "nope".into() } else { "r-serve".into() },
+            x: Some(tensor(2, &normals(2 * d, 500 + id))),
+            t: vec![(id % T as u64) as u32],
+            ..Default::default()
+        })
+        .collect();
+    let mut responses =
+        rewards.gradient_stream(tokio_stream::iter(requests.clone())).await.expect("stream").into_inner();
+    let mut seen = std::collections::HashMap::new();
+    while let Some(r) = responses.next().await {
+        let r = r.expect("stream message");
+        seen.insert(r.request_id, r);
+    }
+    assert_eq!(seen.len(), requests.len(), "one response per request");
+    for req in requests {
+        let got = &seen[&req.request_id];
+        if req.model == "nope" {
+            let error = got.error.as_ref().expect("per-request error");
+            assert_eq!(error.code, tonic::Code::NotFound as i32, "{}", error.message);
+            continue;
+        }
+        let unary = rewards.gradient(req.clone()).await.expect("unary").into_inner();
+        // Equal up to float rounding: the stream's requests were merged into other batches.
+        let close = |a: &Option<pb::Tensor>, b: &Option<pb::Tensor>| {
+            let a = relreward_client::tensor::decode_finite_f32(a.as_ref().expect("a")).expect("f32");
+            let b = relreward_client::tensor::decode_finite_f32(b.as_ref().expect("b")).expect("f32");
+            a.len() == b.len() && a.iter().zip(&b).all(|(x, y)| (x - y).abs() <= 1e-6 + 1e-5 * y.abs())
+        };
+        assert!(close(&got.gradient, &unary.gradient), "request {}: streamed gradient differs", req.request_id);
+        assert!(close(&got.rewards, &unary.rewards), "request {}: streamed rewards differ", req.request_id);
+    }
+}

@@ -9,6 +9,7 @@ use std::io::{BufRead, BufReader};
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Output, Stdio};
+use std::sync::{Arc, OnceLock};
 use std::time::Duration;
 
 use relreward_client::Client;
@@ -45,6 +46,8 @@ pub struct TestServer {
     pub data_dir: PathBuf,
     log: PathBuf,
     env: Vec<(String, String)>,
+    /// The metrics address the server printed on its second stdout line, once it has.
+    metrics_addr: Arc<OnceLock<SocketAddr>>,
     _tmp: Option<tempfile::TempDir>,
 }
 
@@ -72,6 +75,8 @@ impl TestServer {
             .arg("--data-dir")
             .arg(&data_dir)
             .env("RELREWARD__ENGINE__INTRA_OP_THREADS", "1")
+            // Many servers run at once: no fixed metrics port (a test that wants one sets it).
+            .env("RELREWARD__METRICS__LISTEN", "")
             .stdin(Stdio::null())
             .stdout(Stdio::piped())
             .stderr(log_file);
@@ -81,10 +86,21 @@ impl TestServer {
         let mut child = cmd.spawn().expect("spawn relreward-server");
         let stdout = child.stdout.take().expect("stdout");
         let (tx, rx) = std::sync::mpsc::channel();
+        let metrics_addr = Arc::new(OnceLock::new());
+        let metrics_line = Arc::clone(&metrics_addr);
         std::thread::spawn(move || {
             let mut lines = BufReader::new(stdout).lines();
             if let Some(Ok(line)) = lines.next() {
                 let _ = tx.send(line);
+            }
+            // The second line, when the metrics endpoint is on (see `metrics_addr`).
+            if let Some(Ok(line)) = lines.next()
+                && let Some(addr) = line
+                    .strip_prefix("relreward-server metrics on http://")
+                    .and_then(|a| a.strip_suffix("/metrics"))
+                    .and_then(|a| a.parse().ok())
+            {
+                let _ = metrics_line.set(addr);
             }
             // Keep draining so the server never blocks on a full pipe.
             for _ in lines {}
@@ -97,7 +113,19 @@ impl TestServer {
             .strip_prefix("relreward-server listening on ")
             .and_then(|a| a.parse().ok())
             .unwrap_or_else(|| panic!("unexpected first line: {line}"));
-        Self { child: Some(child), addr, data_dir, log, env, _tmp: None }
+        Self { child: Some(child), addr, data_dir, log, env, metrics_addr, _tmp: None }
+    }
+
+    /// Address of the Prometheus endpoint, for a server started with
+    /// `RELREWARD__METRICS__LISTEN` set (e.g. `127.0.0.1:0`); waits for the line announcing it.
+    pub fn metrics_addr(&self) -> SocketAddr {
+        for _ in 0..1200 {
+            if let Some(addr) = self.metrics_addr.get() {
+                return *addr;
+            }
+            std::thread::sleep(Duration::from_millis(50));
+        }
+        panic!("server did not report a metrics address (is metrics.listen set?); log:\n{}", self.log())
     }
 
     pub fn endpoint(&self) -> String {

@@ -74,7 +74,7 @@ fn small_upload(name: &str) -> Vec<pb::UploadDatasetRequest> {
 }
 
 #[tokio::test(flavor = "multi_thread")]
-async fn health_reports_serving_and_unbuilt_rpcs_say_unimplemented() {
+async fn health_reports_serving_and_score_names_a_missing_model() {
     let server = TestServer::start();
     let client = server.client().await;
     assert_eq!(client.health().await.expect("health"), tonic_health_status_serving());
@@ -86,9 +86,9 @@ async fn health_reports_serving_and_unbuilt_rpcs_say_unimplemented() {
         .rewards()
         .score(pb::ScoreRequest { model: "r".into(), ..Default::default() })
         .await
-        .expect_err("unimplemented");
-    assert_eq!(err.code(), Code::Unimplemented);
-    assert!(err.message().contains("RewardService.Score"), "{}", err.message());
+        .expect_err("no such model");
+    assert_eq!(err.code(), Code::InvalidArgument, "x is checked before the model is looked up");
+    assert!(err.message().contains("x: missing"), "{}", err.message());
 }
 
 fn tonic_health_status_serving() -> tonic_health::pb::health_check_response::ServingStatus {

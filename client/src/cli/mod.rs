@@ -5,6 +5,8 @@
 //! - [`models`]: `model upload|list|show|delete`, with [`manifest`] (the manifest file format);
 //! - [`jobs`]: `train diffusion|reward|discriminator` (specs built by [`train`]) and
 //!   `job list|show|cancel|watch`;
+//! - [`serve`]: `score`, `grad` and `sample` (the RewardService: inputs from `.npz` files,
+//!   trajectories cut into windows, results written as `.npz`);
 //! - [`output`]: JSON and text formatting, progress bars, terminal I/O.
 
 pub mod datasets;
@@ -12,6 +14,7 @@ pub mod jobs;
 pub mod manifest;
 pub mod models;
 pub mod output;
+pub mod serve;
 pub mod train;
 
 use std::fmt;

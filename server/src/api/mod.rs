@@ -7,8 +7,10 @@ pub mod convert;
 pub mod datasets;
 pub mod jobs;
 pub mod models;
+pub mod oip;
 pub mod rewards;
 
+use relreward_proto::inference::grpc_inference_service_server::GrpcInferenceServiceServer;
 use relreward_proto::v1::{
     dataset_service_server::DatasetServiceServer, job_service_server::JobServiceServer,
     model_service_server::ModelServiceServer, reward_service_server::RewardServiceServer,
@@ -16,7 +18,11 @@ use relreward_proto::v1::{
 use tonic::service::Routes;
 
 use crate::config::Config;
-use crate::engine::registry::ModelRegistry;
+use std::sync::Arc;
+
+use tokio::sync::Semaphore;
+
+use crate::serving::Serving;
 use crate::jobs::JobManager;
 use crate::store::Store;
 
@@ -52,8 +58,15 @@ pub(crate) fn timestamp(ms: i64) -> prost_types::Timestamp {
     prost_types::Timestamp { seconds: ms.div_euclid(1000), nanos: (ms.rem_euclid(1000) * 1_000_000) as i32 }
 }
 
-/// Every relreward.v1 service with the configured message limits.
-pub fn routes(config: &Config, store: Store, job_manager: JobManager, registry: ModelRegistry) -> Routes {
+/// Every relreward.v1 service, and the Open Inference Protocol's, with the configured message limits.
+pub fn routes(
+    config: &Config,
+    store: Store,
+    job_manager: JobManager,
+    serving: Serving,
+    slots: Arc<Semaphore>,
+) -> Routes {
+    let registry = serving.registry().clone();
     let (max_in, max_out) = (config.server.max_request_bytes, config.server.max_response_bytes);
     let datasets = DatasetServiceServer::new(datasets::Datasets::new(
         store.clone(),
@@ -69,10 +82,13 @@ pub fn routes(config: &Config, store: Store, job_manager: JobManager, registry: 
     let jobs = JobServiceServer::new(jobs::Jobs::new(store.clone(), job_manager))
         .max_decoding_message_size(max_in)
         .max_encoding_message_size(max_out);
-    let rewards = RewardServiceServer::new(rewards::Rewards::new(registry.clone(), config.engine.inference_workers))
+    let inference = GrpcInferenceServiceServer::new(oip::Inference::new(serving.clone()))
         .max_decoding_message_size(max_in)
         .max_encoding_message_size(max_out);
-    Routes::new(datasets).add_service(models).add_service(jobs).add_service(rewards)
+    let rewards = RewardServiceServer::new(rewards::Rewards::new(serving, slots))
+        .max_decoding_message_size(max_in)
+        .max_encoding_message_size(max_out);
+    Routes::new(datasets).add_service(models).add_service(jobs).add_service(rewards).add_service(inference)
 }
 
 /// Service names registered with grpc.health.v1, besides "" for the whole server.
@@ -81,4 +97,5 @@ pub const SERVICE_NAMES: &[&str] = &[
     "relreward.v1.ModelService",
     "relreward.v1.JobService",
     "relreward.v1.RewardService",
+    "inference.GRPCInferenceService",
 ];

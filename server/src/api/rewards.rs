@@ -1,12 +1,13 @@
-//! `relreward.v1.RewardService`. Today: `Sample` from a diffusion model, plain or with
-//! inpainting conditions. Score, Gradient, GradientStream and reward guidance need reward
-//! models and answer UNIMPLEMENTED until reward training exists.
+//! `relreward.v1.RewardService`: Score, Gradient and GradientStream over [`Serving`] (which
+//! validates, batches and computes), and Sample: ancestral sampling from a diffusion model,
+//! plain, with inpainting conditions, or guided by a reward model.
 
 use std::pin::Pin;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 
-use futures::Stream;
+use futures::stream::FuturesUnordered;
+use futures::{Stream, StreamExt};
 use relreward_client::tensor;
 use relreward_proto::v1::{self as pb, reward_service_server::RewardService};
 use tch::{Kind, Tensor};
@@ -14,36 +15,117 @@ use tokio::sync::{Semaphore, mpsc};
 use tonic::{Request, Response, Status, Streaming};
 
 use crate::engine::manifest::Space;
-use crate::engine::registry::ModelRegistry;
+use crate::engine::registry::{ModelRegistry, ServedReward};
 use crate::engine::rng::Rng;
-use crate::engine::sampling::{Condition, GuidedSampler};
+use crate::engine::sampling::{Condition, Guidance, GuidedSampler, RewardFn};
 use crate::error::{Error, Result};
+use crate::serving::{self, Answer, Op, Query, Serving, Units};
 use crate::store::names::validate_name;
 
 /// Most samples per request and per denoised batch.
 const MAX_SAMPLES: u32 = 10_000;
 const MAX_BATCH: u32 = 1024;
+/// Most guide steps per denoising step.
+const MAX_GUIDE_STEPS: u32 = 100;
+/// Responses buffered per GradientStream before the server waits for the client to read.
+const STREAM_BUFFER: usize = 64;
 
 type BoxStream<T> = Pin<Box<dyn Stream<Item = Result<T, Status>> + Send + 'static>>;
 
 pub struct Rewards {
+    serving: Serving,
     registry: ModelRegistry,
-    /// Bounds concurrent sampling work so requests cannot oversubscribe the CPU; training runs
-    /// on its own job threads and never takes these permits.
-    workers: Arc<Semaphore>,
+    /// Inference slots shared with the Score/Gradient batcher, so sampling and serving
+    /// together cannot oversubscribe the CPU; training runs on its own job threads.
+    slots: Arc<Semaphore>,
 }
 
 impl Rewards {
-    pub fn new(registry: ModelRegistry, workers: usize) -> Self {
-        Self { registry, workers: Arc::new(Semaphore::new(workers.max(1))) }
+    pub fn new(serving: Serving, slots: Arc<Semaphore>) -> Self {
+        Self { registry: serving.registry().clone(), serving, slots }
     }
 }
 
-fn not_yet<T>(rpc: &str) -> Result<T, Status> {
-    Err(Error::Unimplemented(format!(
-        "{rpc} is not implemented by this server version yet (it serves reward models, which arrive with reward training)"
-    ))
-    .into())
+/// `Units` from the wire: unspecified means raw.
+fn units(field: &str, raw: i32) -> Result<Units> {
+    match pb::Units::try_from(raw) {
+        Ok(pb::Units::Unspecified | pb::Units::Raw) => Ok(Units::Raw),
+        Ok(pb::Units::Normalized) => Ok(Units::Normalized),
+        Err(_) => Err(Error::invalid(format!("{field}: unknown units value {raw}"))),
+    }
+}
+
+/// The shape and float32 values of a float32 or float64 tensor field (finiteness is checked
+/// by `Serving::prepare`, which knows the model).
+fn decode_x(field: &str, x: Option<&pb::Tensor>) -> Result<(Vec<i64>, Vec<f32>)> {
+    let x = x.ok_or_else(|| Error::invalid(format!("{field}: missing")))?;
+    let mut values = Vec::new();
+    tensor::for_each_float(x, |v| values.push(v as f32)).map_err(|e| Error::invalid(format!("{field}: {e}")))?;
+    let shape = x
+        .shape
+        .iter()
+        .map(|&d| i64::try_from(d).map_err(|_| Error::invalid(format!("{field}: dimension {d} is too large"))))
+        .collect::<Result<Vec<_>>>()?;
+    Ok((shape, values))
+}
+
+fn times(t: &[u32]) -> Vec<i64> {
+    t.iter().map(|&v| i64::from(v)).collect()
+}
+
+/// A Gradient request as a serving query.
+fn gradient_query(req: &pb::GradientRequest, deadline: Option<std::time::Instant>) -> Result<Query> {
+    let (shape, values) = decode_x("x", req.x.as_ref())?;
+    let variance_of =
+        (!req.scale_by_posterior_variance_of.is_empty()).then(|| req.scale_by_posterior_variance_of.clone());
+    Ok(Query {
+        shape,
+        values,
+        t: times(&req.t),
+        input_units: units("input_units", req.input_units)?,
+        op: Op::Gradient {
+            units: units("gradient_units", req.gradient_units)?,
+            omega: req.omega.unwrap_or(1.0),
+            variance_of,
+        },
+        deadline,
+    })
+}
+
+async fn answer_gradient(
+    serving: &Serving,
+    req: &pb::GradientRequest,
+    deadline: Option<std::time::Instant>,
+) -> Result<pb::GradientResponse> {
+    let query = gradient_query(req, deadline)?;
+    let answer = serving.query(&req.model, query).await?;
+    let gradient = answer.gradient.as_ref().map(tensor_f32).transpose()?;
+    Ok(pb::GradientResponse {
+        request_id: req.request_id,
+        gradient,
+        rewards: Some(tensor_f32(&answer.rewards)?),
+        error: None,
+    })
+}
+
+fn score_response(answer: &Answer) -> Result<pb::ScoreResponse> {
+    Ok(pb::ScoreResponse {
+        rewards: Some(tensor_f32(&answer.rewards)?),
+        per_window: answer.per_window.as_ref().map(tensor_f32).transpose()?,
+        per_step: answer.per_step.as_ref().map(tensor_f32).transpose()?,
+    })
+}
+
+/// A reward model used for guidance: locked for each forward pass only, so that a long
+/// sampling run does not hold off the model's Score/Gradient queries. The backward pass
+/// through the returned graph only reads the weights (gradients are taken with respect to
+/// `x` alone), which libtorch allows concurrently with other readers.
+struct PerCall<'a>(&'a ServedReward);
+
+impl RewardFn for PerCall<'_> {
+    fn rho(&self, x: &Tensor, t: &Tensor) -> Result<Tensor> {
+        self.0.lock().rho(x, t)
+    }
 }
 
 /// Validated inputs of one Sample request.
@@ -53,13 +135,21 @@ struct SamplePlan {
     seed: u64,
     /// (horizon index, observation in normalized units).
     conditions: Vec<(usize, Vec<f32>)>,
+    omega: f64,
+    n_guide_steps: usize,
+    t_stopgrad: usize,
 }
 
 fn plan(req: &pb::SampleRequest, space: &Space, normalize_obs: impl Fn(&[f32]) -> Vec<f32>) -> Result<SamplePlan> {
-    if !req.reward_model.is_empty() || req.omega != 0.0 {
-        return Err(Error::Unimplemented(
-            "reward_model / omega: guidance by a reward model is not implemented by this server version yet; omit both for plain sampling".into(),
-        ));
+    if !req.omega.is_finite() {
+        return Err(Error::invalid(format!("omega: {} is not finite", req.omega)));
+    }
+    if req.reward_model.is_empty() && req.omega != 0.0 {
+        return Err(Error::invalid("omega: guidance needs a reward_model (omit omega for plain sampling)"));
+    }
+    let n_guide_steps = req.n_guide_steps.unwrap_or(1);
+    if n_guide_steps > MAX_GUIDE_STEPS {
+        return Err(Error::invalid(format!("n_guide_steps: {n_guide_steps} is above the limit of {MAX_GUIDE_STEPS}")));
     }
     let n = if req.n == 0 { 1 } else { req.n };
     if n > MAX_SAMPLES {
@@ -100,7 +190,15 @@ fn plan(req: &pb::SampleRequest, space: &Space, normalize_obs: impl Fn(&[f32]) -
     let seed = req.seed.unwrap_or_else(|| {
         std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_nanos() as u64).unwrap_or(0)
     });
-    Ok(SamplePlan { n: n as usize, batch: batch as usize, seed, conditions })
+    Ok(SamplePlan {
+        n: n as usize,
+        batch: batch as usize,
+        seed,
+        conditions,
+        omega: req.omega,
+        n_guide_steps: n_guide_steps as usize,
+        t_stopgrad: req.t_stopgrad.unwrap_or(0) as usize,
+    })
 }
 
 fn tensor_f32(t: &Tensor) -> Result<pb::Tensor> {
@@ -110,35 +208,145 @@ fn tensor_f32(t: &Tensor) -> Result<pb::Tensor> {
     Ok(tensor::encode_f32(&shape, &values))
 }
 
+/// The reward model that guides a Sample request, checked against the base model: same
+/// number of diffusion steps, item shape and normalizer (rho is a function of the base
+/// model's normalized units).
+async fn guiding_reward(
+    registry: &ModelRegistry,
+    req: &pb::SampleRequest,
+    space: &Space,
+    n_timesteps: usize,
+    normalizer: &crate::engine::normalizer::Normalizer,
+) -> Result<Option<Arc<ServedReward>>> {
+    if req.reward_model.is_empty() {
+        return Ok(None);
+    }
+    validate_name("reward_model", &req.reward_model)?;
+    let reward = registry.get_reward(&req.reward_model).await.map_err(|e| match e {
+        Error::NotFound(m) => Error::NotFound(format!("reward_model: {m}")),
+        Error::FailedPrecondition(m) => Error::FailedPrecondition(format!("reward_model: {m}")),
+        other => other,
+    })?;
+    let name = &req.reward_model;
+    if reward.manifest.n_timesteps != n_timesteps {
+        return Err(Error::invalid(format!(
+            "reward_model: '{name}' was trained for {} diffusion steps, model '{}' has {n_timesteps}",
+            reward.manifest.n_timesteps, req.model
+        )));
+    }
+    if reward.item_shape != space.item_shape() {
+        return Err(Error::invalid(format!(
+            "reward_model: '{name}' takes items of shape {:?}, model '{}' samples {:?}",
+            reward.item_shape,
+            req.model,
+            space.item_shape()
+        )));
+    }
+    if &reward.manifest.normalizer != normalizer {
+        return Err(Error::invalid(format!(
+            "reward_model: '{name}' was trained under another normalizer than model '{}' uses, so its gradient would point the wrong way in this model's units",
+            req.model
+        )));
+    }
+    Ok(Some(reward))
+}
+
 #[tonic::async_trait]
 impl RewardService for Rewards {
     type GradientStreamStream = BoxStream<pb::GradientResponse>;
     type SampleStream = BoxStream<pb::SampleResponse>;
 
-    async fn score(&self, _: Request<pb::ScoreRequest>) -> Result<Response<pb::ScoreResponse>, Status> {
-        not_yet("RewardService.Score")
+    async fn score(&self, request: Request<pb::ScoreRequest>) -> Result<Response<pb::ScoreResponse>, Status> {
+        let deadline = serving::deadline_of(request.metadata());
+        let req = request.into_inner();
+        let (shape, values) = decode_x("x", req.x.as_ref())?;
+        let query = Query {
+            shape,
+            values,
+            t: times(&req.t),
+            input_units: units("input_units", req.input_units)?,
+            op: Op::Score { per_window: req.per_window, per_step: req.per_step },
+            deadline,
+        };
+        let answer = self.serving.query(&req.model, query).await?;
+        Ok(Response::new(score_response(&answer)?))
     }
 
-    async fn gradient(&self, _: Request<pb::GradientRequest>) -> Result<Response<pb::GradientResponse>, Status> {
-        not_yet("RewardService.Gradient")
+    async fn gradient(&self, request: Request<pb::GradientRequest>) -> Result<Response<pb::GradientResponse>, Status> {
+        let deadline = serving::deadline_of(request.metadata());
+        let req = request.into_inner();
+        Ok(Response::new(answer_gradient(&self.serving, &req, deadline).await?))
     }
 
+    /// Answers every request of the stream as soon as its batch is done (in any order,
+    /// matched by request_id); a failed request gets its error in its response and the
+    /// stream goes on. When the client goes away, queries still queued are skipped.
     async fn gradient_stream(
         &self,
-        _: Request<Streaming<pb::GradientRequest>>,
+        request: Request<Streaming<pb::GradientRequest>>,
     ) -> Result<Response<Self::GradientStreamStream>, Status> {
-        not_yet("RewardService.GradientStream")
+        let deadline = serving::deadline_of(request.metadata());
+        let mut inbound = request.into_inner();
+        let serving = self.serving.clone();
+        let (tx, rx) = mpsc::channel::<Result<pb::GradientResponse, Status>>(STREAM_BUFFER);
+        tokio::spawn(async move {
+            let mut in_flight = FuturesUnordered::new();
+            let mut inbound_open = true;
+            loop {
+                tokio::select! {
+                    message = inbound.message(), if inbound_open => match message {
+                        Ok(Some(req)) => {
+                            let serving = serving.clone();
+                            in_flight.push(async move {
+                                match answer_gradient(&serving, &req, deadline).await {
+                                    Ok(response) => response,
+                                    Err(e) => {
+                                        let status = Status::from(e);
+                                        pb::GradientResponse {
+                                            request_id: req.request_id,
+                                            error: Some(pb::StreamError {
+                                                code: status.code() as i32,
+                                                message: status.message().to_owned(),
+                                            }),
+                                            ..Default::default()
+                                        }
+                                    }
+                                }
+                            });
+                        }
+                        Ok(None) => inbound_open = false,
+                        Err(status) => {
+                            // A broken inbound stream (client error or gone): answer what is
+                            // in flight if anyone still listens, accept nothing more.
+                            tracing::debug!(error = %status, "GradientStream: inbound stream ended with an error");
+                            inbound_open = false;
+                        }
+                    },
+                    Some(response) = in_flight.next(), if !in_flight.is_empty() => {
+                        if tx.send(Ok(response)).await.is_err() {
+                            return;
+                        }
+                    }
+                    () = tx.closed() => return,
+                }
+                if !inbound_open && in_flight.is_empty() {
+                    return;
+                }
+            }
+        });
+        Ok(Response::new(Box::pin(tokio_stream::wrappers::ReceiverStream::new(rx))))
     }
 
-    /// Samples in batches on a blocking thread and streams each sample as its batch finishes.
+    /// Samples in batches on a blocking thread and streams each sample as its batch finishes,
+    /// with its reward rho(x, 0) when a reward model is given (guiding when omega != 0).
     /// Stops early when the client goes away.
     async fn sample(&self, request: Request<pb::SampleRequest>) -> Result<Response<Self::SampleStream>, Status> {
         let req = request.into_inner();
         validate_name("model", &req.model)?;
         let shared = self.registry.get_diffusion(&req.model).await?;
-        let (space, normalizer) = {
+        let (space, normalizer, n_timesteps) = {
             let m = shared.lock().map_err(|_| Error::internal("model", "lock poisoned"))?;
-            (m.manifest.space.clone(), m.manifest.normalizer.clone())
+            (m.manifest.space.clone(), m.manifest.normalizer.clone(), m.n_timesteps())
         };
         let plan = {
             let norm = normalizer.clone();
@@ -154,7 +362,9 @@ impl RewardService for Rewards {
                 Vec::<f32>::try_from(&t.view(-1).narrow(0, action_dim as i64, obs.len() as i64)).unwrap_or_default()
             })?
         };
-        let permit = Arc::clone(&self.workers)
+        let reward = guiding_reward(&self.registry, &req, &space, n_timesteps, &normalizer).await?;
+        let scale_grad_by_std = req.scale_grad_by_std;
+        let permit = Arc::clone(&self.slots)
             .acquire_owned()
             .await
             .map_err(|_| Error::Unavailable("the server is shutting down".into()))?;
@@ -170,7 +380,17 @@ impl RewardService for Rewards {
                     .iter()
                     .map(|(index, v)| Condition { index: *index, state: Tensor::from_slice(v) })
                     .collect();
-                let sampler = GuidedSampler::new(&model).with_conditions(conditions);
+                let per_call = reward.as_deref().map(PerCall);
+                let mut sampler = GuidedSampler::new(&model).with_conditions(conditions);
+                if let Some(r) = &per_call {
+                    sampler = sampler.with_guidance(Guidance {
+                        reward: r,
+                        omega: plan.omega,
+                        n_guide_steps: plan.n_guide_steps,
+                        t_stopgrad: plan.t_stopgrad,
+                        scale_grad_by_std,
+                    });
+                }
                 let mut rng = Rng::new(plan.seed);
                 let item_dims = space.normalizer_dims();
                 let mut done = 0usize;
@@ -184,13 +404,23 @@ impl RewardService for Rewards {
                         Ok(())
                     };
                     let sampled = sampler.sample_with(b, &mut rng, &mut stop_if_gone)?;
+                    let rewards = match &per_call {
+                        Some(r) => {
+                            let t0 = Tensor::zeros([b as i64], (Kind::Int64, tch::Device::Cpu));
+                            Some(
+                                Vec::<f64>::try_from(&r.rho(&sampled.x, &t0)?.to_kind(Kind::Double))
+                                    .map_err(|e| Error::internal("reading rewards", e))?,
+                            )
+                        }
+                        None => None,
+                    };
                     let raw = normalizer.unnormalize(&sampled.x, item_dims);
                     for i in 0..b {
                         let response = pb::SampleResponse {
                             index: (done + i) as u32,
                             x: Some(tensor_f32(&raw.get(i as i64))?),
                             x_normalized: Some(tensor_f32(&sampled.x.get(i as i64))?),
-                            reward: None,
+                            reward: rewards.as_ref().map(|r| r[i]),
                         };
                         if tx.blocking_send(Ok(response)).is_err() {
                             return Ok(());

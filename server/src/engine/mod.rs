@@ -15,8 +15,10 @@
 //! - [`nets`]: native architectures (TemporalUnet, MLP denoiser) with safetensors weights.
 //! - [`torchscript`]: [`torchscript::TorchScriptDenoiser`], an uploaded TorchScript module as a
 //!   denoiser, validated against its manifest by one forward pass.
-//! - [`registry`]: [`registry::ModelRegistry`], stored diffusion models loaded on demand,
-//!   integrity-checked (sha256) and cached in memory up to `models.cache_bytes` (LRU).
+//! - [`reward_model`]: [`reward_model::RewardModel`], a stored reward as served: rho over
+//!   normalized inputs (with Algorithm 2's per-step standardisation), its gradient.
+//! - [`registry`]: [`registry::ModelRegistry`], stored diffusion and reward models loaded on
+//!   demand, integrity-checked (sha256) and cached in memory up to `models.cache_bytes` (LRU).
 
 pub mod data;
 pub mod denoiser;
@@ -27,6 +29,7 @@ pub mod normalizer;
 pub mod optim;
 pub mod registry;
 pub mod relative_reward;
+pub mod reward_model;
 pub mod rng;
 pub mod sampling;
 pub mod schedule;

@@ -1,8 +1,10 @@
-//! [`ModelRegistry`]: diffusion models loaded from the store on demand and kept in memory.
+//! [`ModelRegistry`]: stored models loaded on demand and kept in memory: diffusion models
+//! ([`DiffusionModel`]) and reward or discriminator models ([`RewardModel`]).
 //!
-//! - Loading: the record's manifest (JSON) becomes an engine [`DiffusionManifest`]; the file is
-//!   a native architecture's safetensors weights ([`NativeDenoiser`]) or a TorchScript module
-//!   ([`TorchScriptDenoiser`], validated again with one forward pass), on the registry's device.
+//! - Loading: the record's manifest (JSON) becomes an engine manifest. A diffusion model's
+//!   file is a native architecture's safetensors weights ([`NativeDenoiser`]) or a TorchScript
+//!   module ([`TorchScriptDenoiser`], validated again with one forward pass); a reward model's
+//!   is its network's safetensors weights (plus Algorithm 2's step tables beside them).
 //! - Integrity: the stored file's sha256 is recomputed on every load and compared with the
 //!   record's; a mismatch (or a missing file, or an unreadable manifest) is `DataLoss` and the
 //!   model is never served.
@@ -14,12 +16,12 @@
 //! - Identity: an entry is keyed by name and remembers its blob key; every lookup reads the
 //!   record first, so a model deleted and registered again under the same name is never
 //!   served from a stale entry. [`ModelRegistry::invalidate`] frees an entry at once.
-//! - Kind: asking for a diffusion model by the name of a reward or discriminator model is
+//! - Kind: asking for a diffusion model by the name of a reward model, or the reverse, is
 //!   `FailedPrecondition` (the name is well formed and the model exists; it is the wrong kind
 //!   of model for the request in the system's current state).
 //!
-//! tch modules are `Send` but not `Sync`, so each model is shared as `Arc<Mutex<_>>` (a
-//! `std::sync::Mutex`: lock it on a blocking thread, where tensor work belongs anyway).
+//! tch modules are `Send` but not `Sync`, so each model is shared behind a `std::sync::Mutex`
+//! (lock it on a blocking thread, where tensor work belongs anyway).
 
 use std::collections::HashMap;
 use std::io::Read;
@@ -33,6 +35,8 @@ use super::denoiser::Denoiser;
 use super::diffusion::DiffusionModel;
 use super::manifest::DiffusionManifest;
 use super::nets::NativeDenoiser;
+use super::relative_reward::RewardManifest;
+use super::reward_model::RewardModel;
 use super::torchscript::TorchScriptDenoiser;
 use crate::config::ModelsConfig;
 use crate::error::{Error, Result};
@@ -40,6 +44,30 @@ use crate::store::{ModelFormat, ModelKind, ModelRecord, Store};
 
 /// A loaded diffusion model, shared between requests.
 pub type SharedDiffusion = Arc<Mutex<DiffusionModel>>;
+
+/// A loaded reward or discriminator model, shared between requests.
+pub type SharedReward = Arc<ServedReward>;
+
+/// A reward model with what requests validate against readable without its lock.
+#[derive(Debug)]
+pub struct ServedReward {
+    pub name: String,
+    /// The stored version: a model registered again under the same name has another key.
+    pub blob_key: String,
+    pub manifest: RewardManifest,
+    pub item_shape: Vec<i64>,
+    pub window: Option<usize>,
+    model: Mutex<RewardModel>,
+}
+
+impl ServedReward {
+    /// The model, for tensor work (blocking threads only).
+    pub fn lock(&self) -> MutexGuard<'_, RewardModel> {
+        // A panic inside libtorch cannot leave the weights half-written (inference never
+        // writes them), so a poisoned lock is still usable.
+        lock(&self.model)
+    }
+}
 
 #[derive(Clone)]
 pub struct ModelRegistry {
@@ -62,9 +90,23 @@ struct Cache {
     bytes: u64,
 }
 
+/// A loaded model of either family.
+#[derive(Clone)]
+enum Served {
+    Diffusion(SharedDiffusion),
+    Reward(SharedReward),
+}
+
+/// Which family a request needs.
+#[derive(Clone, Copy, PartialEq, Eq)]
+enum Family {
+    Diffusion,
+    Reward,
+}
+
 struct Entry {
     blob_key: String,
-    model: SharedDiffusion,
+    model: Served,
     bytes: u64,
     last_used: u64,
 }
@@ -77,7 +119,7 @@ fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
 
 /// What the loader produced.
 struct Loaded {
-    model: DiffusionModel,
+    model: Served,
     bytes: u64,
 }
 
@@ -104,7 +146,34 @@ impl ModelRegistry {
     /// Errors: `NotFound` (no such model), `FailedPrecondition` (a reward or discriminator
     /// model), `DataLoss` (the stored file or manifest fails its integrity check).
     pub async fn get_diffusion(&self, name: &str) -> Result<SharedDiffusion> {
-        let record = self.record(name).await?;
+        match self.get(name, Family::Diffusion).await? {
+            Served::Diffusion(m) => Ok(m),
+            Served::Reward(_) => {
+                Err(Error::internal("model registry", "a reward model was cached as a diffusion model"))
+            }
+        }
+    }
+
+    /// The reward or discriminator model `name`, from the cache or loaded from the store.
+    ///
+    /// Errors: `NotFound`, `FailedPrecondition` (a diffusion model), `DataLoss`.
+    pub async fn get_reward(&self, name: &str) -> Result<SharedReward> {
+        match self.get(name, Family::Reward).await? {
+            Served::Reward(m) => Ok(m),
+            Served::Diffusion(_) => {
+                Err(Error::internal("model registry", "a diffusion model was cached as a reward model"))
+            }
+        }
+    }
+
+    /// The stored record of diffusion model `name` (for what its manifest alone answers, such
+    /// as its schedule), without loading it.
+    pub async fn diffusion_record(&self, name: &str) -> Result<ModelRecord> {
+        self.record(name, Family::Diffusion).await
+    }
+
+    async fn get(&self, name: &str, family: Family) -> Result<Served> {
+        let record = self.record(name, family).await?;
         if let Some(model) = self.lookup(name, &record.blob_key) {
             return Ok(model);
         }
@@ -117,9 +186,12 @@ impl ModelRegistry {
         let dir = self.inner.store.blobs.local_dir(&record.blob_key).await?;
         let device = self.inner.device;
         let blob_key = record.blob_key.clone();
-        let loaded = tokio::task::spawn_blocking(move || load_diffusion(&record, &dir, device))
-            .await
-            .map_err(|e| Error::internal("model loading task", e))?;
+        let loaded = tokio::task::spawn_blocking(move || match family {
+            Family::Diffusion => load_diffusion(&record, &dir, device),
+            Family::Reward => load_reward(&record, &dir, device),
+        })
+        .await
+        .map_err(|e| Error::internal("model loading task", e))?;
         let loaded = match loaded {
             Ok(l) => l,
             Err(e) => {
@@ -133,8 +205,8 @@ impl ModelRegistry {
         Ok(self.insert(name, blob_key, loaded))
     }
 
-    /// The stored record of a diffusion model.
-    async fn record(&self, name: &str) -> Result<ModelRecord> {
+    /// The stored record of a model of `family`.
+    async fn record(&self, name: &str, family: Family) -> Result<ModelRecord> {
         let record = self
             .inner
             .store
@@ -142,26 +214,31 @@ impl ModelRegistry {
             .get_model(name)
             .await?
             .ok_or_else(|| Error::NotFound(format!("model '{name}' not found")))?;
-        match record.kind {
-            ModelKind::Diffusion => Ok(record),
-            ModelKind::Reward | ModelKind::Discriminator => Err(Error::FailedPrecondition(format!(
+        match (record.kind, family) {
+            (ModelKind::Diffusion, Family::Diffusion)
+            | (ModelKind::Reward | ModelKind::Discriminator, Family::Reward) => Ok(record),
+            (kind, Family::Diffusion) => Err(Error::FailedPrecondition(format!(
                 "model '{name}' is a {} model, not a diffusion model",
-                kind_name(record.kind)
+                kind_name(kind)
+            ))),
+            (kind, Family::Reward) => Err(Error::FailedPrecondition(format!(
+                "model '{name}' is a {} model, not a reward or discriminator model",
+                kind_name(kind)
             ))),
         }
     }
 
-    fn lookup(&self, name: &str, blob_key: &str) -> Option<SharedDiffusion> {
+    fn lookup(&self, name: &str, blob_key: &str) -> Option<Served> {
         let mut cache = lock(&self.inner.cache);
         cache.clock += 1;
         let clock = cache.clock;
         let entry = cache.entries.get_mut(name).filter(|e| e.blob_key == blob_key)?;
         entry.last_used = clock;
-        Some(Arc::clone(&entry.model))
+        Some(entry.model.clone())
     }
 
-    fn insert(&self, name: &str, blob_key: String, loaded: Loaded) -> SharedDiffusion {
-        let model = Arc::new(Mutex::new(loaded.model));
+    fn insert(&self, name: &str, blob_key: String, loaded: Loaded) -> Served {
+        let model = loaded.model;
         let mut cache = lock(&self.inner.cache);
         if let Some(old) = cache.entries.remove(name) {
             cache.bytes = cache.bytes.saturating_sub(old.bytes);
@@ -187,9 +264,7 @@ impl ModelRegistry {
         cache.clock += 1;
         let last_used = cache.clock;
         cache.bytes = cache.bytes.saturating_add(loaded.bytes);
-        cache
-            .entries
-            .insert(name.to_owned(), Entry { blob_key, model: Arc::clone(&model), bytes: loaded.bytes, last_used });
+        cache.entries.insert(name.to_owned(), Entry { blob_key, model: model.clone(), bytes: loaded.bytes, last_used });
         tracing::debug!(model = name, bytes = loaded.bytes, cached_bytes = cache.bytes, "model loaded");
         model
     }
@@ -258,34 +333,50 @@ pub fn sha256_file(path: &Path) -> std::io::Result<(String, u64)> {
 /// A private, uncached copy of a stored diffusion model (blocking), for a training job that
 /// must not hold the shared copy's lock for its whole run.
 pub fn load_diffusion_copy(record: &ModelRecord, dir: &Path, device: Device) -> Result<DiffusionModel> {
-    Ok(load_diffusion(record, dir, device)?.model)
+    let (model, _) = build_diffusion(record, dir, device)?;
+    Ok(model)
 }
 
-/// Builds the diffusion model of a stored record (blocking: hashing and libtorch).
-fn load_diffusion(record: &ModelRecord, dir: &Path, device: Device) -> Result<Loaded> {
-    let name = &record.name;
-    let lost = |what: String| Error::DataLoss(format!("model '{name}': {what}; it will not be served"));
+/// The stored file of `record`, checked against its recorded sha256; returns its path and size.
+fn verified_file(record: &ModelRecord, dir: &Path) -> Result<(PathBuf, u64)> {
     let path = dir.join(&record.file);
     let (sha256, size) = match sha256_file(&path) {
         Ok(v) => v,
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Err(lost("its stored file is missing".into())),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+            return Err(lost(record, "its stored file is missing".into()));
+        }
         Err(e) => return Err(e.into()),
     };
     if sha256 != record.sha256 {
-        return Err(lost(format!(
-            "the stored file fails its integrity check (sha256 {sha256}, recorded {})",
-            record.sha256
-        )));
+        return Err(lost(
+            record,
+            format!("the stored file fails its integrity check (sha256 {sha256}, recorded {})", record.sha256),
+        ));
     }
+    Ok((path, size))
+}
+
+fn lost(record: &ModelRecord, what: String) -> Error {
+    Error::DataLoss(format!("model '{}': {what}; it will not be served", record.name))
+}
+
+fn load_diffusion(record: &ModelRecord, dir: &Path, device: Device) -> Result<Loaded> {
+    let (model, bytes) = build_diffusion(record, dir, device)?;
+    Ok(Loaded { model: Served::Diffusion(Arc::new(Mutex::new(model))), bytes })
+}
+
+/// Builds the diffusion model of a stored record (blocking: hashing and libtorch); returns it
+/// with its cache size.
+fn build_diffusion(record: &ModelRecord, dir: &Path, device: Device) -> Result<(DiffusionModel, u64)> {
+    let (path, size) = verified_file(record, dir)?;
     let manifest: DiffusionManifest = serde_json::from_value(record.manifest.clone())
-        .map_err(|e| lost(format!("its stored manifest is unreadable: {e}")))?;
-    manifest.validate().map_err(|e| lost(format!("its stored manifest is invalid: {e}")))?;
+        .map_err(|e| lost(record, format!("its stored manifest is unreadable: {e}")))?;
+    manifest.validate().map_err(|e| lost(record, format!("its stored manifest is invalid: {e}")))?;
     let (net, parameter_bytes): (Box<dyn Denoiser>, u64) = match record.format {
         ModelFormat::Native => {
-            let arch = manifest
-                .architecture
-                .as_ref()
-                .ok_or_else(|| lost("its stored manifest names no architecture (native models need one)".into()))?;
+            let arch = manifest.architecture.as_ref().ok_or_else(|| {
+                lost(record, "its stored manifest names no architecture (native models need one)".into())
+            })?;
             let net = NativeDenoiser::load(arch, &manifest.space, &path, device)?;
             let bytes = net.parameter_count().saturating_mul(4);
             (Box::new(net), bytes)
@@ -297,7 +388,31 @@ fn load_diffusion(record: &ModelRecord, dir: &Path, device: Device) -> Result<Lo
         }
     };
     let model = DiffusionModel::new(manifest, net)?;
-    Ok(Loaded { model, bytes: parameter_bytes.max(size) })
+    Ok((model, parameter_bytes.max(size)))
+}
+
+/// Builds the reward model of a stored record (blocking).
+fn load_reward(record: &ModelRecord, dir: &Path, device: Device) -> Result<Loaded> {
+    let (path, size) = verified_file(record, dir)?;
+    let manifest: RewardManifest = serde_json::from_value(record.manifest.clone())
+        .map_err(|e| lost(record, format!("its stored manifest is unreadable: {e}")))?;
+    if record.format != ModelFormat::Native {
+        return Err(lost(record, "reward models are stored as native weights, this record says otherwise".into()));
+    }
+    let model = RewardModel::load(manifest.clone(), &path, dir, device).map_err(|e| match e {
+        Error::DataLoss(m) | Error::InvalidArgument(m) => lost(record, m),
+        other => other,
+    })?;
+    let bytes = model.parameter_count().saturating_mul(4).max(size);
+    let served = ServedReward {
+        name: record.name.clone(),
+        blob_key: record.blob_key.clone(),
+        item_shape: model.item_shape().to_vec(),
+        window: model.window(),
+        manifest,
+        model: Mutex::new(model),
+    };
+    Ok(Loaded { model: Served::Reward(Arc::new(served)), bytes })
 }
 
 #[cfg(test)]

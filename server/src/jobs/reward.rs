@@ -17,6 +17,7 @@ use crate::engine::registry::load_diffusion_copy;
 use crate::engine::relative_reward::{
     EvalPoint, Objective, RewardManifest, Target, alignment_loss, check_pair, target_and_point,
 };
+use crate::engine::reward_model::STEP_NORM_FILE;
 use crate::engine::rng::Rng;
 use crate::error::{Error, Result};
 use crate::store::ingest::now_ms;
@@ -24,8 +25,6 @@ use crate::store::{DatasetKind, ModelFormat, ModelKind, ModelRecord, Provenance,
 
 /// Held-out items per evaluation.
 const EVAL_ITEMS: usize = 256;
-/// Algorithm 2's per-step standardisation tables, next to the weights of the reward model.
-pub const STEP_NORM_FILE: &str = "step_norm.safetensors";
 
 /// The default reward network for a space (the paper's tables): windowed MLP h = 4 with
 /// (128, 64, 32) for trajectories (h = 1 if the horizon is not a multiple of 4), the latent

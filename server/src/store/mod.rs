@@ -136,6 +136,9 @@ pub enum JobState {
 }
 
 impl JobState {
+    /// Every state, in lifecycle order.
+    pub const ALL: [JobState; 5] = [Self::Pending, Self::Running, Self::Succeeded, Self::Failed, Self::Cancelled];
+
     /// Terminal states have no way out.
     pub fn is_terminal(self) -> bool {
         matches!(self, Self::Succeeded | Self::Failed | Self::Cancelled)
@@ -243,6 +246,9 @@ pub trait MetadataStore: Send + Sync {
     async fn list_jobs(&self, state: Option<JobState>, after: i64, limit: usize) -> Result<Vec<(i64, JobRecord)>>;
     /// Jobs in any of these states, oldest first (start-up recovery, in-use checks).
     async fn jobs_in_states(&self, states: &[JobState]) -> Result<Vec<JobRecord>>;
+    /// How many jobs are in each state, every state listed (zero included); for the metrics
+    /// endpoint, which asks at every scrape, so it must not read the records.
+    async fn count_jobs_by_state(&self) -> Result<Vec<(JobState, u64)>>;
     /// Replaces the job record and appends events, in one transaction. Refuses to move a job
     /// out of a terminal state (`Error::FailedPrecondition`).
     async fn record_job(&self, record: &JobRecord, events: &[JobEvent]) -> Result<()>;

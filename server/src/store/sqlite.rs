@@ -306,6 +306,23 @@ impl MetadataStore for SqliteMetadata {
         .await
     }
 
+    async fn count_jobs_by_state(&self) -> Result<Vec<(JobState, u64)>> {
+        self.with_conn(|c| {
+            // Answered from the jobs_by_state index alone.
+            let mut stmt = c.prepare("SELECT state, COUNT(*) FROM jobs GROUP BY state")?;
+            let rows = stmt.query_map([], |r| Ok((r.get::<_, String>(0)?, r.get::<_, i64>(1)?)))?;
+            let mut counts: Vec<(JobState, u64)> = JobState::ALL.iter().map(|s| (*s, 0)).collect();
+            for row in rows {
+                let (state, n) = row?;
+                if let Some(entry) = counts.iter_mut().find(|(s, _)| s.as_str() == state) {
+                    entry.1 = u64::try_from(n).unwrap_or(0);
+                }
+            }
+            Ok(counts)
+        })
+        .await
+    }
+
     async fn record_job(&self, record: &JobRecord, events: &[JobEvent]) -> Result<()> {
         let json = encode(record)?;
         let events: Vec<(u64, String)> = events.iter().map(|e| Ok((e.seq, encode(e)?))).collect::<Result<_>>()?;
@@ -400,5 +417,26 @@ mod tests {
         drop(db);
         let db = SqliteMetadata::open(&dir.path().join("m.sqlite3")).expect("reopen");
         assert_eq!(db.job_events("j", 2, 100).await.expect("events").len(), 2);
+    }
+
+    #[tokio::test(flavor = "multi_thread")]
+    async fn jobs_are_counted_by_state_with_zeros() {
+        let dir = tempfile::tempdir().expect("tmp");
+        let db = SqliteMetadata::open(&dir.path().join("m.sqlite3")).expect("open");
+        for (id, state) in [("a", JobState::Pending), ("b", JobState::Pending), ("c", JobState::Failed)] {
+            let record = JobRecord { id: id.into(), ..job(state, 1) };
+            db.insert_job(&record, &[event(1, state)]).await.expect("insert");
+        }
+        let counts = db.count_jobs_by_state().await.expect("count");
+        assert_eq!(
+            counts,
+            vec![
+                (JobState::Pending, 2),
+                (JobState::Running, 0),
+                (JobState::Succeeded, 0),
+                (JobState::Failed, 1),
+                (JobState::Cancelled, 0)
+            ]
+        );
     }
 }

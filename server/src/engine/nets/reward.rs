@@ -678,6 +678,14 @@ impl RewardNet {
         matches!(self.network, Network::WindowedMlp(_))
     }
 
+    /// Window length h of the windowed MLP (`None` for the other architectures).
+    pub fn window(&self) -> Option<usize> {
+        match &self.network {
+            Network::WindowedMlp(net) => Some(net.window as usize),
+            _ => None,
+        }
+    }
+
     /// The dtype of the weights (float32 unless the store was converted); inputs must match.
     pub fn kind(&self) -> Kind {
         let output = match &self.network {

@@ -1,0 +1,294 @@
+//! The per-model dynamic batcher.
+//!
+//! One [`ModelQueue`] per loaded reward model (keyed by its blob key, so a re-registered model
+//! gets a fresh queue), each drained by its own serving thread, started on first use and
+//! stopped after [`IDLE`] without work. The thread:
+//!
+//! 1. waits for a query, then up to `max_delay_us` after its arrival (or until `max_batch`
+//!    items of the same [`BatchKind`] are queued);
+//! 2. takes queries of the first query's kind, in arrival order, up to `max_batch` items (the
+//!    first is always taken, even if larger): a query whose caller went away is skipped, one
+//!    whose deadline passed is answered DEADLINE_EXCEEDED, neither is computed;
+//! 3. takes an inference slot (shared with sampling), concatenates the items, runs one
+//!    forward (Score) or forward/backward (Gradient) pass, and splits the results back.
+//!
+//! Queries of different kinds never share a pass; gradient options (units, omega, variance)
+//! are per-item factors applied after the shared backward pass, so they do not split batches.
+
+use std::collections::{HashMap, VecDeque};
+use std::sync::{Arc, Condvar, Mutex, MutexGuard, PoisonError};
+use std::time::{Duration, Instant};
+
+use tch::Tensor;
+use tokio::sync::oneshot;
+
+use super::{Answer, Inner, Prepared};
+use crate::engine::registry::SharedReward;
+use crate::error::{Error, Result};
+
+/// A serving thread with nothing to do for this long exits (the next query starts another).
+const IDLE: Duration = Duration::from_secs(30);
+
+/// Queries of one kind can share a forward pass.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum BatchKind {
+    Score { per_window: bool, per_step: bool },
+    Gradient,
+}
+
+/// The queues of every model with a serving thread.
+#[derive(Default)]
+pub(super) struct Queues {
+    by_key: Mutex<HashMap<String, Arc<ModelQueue>>>,
+}
+
+impl Queues {
+    pub(super) fn depth(&self, model: &SharedReward) -> usize {
+        lock(&self.by_key).get(&model.blob_key).map_or(0, |q| lock(&q.state).pending.len())
+    }
+}
+
+struct ModelQueue {
+    model: SharedReward,
+    state: Mutex<QueueState>,
+    arrived: Condvar,
+}
+
+#[derive(Default)]
+struct QueueState {
+    pending: VecDeque<Pending>,
+    /// Set by the exiting thread: submitters must start a new queue.
+    closed: bool,
+}
+
+struct Pending {
+    query: Prepared,
+    reply: oneshot::Sender<Result<Answer>>,
+    arrived: Instant,
+}
+
+fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
+    // Critical sections only move queries in and out of a deque; a panic cannot leave it
+    // half-updated.
+    m.lock().unwrap_or_else(PoisonError::into_inner)
+}
+
+/// Queues `query` with its model's thread (starting one if needed). RESOURCE_EXHAUSTED when
+/// the model's queue is full.
+pub(super) fn submit(inner: &Arc<Inner>, query: Prepared) -> Result<oneshot::Receiver<Result<Answer>>> {
+    let (reply, answer) = oneshot::channel();
+    let mut pending = Some(Pending { query, reply, arrived: Instant::now() });
+    loop {
+        let queue = queue_for(inner, pending.as_ref().map(|p| &p.query.model).ok_or_else(lost_query)?)?;
+        let mut state = lock(&queue.state);
+        if state.closed {
+            // The thread exited between the lookup and now; forget it and start another.
+            drop(state);
+            let mut map = lock(&inner.queues.by_key);
+            if map.get(&queue.model.blob_key).is_some_and(|q| Arc::ptr_eq(q, &queue)) {
+                map.remove(&queue.model.blob_key);
+            }
+            continue;
+        }
+        if state.pending.len() >= inner.config.queue_capacity {
+            inner.metrics.dropped(&queue.model.name, "queue_full");
+            return Err(Error::ResourceExhausted(format!(
+                "model '{}' has {} queries waiting (serving.queue_capacity); retry with backoff",
+                queue.model.name,
+                state.pending.len()
+            )));
+        }
+        state.pending.push_back(pending.take().ok_or_else(lost_query)?);
+        inner.metrics.set_queue_depth(&queue.model.name, state.pending.len());
+        queue.arrived.notify_one();
+        return Ok(answer);
+    }
+}
+
+fn lost_query() -> Error {
+    Error::internal("serving", "query lost before queueing")
+}
+
+/// The live queue of `model`, started with its thread if there is none.
+fn queue_for(inner: &Arc<Inner>, model: &SharedReward) -> Result<Arc<ModelQueue>> {
+    let mut map = lock(&inner.queues.by_key);
+    if let Some(q) = map.get(&model.blob_key) {
+        return Ok(Arc::clone(q));
+    }
+    let queue = Arc::new(ModelQueue {
+        model: Arc::clone(model),
+        state: Mutex::new(QueueState::default()),
+        arrived: Condvar::new(),
+    });
+    let (thread_queue, thread_inner) = (Arc::clone(&queue), Arc::clone(inner));
+    std::thread::Builder::new()
+        .name(format!("serve-{}", model.name))
+        .spawn(move || serve(&thread_inner, &thread_queue))
+        .map_err(|e| Error::internal("starting a serving thread", e))?;
+    map.insert(model.blob_key.clone(), Arc::clone(&queue));
+    Ok(queue)
+}
+
+/// The serving thread of one model.
+fn serve(inner: &Arc<Inner>, queue: &Arc<ModelQueue>) {
+    let name = queue.model.name.clone();
+    tracing::debug!(model = name, "serving thread started");
+    while let Some((kind, batch)) = next_batch(inner, queue) {
+        // Wait for a compute slot; queries may expire or be abandoned meanwhile.
+        let Ok(_slot) = futures::executor::block_on(Arc::clone(&inner.slots).acquire_owned()) else {
+            for p in batch {
+                let _ = p.reply.send(Err(Error::Unavailable("the server is shutting down".into())));
+            }
+            continue;
+        };
+        let batch = drop_expired(inner, &name, batch, Instant::now());
+        if batch.is_empty() {
+            continue;
+        }
+        let started = Instant::now();
+        for p in &batch {
+            inner.metrics.observe_queue_wait(&name, started.duration_since(p.arrived).as_secs_f64());
+        }
+        let items: i64 = batch.iter().map(|p| p.query.batch()).sum();
+        let result = compute(queue, kind, &batch);
+        inner.metrics.observe_batch(&name, items as usize, started.elapsed().as_secs_f64());
+        match result {
+            Ok(answers) => {
+                for (p, a) in batch.into_iter().zip(answers) {
+                    let _ = p.reply.send(Ok(a));
+                }
+            }
+            Err(e) => {
+                tracing::error!(model = name, error = %e, "a merged batch failed");
+                let msg = e.to_string();
+                for p in batch {
+                    let _ = p.reply.send(Err(Error::internal("serving batch", &msg)));
+                }
+            }
+        }
+    }
+    tracing::debug!(model = name, "serving thread idle: stopped");
+}
+
+/// Waits for work and returns the next batch, or `None` after [`IDLE`] without work (the queue
+/// is then closed).
+fn next_batch(inner: &Inner, queue: &ModelQueue) -> Option<(BatchKind, Vec<Pending>)> {
+    let max_batch = inner.config.max_batch as i64;
+    let max_delay = Duration::from_micros(inner.config.max_delay_us);
+    let mut state = lock(&queue.state);
+    loop {
+        while state.pending.is_empty() {
+            let (s, timeout) = queue.arrived.wait_timeout(state, IDLE).unwrap_or_else(PoisonError::into_inner);
+            state = s;
+            if timeout.timed_out() && state.pending.is_empty() {
+                state.closed = true;
+                return None;
+            }
+        }
+        let (kind, first_arrived) = {
+            let first = state.pending.front()?;
+            (first.query.kind, first.arrived)
+        };
+        // Wait for company until the first query's delay is spent or the batch is full.
+        let until = first_arrived + max_delay;
+        loop {
+            let queued: i64 = state.pending.iter().filter(|p| p.query.kind == kind).map(|p| p.query.batch()).sum();
+            let now = Instant::now();
+            if queued >= max_batch || now >= until {
+                break;
+            }
+            state = queue.arrived.wait_timeout(state, until - now).unwrap_or_else(PoisonError::into_inner).0;
+        }
+        let now = Instant::now();
+        let mut batch = Vec::new();
+        let mut items = 0i64;
+        let mut rest = VecDeque::with_capacity(state.pending.len());
+        while let Some(p) = state.pending.pop_front() {
+            if p.query.kind != kind || (items > 0 && items + p.query.batch() > max_batch) {
+                rest.push_back(p);
+                continue;
+            }
+            if let Some(p) = keep(inner, &queue.model.name, p, now) {
+                items += p.query.batch();
+                batch.push(p);
+            }
+        }
+        state.pending = rest;
+        inner.metrics.set_queue_depth(&queue.model.name, state.pending.len());
+        if !batch.is_empty() {
+            return Some((kind, batch));
+        }
+    }
+}
+
+/// `Some(p)` if its caller still waits and its deadline has not passed; otherwise it is
+/// answered (or dropped) here and counted.
+fn keep(inner: &Inner, model: &str, p: Pending, now: Instant) -> Option<Pending> {
+    if p.reply.is_closed() {
+        inner.metrics.dropped(model, "cancelled");
+        return None;
+    }
+    if p.query.deadline.is_some_and(|d| d <= now) {
+        inner.metrics.dropped(model, "deadline");
+        let waited = now.duration_since(p.arrived);
+        let _ = p.reply.send(Err(Error::DeadlineExceeded(format!(
+            "the deadline passed after {:.1} ms in model '{model}''s queue; the query was not computed",
+            waited.as_secs_f64() * 1e3
+        ))));
+        return None;
+    }
+    Some(p)
+}
+
+fn drop_expired(inner: &Inner, model: &str, batch: Vec<Pending>, now: Instant) -> Vec<Pending> {
+    batch.into_iter().filter_map(|p| keep(inner, model, p, now)).collect()
+}
+
+/// One forward (and backward) pass over the concatenated batch, split back per query.
+fn compute(queue: &ModelQueue, kind: BatchKind, batch: &[Pending]) -> Result<Vec<Answer>> {
+    let sizes: Vec<i64> = batch.iter().map(|p| p.query.batch()).collect();
+    let x = Tensor::f_cat(&batch.iter().map(|p| &p.query.x).collect::<Vec<_>>(), 0)?;
+    let t = Tensor::f_cat(&batch.iter().map(|p| &p.query.t).collect::<Vec<_>>(), 0)?;
+    let model = queue.model.lock();
+    let split = |v: Tensor| -> Result<Vec<Tensor>> { Ok(v.f_split_with_sizes(&sizes, 0)?) };
+    match kind {
+        BatchKind::Score { per_window, per_step } => {
+            let _no_grad = tch::no_grad_guard();
+            let rewards = split(model.rho(&x, &t)?)?;
+            let mut windows = if per_window { Some(split(model.per_window(&x, &t)?)?.into_iter()) } else { None };
+            let mut steps = if per_step { Some(split(model.per_step(&x, &t)?)?.into_iter()) } else { None };
+            Ok(rewards
+                .into_iter()
+                .map(|rewards| Answer {
+                    rewards,
+                    gradient: None,
+                    per_window: windows.as_mut().and_then(Iterator::next),
+                    per_step: steps.as_mut().and_then(Iterator::next),
+                })
+                .collect())
+        }
+        BatchKind::Gradient => {
+            let (rho, grad) = model.grad(&x, &t)?;
+            drop(model);
+            let _no_grad = tch::no_grad_guard();
+            let jacobian = {
+                let m = &queue.model.manifest;
+                m.normalizer.jacobian(&x, m.space.normalizer_dims())
+            };
+            let mut answers = Vec::with_capacity(batch.len());
+            for ((p, rewards), gradient) in batch.iter().zip(split(rho)?).zip(split(grad)?) {
+                let gradient = match &p.query.gradient_post {
+                    None => gradient,
+                    Some(post) => {
+                        let mut shape = vec![-1i64];
+                        shape.extend(std::iter::repeat_n(1, gradient.dim() - 1));
+                        let g = gradient.f_mul(&post.factor.f_view(shape.as_slice())?)?;
+                        if post.raw_units { g.f_mul(&jacobian)? } else { g }
+                    }
+                };
+                answers.push(Answer { rewards, gradient: Some(gradient), per_window: None, per_step: None });
+            }
+            Ok(answers)
+        }
+    }
+}
