@@ -2,7 +2,9 @@
 //! them and serves those rewards over gRPC.
 //!
 //! Module map (each may import the ones below it, never above):
-//! - [`api`]: tonic services; validate and convert at the door, nothing else.
+//! - [`api`]: tonic services (relreward.v1 and the Open Inference Protocol); validate and
+//!   convert at the door, nothing else.
+//! - [`serving`]: Score and Gradient queries: validation, units, the per-model dynamic batcher.
 //! - [`engine`]: tensor math on libtorch (tch). Knows nothing of gRPC.
 //! - [`jobs`]: the job system (queue, threads, events, checkpoints) and the training runners.
 //! - [`store`]: metadata ([`store::MetadataStore`]) and files ([`store::BlobStore`]),

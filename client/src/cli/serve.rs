@@ -132,7 +132,7 @@ pub struct SampleArgs {
     /// Reward model that guides the sampler (needs --scale).
     #[arg(long, value_name = "R")]
     pub reward: Option<String>,
-    /// Guidance scale omega.
+    /// Guidance scale omega (0: no guidance, the reward of each sample is still reported).
     #[arg(long, value_name = "W", allow_negative_numbers = true)]
     pub scale: Option<f64>,
     /// Guided sampling: no guidance at diffusion times below K [default: the server's].
@@ -1258,7 +1258,8 @@ mod tests {
         assert_eq!(flag_of(&status("tx: other"), &fields), None);
         assert_eq!(flag_of(&status("the server is busy"), &fields), None);
         assert_eq!(flag_of(&ClientError::Invalid("t: local".into()), &fields), None);
-        let text = |e: anyhow::Error| format!("{e:#}");
+        // The label and the status, as `relreward` prints them (without the status's sources).
+        let text = |e: anyhow::Error| e.chain().take(2).map(ToString::to_string).collect::<Vec<_>>().join(": ");
         let r = 16..32;
         assert_eq!(
             text(request_error(status("t[0]: bad"), &fields, &r, 40, true)),
@@ -1268,7 +1269,8 @@ mod tests {
             text(request_error(status("x: bad"), &fields, &r, 40, true)).starts_with("--input, items 16..32 of 40: ")
         );
         assert!(text(request_error(status("busy"), &fields, &r, 40, true)).starts_with("items 16..32 of 40: "));
-        assert_eq!(text(request_error(status("busy"), &fields, &r, 40, false)), "INVALID_ARGUMENT: busy");
+        let plain = request_error(status("busy"), &fields, &r, 40, false);
+        assert_eq!(plain.to_string(), "INVALID_ARGUMENT: busy");
     }
 
     #[test]
