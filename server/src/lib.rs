@@ -29,7 +29,6 @@ use std::future::Future;
 use std::time::Duration;
 
 use tokio::net::TcpListener;
-use tokio_stream::wrappers::TcpListenerStream;
 use tokio_util::sync::CancellationToken;
 use tonic_health::ServingStatus;
 
@@ -83,6 +82,10 @@ pub async fn run(
         .build_v1alpha()?;
 
     let stop_accepting = CancellationToken::new();
+    // TCP_NODELAY on every accepted connection: without it a small unary response waits for
+    // the client's delayed ACK (Nagle), about 40 ms per Gradient call. tonic's own
+    // `tcp_nodelay` setting does not apply to a listener passed in.
+    let incoming = tonic::transport::server::TcpIncoming::from(listener).with_nodelay(Some(true));
     let server = {
         let token = stop_accepting.clone();
         tonic::transport::Server::builder()
@@ -91,7 +94,7 @@ pub async fn run(
             .add_service(health_service)
             .add_service(reflection_v1)
             .add_service(reflection_v1alpha)
-            .serve_with_incoming_shutdown(TcpListenerStream::new(listener), async move { token.cancelled().await })
+            .serve_with_incoming_shutdown(incoming, async move { token.cancelled().await })
     };
     tokio::pin!(server);
     tokio::select! {

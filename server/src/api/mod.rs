@@ -22,8 +22,8 @@ use std::sync::Arc;
 
 use tokio::sync::Semaphore;
 
-use crate::serving::Serving;
 use crate::jobs::JobManager;
+use crate::serving::Serving;
 use crate::store::Store;
 
 /// Page size when a request leaves it at 0, and the cap on any page.

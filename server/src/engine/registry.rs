@@ -13,9 +13,11 @@
 //!   libtorch's C API does not list); beyond it the least recently used are dropped. A model
 //!   larger than the whole budget is served but not kept. Dropping only removes the registry's
 //!   reference: a request still holding the model finishes with it.
-//! - Identity: an entry is keyed by name and remembers its blob key; every lookup reads the
-//!   record first, so a model deleted and registered again under the same name is never
-//!   served from a stale entry. [`ModelRegistry::invalidate`] frees an entry at once.
+//! - Identity: an entry is keyed by name and remembers its blob key; a lookup reads the record
+//!   first unless no model record changed since the entry was last checked (the store's
+//!   models generation), so a model deleted and registered again under the same name is never
+//!   served from a stale entry, and the serving hot path costs no metadata read.
+//!   [`ModelRegistry::invalidate`] frees an entry at once.
 //! - Kind: asking for a diffusion model by the name of a reward model, or the reverse, is
 //!   `FailedPrecondition` (the name is well formed and the model exists; it is the wrong kind
 //!   of model for the request in the system's current state).
@@ -109,6 +111,9 @@ struct Entry {
     model: Served,
     bytes: u64,
     last_used: u64,
+    /// The store's models generation when the record was last read: while it is unchanged the
+    /// record is too, and lookups skip the metadata read.
+    checked_at: u64,
 }
 
 fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
@@ -173,14 +178,20 @@ impl ModelRegistry {
     }
 
     async fn get(&self, name: &str, family: Family) -> Result<Served> {
+        // Read before the record, so a change racing with this lookup bumps it past what the
+        // entry remembers and the next lookup reads the record again.
+        let generation = self.inner.store.models_generation();
+        if let Some(model) = self.lookup_unchanged(name, family, generation) {
+            return Ok(model);
+        }
         let record = self.record(name, family).await?;
-        if let Some(model) = self.lookup(name, &record.blob_key) {
+        if let Some(model) = self.lookup(name, &record.blob_key, generation) {
             return Ok(model);
         }
         let gate = Arc::clone(lock(&self.inner.loading).entry(name.to_owned()).or_default());
         let _loading = gate.lock().await;
         // Whoever held the gate before may have loaded it.
-        if let Some(model) = self.lookup(name, &record.blob_key) {
+        if let Some(model) = self.lookup(name, &record.blob_key, generation) {
             return Ok(model);
         }
         let dir = self.inner.store.blobs.local_dir(&record.blob_key).await?;
@@ -202,7 +213,7 @@ impl ModelRegistry {
                 }
             }
         };
-        Ok(self.insert(name, blob_key, loaded))
+        Ok(self.insert(name, blob_key, loaded, generation))
     }
 
     /// The stored record of a model of `family`.
@@ -228,16 +239,34 @@ impl ModelRegistry {
         }
     }
 
-    fn lookup(&self, name: &str, blob_key: &str) -> Option<Served> {
+    /// The cached model of `family` if no model record changed since the entry was checked.
+    fn lookup_unchanged(&self, name: &str, family: Family, generation: u64) -> Option<Served> {
+        let mut cache = lock(&self.inner.cache);
+        cache.clock += 1;
+        let clock = cache.clock;
+        let entry = cache.entries.get_mut(name).filter(|e| e.checked_at == generation)?;
+        let same_family = match &entry.model {
+            Served::Diffusion(_) => family == Family::Diffusion,
+            Served::Reward(_) => family == Family::Reward,
+        };
+        if !same_family {
+            return None;
+        }
+        entry.last_used = clock;
+        Some(entry.model.clone())
+    }
+
+    fn lookup(&self, name: &str, blob_key: &str, generation: u64) -> Option<Served> {
         let mut cache = lock(&self.inner.cache);
         cache.clock += 1;
         let clock = cache.clock;
         let entry = cache.entries.get_mut(name).filter(|e| e.blob_key == blob_key)?;
         entry.last_used = clock;
+        entry.checked_at = generation;
         Some(entry.model.clone())
     }
 
-    fn insert(&self, name: &str, blob_key: String, loaded: Loaded) -> Served {
+    fn insert(&self, name: &str, blob_key: String, loaded: Loaded, generation: u64) -> Served {
         let model = loaded.model;
         let mut cache = lock(&self.inner.cache);
         if let Some(old) = cache.entries.remove(name) {
@@ -264,7 +293,10 @@ impl ModelRegistry {
         cache.clock += 1;
         let last_used = cache.clock;
         cache.bytes = cache.bytes.saturating_add(loaded.bytes);
-        cache.entries.insert(name.to_owned(), Entry { blob_key, model: model.clone(), bytes: loaded.bytes, last_used });
+        cache.entries.insert(
+            name.to_owned(),
+            Entry { blob_key, model: model.clone(), bytes: loaded.bytes, last_used, checked_at: generation },
+        );
         tracing::debug!(model = name, bytes = loaded.bytes, cached_bytes = cache.bytes, "model loaded");
         model
     }

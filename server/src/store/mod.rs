@@ -22,6 +22,7 @@ pub mod sqlite;
 use std::collections::HashSet;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering};
 
 use async_trait::async_trait;
 use serde::{Deserialize, Serialize};
@@ -317,6 +318,11 @@ pub const BLOB_NAMESPACES: [&str; 3] = ["datasets/", "models/", "checkpoints/"];
 pub struct Store {
     pub meta: Arc<dyn MetadataStore>,
     pub blobs: Arc<dyn BlobStore>,
+    /// Bumped after every model record this process inserts or deletes, so caches keyed by
+    /// model name can skip re-reading the record while it is unchanged (the serving hot path).
+    /// One process owns the embedded store; a shared metadata backend must bump it from its
+    /// own change notifications.
+    models_generation: Arc<AtomicU64>,
 }
 
 impl Store {
@@ -328,7 +334,7 @@ impl Store {
             .map_err(|e| Error::internal(&format!("creating data dir {}", dir.display()), e))?;
         let meta = sqlite::SqliteMetadata::open(&dir.join("metadata.sqlite3"))?;
         let blobs = local::LocalBlobs::open(dir)?;
-        let store = Self { meta: Arc::new(meta), blobs: Arc::new(blobs) };
+        let store = Self { meta: Arc::new(meta), blobs: Arc::new(blobs), models_generation: Arc::default() };
         store.recover().await?;
         Ok(store)
     }
@@ -377,13 +383,21 @@ impl Store {
             }
             return Err(e);
         }
+        self.models_generation.fetch_add(1, Ordering::SeqCst);
         Ok(record)
+    }
+
+    /// Changes whenever a model record is inserted or deleted (see the field).
+    pub fn models_generation(&self) -> u64 {
+        self.models_generation.load(Ordering::SeqCst)
     }
 
     /// Removes a model: record first, files second.
     pub async fn delete_model(&self, name: &str) -> Result<()> {
-        let record =
-            self.meta.delete_model(name).await?.ok_or_else(|| Error::NotFound(format!("model '{name}' not found")))?;
+        let deleted = self.meta.delete_model(name).await;
+        // Bumped even on error: the record may be gone although the call failed.
+        self.models_generation.fetch_add(1, Ordering::SeqCst);
+        let record = deleted?.ok_or_else(|| Error::NotFound(format!("model '{name}' not found")))?;
         if let Err(e) = self.blobs.remove(&record.blob_key).await {
             tracing::warn!(key = record.blob_key, error = %e, "could not remove model files; removed at next start");
         }
