@@ -217,3 +217,85 @@ pub async fn eventually(secs: u64, mut f: impl FnMut() -> bool) -> bool {
     }
     f()
 }
+
+/// What [`train_tiny_reward`] registered on a server.
+#[derive(Debug, Clone)]
+pub struct TinyModels {
+    /// Trajectories dataset (D4RL keys), uploaded as `traj`.
+    pub dataset: String,
+    /// Diffusion models `base` and `expert`, horizon [`TinyModels::horizon`], T = 10.
+    pub base: String,
+    pub expert: String,
+    /// Windowed-MLP reward `rw` (window 4, hidden 16,16).
+    pub reward: String,
+    pub horizon: usize,
+    /// Transition dimension: action 2 + observation 2.
+    pub transition_dim: usize,
+    pub n_timesteps: usize,
+}
+
+/// Uploads a small trajectories dataset (5 episodes, rows `[action | observation]`, obs
+/// following sin/cos curves) and trains a base and an expert diffusion model and a windowed
+/// reward for a few steps each through the CLI: seconds, for tests that need a servable reward
+/// rather than a good one. `dir` receives `traj.npz`.
+pub fn train_tiny_reward(server: &TestServer, dir: &Path) -> TinyModels {
+    let lengths = [30usize, 5, 40, 12, 25];
+    let n: usize = lengths.iter().sum();
+    let (mut obs, mut act) = (Vec::with_capacity(2 * n), Vec::with_capacity(2 * n));
+    let mut state = 0x2545_f491_4f6c_dd1du64;
+    let mut noise = || {
+        state ^= state << 13;
+        state ^= state >> 7;
+        state ^= state << 17;
+        (state >> 11) as f32 / (1u64 << 53) as f32 - 0.5
+    };
+    for i in 0..n {
+        let t = i as f32;
+        obs.extend([(t / 7.0).sin() + 0.1 * noise(), (t / 5.0).cos() + 0.1 * noise()]);
+        act.extend([2.0 * noise(), 2.0 * noise()]);
+    }
+    let (mut terminals, mut timeouts) = (vec![false; n], vec![false; n]);
+    let mut end = 0;
+    for (k, l) in lengths.iter().enumerate() {
+        end += l;
+        if k == 0 { terminals[end - 1] = true } else { timeouts[end - 1] = true }
+    }
+    let path = dir.join("traj.npz");
+    let mut npz = relreward_client::npz_write::NpzWriter::create(&path).expect("npz");
+    npz.add_f32("observations", &[n as u64, 2], &obs).expect("obs");
+    npz.add_f32("actions", &[n as u64, 2], &act).expect("act");
+    npz.add_bool("terminals", &[n as u64], &terminals).expect("terminals");
+    npz.add_bool("timeouts", &[n as u64], &timeouts).expect("timeouts");
+    npz.finish().expect("write npz");
+    let config = dir.join("diffusion.toml");
+    std::fs::write(
+        &config,
+        "[optimization]\nsteps = 12\nbatch_size = 8\nlog_every = 4\n[diffusion]\nhorizon = 8\nn_timesteps = 10\n\
+         architecture = { kind = \"temporal_unet\", dim = 8, dim_mults = [1, 2] }\n",
+    )
+    .expect("config");
+    let run = |args: &[&str]| {
+        let out = server.cli(args);
+        assert!(out.status.success(), "relreward {args:?}: {}", String::from_utf8_lossy(&out.stderr));
+    };
+    let path = path.to_str().expect("utf8 path");
+    let config = config.to_str().expect("utf8 path");
+    run(&["dataset", "upload", path, "--name", "traj"]);
+    for (name, seed) in [("base", "1"), ("expert", "2")] {
+        run(&["train", "diffusion", "--name", name, "--dataset", "traj", "--config", config, "--seed", seed, "--watch"]);
+    }
+    run(&[
+        "train", "reward", "--name", "rw", "--base", "base", "--expert", "expert", "--dataset", "traj", "--arch",
+        "windowed_mlp", "--window", "4", "--hidden", "16,16", "--steps", "8", "--batch-size", "8", "--seed", "3",
+        "--watch",
+    ]);
+    TinyModels {
+        dataset: "traj".into(),
+        base: "base".into(),
+        expert: "expert".into(),
+        reward: "rw".into(),
+        horizon: 8,
+        transition_dim: 4,
+        n_timesteps: 10,
+    }
+}

@@ -150,7 +150,7 @@ fn format_name(format: pb::ModelFormat) -> &'static str {
 ///                 "datasets": [..], "models": [..], "final_loss": X | null} | null,
 ///  "manifest": {see manifest::manifest_json} | null,
 ///  "reward": {"base_model": "..", "expert_model": "..", "architecture": "..", "window": N,
-///             "input_shape": [..], "normalizer": {..}} | null}
+///             "input_shape": [..], "n_timesteps": T, "normalizer": {..}} | null}
 /// ```
 ///
 /// Non-finite numbers are written as `null`.
@@ -172,6 +172,7 @@ pub fn model_json(m: &pb::Model) -> Value {
             "architecture": r.architecture,
             "window": r.window,
             "input_shape": r.input_shape,
+            "n_timesteps": r.n_timesteps,
             "normalizer": normalizer_json(r.normalizer.as_ref()),
         })),
     })
@@ -249,6 +250,7 @@ fn format_model(m: &pb::Model) -> String {
             ("architecture", or_dash(&r.architecture)),
             ("window", if r.window == 0 { "-".to_owned() } else { r.window.to_string() }),
             ("input shape", format!("{:?}", r.input_shape)),
+            ("diffusion steps", r.n_timesteps.to_string()),
             ("normalizer", normalizer_text(r.normalizer.as_ref())),
         ];
         out.push_str(&key_values(&fields, 2));
@@ -318,6 +320,7 @@ mod tests {
                 window: 4,
                 input_shape: vec![8, 6],
                 normalizer: None,
+                n_timesteps: 20,
             }),
             provenance: Some(pb::Provenance {
                 source: Some(pb::provenance::Source::Trained(pb::provenance::Trained {

@@ -254,6 +254,7 @@ pub fn model_to_proto(r: &ModelRecord) -> Result<pb::Model> {
                 },
                 input_shape: m.space.item_shape().iter().map(|&d| d as u64).collect(),
                 normalizer: Some(normalizer_to_proto(&m.normalizer)),
+                n_timesteps: m.n_timesteps as u32,
             })
         }
     };
