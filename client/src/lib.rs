@@ -8,16 +8,23 @@
 //!   scores, gradients, the gradient stream and guided sampling).
 //! - [`watch`]: following a job's events across reconnects (resume bookkeeping, backoff).
 //! - [`upload`]: [`UploadSource`], where an upload's array bytes come from, and the chunker.
+//! - `eval` (feature `cli`): the paper's evaluation (discriminability, reward heatmaps, goal
+//!   recovery) over scores, and its PNG pictures.
 //! - `npz` (feature `cli`): reads `.npz`/`.npy` files into an [`UploadSource`].
 //! - `npz_write` (feature `cli`): writes `.npz` archives (results of `score`, `grad`, `sample`).
+//! - [`maze`]: the built-in Maze2D data generator (D4RL layouts, point mass, waypoint
+//!   controller; its `.npz` output needs feature `cli`).
 //!
 //! The library never links libtorch.
 
 pub mod client;
+pub mod maze;
 pub mod tensor;
 pub mod upload;
 pub mod watch;
 
+#[cfg(feature = "cli")]
+pub mod eval;
 #[cfg(feature = "cli")]
 pub mod npz;
 #[cfg(feature = "cli")]

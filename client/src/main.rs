@@ -43,6 +43,19 @@
 //!   [--out FILE.npz]`: samples (guided by R with omega = W); `--out` writes `x` [N, H, D] in
 //!   raw units, `x_normalized` and, with a reward model, `reward` [N].
 //!
+//! - `relreward eval discriminate --model R --base-data D1.npz --expert-data D2.npz [--t T]
+//!   [--stride S] [--max-windows N] [--winsorize P] [--seed S] [--batch N] [--hist-out H.png]`:
+//!   held-out balanced accuracy of a logistic regression on the reward alone (paper 5.1).
+//! - `relreward eval heatmap --model R --dataset D.npz --out heatmap.png [--goal X,Y]
+//!   [--goal-from E.npz] [--walls W.npz] [--t T] [--bins-per-cell N] [--min-count K]
+//!   [--unit auto|item|window] [--stride S] [--max-windows N] [--winsorize P] [--smooth SIGMA]
+//!   [--xy-columns I,J] [--seed S]`: the maze reward heatmap and goal recovery.
+//! - `relreward job plot ID --out loss.png [--hist-out rewards.png [--model R] --dataset D.npz..]`:
+//!   a job's loss curve from its events, and reward histograms over datasets' windows.
+//! - `relreward maze generate --layout open|umaze|medium|large --mode base|expert [--goal ROW,COL]
+//!   --transitions N [--seed S] [--action-noise STD] --out FILE.npz`: a Maze2D dataset with D4RL's
+//!   keys from the built-in generator (no server needed; see `relreward_client::maze`).
+//!
 //! Global options: `--endpoint URL` (env `RELREWARD_ENDPOINT`, default
 //! `http://127.0.0.1:50051`) and `--json`, which prints one JSON document on stdout per command
 //! (`job watch`: one JSON object per event per line).
@@ -99,6 +112,12 @@ enum Command {
     Grad(cli::serve::GradArgs),
     /// Sample from a diffusion model, optionally guided by a reward model.
     Sample(cli::serve::SampleArgs),
+    /// Evaluate a reward: discriminability of base vs expert, reward heatmaps and goal recovery.
+    #[command(subcommand)]
+    Eval(cli::eval::EvalCommand),
+    /// Generate Maze2D datasets locally (D4RL layouts, point mass, waypoint controller).
+    #[command(subcommand)]
+    Maze(cli::maze::MazeCommand),
 }
 
 fn main() -> ExitCode {
@@ -149,6 +168,8 @@ async fn run(cli: Cli) -> Result<Report> {
         Command::Score(args) => cli::serve::score(&ctx, args).await,
         Command::Grad(args) => cli::serve::grad(&ctx, args).await,
         Command::Sample(args) => cli::serve::sample(&ctx, args).await,
+        Command::Eval(command) => cli::eval::run(&ctx, command).await,
+        Command::Maze(command) => cli::maze::run(&ctx, command).await,
     }
 }
 

@@ -1,5 +1,5 @@
 //! `relreward train diffusion|reward|discriminator` (specs built by [`super::train`]) and
-//! `relreward job list|show|cancel|watch`.
+//! `relreward job list|show|cancel|watch` (`job plot` is in [`super::eval`]).
 //!
 //! `job watch` (and `train ... --watch`) shows a progress bar fed by the job's Progress events
 //! (step/total, loss, steps/s and ETA as the server measured them), prints state changes, log
@@ -56,6 +56,9 @@ pub enum JobCommand {
         #[arg(long, value_name = "N", default_value_t = 0)]
         from_seq: u64,
     },
+    /// Draw a job's loss curve (and held-out loss) from its events as a PNG; optionally a
+    /// histogram of a reward over the windows of datasets (see `super::eval`).
+    Plot(super::eval::JobPlotArgs),
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
@@ -97,6 +100,7 @@ pub async fn run(ctx: &Ctx, command: JobCommand) -> Result<Report> {
             let client = ctx.connect().await?;
             watch(ctx, &client, &id, from_seq).await
         }
+        JobCommand::Plot(args) => super::eval::job_plot(ctx, args).await,
     }
 }
 

@@ -7,11 +7,16 @@
 //!   `job list|show|cancel|watch`;
 //! - [`serve`]: `score`, `grad` and `sample` (the RewardService: inputs from `.npz` files,
 //!   trajectories cut into windows, results written as `.npz`);
+//! - [`eval`]: `eval discriminate|heatmap` and `job plot` (the paper's evaluation and its
+//!   pictures, over scores of local trajectory files);
+//! - [`maze`]: `maze generate` (Maze2D datasets from the built-in generator, no server);
 //! - [`output`]: JSON and text formatting, progress bars, terminal I/O.
 
 pub mod datasets;
+pub mod eval;
 pub mod jobs;
 pub mod manifest;
+pub mod maze;
 pub mod models;
 pub mod output;
 pub mod serve;

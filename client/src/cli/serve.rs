@@ -32,7 +32,7 @@ use super::{Ctx, Report, UsageError};
 /// (16 MiB), leaving room for framing and for servers configured lower.
 pub const MAX_REQUEST_BYTES: u64 = 8 << 20;
 /// Requests in flight at once: one computing while the next travels.
-const IN_FLIGHT: usize = 2;
+pub(crate) const IN_FLIGHT: usize = 2;
 
 // ---------------------------------------------------------------------------------------------
 // Flags
@@ -259,13 +259,13 @@ impl Windows {
 
 /// What `score` and `grad` send: items of one shape.
 #[derive(Debug, Clone)]
-enum Items {
+pub(crate) enum Items {
     Array { key: String, values: Vec<f32>, item_shape: Vec<u64> },
     Windows(Windows),
 }
 
 impl Items {
-    fn len(&self) -> usize {
+    pub(crate) fn len(&self) -> usize {
         match self {
             Self::Array { values, item_shape, .. } => {
                 let per = item_shape.iter().product::<u64>() as usize;
@@ -275,19 +275,19 @@ impl Items {
         }
     }
 
-    fn item_shape(&self) -> Vec<u64> {
+    pub(crate) fn item_shape(&self) -> Vec<u64> {
         match self {
             Self::Array { item_shape, .. } => item_shape.clone(),
             Self::Windows(w) => vec![w.horizon as u64, w.dim as u64],
         }
     }
 
-    fn item_len(&self) -> usize {
+    pub(crate) fn item_len(&self) -> usize {
         self.item_shape().iter().product::<u64>() as usize
     }
 
     /// Items `range` as one `[b, *item_shape]` float32 tensor.
-    fn batch(&self, range: Range<usize>) -> pb::Tensor {
+    pub(crate) fn batch(&self, range: Range<usize>) -> pb::Tensor {
         let mut shape = vec![range.len() as u64];
         shape.extend(self.item_shape());
         match self {
@@ -306,7 +306,7 @@ impl Items {
     }
 
     /// A line for the summary: where the items came from.
-    fn describe(&self) -> String {
+    pub(crate) fn describe(&self) -> String {
         match self {
             Self::Array { key, .. } => format!("array '{key}'"),
             Self::Windows(w) => format!(
@@ -319,7 +319,7 @@ impl Items {
         }
     }
 
-    fn source_json(&self) -> Value {
+    pub(crate) fn source_json(&self) -> Value {
         match self {
             Self::Array { key, .. } => json!({ "kind": "array", "key": key }),
             Self::Windows(w) => json!({
@@ -463,7 +463,7 @@ async fn reward_input_shape(client: &Client, name: &str) -> Result<Vec<u64>> {
 }
 
 /// Opens `--input`, asks the server for the model's item shape and loads the items.
-async fn read_items(client: &Client, args: &InputArgs) -> Result<Items> {
+pub(crate) async fn read_items(client: &Client, args: &InputArgs) -> Result<Items> {
     let (path, key, stride) = (args.input.clone(), args.key.clone(), args.stride);
     let file = tokio::task::spawn_blocking(move || inspect_input(&path, key.as_deref(), stride))
         .await
@@ -481,7 +481,7 @@ async fn read_items(client: &Client, args: &InputArgs) -> Result<Items> {
 }
 
 /// `--batch`, lowered (with a note) so that one request carries at most [`MAX_REQUEST_BYTES`].
-fn request_batch(requested: u64, item_bytes: u64, quiet: bool) -> usize {
+pub(crate) fn request_batch(requested: u64, item_bytes: u64, quiet: bool) -> usize {
     let fits = (MAX_REQUEST_BYTES / item_bytes.max(1)).max(1);
     if requested > fits {
         if !quiet {
@@ -495,7 +495,7 @@ fn request_batch(requested: u64, item_bytes: u64, quiet: bool) -> usize {
     requested as usize
 }
 
-fn batches(n: usize, batch: usize) -> Vec<Range<usize>> {
+pub(crate) fn batches(n: usize, batch: usize) -> Vec<Range<usize>> {
     (0..n).step_by(batch.max(1)).map(|s| s..(s + batch).min(n)).collect()
 }
 
@@ -503,7 +503,7 @@ fn batches(n: usize, batch: usize) -> Vec<Range<usize>> {
 // Results
 
 /// float32 or float64 values of a response tensor (non-finite values are kept).
-fn floats(t: Option<&pb::Tensor>, field: &str, shape: &[u64]) -> Result<Vec<f32>> {
+pub(crate) fn floats(t: Option<&pb::Tensor>, field: &str, shape: &[u64]) -> Result<Vec<f32>> {
     let t = t.ok_or_else(|| anyhow!("the server's answer has no {field}"))?;
     if t.shape != shape {
         bail!("the server's answer has {field} of shape {:?} where {shape:?} was expected", t.shape);
@@ -606,7 +606,7 @@ fn check_out(out: Option<&Path>) -> Result<()> {
 }
 
 /// A count progress bar on stderr, hidden with `--json` or off a terminal.
-fn item_bar(json: bool, total: u64, what: &str) -> ProgressBar {
+pub(crate) fn item_bar(json: bool, total: u64, what: &str) -> ProgressBar {
     let target = if bars_visible(json) { ProgressDrawTarget::stderr() } else { ProgressDrawTarget::hidden() };
     let template =
         format!("{{spinner}} {{elapsed_precise}} [{{wide_bar}}] {{pos}}/{{len}} {what} {{per_sec}} ETA {{eta}}");
@@ -631,7 +631,7 @@ fn flag_of(err: &ClientError, fields: &[(&str, String)]) -> Option<String> {
 
 /// A failed request's error, labelled with the flag it concerns (see [`flag_of`]) and, when
 /// the input took several requests and the fault may lie in the items, with the items sent.
-fn request_error(
+pub(crate) fn request_error(
     err: ClientError,
     fields: &[(&str, String)],
     range: &Range<usize>,

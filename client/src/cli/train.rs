@@ -100,6 +100,7 @@ pub struct DiffusionConfig {
     pub architecture: Option<Architecture>,
     pub action_weight: Option<f64>,
     pub clip_denoised: Option<bool>,
+    pub normalizer_datasets: Option<Vec<String>>,
 }
 
 /// The denoiser of a diffusion job.
@@ -347,6 +348,11 @@ pub struct TrainDiffusionArgs {
     /// Number of diffusion steps T.
     #[arg(long)]
     pub n_timesteps: Option<u32>,
+    /// Also compute the normalizer over this dataset (repeatable): give a base and an expert
+    /// model the same ones so that a reward can be extracted between them
+    /// [or diffusion.normalizer_datasets in --config].
+    #[arg(long = "normalizer-dataset", value_name = "DATASET")]
+    pub normalizer_datasets: Vec<String>,
     #[command(flatten)]
     pub job: TrainArgs,
 }
@@ -451,6 +457,11 @@ pub fn diffusion_spec(config: TrainConfig, args: &TrainDiffusionArgs) -> Result<
         architecture,
         action_weight: d.action_weight,
         clip_denoised: d.clip_denoised,
+        normalizer_datasets: if args.normalizer_datasets.is_empty() {
+            d.normalizer_datasets.unwrap_or_default()
+        } else {
+            args.normalizer_datasets.clone()
+        },
     })))
 }
 

@@ -81,6 +81,7 @@ impl Jobs {
                     architecture,
                     action_weight: d.action_weight.unwrap_or(1.0),
                     clip_denoised: d.clip_denoised.unwrap_or(true),
+                    normalizer_datasets: d.normalizer_datasets,
                 };
                 Ok(JobSpec {
                     output_model: spec.output_model,
@@ -265,6 +266,7 @@ fn spec_to_proto(spec: &JobSpec) -> pb::JobSpec {
             }),
             action_weight: Some(d.action_weight),
             clip_denoised: Some(d.clip_denoised),
+            normalizer_datasets: d.normalizer_datasets.clone(),
         }),
         JobKind::Reward(r) => pb::job_spec::Kind::Reward(pb::TrainReward {
             base_model: r.base_model.clone(),

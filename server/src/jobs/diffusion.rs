@@ -16,7 +16,8 @@ use crate::engine::normalizer::Normalizer;
 use crate::engine::rng::Rng;
 use crate::error::{Error, Result};
 use crate::store::ingest::now_ms;
-use crate::store::{DatasetKind, DatasetRecord, ModelFormat, ModelKind, ModelRecord, Provenance, Store};
+use crate::store::names::validate_name;
+use crate::store::{ArrayStats, DatasetKind, DatasetRecord, ModelFormat, ModelKind, ModelRecord, Provenance, Store};
 
 /// Held-out items per evaluation.
 const EVAL_ITEMS: usize = 256;
@@ -29,7 +30,14 @@ pub async fn validate_inputs(store: &Store, job: &DiffusionJob) -> Result<()> {
         .get_dataset(&job.dataset)
         .await?
         .ok_or_else(|| Error::NotFound(format!("spec.diffusion.dataset: dataset '{}' not found", job.dataset)))?;
-    let manifest = manifest_for(job, &ds)?;
+    let mut pooled = Vec::with_capacity(job.normalizer_datasets.len());
+    for (i, name) in job.normalizer_datasets.iter().enumerate() {
+        validate_name(&format!("spec.diffusion.normalizer_datasets[{i}]"), name)?;
+        pooled.push(store.meta.get_dataset(name).await?.ok_or_else(|| {
+            Error::NotFound(format!("spec.diffusion.normalizer_datasets[{i}]: dataset '{name}' not found"))
+        })?);
+    }
+    let manifest = manifest_for(job, &ds, &pooled)?;
     manifest.validate()?;
     if let (DatasetKind::Trajectories, Some(ep)) = (ds.kind, &ds.episodes)
         && (ep.max_length as usize) < job.horizon
@@ -43,20 +51,41 @@ pub async fn validate_inputs(store: &Store, job: &DiffusionJob) -> Result<()> {
 }
 
 /// The manifest of the model this job trains: layout and normalizer from the dataset.
-fn manifest_for(job: &DiffusionJob, ds: &DatasetRecord) -> Result<DiffusionManifest> {
-    let stats = |name: &str| {
+fn manifest_for(job: &DiffusionJob, ds: &DatasetRecord, pooled: &[DatasetRecord]) -> Result<DiffusionManifest> {
+    let one = |ds: &DatasetRecord, name: &str| {
         array(ds, name)
             .and_then(|a| a.stats.clone())
+            .map(|s| (ds.num_rows, s))
             .ok_or_else(|| Error::DataLoss(format!("dataset '{}' has no statistics for '{name}'", ds.name)))
     };
-    let (space, normalizer) = match ds.kind {
-        DatasetKind::Trajectories => {
-            if !matches!(job.architecture, Architecture::TemporalUnet { .. }) {
+    // The statistics of `name` over `ds` and the pooled datasets together.
+    let stats = |name: &str| -> Result<ArrayStats> {
+        let mut parts = vec![one(ds, name)?];
+        for (i, other) in pooled.iter().enumerate() {
+            if other.kind != ds.kind {
                 return Err(Error::invalid(format!(
-                    "spec.diffusion.architecture: trajectory dataset '{}' needs temporal_unet",
-                    ds.name
+                    "spec.diffusion.normalizer_datasets[{i}]: dataset '{}' holds {:?}, '{}' holds {:?}",
+                    other.name, other.kind, ds.name, ds.kind
                 )));
             }
+            let part = one(other, name)?;
+            if part.1.min.len() != parts[0].1.min.len() {
+                return Err(Error::invalid(format!(
+                    "spec.diffusion.normalizer_datasets[{i}]: '{name}' of dataset '{}' has {} coordinates, '{}' has {}",
+                    other.name,
+                    part.1.min.len(),
+                    ds.name,
+                    parts[0].1.min.len()
+                )));
+            }
+            parts.push(part);
+        }
+        Ok(pool(&parts))
+    };
+    let (space, normalizer) = match ds.kind {
+        // Trajectories take either the TemporalUnet (Diffuser's) or an MLP over the flattened
+        // window [H * D] (small horizons, CPU budgets: the demo's default).
+        DatasetKind::Trajectories => {
             let (act, obs) = (stats("actions")?, stats("observations")?);
             let space = Space::Trajectory { horizon: job.horizon, action_dim: act.min.len(), obs_dim: obs.min.len() };
             // Rows are [action | observation], so the normalizer's coordinates follow suit.
@@ -90,6 +119,31 @@ fn manifest_for(job: &DiffusionJob, ds: &DatasetRecord) -> Result<DiffusionManif
     })
 }
 
+/// Statistics of the union of datasets from each one's (rows, stats): min of mins, max of
+/// maxes, and the pooled mean and (population) standard deviation.
+fn pool(parts: &[(u64, ArrayStats)]) -> ArrayStats {
+    let d = parts[0].1.min.len();
+    let total: f64 = parts.iter().map(|(n, _)| *n as f64).sum::<f64>().max(1.0);
+    let mut out = ArrayStats {
+        min: vec![f64::INFINITY; d],
+        max: vec![f64::NEG_INFINITY; d],
+        mean: vec![0.0; d],
+        std: vec![0.0; d],
+    };
+    for j in 0..d {
+        let mut second = 0.0;
+        for (n, s) in parts {
+            let w = *n as f64 / total;
+            out.min[j] = out.min[j].min(s.min[j]);
+            out.max[j] = out.max[j].max(s.max[j]);
+            out.mean[j] += w * s.mean[j];
+            second += w * (s.std[j] * s.std[j] + s.mean[j] * s.mean[j]);
+        }
+        out.std[j] = (second - out.mean[j] * out.mean[j]).max(0.0).sqrt();
+    }
+    out
+}
+
 pub fn run(ctx: &mut JobContext, job: &DiffusionJob) -> std::result::Result<String, Stop> {
     let spec = ctx.spec.clone();
     let opt = &spec.optimization;
@@ -97,7 +151,14 @@ pub fn run(ctx: &mut JobContext, job: &DiffusionJob) -> std::result::Result<Stri
     let ds = ctx
         .block_on(store.meta.get_dataset(&job.dataset))?
         .ok_or_else(|| Error::NotFound(format!("dataset '{}' was deleted", job.dataset)))?;
-    let manifest = manifest_for(job, &ds)?;
+    let mut pooled = Vec::with_capacity(job.normalizer_datasets.len());
+    for name in &job.normalizer_datasets {
+        pooled.push(
+            ctx.block_on(store.meta.get_dataset(name))?
+                .ok_or_else(|| Error::NotFound(format!("dataset '{name}' was deleted")))?,
+        );
+    }
+    let manifest = manifest_for(job, &ds, &pooled)?;
     let dir = ctx.block_on(store.blobs.local_dir(&ds.blob_key))?;
     let (rows, starts) = load_rows(&dir, &ds, job.horizon)?;
     let data = TrainingData::new(

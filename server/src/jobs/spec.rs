@@ -96,13 +96,16 @@ pub struct DiffusionJob {
     /// Diffuser's weight on the first action's loss (1: none).
     pub action_weight: f64,
     pub clip_denoised: bool,
+    /// More datasets the normalizer is computed over, with `dataset` (see the proto).
+    #[serde(default)]
+    pub normalizer_datasets: Vec<String>,
 }
 
 impl JobSpec {
     /// Names of the datasets and models the job reads.
     pub fn inputs(&self) -> Vec<String> {
         match &self.kind {
-            JobKind::Diffusion(d) => vec![d.dataset.clone()],
+            JobKind::Diffusion(d) => std::iter::once(&d.dataset).chain(&d.normalizer_datasets).cloned().collect(),
             JobKind::Reward(r) => {
                 let mut v = vec![r.base_model.clone(), r.expert_model.clone()];
                 if let RewardAlgorithm::WithDataset { datasets } = &r.algorithm {
