@@ -16,11 +16,15 @@ BIN := target/release
 # Arguments for `make run`, e.g. make run ARGS="--listen 127.0.0.1:6000 --data-dir /tmp/rr".
 ARGS ?=
 
-.PHONY: help setup build run test test-rust lint fmt clean
+.PHONY: help setup build run test test-rust lint fmt clean demo bench
+# Arguments for `make demo`, e.g. make demo DEMO_ARGS="--layout medium --goals 4".
+DEMO_ARGS ?=
 
 help:
 	@echo "make run    set everything up, build, and start relreward-server on 127.0.0.1:50051"
 	@echo "make test   set everything up and run every test"
+	@echo "make demo   the Maze2D pipeline end to end (starts a server if none answers)"
+	@echo "make bench  the serving benchmark (tests/bench/serving.sh)"
 	@echo "make lint   rustfmt check and clippy"
 	@echo "make clean  remove build outputs (keeps .venv and data/)"
 
@@ -44,6 +48,22 @@ run: build
 ## test: every test. The end-to-end crate spawns target/release/relreward-server, built above.
 test: build
 	$(CARGO) test $(CARGO_PROFILE) --workspace --no-fail-fast
+
+## demo: uses the server at RELREWARD_ENDPOINT (default 127.0.0.1:50051) if it answers,
+## otherwise starts one on that port with its data under demo-out/ and stops it afterwards.
+demo: build
+	@if $(BIN)/relreward health >/dev/null 2>&1; then \
+	  $(BIN)/relreward demo $(DEMO_ARGS); \
+	else \
+	  mkdir -p demo-out; \
+	  RELREWARD__METRICS__LISTEN= $(BIN)/relreward-server --data-dir demo-out/server-data >demo-out/server.out 2>demo-out/server.log & \
+	  server=$$!; trap 'kill $$server 2>/dev/null || true' EXIT; \
+	  for _ in $$(seq 300); do $(BIN)/relreward health >/dev/null 2>&1 && break; sleep 0.1; done; \
+	  $(BIN)/relreward demo $(DEMO_ARGS); \
+	fi
+
+bench: build
+	tests/bench/serving.sh
 
 lint: setup
 	$(CARGO) fmt --all -- --check

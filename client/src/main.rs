@@ -56,6 +56,10 @@
 //!   --transitions N [--seed S] [--action-noise STD] --out FILE.npz`: a Maze2D dataset with D4RL's
 //!   keys from the built-in generator (no server needed; see `relreward_client::maze`).
 //!
+//! - `relreward demo [--layout umaze] [--goals K] [--out DIR] [--size tiny|default|full]
+//!   [--full] [--seed S]`: the paper's Maze2D pipeline against the server (data, diffusion
+//!   models, rewards, heatmaps, discriminability, steering), written to DIR with a summary.
+//!
 //! Global options: `--endpoint URL` (env `RELREWARD_ENDPOINT`, default
 //! `http://127.0.0.1:50051`) and `--json`, which prints one JSON document on stdout per command
 //! (`job watch`: one JSON object per event per line).
@@ -118,6 +122,8 @@ enum Command {
     /// Generate Maze2D datasets locally (D4RL layouts, point mass, waypoint controller).
     #[command(subcommand)]
     Maze(cli::maze::MazeCommand),
+    /// The paper's Maze2D result end to end: data, models, rewards, heatmaps, summary.
+    Demo(cli::demo::DemoArgs),
 }
 
 fn main() -> ExitCode {
@@ -170,6 +176,7 @@ async fn run(cli: Cli) -> Result<Report> {
         Command::Sample(args) => cli::serve::sample(&ctx, args).await,
         Command::Eval(command) => cli::eval::run(&ctx, command).await,
         Command::Maze(command) => cli::maze::run(&ctx, command).await,
+        Command::Demo(args) => cli::demo::run(&ctx, args).await,
     }
 }
 

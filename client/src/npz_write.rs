@@ -94,12 +94,11 @@ impl NpzWriter {
         }
         let header = npy_header(descr, shape);
         let size = header.len() as u64 + (len as u64) * 8;
-        let options =
-            FileOptions::default()
-                .compression_method(CompressionMethod::Stored)
-                .large_file(size > ZIP32_LIMIT)
-                // A fixed timestamp: the same arrays give the same file bytes.
-                .last_modified_time(npyz::zip::DateTime::default());
+        let options = FileOptions::default()
+            .compression_method(CompressionMethod::Stored)
+            .large_file(size > ZIP32_LIMIT)
+            // A fixed timestamp: the same arrays give the same file bytes.
+            .last_modified_time(npyz::zip::DateTime::default());
         let zip = self.zip.as_mut().ok_or_else(|| io::Error::other("the archive is already finished"))?;
         zip.start_file(format!("{name}.npy"), options).map_err(io::Error::other)?;
         zip.write_all(&header)?;

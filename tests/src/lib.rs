@@ -282,11 +282,43 @@ pub fn train_tiny_reward(server: &TestServer, dir: &Path) -> TinyModels {
     let config = config.to_str().expect("utf8 path");
     run(&["dataset", "upload", path, "--name", "traj"]);
     for (name, seed) in [("base", "1"), ("expert", "2")] {
-        run(&["train", "diffusion", "--name", name, "--dataset", "traj", "--config", config, "--seed", seed, "--watch"]);
+        run(&[
+            "train",
+            "diffusion",
+            "--name",
+            name,
+            "--dataset",
+            "traj",
+            "--config",
+            config,
+            "--seed",
+            seed,
+            "--watch",
+        ]);
     }
     run(&[
-        "train", "reward", "--name", "rw", "--base", "base", "--expert", "expert", "--dataset", "traj", "--arch",
-        "windowed_mlp", "--window", "4", "--hidden", "16,16", "--steps", "8", "--batch-size", "8", "--seed", "3",
+        "train",
+        "reward",
+        "--name",
+        "rw",
+        "--base",
+        "base",
+        "--expert",
+        "expert",
+        "--dataset",
+        "traj",
+        "--arch",
+        "windowed_mlp",
+        "--window",
+        "4",
+        "--hidden",
+        "16,16",
+        "--steps",
+        "8",
+        "--batch-size",
+        "8",
+        "--seed",
+        "3",
         "--watch",
     ]);
     TinyModels {

@@ -69,6 +69,8 @@ with np.load(sys.argv[1]) as d:
             inside += int(walls[i, j].sum())
     ends = np.flatnonzero(term | tout)
     lengths = np.diff(np.concatenate([[-1], ends]))
+    # Within 0.5 of the goal in force (float32 rounding allowed for).
+    near = np.hypot(obs[:, 0] - goals[:, 0], obs[:, 1] - goals[:, 1]) <= 0.5 + 1e-5
     print(json.dumps({
         "arrays": arrays,
         "rows_in_walls": inside,
@@ -76,6 +78,9 @@ with np.load(sys.argv[1]) as d:
         "last_row_closed": bool(term[-1] or tout[-1]),
         "both_flags": int((term & tout).sum()),
         "max_length": int(lengths.max()),
+        "lengths_but_last": sorted(set(lengths[:-1].tolist())),
+        "near_goal_fraction": float(near.mean()),
+        "episodes_ending_near_goal": int(near[ends].sum()),
         "terminals": int(term.sum()),
         "distinct_goals": int(len(np.unique(goals, axis=0))),
         "max_abs_action": float(np.abs(d["actions"]).max()),
@@ -104,9 +109,12 @@ fn generated_files_have_d4rl_keys_and_the_same_arguments_give_the_same_bytes() {
     assert_eq!((summary["layout"].as_str(), summary["mode"].as_str()), (Some("umaze"), Some("expert")));
     assert_eq!(summary["goal"], serde_json::json!([1, 1]), "D4RL's umaze goal by default");
     assert_eq!((summary["transitions"].as_u64(), summary["max_episode_steps"].as_u64()), (Some(20_000), Some(300)));
+    // Episodes end only at the cap: 66 of 300 steps and the file's last 200 rows.
     let episodes = summary["episodes"].as_u64().expect("episodes");
+    assert_eq!(episodes, 67);
+    // Expert mode counts episodes that reached the goal (held from then on to the cap).
     let reached = summary["goals_reached"].as_u64().expect("goals_reached");
-    assert!(reached as f64 > 0.9 * episodes as f64, "{reached} of {episodes}");
+    assert!(reached as f64 >= 0.9 * episodes as f64 && reached <= episodes, "{reached} of {episodes}");
 
     let checked = check_npz(Path::new(&a));
     let arrays = &checked["arrays"];
@@ -119,9 +127,15 @@ fn generated_files_have_d4rl_keys_and_the_same_arguments_give_the_same_bytes() {
     assert_eq!(checked["walls"][2], serde_json::json!([1, 1, 1, 0, 1]), "row 2 of umaze: ###O#");
     assert_eq!(checked["rows_in_walls"], 0);
     assert_eq!(checked["episodes"].as_u64(), Some(episodes));
-    assert_eq!(checked["terminals"].as_u64(), Some(reached));
+    // D4RL's maze2d: reaching the goal sets no terminal; the goal is held until the cap.
+    assert_eq!(checked["terminals"].as_u64(), Some(0), "no terminals in expert mode");
     assert_eq!((checked["last_row_closed"].as_bool(), checked["both_flags"].as_u64()), (Some(true), Some(0)));
-    assert!(checked["max_length"].as_u64().expect("max_length") <= 300);
+    assert_eq!(checked["max_length"].as_u64(), Some(300));
+    assert_eq!(checked["lengths_but_last"], serde_json::json!([300]), "every episode but the last is capped");
+    let ending_near = checked["episodes_ending_near_goal"].as_u64().expect("episodes_ending_near_goal");
+    assert!(ending_near >= reached, "{ending_near} episodes end at the goal, {reached} reached it");
+    let near = checked["near_goal_fraction"].as_f64().expect("near_goal_fraction");
+    assert!(near > 0.7, "only {near} of the expert rows lie at the goal");
     assert_eq!(checked["distinct_goals"], 1, "one expert goal");
     assert!(checked["max_abs_action"].as_f64().expect("actions") <= 1.0);
 

@@ -29,12 +29,13 @@ pub enum MazeCommand {
 
 #[derive(Debug, Args)]
 pub struct GenerateArgs {
-    /// The maze: open (5 x 7 cells, episodes of up to 150 steps), umaze (5 x 5, 300), medium
+    /// The maze: open (5 x 7 cells, episodes of 150 steps), umaze (5 x 5, 300), medium
     /// (8 x 8, 600) or large (9 x 12, 800).
     #[arg(long, value_enum)]
     pub layout: LayoutArg,
-    /// base: uniform starts and goals, a new goal whenever one is reached, episodes cut at the
-    /// cap; expert: one goal, each episode ends when it is reached (terminals) or at the cap.
+    /// base: uniform starts and goals, a new goal whenever one is reached; expert: uniform
+    /// starts and one fixed goal, held once reached (the agent hovers there) as in D4RL. Either
+    /// way episodes end only at the cap (timeouts; terminals are never set).
     #[arg(long, value_enum)]
     pub mode: ModeArg,
     /// Expert mode: the goal cell, counted from 0 at the top left [default: D4RL's goal cell:
@@ -203,11 +204,14 @@ fn summary(
         Some((row, col)) => format!("cell ({row}, {col})"),
         None => "uniform, redrawn when reached".to_owned(),
     };
+    // Expert mode counts episodes that reached the goal (once reached, it is held to the cap);
+    // base mode counts goals reached (each then replaced by a new one).
     let reached_text = match data.mode {
         Mode::Expert if data.episodes > 0 => {
             format!(
-                "{} ({}% of episodes)",
+                "in {} of {} episodes ({}%), then held to the cap",
                 data.goals_reached,
+                data.episodes,
                 fmt_fixed(100.0 * data.goals_reached as f64 / data.episodes as f64, 1)
             )
         }

@@ -7,12 +7,14 @@
 //!   `job list|show|cancel|watch`;
 //! - [`serve`]: `score`, `grad` and `sample` (the RewardService: inputs from `.npz` files,
 //!   trajectories cut into windows, results written as `.npz`);
+//! - [`demo`]: `demo` (the whole Maze2D pipeline, composed of the commands below);
 //! - [`eval`]: `eval discriminate|heatmap` and `job plot` (the paper's evaluation and its
 //!   pictures, over scores of local trajectory files);
 //! - [`maze`]: `maze generate` (Maze2D datasets from the built-in generator, no server);
 //! - [`output`]: JSON and text formatting, progress bars, terminal I/O.
 
 pub mod datasets;
+pub mod demo;
 pub mod eval;
 pub mod jobs;
 pub mod manifest;

@@ -911,6 +911,7 @@ mod tests {
             dataset: Some("other".into()),
             horizon: Some(64),
             n_timesteps: Some(100),
+            normalizer_datasets: vec!["a".into(), "b".into()],
             job: TrainArgs {
                 name: Some("from-flag".into()),
                 steps: Some(50),
@@ -927,6 +928,7 @@ mod tests {
         assert_eq!(o.ema_decay, Some(0.995), "what no flag sets comes from the file");
         let d = diffusion(&spec);
         assert_eq!((d.dataset.as_str(), d.horizon, d.n_timesteps), ("other", Some(64), Some(100)));
+        assert_eq!(d.normalizer_datasets, ["a", "b"]);
         assert_eq!(d.parametrization(), pb::Parametrization::X0);
     }
 

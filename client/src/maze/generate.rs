@@ -15,7 +15,8 @@ const MAX_DRAWS: usize = 1_000;
 /// Rows between two calls of the progress callback.
 pub const PROGRESS_EVERY: usize = 1 << 16;
 
-/// Base: uniform goals, redrawn when reached. Expert: one fixed goal, episodes end there.
+/// Base: uniform goals, redrawn when reached. Expert: one fixed goal, reached and then held
+/// until the episode's cap (D4RL's maze2d). Episodes end only at the cap in both modes.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Mode {
     Base,
@@ -134,9 +135,10 @@ pub struct MazeData {
     pub observations: Vec<f32>,
     /// `[N, 2]`: the applied force, in `[-1, 1]`.
     pub actions: Vec<f32>,
-    /// `[N]`: the step reached the expert goal (always false in base mode).
+    /// `[N]`: always false, in both modes (D4RL's maze2d never sets it: reaching the goal ends
+    /// no episode). Kept for D4RL's keys.
     pub terminals: Vec<bool>,
-    /// `[N]`: the step ended its episode without reaching the goal (the cap, or the file's end).
+    /// `[N]`: the step ended its episode: the cap-th step, or the file's last row.
     pub timeouts: Vec<bool>,
     /// `[N, 2]`: the goal in force at each step.
     pub goals: Vec<f32>,
@@ -145,9 +147,11 @@ pub struct MazeData {
     /// Expert mode: the goal cell.
     pub goal_cell: Option<(usize, usize)>,
     pub max_episode_steps: u32,
-    /// Episodes in the file (rows whose terminal or timeout flag is set).
+    /// Episodes in the file (rows whose timeout flag is set; no terminal flag is ever set).
     pub episodes: usize,
-    /// Goals reached (expert: episodes ending at a terminal).
+    /// Base mode: goals reached (each one is then replaced by a new goal). Expert mode: episodes
+    /// in which the goal was reached at least once (the agent then stays there, and the steps
+    /// it spends within [`GOAL_RADIUS`] afterwards are not counted again).
     pub goals_reached: usize,
 }
 
@@ -161,7 +165,8 @@ impl MazeData {
         self.terminals.is_empty()
     }
 
-    /// The rows of each episode, in order.
+    /// The rows of each episode, in order (each closed by a terminal or a timeout flag; this
+    /// generator sets only timeouts).
     pub fn episode_ranges(&self) -> Vec<Range<usize>> {
         let mut out = Vec::with_capacity(self.episodes);
         let mut start = 0;
@@ -232,6 +237,8 @@ pub fn generate_with_progress(config: &GenerateConfig, mut progress: impl FnMut(
     // The episode's controller; `None` between episodes.
     let mut episode: Option<Controller> = None;
     let mut steps = 0u32;
+    // Expert mode: whether this episode has reached the goal yet.
+    let mut reached_before = false;
     for row in 0..n {
         let controller = episode.get_or_insert_with(|| {
             // A new episode: at rest at a uniform start, with the expert goal or a new one.
@@ -248,6 +255,7 @@ pub fn generate_with_progress(config: &GenerateConfig, mut progress: impl FnMut(
             };
             agent = PointMass::at_rest(start);
             steps = 0;
+            reached_before = false;
             Controller::new(&mut planner, start, goal)
         });
         let [x, y, vx, vy] = agent.observation();
@@ -263,22 +271,28 @@ pub fn generate_with_progress(config: &GenerateConfig, mut progress: impl FnMut(
         agent.step(layout, a);
         steps += 1;
 
-        let reached = dist2(agent.pos, goal) <= reached_r2;
-        let mut terminal = false;
-        if reached {
-            data.goals_reached += 1;
+        if dist2(agent.pos, goal) <= reached_r2 {
             match config.mode {
-                Mode::Expert => terminal = true,
+                // The goal stays; the controller's last waypoint is the goal itself, so the agent
+                // keeps being steered onto it until the cap.
+                Mode::Expert => {
+                    if !reached_before {
+                        reached_before = true;
+                        data.goals_reached += 1;
+                    }
+                }
                 Mode::Base => {
+                    data.goals_reached += 1;
                     goal = draw_away(&mut rng, &cells, agent.pos);
                     *controller = Controller::new(&mut planner, agent.pos, goal);
                 }
             }
         }
-        let timeout = !terminal && (steps == cap || row + 1 == n);
-        data.terminals.push(terminal);
+        // Only the cap (or the file's end) ends an episode: no terminals, as in D4RL's maze2d.
+        let timeout = steps == cap || row + 1 == n;
+        data.terminals.push(false);
         data.timeouts.push(timeout);
-        if terminal || timeout {
+        if timeout {
             data.episodes += 1;
             episode = None;
         }
@@ -397,40 +411,69 @@ mod tests {
         }
     }
 
+    /// Per episode, whether some observation after its first lies within [`GOAL_RADIUS`] of the
+    /// goal in force (the state after every step but the episode's last is recorded).
+    fn reached_in(data: &MazeData, e: &Range<usize>) -> bool {
+        (e.start + 1..e.end).any(|t| near(data, t, GOAL_RADIUS))
+    }
+
+    /// Whether row `t`'s position lies within `r` of its goal (plus float32 rounding).
+    fn near(data: &MazeData, t: usize, r: f64) -> bool {
+        let (x, y) = (f64::from(data.observations[4 * t]), f64::from(data.observations[4 * t + 1]));
+        let (gx, gy) = (f64::from(data.goals[2 * t]), f64::from(data.goals[2 * t + 1]));
+        (x - gx).hypot(y - gy) <= r + 1e-5
+    }
+
     #[test]
     fn expert_mode_concentrates_on_its_goal() {
         let data = generate(&config(LayoutName::Umaze, Mode::Expert, 100_000, 2)).expect("generate");
         let goal = [1.0f32, 1.0];
         assert_eq!(data.goal_cell, Some((1, 1)));
         assert!(data.goals.chunks(2).all(|g| g == goal));
+        // D4RL's maze2d: reaching the goal ends nothing; only the cap (or the file's end) does.
+        assert!(data.terminals.iter().all(|&t| !t), "no terminals in expert mode");
         let episodes = data.episode_ranges();
-        let reached = episodes.iter().filter(|e| data.terminals[e.end - 1]).count();
-        assert_eq!(reached, data.goals_reached);
-        assert!(reached as f64 / episodes.len() as f64 > 0.9, "{reached} of {}", episodes.len());
+        assert_eq!(episodes.len(), data.episodes);
+        assert_eq!(data.episodes, 334, "333 full episodes of 300 and one of 100 closed by the file's end");
+        assert!(episodes[..333].iter().all(|e| e.len() == 300));
+        assert_eq!(episodes[333], 99_900..100_000);
+        assert!(episodes.iter().all(|e| data.timeouts[e.end - 1]));
+        assert_eq!(data.timeouts.iter().filter(|&&t| t).count(), data.episodes);
+        // `goals_reached` counts episodes that reached the goal, each once.
+        let reached: Vec<&Range<usize>> = episodes.iter().filter(|e| reached_in(&data, e)).collect();
+        assert_eq!(reached.len(), data.goals_reached);
+        assert!(reached.len() as f64 / episodes.len() as f64 >= 0.9, "{} of {}", reached.len(), episodes.len());
         for e in &episodes {
-            let dist = |t: usize| {
-                (f64::from(data.observations[4 * t]) - 1.0).hypot(f64::from(data.observations[4 * t + 1]) - 1.0)
-            };
-            assert!(dist(e.start) > GOAL_RADIUS, "starts away from the goal");
-            if data.terminals[e.end - 1] {
-                // The last observation is one step short of the goal's radius.
-                assert!(dist(e.end - 1) < GOAL_RADIUS + 0.25, "{}", dist(e.end - 1));
-                assert!(!data.timeouts[e.end - 1]);
-            } else {
-                assert!(e.len() == 300 || e.end == data.len());
-            }
+            assert!(!near(&data, e.start, GOAL_RADIUS), "starts away from the goal");
+            // Each episode starts at rest.
+            assert_eq!(data.observations[4 * e.start + 2..4 * e.start + 4], [0.0, 0.0]);
         }
-        // Positions concentrate: most rows of the second half of episodes lie near the goal's
-        // arm of the U, rows 1 (where the goal is).
-        let near_goal_row = data.observations.chunks(4).filter(|o| o[0] < 1.5).count();
-        assert!(near_goal_row as f64 / data.len() as f64 > 0.4, "{near_goal_row}");
+        // Once reached, the goal is held: the agent hovers there to the episode's end.
+        for e in &reached {
+            assert!(near(&data, e.end - 1, GOAL_RADIUS), "episode {e:?} ends away from the goal");
+            let first = (e.start + 1..e.end).find(|&t| near(&data, t, GOAL_RADIUS)).expect("reached");
+            assert!((first..e.end).all(|t| near(&data, t, GOAL_RADIUS)), "episode {e:?} leaves the goal");
+        }
+        // Positions concentrate at the goal: most rows lie within 0.5 of it (about 86% here; the
+        // longest shortest path takes 76 of the 300 steps).
+        let at_goal = (0..data.len()).filter(|&t| near(&data, t, 0.5)).count();
+        assert!(at_goal as f64 / data.len() as f64 > 0.7, "{at_goal} of {}", data.len());
 
-        // Every layout: the default goal is reached in nearly every episode.
+        // Every layout: the default goal is reached in nearly every episode and then held, no
+        // terminals, and most rows lie at the goal.
         for name in LayoutName::ALL {
             let data = generate(&config(name, Mode::Expert, 20_000, 3)).expect("generate");
+            assert!(data.terminals.iter().all(|&t| !t), "{name}");
+            let cap = name.max_episode_steps() as usize;
             let episodes = data.episode_ranges();
-            let reached = episodes.iter().filter(|e| data.terminals[e.end - 1]).count();
-            assert!(reached + 1 >= episodes.len(), "{name}: {reached} of {}", episodes.len());
+            assert_eq!(episodes.len(), 20_000_usize.div_ceil(cap), "{name}");
+            assert!(episodes.iter().rev().skip(1).all(|e| e.len() == cap), "{name}");
+            let reached: Vec<_> = episodes.iter().filter(|e| reached_in(&data, e)).collect();
+            assert_eq!(reached.len(), data.goals_reached, "{name}");
+            assert!(reached.len() + 1 >= episodes.len(), "{name}: {} of {}", reached.len(), episodes.len());
+            assert!(reached.iter().all(|e| near(&data, e.end - 1, GOAL_RADIUS)), "{name}");
+            let at_goal = (0..data.len()).filter(|&t| near(&data, t, 0.5)).count();
+            assert!(at_goal as f64 / data.len() as f64 > 0.7, "{name}: {at_goal} of {}", data.len());
         }
     }
 

@@ -70,15 +70,21 @@
 //!   episode continues. Episodes end only at the layout's cap (`timeouts = 1`); a new episode
 //!   starts at rest at a new uniform start with a new goal.
 //! - *expert*: one fixed goal, the centre of a free cell (by default the cell D4RL marks `G`:
-//!   [`Layout::default_goal`]); starts uniform; the episode ends when the goal is reached
-//!   (`terminals = 1` on that row) or at the cap (`timeouts = 1`), and the next one starts at
-//!   rest at a new uniform start.
+//!   [`Layout::default_goal`]); starts uniform. As in D4RL's maze2d, reaching the goal ends
+//!   nothing: the goal stays, and the controller keeps steering the agent onto it (its final
+//!   waypoint is the goal itself, so the agent comes to rest there and hovers) until the
+//!   layout's cap ends the episode (`timeouts = 1`); the next one starts at rest at a new
+//!   uniform start. Most rows therefore lie at the goal, where expert data concentrates.
+//!
+//! In both modes an episode ends only at the cap: `terminals` is never set (as in D4RL's
+//! maze2d datasets). [`MazeData::goals_reached`] counts, in base mode, the goals reached; in
+//! expert mode, the episodes in which the goal was reached at least once.
 //!
 //! **Rows.** Row t holds the observation *before* step t, the action taken from it, the goal
-//! in force when it was chosen, and the flags of the transition: `terminals[t]` is 1 iff the
-//! state after the step reaches the expert goal, `timeouts[t]` iff the step is the cap-th of
-//! its episode without reaching it. The file's last row always ends its episode (a timeout
-//! unless it is terminal), so every episode in a file is closed by a flag.
+//! in force when it was chosen, and the flags of the transition: `terminals[t]` is always 0,
+//! `timeouts[t]` is 1 iff the step is the cap-th of its episode. The file's last row always
+//! ends its episode (a timeout, however few steps it has), so every episode in a file is
+//! closed by a flag and all but the file's last are exactly the cap long.
 //!
 //! **File** ([`MazeData::write_npz`]). `observations` float32 `[N, 4]`, `actions` float32
 //! `[N, 2]`, `terminals` and `timeouts` bool `[N]` (D4RL's keys), `goals` float32 `[N, 2]` (the

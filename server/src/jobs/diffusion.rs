@@ -242,3 +242,29 @@ pub fn run(ctx: &mut JobContext, job: &DiffusionJob) -> std::result::Result<Stri
     ctx.register_model(staging, record)?;
     Ok(format!("registered model '{}' (final loss {:.6})", spec.output_model, train.loss))
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Pooled statistics equal those of the concatenated data.
+    #[test]
+    fn pooled_statistics_are_those_of_the_union() {
+        let a = [1.0f64, 2.0, 6.0];
+        let b = [-3.0f64, 0.5];
+        let stats = |v: &[f64]| {
+            let n = v.len() as f64;
+            let mean = v.iter().sum::<f64>() / n;
+            let std = (v.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / n).sqrt();
+            let min = v.iter().copied().fold(f64::INFINITY, f64::min);
+            let max = v.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+            ArrayStats { min: vec![min], max: vec![max], mean: vec![mean], std: vec![std] }
+        };
+        let pooled = pool(&[(3, stats(&a)), (2, stats(&b))]);
+        let all: Vec<f64> = a.iter().chain(&b).copied().collect();
+        let want = stats(&all);
+        assert_eq!((pooled.min[0], pooled.max[0]), (want.min[0], want.max[0]));
+        assert!((pooled.mean[0] - want.mean[0]).abs() < 1e-12);
+        assert!((pooled.std[0] - want.std[0]).abs() < 1e-12);
+    }
+}
