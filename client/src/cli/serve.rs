@@ -663,6 +663,92 @@ fn query_fields(input: &InputArgs, t: u32) -> Vec<(&'static str, String)> {
     ]
 }
 
+/// Sends a request per range of items, `send(index, range)`, at most [`IN_FLIGHT`] at a time,
+/// and hands each answer in order to `take` with its item count; a failed request's error is
+/// labelled as [`request_error`] does. A bar on stderr counts the items answered.
+async fn query_batches<A, F>(
+    ctx: &Ctx,
+    ranges: &[Range<usize>],
+    fields: &[(&str, String)],
+    send: impl Fn(usize, Range<usize>) -> F,
+    mut take: impl FnMut(u64, A) -> Result<()>,
+) -> Result<()>
+where
+    F: std::future::Future<Output = Result<A, ClientError>>,
+{
+    let n = ranges.last().map_or(0, |r| r.end);
+    let several = ranges.len() > 1;
+    let bar = item_bar(ctx.json, n as u64, "items");
+    let requests = ranges.iter().enumerate().map(|(i, range)| send(i, range.clone()));
+    let mut answers = futures::stream::iter(requests).buffered(IN_FLIGHT);
+    let mut next = ranges.iter();
+    while let Some(answer) = answers.next().await {
+        let range = next.next().ok_or_else(|| anyhow!("more answers than requests"))?;
+        let b = range.len() as u64;
+        let answer = answer.map_err(|e| request_error(e, fields, range, n, several))?;
+        take(b, answer)?;
+        bar.inc(b);
+    }
+    bar.finish_and_clear();
+    Ok(())
+}
+
+/// The output of `score` and `grad`: `reward` [N], then `more` arrays, then `window_start` [N]
+/// for windows cut from trajectories, written to `--out` when given; the report's fields are
+/// model, items, t and reward, then `more_text`, then out, and its JSON document has the
+/// fields both commands share plus those of `more_json` (an object).
+async fn query_report(
+    input: &InputArgs,
+    items: &Items,
+    t: u32,
+    rewards: Vec<f32>,
+    more: Vec<(&'static str, Vec<u64>, Vec<f32>)>,
+    more_text: Vec<(&'static str, String)>,
+    more_json: Value,
+) -> Result<Report> {
+    let n = items.len();
+    let item_shape = items.item_shape();
+    let summary = summarize(rewards.iter().map(|&v| f64::from(v)));
+    let mut arrays = OutArrays::default();
+    arrays.f32s.push(("reward", vec![n as u64], rewards));
+    arrays.f32s.extend(more);
+    if let Items::Windows(w) = items {
+        arrays.i64s.push(("window_start", vec![n as u64], w.starts.iter().map(|&s| s as i64).collect()));
+    }
+    let shapes_json = arrays.shapes_json();
+    let shapes_text = arrays.shapes_text();
+    if let Some(out) = &input.out {
+        arrays.write(out).await?;
+    }
+
+    let mut fields = vec![
+        ("model", input.model.clone()),
+        ("items", format!("{n} ({}, each {item_shape:?})", items.describe())),
+        ("t", t.to_string()),
+        ("reward", summary_text(summary)),
+    ];
+    fields.extend(more_text);
+    if let Some(out) = &input.out {
+        fields.push(("out", format!("{} ({shapes_text})", out.display())));
+    }
+    let mut json = json!({
+        "model": input.model,
+        "input": input.input.display().to_string(),
+        "source": items.source_json(),
+        "count": n,
+        "item_shape": item_shape,
+        "t": t,
+        "units": input.units.name(),
+        "reward": summary_json(summary),
+        "out": input.out.as_ref().map(|p| p.display().to_string()),
+        "arrays": shapes_json,
+    });
+    if let (Some(doc), Value::Object(more)) = (json.as_object_mut(), more_json) {
+        doc.extend(more);
+    }
+    Ok(Report::ok(key_values(&fields, 0), json))
+}
+
 // ---------------------------------------------------------------------------------------------
 // score
 
@@ -672,11 +758,8 @@ pub async fn score(ctx: &Ctx, args: ScoreArgs) -> Result<Report> {
     let client = ctx.connect().await?;
     let items = read_items(&client, &input).await?;
     let n = items.len();
-    let item_shape = items.item_shape();
     let batch = request_batch(input.batch, items.item_len() as u64 * 4, ctx.json);
     let ranges = batches(n, batch);
-    let several = ranges.len() > 1;
-    let bar = item_bar(ctx.json, n as u64, "items");
 
     let mut fields = query_fields(&input, t);
     fields.push(("per_window", "--per-window".to_owned()));
@@ -684,10 +767,10 @@ pub async fn score(ctx: &Ctx, args: ScoreArgs) -> Result<Report> {
     let mut rewards = Vec::with_capacity(n);
     let mut windows: Option<(u64, Vec<f32>)> = None;
     let mut steps: Option<(u64, Vec<f32>)> = None;
-    let requests = ranges.iter().map(|range| {
+    let send = |_, range| {
         let request = pb::ScoreRequest {
             model: input.model.clone(),
-            x: Some(items.batch(range.clone())),
+            x: Some(items.batch(range)),
             t: vec![t],
             input_units: input.units.to_proto() as i32,
             per_window,
@@ -695,13 +778,8 @@ pub async fn score(ctx: &Ctx, args: ScoreArgs) -> Result<Report> {
         };
         let client = client.clone();
         async move { client.score(request).await }
-    });
-    let mut answers = futures::stream::iter(requests).buffered(IN_FLIGHT);
-    let mut next = ranges.iter();
-    while let Some(answer) = answers.next().await {
-        let range = next.next().ok_or_else(|| anyhow!("more answers than requests"))?;
-        let b = range.len() as u64;
-        let answer = answer.map_err(|e| request_error(e, &fields, range, n, several))?;
+    };
+    query_batches(ctx, &ranges, &fields, send, |b, answer: pb::ScoreResponse| {
         rewards.extend(floats(answer.rewards.as_ref(), "rewards", &[b])?);
         for (wanted, field, tensor, acc) in [
             (per_window, "per_window", answer.per_window.as_ref(), &mut windows),
@@ -719,50 +797,18 @@ pub async fn score(ctx: &Ctx, args: ScoreArgs) -> Result<Report> {
             let values = floats(tensor, field, &[b, width])?;
             acc.get_or_insert_with(|| (width, Vec::new())).1.extend(values);
         }
-        bar.inc(b);
-    }
-    bar.finish_and_clear();
+        Ok(())
+    })
+    .await?;
 
-    let summary = summarize(rewards.iter().map(|&v| f64::from(v)));
-    let mut arrays = OutArrays::default();
-    arrays.f32s.push(("reward", vec![n as u64], rewards));
+    let mut more = Vec::new();
     if let Some((w, values)) = windows {
-        arrays.f32s.push(("per_window", vec![n as u64, w], values));
+        more.push(("per_window", vec![n as u64, w], values));
     }
     if let Some((w, values)) = steps {
-        arrays.f32s.push(("per_step", vec![n as u64, w], values));
+        more.push(("per_step", vec![n as u64, w], values));
     }
-    if let Items::Windows(w) = &items {
-        arrays.i64s.push(("window_start", vec![n as u64], w.starts.iter().map(|&s| s as i64).collect()));
-    }
-    let shapes_json = arrays.shapes_json();
-    let shapes_text = arrays.shapes_text();
-    if let Some(out) = &input.out {
-        arrays.write(out).await?;
-    }
-
-    let mut fields = vec![
-        ("model", input.model.clone()),
-        ("items", format!("{n} ({}, each {item_shape:?})", items.describe())),
-        ("t", t.to_string()),
-        ("reward", summary_text(summary)),
-    ];
-    if let Some(out) = &input.out {
-        fields.push(("out", format!("{} ({shapes_text})", out.display())));
-    }
-    let json = json!({
-        "model": input.model,
-        "input": input.input.display().to_string(),
-        "source": items.source_json(),
-        "count": n,
-        "item_shape": item_shape,
-        "t": t,
-        "units": input.units.name(),
-        "reward": summary_json(summary),
-        "out": input.out.as_ref().map(|p| p.display().to_string()),
-        "arrays": shapes_json,
-    });
-    Ok(Report::ok(key_values(&fields, 0), json))
+    query_report(&input, &items, t, rewards, more, Vec::new(), json!({})).await
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -785,8 +831,6 @@ pub async fn grad(ctx: &Ctx, args: GradArgs) -> Result<Report> {
     // The answer carries a gradient as large as the request: keep both under the limit.
     let batch = request_batch(input.batch, item_len as u64 * 4, ctx.json);
     let ranges = batches(n, batch);
-    let several = ranges.len() > 1;
-    let bar = item_bar(ctx.json, n as u64, "items");
 
     let mut fields = query_fields(&input, t);
     fields.push(("gradient_units", "--gradient-units".to_owned()));
@@ -798,11 +842,11 @@ pub async fn grad(ctx: &Ctx, args: GradArgs) -> Result<Report> {
     }
     let mut rewards = Vec::with_capacity(n);
     let mut gradients = Vec::with_capacity(n * item_len);
-    let requests = ranges.iter().enumerate().map(|(i, range)| {
+    let send = |i: usize, range| {
         let request = pb::GradientRequest {
             request_id: i as u64,
             model: input.model.clone(),
-            x: Some(items.batch(range.clone())),
+            x: Some(items.batch(range)),
             t: vec![t],
             input_units: input.units.to_proto() as i32,
             gradient_units: gradient_units.to_proto() as i32,
@@ -811,66 +855,30 @@ pub async fn grad(ctx: &Ctx, args: GradArgs) -> Result<Report> {
         };
         let client = client.clone();
         async move { client.gradient(request).await }
-    });
-    let mut answers = futures::stream::iter(requests).buffered(IN_FLIGHT);
-    let mut next = ranges.iter();
-    while let Some(answer) = answers.next().await {
-        let range = next.next().ok_or_else(|| anyhow!("more answers than requests"))?;
-        let b = range.len() as u64;
-        let answer = answer.map_err(|e| request_error(e, &fields, range, n, several))?;
+    };
+    query_batches(ctx, &ranges, &fields, send, |b, answer: pb::GradientResponse| {
         rewards.extend(floats(answer.rewards.as_ref(), "rewards", &[b])?);
         let mut shape = vec![b];
         shape.extend(&item_shape);
         gradients.extend(floats(answer.gradient.as_ref(), "gradient", &shape)?);
-        bar.inc(b);
-    }
-    bar.finish_and_clear();
+        Ok(())
+    })
+    .await?;
 
-    let summary = summarize(rewards.iter().map(|&v| f64::from(v)));
     let norms = summarize(
         gradients.chunks(item_len.max(1)).map(|g| g.iter().map(|&v| f64::from(v) * f64::from(v)).sum::<f64>().sqrt()),
     );
-    let mut arrays = OutArrays::default();
-    arrays.f32s.push(("reward", vec![n as u64], rewards));
     let mut grad_shape = vec![n as u64];
     grad_shape.extend(&item_shape);
-    arrays.f32s.push(("grad_x", grad_shape, gradients));
-    if let Items::Windows(w) = &items {
-        arrays.i64s.push(("window_start", vec![n as u64], w.starts.iter().map(|&s| s as i64).collect()));
-    }
-    let shapes_json = arrays.shapes_json();
-    let shapes_text = arrays.shapes_text();
-    if let Some(out) = &input.out {
-        arrays.write(out).await?;
-    }
-
-    let mut fields = vec![
-        ("model", input.model.clone()),
-        ("items", format!("{n} ({}, each {item_shape:?})", items.describe())),
-        ("t", t.to_string()),
-        ("reward", summary_text(summary)),
-        ("|grad_x|", summary_text(norms)),
-    ];
-    if let Some(out) = &input.out {
-        fields.push(("out", format!("{} ({shapes_text})", out.display())));
-    }
+    let more = vec![("grad_x", grad_shape, gradients)];
+    let text = vec![("|grad_x|", summary_text(norms))];
     let json = json!({
-        "model": input.model,
-        "input": input.input.display().to_string(),
-        "source": items.source_json(),
-        "count": n,
-        "item_shape": item_shape,
-        "t": t,
-        "units": input.units.name(),
         "gradient_units": gradient_units.name(),
         "omega": omega.unwrap_or(1.0),
         "scale_by_posterior_variance_of": scale_by_posterior_variance_of,
-        "reward": summary_json(summary),
         "gradient_norm": summary_json(norms),
-        "out": input.out.as_ref().map(|p| p.display().to_string()),
-        "arrays": shapes_json,
     });
-    Ok(Report::ok(key_values(&fields, 0), json))
+    query_report(&input, &items, t, rewards, more, text, json).await
 }
 
 // ---------------------------------------------------------------------------------------------

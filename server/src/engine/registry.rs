@@ -171,6 +171,12 @@ impl ModelRegistry {
         }
     }
 
+    /// The store's models generation (see [`Store::models_generation`]): unchanged means no
+    /// model record was inserted or deleted since it was read.
+    pub fn models_generation(&self) -> u64 {
+        self.inner.store.models_generation()
+    }
+
     /// The stored record of diffusion model `name` (for what its manifest alone answers, such
     /// as its schedule), without loading it.
     pub async fn diffusion_record(&self, name: &str) -> Result<ModelRecord> {

@@ -121,9 +121,11 @@ struct Inner {
     slots: Arc<Semaphore>,
     metrics: Metrics,
     queues: batcher::Queues,
-    /// exp(posterior_log_variance_clipped) per diffusion model, by (name, blob key) so a model
-    /// registered again under the same name is never scaled with a stale table.
-    variances: Mutex<HashMap<(String, String), VarianceTable>>,
+    /// exp(posterior_log_variance_clipped) per diffusion model name, with the store's models
+    /// generation it was read at: while no model record changed, the table is served without
+    /// a metadata read (the planner hot path); after any change the record is read again, so
+    /// a model registered again under the same name is never scaled with a stale table.
+    variances: Mutex<HashMap<String, (u64, VarianceTable)>>,
 }
 
 impl Serving {
@@ -244,21 +246,28 @@ impl Serving {
     async fn posterior_variance(&self, name: &str, big_t: i64) -> Result<VarianceTable> {
         let field = "scale_by_posterior_variance_of";
         crate::store::names::validate_name(field, name)?;
+        let generation = self.inner.registry.models_generation();
+        let cached = self.inner.variances.lock().unwrap_or_else(PoisonError::into_inner).get(name).cloned();
+        if let Some((checked, table)) = cached
+            && checked == generation
+        {
+            return check_steps(field, name, &table, big_t);
+        }
         let record = self.inner.registry.diffusion_record(name).await.map_err(|e| match e {
             Error::NotFound(m) => Error::NotFound(format!("{field}: {m}")),
             Error::FailedPrecondition(m) => Error::FailedPrecondition(format!("{field}: {m}")),
             other => other,
         })?;
-        let key = (name.to_owned(), record.blob_key.clone());
-        if let Some(table) = self.inner.variances.lock().unwrap_or_else(PoisonError::into_inner).get(&key) {
-            return check_steps(field, name, table, big_t);
-        }
         let manifest: DiffusionManifest = serde_json::from_value(record.manifest)
             .map_err(|e| Error::DataLoss(format!("{field}: model '{name}' has an unreadable manifest: {e}")))?;
         let schedule = Schedule::new(&manifest.schedule, manifest.n_timesteps)?;
         let table =
             Arc::new(schedule.values(Table::PosteriorLogVarianceClipped).iter().map(|v| v.exp()).collect::<Vec<_>>());
-        self.inner.variances.lock().unwrap_or_else(PoisonError::into_inner).insert(key, Arc::clone(&table));
+        self.inner
+            .variances
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .insert(name.to_owned(), (generation, Arc::clone(&table)));
         check_steps(field, name, &table, big_t)
     }
 }
