@@ -12,7 +12,9 @@ use std::process::{Child, Command, Output, Stdio};
 use std::sync::{Arc, OnceLock};
 use std::time::Duration;
 
-use relreward_client::Client;
+use relreward_client::client::{DatasetUpload, UploadProgress};
+use relreward_client::{Client, MemorySource, pb};
+use serde_json::Value;
 
 /// Path of a workspace binary next to the running test executable.
 pub fn bin(name: &str) -> PathBuf {
@@ -218,6 +220,171 @@ pub async fn eventually(secs: u64, mut f: impl FnMut() -> bool) -> bool {
     f()
 }
 
+/// A process's stdout, lossily decoded.
+pub fn stdout(out: &Output) -> String {
+    String::from_utf8_lossy(&out.stdout).into_owned()
+}
+
+/// A process's stderr, lossily decoded.
+pub fn stderr(out: &Output) -> String {
+    String::from_utf8_lossy(&out.stderr).into_owned()
+}
+
+/// Runs the CLI, asserting success; returns stdout.
+#[track_caller]
+pub fn ok(server: &TestServer, args: &[&str]) -> String {
+    let out = server.cli(args);
+    assert!(
+        out.status.success(),
+        "relreward {args:?} failed ({}):\n{}\n{}\nserver log:\n{}",
+        out.status,
+        stdout(&out),
+        stderr(&out),
+        server.log()
+    );
+    stdout(&out)
+}
+
+/// Runs the CLI with `--json`, asserting success; returns the document.
+#[track_caller]
+pub fn ok_json(server: &TestServer, args: &[&str]) -> Value {
+    let mut all = vec!["--json"];
+    all.extend(args);
+    let text = ok(server, &all);
+    serde_json::from_str(&text).unwrap_or_else(|e| panic!("relreward {args:?}: not JSON ({e}):\n{text}"))
+}
+
+/// Runs the CLI, asserting a non-zero exit and that stderr names every one of `needles`.
+#[track_caller]
+pub fn refused(server: &TestServer, args: &[&str], needles: &[&str]) {
+    let out = server.cli(args);
+    let err = stderr(&out);
+    assert!(!out.status.success(), "relreward {args:?} succeeded:\n{}", stdout(&out));
+    for needle in needles {
+        assert!(err.contains(needle), "relreward {args:?}: stderr does not name {needle:?}:\n{err}");
+    }
+}
+
+/// Runs `script` with the project's Python (`python -c script args..`), asserting success;
+/// returns stdout.
+#[track_caller]
+pub fn run_python(script: &str, args: &[&str]) -> String {
+    let out = Command::new(python()).arg("-c").arg(script).args(args).output().expect("python");
+    assert!(out.status.success(), "python failed:\n{}", stderr(&out));
+    stdout(&out)
+}
+
+/// Prints `{key: {"shape": [..], "dtype": "..", "values": [..]}}` for every array of an .npz.
+const READ_NPZ: &str = r#"
+import json, sys
+import numpy as np
+with np.load(sys.argv[1]) as d:
+    print(json.dumps({k: {"shape": list(d[k].shape), "dtype": str(d[k].dtype),
+                          "values": d[k].ravel().astype(float).tolist()} for k in d.files}))
+"#;
+
+/// numpy's view of an .npz file: `{key: {"shape", "dtype", "values"}}` (see [`npz_shape`],
+/// [`npz_values`]).
+pub fn np_load(path: &Path) -> Value {
+    let text = run_python(READ_NPZ, &[path.to_str().expect("utf8")]);
+    serde_json::from_str(&text).expect("json from python")
+}
+
+/// The shape of array `key` in an [`np_load`] document.
+#[track_caller]
+pub fn npz_shape(npz: &Value, key: &str) -> Vec<u64> {
+    let shape = &npz[key]["shape"];
+    assert!(shape.is_array(), "no array '{key}' in {npz}");
+    shape.as_array().expect("shape").iter().map(|v| v.as_u64().expect("dim")).collect()
+}
+
+/// The values of array `key` in an [`np_load`] document, flattened.
+#[track_caller]
+pub fn npz_values(npz: &Value, key: &str) -> Vec<f64> {
+    npz[key]["values"]
+        .as_array()
+        .unwrap_or_else(|| panic!("no '{key}'"))
+        .iter()
+        .map(|v| v.as_f64().expect("f64"))
+        .collect()
+}
+
+/// The diffusion training config of [`train_models`]: 12 steps of batch 8, horizon 8, T = 10,
+/// a temporal U-Net of dim 8.
+pub const TINY_DIFFUSION_CONFIG: &str = "[optimization]\nsteps = 12\nbatch_size = 8\nlog_every = 4\n\
+     [diffusion]\nhorizon = 8\nn_timesteps = 10\n\
+     architecture = { kind = \"temporal_unet\", dim = 8, dim_mults = [1, 2] }\n";
+
+/// Trains through the CLI, waiting for each job (`--watch`): diffusion models `base` (seed 1,
+/// on dataset `base_data`) and `expert` (seed 2, on `expert_data`) with
+/// [`TINY_DIFFUSION_CONFIG`] (written to `dir/diffusion.toml`), then a windowed-MLP reward
+/// `rw` between them (window 4, hidden 16,16, seed 3) on both datasets (once if they are the
+/// same one), with `reward_args` added (`--steps` and `--batch-size` at least).
+pub fn train_models(server: &TestServer, dir: &Path, base_data: &str, expert_data: &str, reward_args: &[&str]) {
+    let config = dir.join("diffusion.toml");
+    std::fs::write(&config, TINY_DIFFUSION_CONFIG).expect("config");
+    let config = config.to_str().expect("utf8 path");
+    for (name, data, seed) in [("base", base_data, "1"), ("expert", expert_data, "2")] {
+        ok(
+            server,
+            &["train", "diffusion", "--name", name, "--dataset", data, "--config", config, "--seed", seed, "--watch"],
+        );
+    }
+    let mut args = vec!["train", "reward", "--name", "rw", "--base", "base", "--expert", "expert"];
+    args.extend(["--dataset", base_data]);
+    if expert_data != base_data {
+        args.extend(["--dataset", expert_data]);
+    }
+    args.extend(["--arch", "windowed_mlp", "--window", "4", "--hidden", "16,16", "--seed", "3", "--watch"]);
+    args.extend(reward_args);
+    ok(server, &args);
+}
+
+/// Straight-line trajectories for [`upload_lines`]: `episodes` of 24 steps, obs =
+/// (x0 + vx k, y0 + vy k), action = (vx, vy), where x0, y0, vx, vy are each `u * scale + offset`
+/// (`start` = [x0, y0], `velocity` = [vx, vy], as (scale, offset)) for u uniform in [0, 1)
+/// drawn from an LCG seeded with `seed`.
+#[derive(Debug, Clone, Copy)]
+pub struct Lines {
+    pub episodes: usize,
+    pub seed: u64,
+    pub start: [(f32, f32); 2],
+    pub velocity: [(f32, f32); 2],
+}
+
+/// Uploads [`Lines`] trajectories (observations, actions, timeouts) as dataset `name`.
+pub async fn upload_lines(client: &Client, name: &str, lines: &Lines) {
+    let Lines { episodes, seed, start: [sx, sy], velocity: [svx, svy] } = *lines;
+    let len = 24usize;
+    let mut obs = Vec::with_capacity(episodes * len * 2);
+    let mut act = Vec::with_capacity(episodes * len * 2);
+    let mut timeouts = vec![false; episodes * len];
+    let mut r = seed;
+    let mut uniform = || {
+        r = r.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        (r >> 11) as f32 / (1u64 << 53) as f32
+    };
+    for e in 0..episodes {
+        let (x0, y0) = (uniform() * sx.0 + sx.1, uniform() * sy.0 + sy.1);
+        let (vx, vy) = (uniform() * svx.0 + svx.1, uniform() * svy.0 + svy.1);
+        for k in 0..len {
+            obs.extend([x0 + vx * k as f32, y0 + vy * k as f32]);
+            act.extend([vx, vy]);
+        }
+        timeouts[e * len + len - 1] = true;
+    }
+    let n = (episodes * len) as u64;
+    let mut source = MemorySource::new();
+    source.push_f32("observations", &[n, 2], &obs).push_f32("actions", &[n, 2], &act).push_bool("timeouts", &timeouts);
+    let upload = DatasetUpload {
+        name: name.into(),
+        kind: pb::DatasetKind::Trajectories,
+        description: String::new(),
+        chunk_bytes: 1 << 20,
+    };
+    client.upload_dataset(upload, source, Arc::new(UploadProgress::default())).await.expect("upload lines");
+}
+
 /// What [`train_tiny_reward`] registered on a server.
 #[derive(Debug, Clone)]
 pub struct TinyModels {
@@ -267,60 +434,8 @@ pub fn train_tiny_reward(server: &TestServer, dir: &Path) -> TinyModels {
     npz.add_bool("terminals", &[n as u64], &terminals).expect("terminals");
     npz.add_bool("timeouts", &[n as u64], &timeouts).expect("timeouts");
     npz.finish().expect("write npz");
-    let config = dir.join("diffusion.toml");
-    std::fs::write(
-        &config,
-        "[optimization]\nsteps = 12\nbatch_size = 8\nlog_every = 4\n[diffusion]\nhorizon = 8\nn_timesteps = 10\n\
-         architecture = { kind = \"temporal_unet\", dim = 8, dim_mults = [1, 2] }\n",
-    )
-    .expect("config");
-    let run = |args: &[&str]| {
-        let out = server.cli(args);
-        assert!(out.status.success(), "relreward {args:?}: {}", String::from_utf8_lossy(&out.stderr));
-    };
-    let path = path.to_str().expect("utf8 path");
-    let config = config.to_str().expect("utf8 path");
-    run(&["dataset", "upload", path, "--name", "traj"]);
-    for (name, seed) in [("base", "1"), ("expert", "2")] {
-        run(&[
-            "train",
-            "diffusion",
-            "--name",
-            name,
-            "--dataset",
-            "traj",
-            "--config",
-            config,
-            "--seed",
-            seed,
-            "--watch",
-        ]);
-    }
-    run(&[
-        "train",
-        "reward",
-        "--name",
-        "rw",
-        "--base",
-        "base",
-        "--expert",
-        "expert",
-        "--dataset",
-        "traj",
-        "--arch",
-        "windowed_mlp",
-        "--window",
-        "4",
-        "--hidden",
-        "16,16",
-        "--steps",
-        "8",
-        "--batch-size",
-        "8",
-        "--seed",
-        "3",
-        "--watch",
-    ]);
+    ok(server, &["dataset", "upload", path.to_str().expect("utf8 path"), "--name", "traj"]);
+    train_models(server, dir, "traj", "traj", &["--steps", "8", "--batch-size", "8"]);
     TinyModels {
         dataset: "traj".into(),
         base: "base".into(),

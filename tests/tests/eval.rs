@@ -7,9 +7,8 @@
 //! barely trained, so the values are checked for consistency, not for quality.
 
 use std::path::Path;
-use std::process::{Command, Output};
 
-use relreward_tests::{TestServer, python};
+use relreward_tests::{TestServer, ok, ok_json, refused, run_python, train_models};
 use serde_json::Value;
 
 const H: usize = 8;
@@ -88,52 +87,6 @@ assert len(raw) == h * (1 + 3 * w), f"{len(raw)} bytes for {w} x {h}"
 print(w, h)
 "#;
 
-fn stdout(out: &Output) -> String {
-    String::from_utf8_lossy(&out.stdout).into_owned()
-}
-
-fn stderr(out: &Output) -> String {
-    String::from_utf8_lossy(&out.stderr).into_owned()
-}
-
-#[track_caller]
-fn ok(server: &TestServer, args: &[&str]) -> String {
-    let out = server.cli(args);
-    assert!(
-        out.status.success(),
-        "relreward {args:?} failed ({}):\n{}\n{}\nserver log:\n{}",
-        out.status,
-        stdout(&out),
-        stderr(&out),
-        server.log()
-    );
-    stdout(&out)
-}
-
-#[track_caller]
-fn ok_json(server: &TestServer, args: &[&str]) -> Value {
-    let mut all = vec!["--json"];
-    all.extend(args);
-    let text = ok(server, &all);
-    serde_json::from_str(&text).unwrap_or_else(|e| panic!("relreward {args:?}: not JSON ({e}):\n{text}"))
-}
-
-#[track_caller]
-fn refused(server: &TestServer, args: &[&str], needles: &[&str]) {
-    let out = server.cli(args);
-    let err = stderr(&out);
-    assert!(!out.status.success(), "relreward {args:?} succeeded:\n{}", stdout(&out));
-    for needle in needles {
-        assert!(err.contains(needle), "relreward {args:?}: stderr does not name {needle:?}:\n{err}");
-    }
-}
-
-fn run_python(script: &str, args: &[&str]) -> String {
-    let out = Command::new(python()).arg("-c").arg(script).args(args).output().expect("python");
-    assert!(out.status.success(), "python failed:\n{}", stderr(&out));
-    stdout(&out)
-}
-
 /// Asserts that `path` is a 900 x 700 RGB PNG that decodes.
 #[track_caller]
 fn assert_png(path: &Path) {
@@ -158,55 +111,12 @@ async fn discriminate_heatmap_and_plots_run_against_a_trained_reward() {
     let dir = tmp.path();
     let path = |name: &str| dir.join(name).to_str().expect("utf8").to_owned();
     run_python(MAKE_DATA, &[dir.to_str().expect("utf8"), &H.to_string()]);
-    std::fs::write(
-        dir.join("diffusion.toml"),
-        "[optimization]\nsteps = 12\nbatch_size = 8\nlog_every = 4\n[diffusion]\nhorizon = 8\nn_timesteps = 10\n\
-         architecture = { kind = \"temporal_unet\", dim = 8, dim_mults = [1, 2] }\n",
-    )
-    .expect("config");
 
     // ---- datasets, a base and an expert diffusion model, a windowed reward.
     ok(&server, &["dataset", "upload", &path("base.npz"), "--name", "base-data"]);
     ok(&server, &["dataset", "upload", &path("expert.npz"), "--name", "expert-data"]);
-    let config = path("diffusion.toml");
-    for (name, data, seed) in [("base", "base-data", "1"), ("expert", "expert-data", "2")] {
-        ok(
-            &server,
-            &["train", "diffusion", "--name", name, "--dataset", data, "--config", &config, "--seed", seed, "--watch"],
-        );
-    }
-    ok(
-        &server,
-        &[
-            "train",
-            "reward",
-            "--name",
-            "rw",
-            "--base",
-            "base",
-            "--expert",
-            "expert",
-            "--dataset",
-            "base-data",
-            "--dataset",
-            "expert-data",
-            "--arch",
-            "windowed_mlp",
-            "--window",
-            "4",
-            "--hidden",
-            "16,16",
-            "--steps",
-            "40",
-            "--batch-size",
-            "16",
-            "--seed",
-            "3",
-            "--job-id",
-            "rw-job",
-            "--watch",
-        ],
-    );
+    let reward_args = ["--steps", "40", "--batch-size", "16", "--job-id", "rw-job"];
+    train_models(&server, dir, "base-data", "expert-data", &reward_args);
 
     // ---- eval discriminate: balanced classes, an 80/20 split, accuracies in [0, 1].
     let hist = path("disc-hist.png");

@@ -1,47 +1,18 @@
 //! Training jobs end to end: submission, idempotent ids, watch replay, cancellation, and a
 //! kill -9 of the server in the middle of a RUNNING diffusion job.
 
-use std::sync::Arc;
 use std::time::Duration;
 
-use relreward_client::client::{DatasetUpload, UploadProgress};
+use relreward_client::Client;
 use relreward_client::pb::{self, job_event::Event};
-use relreward_client::{Client, MemorySource};
-use relreward_tests::TestServer;
+use relreward_tests::{Lines, TestServer, upload_lines};
 use tokio_stream::StreamExt;
 use tonic::Code;
 
-/// Straight-line trajectories: obs = (x0 + vx k, y0 + vy k), action = (vx, vy), 24 steps each.
-async fn upload_lines(client: &Client, name: &str) {
-    let (episodes, len) = (200usize, 24usize);
-    let mut obs = Vec::with_capacity(episodes * len * 2);
-    let mut act = Vec::with_capacity(episodes * len * 2);
-    let mut timeouts = vec![false; episodes * len];
-    let mut r = 12345u64;
-    let mut uniform = || {
-        r = r.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
-        (r >> 11) as f32 / (1u64 << 53) as f32
-    };
-    for e in 0..episodes {
-        let (x0, y0) = (uniform() * 2.0 - 1.0, uniform() * 2.0 - 1.0);
-        let (vx, vy) = (uniform() * 0.2 - 0.1, uniform() * 0.2 - 0.1);
-        for k in 0..len {
-            obs.extend([x0 + vx * k as f32, y0 + vy * k as f32]);
-            act.extend([vx, vy]);
-        }
-        timeouts[e * len + len - 1] = true;
-    }
-    let n = (episodes * len) as u64;
-    let mut source = MemorySource::new();
-    source.push_f32("observations", &[n, 2], &obs).push_f32("actions", &[n, 2], &act).push_bool("timeouts", &timeouts);
-    let upload = DatasetUpload {
-        name: name.into(),
-        kind: pb::DatasetKind::Trajectories,
-        description: String::new(),
-        chunk_bytes: 1 << 20,
-    };
-    client.upload_dataset(upload, source, Arc::new(UploadProgress::default())).await.expect("upload lines");
-}
+/// Straight-line trajectories (see [`Lines`]): x0, y0 in [-1, 1), vx, vy in [-0.1, 0.1),
+/// 200 episodes.
+const LINES: Lines =
+    Lines { episodes: 200, seed: 12345, start: [(2.0, -1.0), (2.0, -1.0)], velocity: [(0.2, -0.1), (0.2, -0.1)] };
 
 fn spec(dataset: &str, output: &str, steps: u64, checkpoint_every: u64) -> pb::JobSpec {
     pb::JobSpec {
@@ -111,7 +82,7 @@ fn progress(events: &[pb::JobEvent]) -> Vec<pb::job_event::Progress> {
 async fn diffusion_job_trains_registers_and_replays() {
     let server = TestServer::start();
     let client = server.client().await;
-    upload_lines(&client, "lines").await;
+    upload_lines(&client, "lines", &LINES).await;
 
     let job = submit(&client, spec("lines", "lines-unet", 1500, 500), "train-lines").await.expect("submit");
     assert_eq!(job.id, "train-lines");
@@ -195,7 +166,7 @@ async fn line_statistics(client: &Client, model: &str) -> (f64, f64) {
 async fn bad_specs_are_refused_and_cancel_stops_a_running_job() {
     let server = TestServer::start();
     let client = server.client().await;
-    upload_lines(&client, "lines").await;
+    upload_lines(&client, "lines", &LINES).await;
 
     let err = submit(&client, spec("nope", "m", 10, 10), "").await.expect_err("unknown dataset");
     assert_eq!(err.code(), Code::NotFound);
@@ -254,7 +225,7 @@ async fn bad_specs_are_refused_and_cancel_stops_a_running_job() {
 async fn kill_9_during_a_running_job_resumes_from_its_checkpoint() {
     let mut server = TestServer::start();
     let client = server.client().await;
-    upload_lines(&client, "lines").await;
+    upload_lines(&client, "lines", &LINES).await;
     submit(&client, spec("lines", "resumed", 600, 50), "crash").await.expect("submit");
 
     // Let it pass at least two checkpoints, then kill the server without warning.

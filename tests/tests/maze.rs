@@ -6,7 +6,7 @@
 use std::path::Path;
 use std::process::{Command, Output, Stdio};
 
-use relreward_tests::{TestServer, bin, python};
+use relreward_tests::{TestServer, bin, run_python, stderr};
 use serde_json::Value;
 
 /// Runs `relreward [--json] maze generate ARGS` directly (the command needs no server).
@@ -16,10 +16,6 @@ fn maze(json: bool, args: &[&str]) -> Output {
         cmd.arg("--json");
     }
     cmd.args(["maze", "generate"]).args(args).stdin(Stdio::null()).output().expect("run relreward")
-}
-
-fn stderr(out: &Output) -> String {
-    String::from_utf8_lossy(&out.stderr).into_owned()
 }
 
 /// Runs a generation that must succeed; returns its JSON summary.
@@ -89,9 +85,8 @@ with np.load(sys.argv[1]) as d:
 "#;
 
 fn check_npz(path: &Path) -> Value {
-    let out = Command::new(python()).arg("-c").arg(CHECK_NPZ).arg(path).output().expect("run python");
-    assert!(out.status.success(), "numpy check failed: {}", stderr(&out));
-    serde_json::from_slice(&out.stdout).expect("JSON from the numpy check")
+    let text = run_python(CHECK_NPZ, &[path.to_str().expect("utf8")]);
+    serde_json::from_str(&text).expect("JSON from the numpy check")
 }
 
 /// `--layout umaze --mode expert --transitions 20000 --seed SEED --out OUT`.

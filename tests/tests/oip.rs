@@ -11,16 +11,14 @@
 //!   tritonclient, and the server answers normally afterwards.
 //! - An RPC of the protocol that relreward leaves out answers UNIMPLEMENTED.
 
-use std::sync::Arc;
 use std::time::Duration;
 
-use relreward_client::client::{DatasetUpload, UploadProgress};
 use relreward_client::pb::{self, job_event::Event};
-use relreward_client::{Client, MemorySource, tensor};
+use relreward_client::{Client, tensor};
 use relreward_proto::inference::grpc_inference_service_client::GrpcInferenceServiceClient;
 use relreward_proto::inference::model_infer_request::{InferInputTensor, InferRequestedOutputTensor};
 use relreward_proto::inference::{self as oip, InferTensorContents};
-use relreward_tests::{TestServer, python, repo_root};
+use relreward_tests::{Lines, TestServer, python, repo_root, upload_lines};
 use tokio_stream::StreamExt;
 use tonic::Code;
 use tonic::transport::Channel;
@@ -32,37 +30,10 @@ const T: u32 = 10;
 /// serving.max_request_items for this server, so that "too many items" is cheap to send.
 const MAX_ITEMS: usize = 16;
 
-/// Straight-line trajectories: obs = (x0 + vx k, y0 + vy k), action = (vx, vy), 24 steps each.
-async fn upload_lines(client: &Client, name: &str) {
-    let (episodes, len) = (64usize, 24usize);
-    let mut obs = Vec::with_capacity(episodes * len * 2);
-    let mut act = Vec::with_capacity(episodes * len * 2);
-    let mut timeouts = vec![false; episodes * len];
-    let mut r = 99u64;
-    let mut uniform = || {
-        r = r.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
-        (r >> 11) as f32 / (1u64 << 53) as f32
-    };
-    for e in 0..episodes {
-        let (x0, y0) = (uniform() * 4.0 - 2.0, uniform() * 6.0 + 1.0);
-        let (vx, vy) = (uniform() * 0.4 - 0.2, uniform() * 0.2 - 0.1);
-        for k in 0..len {
-            obs.extend([x0 + vx * k as f32, y0 + vy * k as f32]);
-            act.extend([vx, vy]);
-        }
-        timeouts[e * len + len - 1] = true;
-    }
-    let n = (episodes * len) as u64;
-    let mut source = MemorySource::new();
-    source.push_f32("observations", &[n, 2], &obs).push_f32("actions", &[n, 2], &act).push_bool("timeouts", &timeouts);
-    let upload = DatasetUpload {
-        name: name.into(),
-        kind: pb::DatasetKind::Trajectories,
-        description: String::new(),
-        chunk_bytes: 1 << 20,
-    };
-    client.upload_dataset(upload, source, Arc::new(UploadProgress::default())).await.expect("upload lines");
-}
+/// Straight-line trajectories (see [`Lines`]): x0 in [-2, 2), y0 in [1, 7), vx in [-0.2, 0.2),
+/// vy in [-0.1, 0.1), 64 episodes.
+const LINES: Lines =
+    Lines { episodes: 64, seed: 99, start: [(4.0, -2.0), (6.0, 1.0)], velocity: [(0.4, -0.2), (0.2, -0.1)] };
 
 fn optimization(steps: u64) -> Option<pb::Optimization> {
     Some(pb::Optimization {
@@ -139,7 +110,7 @@ async fn train(client: &Client, spec: pb::JobSpec) {
 async fn setup() -> (TestServer, Client) {
     let server = TestServer::start_with_env(&[("RELREWARD__SERVING__MAX_REQUEST_ITEMS", &MAX_ITEMS.to_string())]);
     let client = server.client().await;
-    upload_lines(&client, "lines").await;
+    upload_lines(&client, "lines", &LINES).await;
     let (base, expert) = (diffusion_spec("lines-base", 1), diffusion_spec("lines-expert", 2));
     tokio::join!(train(&client, base), train(&client, expert));
     train(&client, reward_spec()).await;

@@ -5,13 +5,13 @@
 //! is checked against unary Gradient on the same server.
 
 use std::path::Path;
-use std::process::{Command, Output};
 
 use relreward_client::client::stream_error_status;
 use relreward_client::pb;
 use relreward_client::tensor::{decode_finite_f32, encode_f32};
-use relreward_tests::{TestServer, python};
-use serde_json::Value;
+use relreward_tests::{
+    TestServer, np_load, npz_shape as shape, npz_values as values, ok, ok_json, refused, run_python, train_models,
+};
 
 /// Rows per episode of the trajectories file. With the horizon H = 8: 23 + 0 + 33 + 5 + 18 = 79
 /// windows at stride 1 and 12 + 0 + 17 + 3 + 9 = 41 at stride 2.
@@ -44,96 +44,6 @@ first = np.stack([rows[s:s + H] for s in range(lengths[0] - H + 1)])
 np.savez(f"{out}/first.npz", x=first.astype(np.float32))
 "#;
 
-/// Prints `{key: {"shape": [..], "dtype": "..", "values": [..]}}` for every array of an .npz.
-const READ_NPZ: &str = r#"
-import json, sys
-import numpy as np
-with np.load(sys.argv[1]) as d:
-    print(json.dumps({k: {"shape": list(d[k].shape), "dtype": str(d[k].dtype),
-                          "values": d[k].ravel().astype(float).tolist()} for k in d.files}))
-"#;
-
-const DIFFUSION_CONFIG: &str = r#"
-[optimization]
-steps = 12
-batch_size = 8
-log_every = 4
-[diffusion]
-horizon = 8
-n_timesteps = 10
-architecture = { kind = "temporal_unet", dim = 8, dim_mults = [1, 2] }
-"#;
-
-fn stdout(out: &Output) -> String {
-    String::from_utf8_lossy(&out.stdout).into_owned()
-}
-
-fn stderr(out: &Output) -> String {
-    String::from_utf8_lossy(&out.stderr).into_owned()
-}
-
-/// Runs the CLI, asserting success; returns stdout.
-#[track_caller]
-fn ok(server: &TestServer, args: &[&str]) -> String {
-    let out = server.cli(args);
-    assert!(
-        out.status.success(),
-        "relreward {args:?} failed ({}):\n{}\n{}\nserver log:\n{}",
-        out.status,
-        stdout(&out),
-        stderr(&out),
-        server.log()
-    );
-    stdout(&out)
-}
-
-/// Runs the CLI with `--json`, asserting success; returns the document.
-#[track_caller]
-fn ok_json(server: &TestServer, args: &[&str]) -> Value {
-    let mut all = vec!["--json"];
-    all.extend(args);
-    let text = ok(server, &all);
-    serde_json::from_str(&text).unwrap_or_else(|e| panic!("relreward {args:?}: not JSON ({e}):\n{text}"))
-}
-
-/// Runs the CLI, asserting a non-zero exit and that stderr names every one of `needles`.
-#[track_caller]
-fn refused(server: &TestServer, args: &[&str], needles: &[&str]) {
-    let out = server.cli(args);
-    let err = stderr(&out);
-    assert!(!out.status.success(), "relreward {args:?} succeeded:\n{}", stdout(&out));
-    for needle in needles {
-        assert!(err.contains(needle), "relreward {args:?}: stderr does not name {needle:?}:\n{err}");
-    }
-}
-
-fn run_python(script: &str, args: &[&str]) -> String {
-    let out = Command::new(python()).arg("-c").arg(script).args(args).output().expect("python");
-    assert!(out.status.success(), "python failed:\n{}", stderr(&out));
-    stdout(&out)
-}
-
-/// numpy's view of an .npz file.
-fn np_load(path: &Path) -> Value {
-    let text = run_python(READ_NPZ, &[path.to_str().expect("utf8")]);
-    serde_json::from_str(&text).expect("json from python")
-}
-
-fn shape(npz: &Value, key: &str) -> Vec<u64> {
-    let shape = &npz[key]["shape"];
-    assert!(shape.is_array(), "no array '{key}' in {npz}");
-    shape.as_array().expect("shape").iter().map(|v| v.as_u64().expect("dim")).collect()
-}
-
-fn values(npz: &Value, key: &str) -> Vec<f64> {
-    npz[key]["values"]
-        .as_array()
-        .unwrap_or_else(|| panic!("no '{key}'"))
-        .iter()
-        .map(|v| v.as_f64().expect("f64"))
-        .collect()
-}
-
 fn close(a: &[f64], b: &[f64], tol: f64) -> bool {
     a.len() == b.len() && a.iter().zip(b).all(|(x, y)| (x - y).abs() <= tol * (1.0 + x.abs().max(y.abs())))
 }
@@ -146,43 +56,10 @@ async fn score_grad_and_sample_commands_write_npz_files_numpy_reads() {
     let path = |name: &str| dir.join(name).to_str().expect("utf8").to_owned();
     let lengths = EPISODES.map(|l| l.to_string()).join(",");
     run_python(MAKE_INPUTS, &[dir.to_str().expect("utf8"), &lengths, &H.to_string()]);
-    std::fs::write(dir.join("diffusion.toml"), DIFFUSION_CONFIG).expect("config");
 
     // ---- a dataset, two diffusion models and a reward, each in a few steps.
     ok(&server, &["dataset", "upload", &path("traj.npz"), "--name", "traj"]);
-    for (name, seed) in [("base", "1"), ("expert", "2")] {
-        let config = path("diffusion.toml");
-        let args = ["train", "diffusion", "--name", name, "--dataset", "traj", "--config", &config, "--seed", seed];
-        ok(&server, &[&args[..], &["--watch"]].concat());
-    }
-    ok(
-        &server,
-        &[
-            "train",
-            "reward",
-            "--name",
-            "rw",
-            "--base",
-            "base",
-            "--expert",
-            "expert",
-            "--dataset",
-            "traj",
-            "--arch",
-            "windowed_mlp",
-            "--window",
-            "4",
-            "--hidden",
-            "16,16",
-            "--steps",
-            "8",
-            "--batch-size",
-            "8",
-            "--seed",
-            "3",
-            "--watch",
-        ],
-    );
+    train_models(&server, dir, "traj", "traj", &["--steps", "8", "--batch-size", "8"]);
 
     // ---- plain sampling: x [3, H, D] in raw units, deterministic for a seed.
     let s1 = path("s1.npz");

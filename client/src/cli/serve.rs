@@ -572,6 +572,15 @@ impl OutArrays {
         f.chain(i).collect::<Vec<_>>().join(", ")
     }
 
+    /// Writes the arrays to `out` when given; returns their shapes as JSON and as text.
+    async fn write_to(self, out: Option<&Path>) -> Result<(Value, String)> {
+        let shapes = (self.shapes_json(), self.shapes_text());
+        if let Some(out) = out {
+            self.write(out).await?;
+        }
+        Ok(shapes)
+    }
+
     /// Writes the arrays to `path` (on a blocking thread).
     async fn write(self, path: &Path) -> Result<()> {
         let dest = path.to_owned();
@@ -715,11 +724,7 @@ async fn query_report(
     if let Items::Windows(w) = items {
         arrays.i64s.push(("window_start", vec![n as u64], w.starts.iter().map(|&s| s as i64).collect()));
     }
-    let shapes_json = arrays.shapes_json();
-    let shapes_text = arrays.shapes_text();
-    if let Some(out) = &input.out {
-        arrays.write(out).await?;
-    }
+    let (shapes_json, shapes_text) = arrays.write_to(input.out.as_deref()).await?;
 
     let mut fields = vec![
         ("model", input.model.clone()),
@@ -1055,11 +1060,7 @@ pub async fn sample(ctx: &Ctx, args: SampleArgs) -> Result<Report> {
     if guided {
         arrays.f32s.push(("reward", vec![n as u64], rewards.iter().map(|&r| r as f32).collect()));
     }
-    let shapes_json = arrays.shapes_json();
-    let shapes_text = arrays.shapes_text();
-    if let Some(out) = &args.out {
-        arrays.write(out).await?;
-    }
+    let (shapes_json, shapes_text) = arrays.write_to(args.out.as_deref()).await?;
 
     let mut fields = vec![
         ("base", args.base.clone()),
