@@ -69,11 +69,6 @@ impl RewardModel {
         Ok(Self { manifest, net, step_norm })
     }
 
-    /// A model from parts (tests, and jobs that evaluate what they just trained).
-    pub fn from_parts(manifest: RewardManifest, net: RewardNet) -> Self {
-        Self { manifest, net, step_norm: None }
-    }
-
     /// Shape of one item, without the batch dimension.
     pub fn item_shape(&self) -> &[i64] {
         self.net.item_shape()

@@ -42,12 +42,6 @@ pub(super) struct Queues {
     by_key: Mutex<HashMap<String, Arc<ModelQueue>>>,
 }
 
-impl Queues {
-    pub(super) fn depth(&self, model: &SharedReward) -> usize {
-        lock(&self.by_key).get(&model.blob_key).map_or(0, |q| lock(&q.state).pending.len())
-    }
-}
-
 struct ModelQueue {
     model: SharedReward,
     state: Mutex<QueueState>,

@@ -33,7 +33,7 @@ use crate::engine::schedule::{Schedule, Table};
 use crate::error::{Error, Result};
 use crate::metrics::Metrics;
 
-pub use batcher::BatchKind;
+use batcher::BatchKind;
 
 /// Units of inputs and gradients.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -98,10 +98,6 @@ struct GradientPost {
 }
 
 impl Prepared {
-    pub fn model(&self) -> &SharedReward {
-        &self.model
-    }
-
     pub fn batch(&self) -> i64 {
         self.t.size()[0]
     }
@@ -145,10 +141,6 @@ impl Serving {
 
     pub fn registry(&self) -> &ModelRegistry {
         &self.inner.registry
-    }
-
-    pub fn config(&self) -> &ServingConfig {
-        &self.inner.config
     }
 
     /// The reward model `name` (NotFound, FailedPrecondition for a diffusion model, DataLoss).
@@ -234,11 +226,6 @@ impl Serving {
         let model = self.reward(name).await?;
         let prepared = self.prepare(model, query).await?;
         self.run(prepared).await
-    }
-
-    /// Queries waiting for `model` (for metrics and tests).
-    pub fn queue_depth(&self, model: &SharedReward) -> usize {
-        self.inner.queues.depth(model)
     }
 
     /// exp(posterior_log_variance_clipped[t]) of diffusion model `name` for t in [0, T): the
