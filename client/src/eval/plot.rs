@@ -277,6 +277,36 @@ pub fn wants_log_scale(series: &[Series]) -> bool {
 }
 
 /// A line plot of `series` against the step, log-scale y when `log`.
+/// Each series as a line (with markers when short) and the legend, on a chart whose y axis is
+/// linear or logarithmic (the one part the two loss-plot variants share).
+fn draw_series_with_legend<'a, Y>(
+    chart: &mut ChartContext<'a, BitMapBackend<'a>, Cartesian2d<plotters::coord::types::RangedCoordf64, Y>>,
+    series: &[Series],
+    finite: impl Fn(&&(f64, f64)) -> bool,
+) -> Drawn
+where
+    Y: Ranged<ValueType = f64>,
+{
+    for (i, s) in series.iter().enumerate() {
+        let color = SERIES[i % SERIES.len()];
+        let points: Vec<(f64, f64)> = s.points.iter().filter(&finite).copied().collect();
+        chart
+            .draw_series(LineSeries::new(points.clone(), color.stroke_width(2)))?
+            .label(s.name.as_str())
+            .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(2)));
+        if points.len() <= 60 {
+            chart.draw_series(points.iter().map(|&p| Circle::new(p, 3, color.filled())))?;
+        }
+    }
+    chart
+        .configure_series_labels()
+        .background_style(WHITE.mix(0.85))
+        .border_style(BLACK)
+        .label_font(font(TICK_SIZE))
+        .draw()?;
+    Ok(())
+}
+
 pub fn loss_png(path: &Path, title: &str, y_label: &str, series: &[Series], log: bool) -> Result<(), PlotError> {
     render(path, |root| draw_lines(root, title, y_label, series, log))
 }
@@ -320,23 +350,7 @@ fn draw_lines(
             .axis_desc_style(font(LABEL_SIZE))
             .light_line_style(RGBColor(235, 235, 235))
             .draw()?;
-        for (i, s) in series.iter().enumerate() {
-            let color = SERIES[i % SERIES.len()];
-            let points: Vec<(f64, f64)> = s.points.iter().filter(finite).copied().collect();
-            chart
-                .draw_series(LineSeries::new(points.clone(), color.stroke_width(2)))?
-                .label(s.name.as_str())
-                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(2)));
-            if points.len() <= 60 {
-                chart.draw_series(points.iter().map(|&p| Circle::new(p, 3, color.filled())))?;
-            }
-        }
-        chart
-            .configure_series_labels()
-            .background_style(WHITE.mix(0.85))
-            .border_style(BLACK)
-            .label_font(font(TICK_SIZE))
-            .draw()?;
+        draw_series_with_legend(&mut chart, series, finite)?;
     } else {
         let mut chart = builder.build_cartesian_2d(x_lo..x_hi, y_lo..y_hi)?;
         chart
@@ -349,23 +363,7 @@ fn draw_lines(
             .axis_desc_style(font(LABEL_SIZE))
             .light_line_style(RGBColor(235, 235, 235))
             .draw()?;
-        for (i, s) in series.iter().enumerate() {
-            let color = SERIES[i % SERIES.len()];
-            let points: Vec<(f64, f64)> = s.points.iter().filter(finite).copied().collect();
-            chart
-                .draw_series(LineSeries::new(points.clone(), color.stroke_width(2)))?
-                .label(s.name.as_str())
-                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(2)));
-            if points.len() <= 60 {
-                chart.draw_series(points.iter().map(|&p| Circle::new(p, 3, color.filled())))?;
-            }
-        }
-        chart
-            .configure_series_labels()
-            .background_style(WHITE.mix(0.85))
-            .border_style(BLACK)
-            .label_font(font(TICK_SIZE))
-            .draw()?;
+        draw_series_with_legend(&mut chart, series, finite)?;
     }
     Ok(())
 }
