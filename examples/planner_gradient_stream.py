@@ -12,6 +12,9 @@ temporary directory), so the example depends on nothing relreward-specific but t
 
     .venv/bin/python examples/planner_gradient_stream.py --endpoint 127.0.0.1:50051 --model maze-reward
 
+A server with access control wants a token with scope `read` (--token, or RELREWARD_TOKEN);
+one with TLS wants --ca-cert (and --client-cert/--client-key for mutual TLS).
+
 Prints one JSON object: rho at the first and the last step, how much each guide step raised
 rho at its own t (positive: the gradient points uphill), and the round-trip latency of the
 stream's requests.
@@ -19,6 +22,7 @@ stream's requests.
 
 import argparse
 import json
+import os
 import pathlib
 import queue
 import sys
@@ -42,6 +46,22 @@ def load_stubs(proto_dir: pathlib.Path, out: pathlib.Path):
     return models_pb2, models_pb2_grpc, reward_pb2, reward_pb2_grpc, tensor_pb2
 
 
+def open_channel(grpc, args):
+    """A plaintext channel, or a TLS one when a CA or client certificate is given."""
+    if args.ca_cert is None and args.client_cert is None:
+        return grpc.insecure_channel(args.endpoint)
+
+    def read(path):
+        return pathlib.Path(path).read_bytes() if path else None
+
+    credentials = grpc.ssl_channel_credentials(
+        root_certificates=read(args.ca_cert),
+        private_key=read(args.client_key),
+        certificate_chain=read(args.client_cert),
+    )
+    return grpc.secure_channel(args.endpoint, credentials)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--endpoint", default="127.0.0.1:50051")
@@ -51,7 +71,17 @@ def main() -> None:
     ap.add_argument("--batch", type=int, default=4, help="plans per request")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--proto-dir", default=str(pathlib.Path(__file__).resolve().parent.parent / "proto"))
+    ap.add_argument(
+        "--token",
+        default=os.environ.get("RELREWARD_TOKEN"),
+        help="access token with scope read (default: $RELREWARD_TOKEN)",
+    )
+    ap.add_argument("--ca-cert", help="PEM CA certificate: connect with TLS, verifying the server against it")
+    ap.add_argument("--client-cert", help="PEM client certificate, for servers that require mutual TLS")
+    ap.add_argument("--client-key", help="PEM private key of --client-cert")
     args = ap.parse_args()
+    if (args.client_cert is None) != (args.client_key is None):
+        ap.error("--client-cert and --client-key go together")
 
     import grpc
 
@@ -59,8 +89,12 @@ def main() -> None:
         models_pb2, models_pb2_grpc, reward_pb2, reward_pb2_grpc, tensor_pb2 = load_stubs(
             pathlib.Path(args.proto_dir), pathlib.Path(tmp)
         )
-        channel = grpc.insecure_channel(args.endpoint)
-        model = models_pb2_grpc.ModelServiceStub(channel).GetModel(models_pb2.GetModelRequest(name=args.model))
+        channel = open_channel(grpc, args)
+        # Sent with every call; the server checks it before any handler runs.
+        metadata = [("authorization", f"Bearer {args.token}")] if args.token else None
+        model = models_pb2_grpc.ModelServiceStub(channel).GetModel(
+            models_pb2.GetModelRequest(name=args.model), metadata=metadata
+        )
         shape = [args.batch, *model.reward.input_shape]
         big_t = model.reward.n_timesteps
 
@@ -74,7 +108,9 @@ def main() -> None:
         # The request iterator feeds the stream from a queue: the loop below puts the next
         # request only after the previous answer arrived, as a planner must.
         requests: "queue.Queue" = queue.Queue()
-        responses = reward_pb2_grpc.RewardServiceStub(channel).GradientStream(iter(requests.get, None))
+        responses = reward_pb2_grpc.RewardServiceStub(channel).GradientStream(
+            iter(requests.get, None), metadata=metadata
+        )
 
         rng = np.random.default_rng(args.seed)
         x = rng.standard_normal(shape).astype(np.float32)  # a plan in normalized units

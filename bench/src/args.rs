@@ -65,6 +65,15 @@ pub struct Args {
     /// Print one JSON object instead of text.
     #[arg(long)]
     pub json: bool,
+
+    /// Also sample this process's resident set size (the server's PID, read from
+    /// /proc/PID/status) during the load, and report its growth and slope.
+    #[arg(long, value_name = "PID")]
+    pub rss_pid: Option<u32>,
+
+    /// Seconds between two RSS samples (with --rss-pid).
+    #[arg(long, default_value_t = 1.0, requires = "rss_pid", value_parser = parse_seconds)]
+    pub rss_every: f64,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum, serde::Serialize)]
@@ -273,6 +282,9 @@ mod tests {
         assert_eq!(a.stop(), Stop::Requests(2000));
         assert_eq!(a.warmup, 0.5);
         assert!(a.json);
+        assert_eq!((a.rss_pid, a.rss_every), (None, 1.0));
+        let r = parse(&["--model", "m", "--rss-pid", "42", "--rss-every", "0.5"]).expect("parses");
+        assert_eq!((r.rss_pid, r.rss_every), (Some(42), 0.5));
         let d = parse(&["--model", "m", "--duration", "2.5"]).expect("parses");
         assert_eq!(d.stop(), Stop::Duration(Duration::from_secs_f64(2.5)));
     }
@@ -292,6 +304,8 @@ mod tests {
             &["--model", "m", "--duration", "-1"],                   // negative
             &["--model", "m", "--duration", "inf"],                  // unbounded
             &["--model", "m", "--warmup", "NaN"],                    // not a number
+            &["--model", "m", "--rss-every", "2"],                   // sampling what?
+            &["--model", "m", "--rss-pid", "x"],                     // not a PID
         ] {
             assert!(parse(bad).is_err(), "{bad:?} should be refused");
         }

@@ -14,13 +14,13 @@ use std::time::{Duration, Instant};
 use anyhow::{Context, Result};
 use hdrhistogram::Histogram;
 use relreward_client::Client;
+use relreward_client::client::Transport;
 use relreward_client::tensor::encode_f32;
 use relreward_proto::v1::reward_service_client::RewardServiceClient;
 use relreward_proto::v1::{GradientRequest, GradientResponse, Units};
 use tokio::sync::mpsc;
 use tokio::task::JoinSet;
 use tokio_stream::wrappers::ReceiverStream;
-use tonic::transport::Channel;
 use tonic::{Code, Streaming};
 
 use crate::args::{Mode, Stop};
@@ -57,6 +57,8 @@ pub struct Totals {
     pub errors: BTreeMap<&'static str, u64>,
     /// Length of the measurement window.
     pub elapsed: Duration,
+    /// When the measurement window started (after connecting and the warmup).
+    pub measure_start: Instant,
 }
 
 /// One client's record.
@@ -100,8 +102,14 @@ pub async fn run(endpoint: &str, plan: Plan) -> Result<Totals> {
         let plan = plan.clone();
         tasks.spawn(drive(caller, template, plan, measure_start, measure_end));
     }
-    let mut totals =
-        Totals { latency_us: new_histogram(), requests: 0, items: 0, errors: BTreeMap::new(), elapsed: Duration::ZERO };
+    let mut totals = Totals {
+        latency_us: new_histogram(),
+        requests: 0,
+        items: 0,
+        errors: BTreeMap::new(),
+        elapsed: Duration::ZERO,
+        measure_start,
+    };
     let mut last_done = measure_start;
     while let Some(joined) = tasks.join_next().await {
         let stats = joined.context("a client task failed")?;
@@ -207,7 +215,7 @@ fn check_response(r: &GradientResponse, request_id: u64, plan: &Plan) -> Result<
 /// How one client talks to the server: one Gradient call per request (unary), or one
 /// GradientStream, opened on the first request and again after a stream-level failure.
 struct Caller {
-    rpc: RewardServiceClient<Channel>,
+    rpc: RewardServiceClient<Transport>,
     mode: Mode,
     /// The open stream (stream mode).
     open: Option<OpenStream>,
@@ -219,7 +227,7 @@ struct OpenStream {
 }
 
 impl Caller {
-    fn new(mode: Mode, rpc: RewardServiceClient<Channel>) -> Self {
+    fn new(mode: Mode, rpc: RewardServiceClient<Transport>) -> Self {
         Self { rpc, mode, open: None }
     }
 
@@ -255,7 +263,7 @@ impl Caller {
     }
 
     async fn stream_call(
-        rpc: &mut RewardServiceClient<Channel>,
+        rpc: &mut RewardServiceClient<Transport>,
         open: &mut Option<OpenStream>,
         request: GradientRequest,
     ) -> Result<GradientResponse, &'static str> {

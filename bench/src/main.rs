@@ -5,12 +5,14 @@
 //! - [`load`]: the clients (one connection and one request in flight each), the measurement
 //!   window, HDR histograms of latency merged across clients.
 //! - [`report`]: the report as text or one JSON object.
+//! - [`rss`]: the server's resident set size sampled during the load (`--rss-pid`).
 //!
 //! Depends on the client library only, never on the server: it must not link libtorch.
 
 mod args;
 mod load;
 mod report;
+mod rss;
 
 use std::process::ExitCode;
 use std::time::Duration;
@@ -61,8 +63,13 @@ async fn run(args: Args) -> Result<ExitCode> {
         stop: args.stop(),
         timeout: Duration::from_secs_f64(args.timeout),
     };
+    let sampler =
+        args.rss_pid.map(|pid| rss::RssSampler::start(pid, Duration::from_secs_f64(args.rss_every))).transpose()?;
     let totals = load::run(&args.endpoint, plan.clone()).await?;
-    let report = Report::new(&args.endpoint, &plan, &totals);
+    let mut report = Report::new(&args.endpoint, &plan, &totals);
+    if let Some(sampler) = sampler {
+        report.rss = Some(sampler.finish(totals.measure_start).await?);
+    }
     if args.json {
         println!("{}", serde_json::to_string(&report)?);
     } else {

@@ -6,6 +6,7 @@ use serde::Serialize;
 
 use crate::args::{Mode, Stop};
 use crate::load::{Plan, Totals};
+use crate::rss::RssReport;
 
 /// Said in every report: the figures are not the server's alone.
 pub const SHARED_CPU_NOTE: &str = "the load generator ran on the server's machine (loopback only) and shared its CPUs \
@@ -38,6 +39,9 @@ pub struct Report {
     /// CPUs of the machine that both the server and the load generator ran on.
     pub cpus: usize,
     pub note: &'static str,
+    /// The server's RSS during the load (with `--rss-pid`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub rss: Option<RssReport>,
 }
 
 #[derive(Debug, Serialize)]
@@ -86,6 +90,7 @@ impl Report {
             latency_ms: latency,
             cpus: std::thread::available_parallelism().map_or(1, |n| n.get()),
             note: SHARED_CPU_NOTE,
+            rss: None,
         }
     }
 
@@ -116,6 +121,26 @@ impl Report {
             ),
             None => "no successful request".to_owned(),
         };
+        let rss = match &self.rss {
+            None => String::new(),
+            Some(r) => {
+                let slope = |s: Option<f64>| s.map_or("n/a".to_owned(), |s| format!("{s:+.1} KiB/min"));
+                format!(
+                    "\x20 rss         pid {}: {} KiB at the window's start, {} KiB at the end ({:+} KiB), max {} KiB, \
+                     peak (VmHWM) {} KiB; slope {} (second half {}), {} samples every {} s\n",
+                    r.pid,
+                    r.start_kib,
+                    r.end_kib,
+                    r.growth_kib,
+                    r.max_kib,
+                    r.peak_kib,
+                    slope(r.slope_kib_per_min),
+                    slope(r.slope_second_half_kib_per_min),
+                    r.samples.len(),
+                    r.every_s
+                )
+            }
+        };
         format!(
             "relreward-loadgen: {mode} on {endpoint}, model {model}, {clients} client(s) x batch {batch}, item \
              {shape:?}, t {t}; {window} after {warmup} s warmup\n\
@@ -125,6 +150,7 @@ impl Report {
              \x20 elapsed     {elapsed:.3} s\n\
              \x20 throughput  {rps:.1} requests/s, {ips:.1} items/s\n\
              \x20 latency     {latency}\n\
+             {rss}\
              note: {note} ({cpus} CPUs).\n",
             endpoint = self.endpoint,
             model = self.model,
@@ -164,6 +190,7 @@ mod tests {
             items: 8000,
             errors: BTreeMap::from([("UNAVAILABLE", 2)]),
             elapsed: Duration::from_secs(4),
+            measure_start: std::time::Instant::now(),
         };
         let plan = Plan {
             model: "maze-reward".into(),

@@ -4,6 +4,10 @@
 //! raw RPCs; the helpers here add what every caller would otherwise rewrite: chunked uploads
 //! with the digest computed on the fly, and listing through every page. Following a job's
 //! events across reconnects is in [`crate::watch`].
+//!
+//! [`Client::connect_with`] takes [`ConnectOptions`]: a bearer token sent with every call
+//! (servers with `security.tokens`) and TLS settings for `https://` endpoints (a CA file,
+//! a client certificate for mutual TLS).
 
 use std::io::Read;
 use std::path::{Path, PathBuf};
@@ -14,7 +18,10 @@ use relreward_proto::v1 as pb;
 use sha2::{Digest, Sha256};
 use tokio::sync::mpsc;
 use tokio_stream::wrappers::ReceiverStream;
-use tonic::transport::{Channel, Endpoint};
+use tonic::metadata::{AsciiMetadataValue, MetadataValue};
+use tonic::service::Interceptor;
+use tonic::service::interceptor::InterceptedService;
+use tonic::transport::{Certificate, Channel, ClientTlsConfig, Endpoint, Identity};
 
 use crate::upload::{UploadSource, row_bytes, rows_per_chunk, total_bytes};
 
@@ -25,7 +32,9 @@ pub const DEFAULT_CHUNK_BYTES: u64 = 1 << 20;
 
 #[derive(Debug, thiserror::Error)]
 pub enum ClientError {
-    #[error("cannot connect to {endpoint}: {source}")]
+    // With the source's own causes: tonic's message alone is "transport error", which hides
+    // a refused connection or a failed certificate check.
+    #[error("cannot connect to {endpoint}: {}", error_chain(.source))]
     Connect { endpoint: String, source: tonic::transport::Error },
     #[error("{}: {}", code_name(.0.code()), .0.message())]
     Status(#[from] tonic::Status),
@@ -35,6 +44,21 @@ pub enum ClientError {
     File { path: PathBuf, source: std::io::Error },
     #[error("{0}")]
     Invalid(String),
+}
+
+/// An error and its causes, `: `-separated.
+fn error_chain(e: &dyn std::error::Error) -> String {
+    let mut text = e.to_string();
+    let mut source = e.source();
+    while let Some(cause) = source {
+        let more = cause.to_string();
+        if !text.contains(&more) {
+            text.push_str(": ");
+            text.push_str(&more);
+        }
+        source = cause.source();
+    }
+    text
 }
 
 /// The gRPC code in the spelling of the spec (`INVALID_ARGUMENT`), for messages.
@@ -78,51 +102,171 @@ pub struct UploadProgress {
     pub sent_bytes: AtomicU64,
 }
 
+/// How to reach a server beyond its address.
+#[derive(Clone, Default)]
+pub struct ConnectOptions {
+    /// Sent as `authorization: Bearer <token>` with every call.
+    pub token: Option<String>,
+    /// Used for `https://` endpoints (and refused with `http://` ones, where it would be
+    /// silently ignored).
+    pub tls: Option<TlsOptions>,
+}
+
+impl std::fmt::Debug for ConnectOptions {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        // Never the token itself.
+        f.debug_struct("ConnectOptions").field("token", &self.token.as_ref().map(|_| "<set>")).finish_non_exhaustive()
+    }
+}
+
+/// TLS settings, all PEM.
+#[derive(Clone, Default)]
+pub struct TlsOptions {
+    /// CA certificate(s) the server's certificate must chain to; `None`: the system's roots.
+    pub ca_certificate: Option<Vec<u8>>,
+    /// Client certificate chain and private key, for servers that require mutual TLS.
+    pub identity: Option<(Vec<u8>, Vec<u8>)>,
+    /// The name to check the server's certificate against, when it is not the endpoint's host.
+    pub server_name: Option<String>,
+}
+
+impl TlsOptions {
+    /// Reads the files: a CA certificate, and a client certificate with its key.
+    pub fn from_files(
+        ca_certificate: Option<&Path>,
+        client_certificate: Option<(&Path, &Path)>,
+        server_name: Option<String>,
+    ) -> Result<Self, ClientError> {
+        let read =
+            |path: &Path| std::fs::read(path).map_err(|source| ClientError::File { path: path.to_owned(), source });
+        let ca_certificate = ca_certificate.map(read).transpose()?;
+        let identity = match client_certificate {
+            Some((cert, key)) => Some((read(cert)?, read(key)?)),
+            None => None,
+        };
+        Ok(Self { ca_certificate, identity, server_name })
+    }
+}
+
+/// Adds the bearer token (if any) to every call made through a [`Client`].
+#[derive(Clone, Default)]
+pub struct Credentials {
+    authorization: Option<AsciiMetadataValue>,
+}
+
+impl Credentials {
+    pub fn new(token: Option<&str>) -> Result<Self, ClientError> {
+        let authorization = match token {
+            None => None,
+            Some(token) => {
+                let mut value: AsciiMetadataValue = MetadataValue::try_from(format!("Bearer {}", token.trim()))
+                    .map_err(|_| ClientError::Invalid("token: not printable ASCII; copy it again".into()))?;
+                // Kept out of debug output of the request.
+                value.set_sensitive(true);
+                Some(value)
+            }
+        };
+        Ok(Self { authorization })
+    }
+}
+
+impl Interceptor for Credentials {
+    fn call(&mut self, mut request: tonic::Request<()>) -> Result<tonic::Request<()>, tonic::Status> {
+        if let Some(value) = &self.authorization {
+            request.metadata_mut().insert("authorization", value.clone());
+        }
+        Ok(request)
+    }
+}
+
+/// What the typed service clients of a [`Client`] run on: its channel, with its credentials.
+pub type Transport = InterceptedService<Channel, Credentials>;
+
 #[derive(Clone)]
 pub struct Client {
     channel: Channel,
+    credentials: Credentials,
 }
 
 impl Client {
-    /// Connects to `endpoint` (e.g. `http://127.0.0.1:50051`).
+    /// Connects to `endpoint` (e.g. `http://127.0.0.1:50051`) without a token; an
+    /// `https://` endpoint is verified against the system's roots.
     pub async fn connect(endpoint: &str) -> Result<Self, ClientError> {
-        let connect_err = |source| ClientError::Connect { endpoint: endpoint.to_owned(), source };
-        let channel =
-            Endpoint::from_shared(endpoint.to_owned()).map_err(connect_err)?.connect().await.map_err(connect_err)?;
-        Ok(Self { channel })
+        Self::connect_with(endpoint, &ConnectOptions::default()).await
     }
 
+    /// Connects to `endpoint` with a token and TLS settings.
+    pub async fn connect_with(endpoint: &str, options: &ConnectOptions) -> Result<Self, ClientError> {
+        let connect_err = |source| ClientError::Connect { endpoint: endpoint.to_owned(), source };
+        let credentials = Credentials::new(options.token.as_deref())?;
+        let mut target = Endpoint::from_shared(endpoint.to_owned()).map_err(connect_err)?;
+        let https = target.uri().scheme_str() == Some("https");
+        match (&options.tls, https) {
+            (tls, true) => {
+                let tls = tls.clone().unwrap_or_default();
+                let mut config = ClientTlsConfig::new();
+                config = match tls.ca_certificate {
+                    Some(pem) => config.ca_certificate(Certificate::from_pem(pem)),
+                    None => config.with_native_roots(),
+                };
+                if let Some((cert, key)) = tls.identity {
+                    config = config.identity(Identity::from_pem(cert, key));
+                }
+                if let Some(name) = tls.server_name {
+                    config = config.domain_name(name);
+                }
+                target = target.tls_config(config).map_err(connect_err)?;
+            }
+            (Some(_), false) => {
+                return Err(ClientError::Invalid(format!(
+                    "TLS settings (CA or client certificate) were given but {endpoint} is not https://; use an \
+                     https:// endpoint"
+                )));
+            }
+            (None, false) => {}
+        }
+        let channel = target.connect().await.map_err(connect_err)?;
+        Ok(Self { channel, credentials })
+    }
+
+    /// The bare channel: calls made on it carry no token (health needs none).
     pub fn channel(&self) -> Channel {
         self.channel.clone()
     }
 
-    pub fn datasets(&self) -> pb::dataset_service_client::DatasetServiceClient<Channel> {
-        pb::dataset_service_client::DatasetServiceClient::new(self.channel.clone())
+    /// The channel with this client's credentials, for service clients built by hand (the
+    /// Open Inference Protocol's, say).
+    pub fn transport(&self) -> Transport {
+        InterceptedService::new(self.channel.clone(), self.credentials.clone())
+    }
+
+    pub fn datasets(&self) -> pb::dataset_service_client::DatasetServiceClient<Transport> {
+        pb::dataset_service_client::DatasetServiceClient::new(self.transport())
             .max_decoding_message_size(MAX_MESSAGE_BYTES)
             .max_encoding_message_size(MAX_MESSAGE_BYTES)
     }
 
-    pub fn models(&self) -> pb::model_service_client::ModelServiceClient<Channel> {
-        pb::model_service_client::ModelServiceClient::new(self.channel.clone())
+    pub fn models(&self) -> pb::model_service_client::ModelServiceClient<Transport> {
+        pb::model_service_client::ModelServiceClient::new(self.transport())
             .max_decoding_message_size(MAX_MESSAGE_BYTES)
             .max_encoding_message_size(MAX_MESSAGE_BYTES)
     }
 
-    pub fn jobs(&self) -> pb::job_service_client::JobServiceClient<Channel> {
-        pb::job_service_client::JobServiceClient::new(self.channel.clone())
+    pub fn jobs(&self) -> pb::job_service_client::JobServiceClient<Transport> {
+        pb::job_service_client::JobServiceClient::new(self.transport())
             .max_decoding_message_size(MAX_MESSAGE_BYTES)
             .max_encoding_message_size(MAX_MESSAGE_BYTES)
     }
 
-    pub fn rewards(&self) -> pb::reward_service_client::RewardServiceClient<Channel> {
-        pb::reward_service_client::RewardServiceClient::new(self.channel.clone())
+    pub fn rewards(&self) -> pb::reward_service_client::RewardServiceClient<Transport> {
+        pb::reward_service_client::RewardServiceClient::new(self.transport())
             .max_decoding_message_size(MAX_MESSAGE_BYTES)
             .max_encoding_message_size(MAX_MESSAGE_BYTES)
     }
 
     /// Overall serving status from `grpc.health.v1` (service name "" = the whole server).
     pub async fn health(&self) -> Result<tonic_health::pb::health_check_response::ServingStatus, ClientError> {
-        let mut health = tonic_health::pb::health_client::HealthClient::new(self.channel.clone());
+        let mut health = tonic_health::pb::health_client::HealthClient::new(self.transport());
         let resp = health.check(tonic_health::pb::HealthCheckRequest { service: String::new() }).await?;
         Ok(resp.into_inner().status())
     }

@@ -61,8 +61,11 @@
 //!   models, rewards, heatmaps, discriminability, steering), written to DIR with a summary.
 //!
 //! Global options: `--endpoint URL` (env `RELREWARD_ENDPOINT`, default
-//! `http://127.0.0.1:50051`) and `--json`, which prints one JSON document on stdout per command
-//! (`job watch`: one JSON object per event per line).
+//! `http://127.0.0.1:50051`; `https://` for TLS) and `--json`, which prints one JSON document
+//! on stdout per command (`job watch`: one JSON object per event per line). For servers with
+//! access control and TLS: `--token TOKEN` (env `RELREWARD_TOKEN`), `--ca-cert FILE`
+//! (`RELREWARD_CA_CERT`), `--client-cert FILE --client-key FILE` (`RELREWARD_CLIENT_CERT`,
+//! `RELREWARD_CLIENT_KEY`; mutual TLS) and `--tls-server-name NAME`.
 //!
 //! Errors are printed to stderr as `error: MESSAGE` (gRPC errors as `CODE: message`), also with
 //! `--json`. Exit status: 0 on success, 1 on failure, 2 on a usage error.
@@ -90,6 +93,8 @@ struct Cli {
     /// Print one machine-readable JSON document on stdout instead of text.
     #[arg(long, global = true)]
     json: bool,
+    #[command(flatten)]
+    connect: cli::ConnectArgs,
     #[command(subcommand)]
     command: Command,
 }
@@ -164,7 +169,11 @@ fn main() -> ExitCode {
 }
 
 async fn run(cli: Cli) -> Result<Report> {
-    let ctx = Ctx { endpoint: cli.endpoint.unwrap_or_else(|| cli::DEFAULT_ENDPOINT.to_owned()), json: cli.json };
+    let ctx = Ctx {
+        endpoint: cli.endpoint.unwrap_or_else(|| cli::DEFAULT_ENDPOINT.to_owned()),
+        json: cli.json,
+        connect: cli.connect,
+    };
     match cli.command {
         Command::Health => cli::health(&ctx).await,
         Command::Dataset(command) => cli::datasets::run(&ctx, command).await,

@@ -24,6 +24,7 @@ pub struct Config {
     pub serving: ServingConfig,
     pub metrics: MetricsConfig,
     pub log: LogConfig,
+    pub security: SecurityConfig,
 }
 
 #[derive(Debug, Clone, PartialEq, Deserialize)]
@@ -117,6 +118,55 @@ pub struct LogConfig {
     pub format: String,
     /// A tracing filter such as "info" or "relreward_server=debug,info". RUST_LOG overrides it.
     pub level: String,
+}
+
+/// Access control and TLS (see `crate::security` and docs/security.md).
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SecurityConfig {
+    /// Bearer tokens, as salted hashes (`relreward-server token create` makes one). When
+    /// empty, every call is admitted, which is allowed only on a loopback listener unless
+    /// `allow_unauthenticated` says otherwise.
+    pub tokens: Vec<TokenConfig>,
+    /// Serve without tokens on a non-loopback address. Off: anyone who can reach the port
+    /// could upload data, start jobs and delete models, so the server refuses to start.
+    pub allow_unauthenticated: bool,
+    pub tls: TlsConfig,
+}
+
+/// One entry of `security.tokens` (checked by `security::TokenTable::from_config`).
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TokenConfig {
+    /// Shown in logs and refusals; unique.
+    pub name: String,
+    /// `sha256:SALT:DIGEST`; the token itself is never configured.
+    pub hash: String,
+    /// Any of "read", "train", "admin"; the highest one counts (admin includes train,
+    /// which includes read).
+    pub scopes: Vec<String>,
+    /// RFC 3339 time after which the token is refused; absent or empty: never.
+    #[serde(default)]
+    pub expires: Option<String>,
+}
+
+/// TLS on the gRPC listener (native API and OIP alike); all empty: plaintext.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TlsConfig {
+    /// PEM certificate chain of the server (leaf first).
+    pub cert: PathBuf,
+    /// PEM private key of `cert`.
+    pub key: PathBuf,
+    /// PEM CA certificate(s); when set, every client must present a certificate they signed
+    /// (mutual TLS).
+    pub client_ca: PathBuf,
+}
+
+impl TlsConfig {
+    pub fn enabled(&self) -> bool {
+        !self.cert.as_os_str().is_empty()
+    }
 }
 
 /// Values given on the command line; they override every other source.
@@ -232,7 +282,34 @@ impl Config {
         if tracing_subscriber::EnvFilter::try_new(&self.log.level).is_err() {
             return invalid("log.level", format!("'{}' is not a tracing filter", self.log.level));
         }
+        let tls = &self.security.tls;
+        if tls.cert.as_os_str().is_empty() != tls.key.as_os_str().is_empty() {
+            return invalid("security.tls", "cert and key go together: set both (TLS) or neither (plaintext)".into());
+        }
+        if !tls.client_ca.as_os_str().is_empty() && !tls.enabled() {
+            return invalid("security.tls.client_ca", "mutual TLS needs TLS: set security.tls.cert and key too".into());
+        }
+        // Tokens themselves are parsed by `security::Security::load` at start; here only the
+        // listener rule, which needs no more than whether there are any.
+        if let Some(message) = self.unauthenticated_exposure(self.listen_addr()) {
+            return invalid("server.listen", message);
+        }
         Ok(())
+    }
+
+    /// Why serving on `listen` is refused: a non-loopback address with no tokens, unless
+    /// `security.allow_unauthenticated` is set. `None` when allowed.
+    pub fn unauthenticated_exposure(&self, listen: SocketAddr) -> Option<String> {
+        let exposed = !listen.ip().to_canonical().is_loopback()
+            && self.security.tokens.is_empty()
+            && !self.security.allow_unauthenticated;
+        exposed.then(|| {
+            format!(
+                "{listen} is not a loopback address and security.tokens is empty: anyone who can reach the port could \
+                 upload data, start jobs and delete models. Configure tokens (`relreward-server token create \
+                 --scopes read`), or set security.allow_unauthenticated = true to serve without them on purpose"
+            )
+        })
     }
 
     pub fn listen_addr(&self) -> SocketAddr {
@@ -326,6 +403,28 @@ mod tests {
         let example = Path::new(env!("CARGO_MANIFEST_DIR")).join("../deploy/config.example.toml");
         let from_file = load(Some(&example), &[], &Overrides::default()).expect("example loads");
         assert_eq!(from_file, load(None, &[], &Overrides::default()).expect("defaults"));
+    }
+
+    #[test]
+    fn tokens_load_from_a_file_in_either_toml_form() {
+        let inline = "[security]\ntokens = [{ name = \"a\", hash = \"h1\", scopes = [\"read\"] }, \
+                      { name = \"b\", hash = \"h2\", scopes = [\"train\"], expires = \"2030-01-01T00:00:00Z\" }]\n";
+        let tables = "[[security.tokens]]\nname = \"a\"\nhash = \"h1\"\nscopes = [\"read\"]\n\
+                      [[security.tokens]]\nname = \"b\"\nhash = \"h2\"\nscopes = [\"train\"]\n\
+                      expires = \"2030-01-01T00:00:00Z\"\n";
+        for text in [inline, tables] {
+            let f = write_file(text);
+            let c = load(Some(f.path()), &[], &Overrides::default()).expect("tokens load");
+            let names: Vec<_> = c.security.tokens.iter().map(|t| t.name.as_str()).collect();
+            assert_eq!(names, ["a", "b"]);
+            assert_eq!(c.security.tokens[0].expires, None);
+            assert_eq!(c.security.tokens[1].expires.as_deref(), Some("2030-01-01T00:00:00Z"));
+            assert_eq!(c.security.tokens[1].scopes, ["train"]);
+        }
+        // With tokens, a non-loopback listener is allowed.
+        let f = write_file(inline);
+        let c = load(Some(f.path()), &[("RELREWARD__SERVER__LISTEN", "0.0.0.0:1")], &Overrides::default());
+        assert!(c.is_ok(), "{c:?}");
     }
 
     #[test]

@@ -2,6 +2,8 @@
 //! them and serves those rewards over gRPC.
 //!
 //! Module map (each may import the ones below it, never above):
+//! - [`security`]: who may call what (bearer tokens, scopes, one tower layer in front of
+//!   every service) and TLS; sits above [`api`], which it never imports.
 //! - [`api`]: tonic services (relreward.v1 and the Open Inference Protocol); validate and
 //!   convert at the door, nothing else.
 //! - [`serving`]: Score and Gradient queries: validation, units, the per-model dynamic batcher.
@@ -22,6 +24,7 @@ pub mod engine;
 pub mod error;
 pub mod jobs;
 pub mod metrics;
+pub mod security;
 pub mod serving;
 pub mod store;
 
@@ -45,6 +48,21 @@ pub async fn run(
     listener: TcpListener,
     shutdown: impl Future<Output = ()> + Send,
 ) -> anyhow::Result<()> {
+    // First, so a bad token entry, an unreadable certificate or an exposed unauthenticated
+    // listener stops the start before anything is opened.
+    let security = security::Security::load(&config, listener.local_addr()?)?;
+    for warning in &security.warnings {
+        tracing::warn!("{warning}");
+    }
+    tracing::info!(
+        authentication = if security.layer.is_open() { "none" } else { "bearer tokens" },
+        tls = match (&security.tls, config.security.tls.client_ca.as_os_str().is_empty()) {
+            (None, _) => "off",
+            (Some(_), true) => "on",
+            (Some(_), false) => "mutual",
+        },
+        "access control"
+    );
     let metrics_listener = bind_metrics(&config).await?;
     engine::init(&config.engine);
     let store = store::Store::open(&config).await?;
@@ -86,10 +104,17 @@ pub async fn run(
     // the client's delayed ACK (Nagle), about 40 ms per Gradient call. tonic's own
     // `tcp_nodelay` setting does not apply to a listener passed in.
     let incoming = tonic::transport::server::TcpIncoming::from(listener).with_nodelay(Some(true));
+    let mut builder = tonic::transport::Server::builder();
+    if let Some(tls) = security.tls {
+        // The one listener then speaks TLS only: native API, OIP, health and reflection.
+        builder = builder.tls_config(tls)?;
+    }
     let server = {
         let token = stop_accepting.clone();
-        tonic::transport::Server::builder()
+        builder
+            // Metrics outermost, so refused calls are counted with their status like any other.
             .layer(metrics::GrpcMetricsLayer::new(metrics))
+            .layer(security.layer)
             .add_routes(api::routes(&config, store, job_manager.clone(), serving, slots))
             .add_service(health_service)
             .add_service(reflection_v1)

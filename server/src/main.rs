@@ -1,12 +1,17 @@
 //! `relreward-server [--config FILE] [--listen ADDR] [--data-dir DIR]`: loads the layered
 //! configuration, sets up logging, binds, and hands over to [`relreward_server::run`] until
 //! SIGINT or SIGTERM.
+//!
+//! `relreward-server token create --scopes read[,train,admin] [--name NAME] [--expires WHEN]`
+//! prints a new access token once, with the `security.tokens` entry (its salted hash) to put
+//! in the configuration; it needs no configuration and starts no server.
 
 use std::path::PathBuf;
 use std::process::ExitCode;
 
-use clap::Parser;
+use clap::{Parser, Subcommand};
 use relreward_server::config::{Config, Overrides};
+use relreward_server::security::{self, Scope, tokens};
 
 #[derive(Parser, Debug)]
 #[command(
@@ -24,10 +29,39 @@ struct Args {
     /// Data directory (overrides storage.data_dir).
     #[arg(long, value_name = "DIR")]
     data_dir: Option<PathBuf>,
+    #[command(subcommand)]
+    command: Option<ServerCommand>,
+}
+
+#[derive(Subcommand, Debug)]
+enum ServerCommand {
+    /// Access tokens for `security.tokens`.
+    #[command(subcommand)]
+    Token(TokenCommand),
+}
+
+#[derive(Subcommand, Debug)]
+enum TokenCommand {
+    /// Print a new token (once) and the configuration entry holding its salted hash.
+    Create {
+        /// Comma-separated scopes: read, train, admin (admin includes train, train includes read).
+        #[arg(long, value_delimiter = ',', required = true, value_name = "SCOPES")]
+        scopes: Vec<String>,
+        /// Name shown in logs and refusals [default: token-<8 random hex digits>].
+        #[arg(long, value_name = "NAME")]
+        name: Option<String>,
+        /// When the token stops working: an RFC 3339 time (2027-01-31T00:00:00Z) or a lifetime
+        /// from now (90d, 12h, 30m). Default: never.
+        #[arg(long, value_name = "WHEN")]
+        expires: Option<String>,
+    },
 }
 
 fn main() -> ExitCode {
     let args = Args::parse();
+    if let Some(ServerCommand::Token(TokenCommand::Create { scopes, name, expires })) = args.command {
+        return token_create(&scopes, name, expires.as_deref());
+    }
     let overrides = Overrides { listen: args.listen, data_dir: args.data_dir };
     let config = match Config::load(args.config.as_deref(), &overrides) {
         Ok(c) => c,
@@ -36,6 +70,12 @@ fn main() -> ExitCode {
             return ExitCode::from(2);
         }
     };
+    // Tokens and TLS files are checked before anything is bound (run() loads them again and
+    // logs their warnings): a configuration error, exit status 2 like the ones above.
+    if let Err(e) = security::Security::load(&config, config.listen_addr()) {
+        eprintln!("relreward-server: {e}");
+        return ExitCode::from(2);
+    }
     init_tracing(&config);
     let runtime = match tokio::runtime::Builder::new_multi_thread().enable_all().thread_name("relreward-io").build() {
         Ok(rt) => rt,
@@ -52,6 +92,42 @@ fn main() -> ExitCode {
             ExitCode::FAILURE
         }
     }
+}
+
+/// `token create`: prints the token and its configuration entry on stdout.
+fn token_create(scopes: &[String], name: Option<String>, expires: Option<&str>) -> ExitCode {
+    let fail = |message: String| {
+        eprintln!("relreward-server token create: {message}");
+        ExitCode::from(2)
+    };
+    let mut parsed = Vec::new();
+    for s in scopes {
+        match Scope::parse(s.trim()) {
+            Some(scope) if !parsed.contains(&scope) => parsed.push(scope),
+            Some(_) => {}
+            None => return fail(format!("--scopes: '{s}' is not a scope (read, train, admin)")),
+        }
+    }
+    let expires = match expires.map(|e| tokens::expiry_from_arg(e, std::time::SystemTime::now())).transpose() {
+        Ok(e) => e,
+        Err(message) => return fail(format!("--expires: {message}")),
+    };
+    let new = match tokens::generate() {
+        Ok(t) => t,
+        Err(e) => return fail(format!("cannot read the system's random source: {e}")),
+    };
+    // The default name borrows 8 hex digits of the (public) salt: random enough to be unique.
+    let name = name.unwrap_or_else(|| format!("token-{}", new.hash.split(':').nth(1).map_or("", |salt| &salt[..8])));
+    if let Err(message) = tokens::check_name(&name) {
+        return fail(format!("--name: {message}"));
+    }
+    let entry = tokens::config_entry(&name, &new.hash, &parsed, expires.as_deref());
+    println!("token: {}", new.token);
+    println!("# Shown once: the server keeps only its salted hash. Give the token to its client");
+    println!("# (relreward --token, or RELREWARD_TOKEN) and add this entry to security.tokens");
+    println!("# in the server configuration (one entry per token in the list):");
+    println!("tokens = [{entry}]");
+    ExitCode::SUCCESS
 }
 
 async fn serve(config: Config) -> anyhow::Result<()> {

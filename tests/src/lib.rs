@@ -12,7 +12,7 @@ use std::process::{Child, Command, Output, Stdio};
 use std::sync::{Arc, OnceLock};
 use std::time::Duration;
 
-use relreward_client::client::{DatasetUpload, UploadProgress};
+use relreward_client::client::{ConnectOptions, DatasetUpload, UploadProgress};
 use relreward_client::{Client, MemorySource, pb};
 use serde_json::Value;
 
@@ -48,6 +48,10 @@ pub struct TestServer {
     pub data_dir: PathBuf,
     log: PathBuf,
     env: Vec<(String, String)>,
+    /// Extra server arguments (`--config FILE`), kept for `restart`.
+    args: Vec<String>,
+    /// How `client()` and `cli()` reach the server: scheme, token, TLS (see `set_access`).
+    access: Access,
     /// The metrics address the server printed on its second stdout line, once it has.
     metrics_addr: Arc<OnceLock<SocketAddr>>,
     _tmp: Option<tempfile::TempDir>,
@@ -69,10 +73,33 @@ impl TestServer {
         s
     }
 
+    /// A server on a fresh temporary data directory with `config` (TOML text, written to a
+    /// file passed as `--config`) and extra `RELREWARD__*` variables.
+    pub fn start_with_config(config: &str, env: &[(&str, &str)]) -> Self {
+        let tmp = tempfile::tempdir().expect("tempdir");
+        let path = tmp.path().join("config.toml");
+        std::fs::write(&path, config).expect("config file");
+        let env = env.iter().map(|(k, v)| ((*k).to_owned(), (*v).to_owned())).collect();
+        let args = vec!["--config".to_owned(), path.to_str().expect("utf8 path").to_owned()];
+        let mut s = Self::spawn_with(tmp.path().join("data"), tmp.path().join("server.log"), env, args);
+        s._tmp = Some(tmp);
+        s
+    }
+
+    /// How [`TestServer::client`] and [`TestServer::cli`] reach this server from now on.
+    pub fn set_access(&mut self, access: Access) {
+        self.access = access;
+    }
+
     fn spawn(data_dir: PathBuf, log: PathBuf, env: Vec<(String, String)>) -> Self {
+        Self::spawn_with(data_dir, log, env, Vec::new())
+    }
+
+    fn spawn_with(data_dir: PathBuf, log: PathBuf, env: Vec<(String, String)>, args: Vec<String>) -> Self {
         let log_file = std::fs::OpenOptions::new().create(true).append(true).open(&log).expect("log file");
         let mut cmd = Command::new(bin("relreward-server"));
-        cmd.arg("--listen")
+        cmd.args(&args)
+            .arg("--listen")
             .arg("127.0.0.1:0")
             .arg("--data-dir")
             .arg(&data_dir)
@@ -115,7 +142,8 @@ impl TestServer {
             .strip_prefix("relreward-server listening on ")
             .and_then(|a| a.parse().ok())
             .unwrap_or_else(|| panic!("unexpected first line: {line}"));
-        Self { child: Some(child), addr, data_dir, log, env, metrics_addr, _tmp: None }
+        let access = Access::default();
+        Self { child: Some(child), addr, data_dir, log, env, args, access, metrics_addr, _tmp: None }
     }
 
     /// Address of the Prometheus endpoint, for a server started with
@@ -131,13 +159,13 @@ impl TestServer {
     }
 
     pub fn endpoint(&self) -> String {
-        format!("http://{}", self.addr)
+        format!("{}://{}", if self.access.https { "https" } else { "http" }, self.addr)
     }
 
     pub async fn client(&self) -> Client {
         // The address is reported once bound; retry briefly while the store opens.
         for _ in 0..100 {
-            if let Ok(c) = Client::connect(&self.endpoint()).await {
+            if let Ok(c) = Client::connect_with(&self.endpoint(), &self.access.options).await {
                 return c;
             }
             tokio::time::sleep(Duration::from_millis(50)).await;
@@ -176,8 +204,9 @@ impl TestServer {
     pub fn restart(&mut self) {
         self.kill();
         let tmp = self._tmp.take();
-        let mut next = Self::spawn(self.data_dir.clone(), self.log.clone(), self.env.clone());
+        let mut next = Self::spawn_with(self.data_dir.clone(), self.log.clone(), self.env.clone(), self.args.clone());
         next._tmp = tmp;
+        next.access = std::mem::take(&mut self.access);
         *self = next;
     }
 
@@ -197,10 +226,20 @@ impl TestServer {
             .arg("--endpoint")
             .arg(self.endpoint())
             .args(args)
+            .envs(self.access.cli_env.iter().map(|(k, v)| (k, v)))
             .stdin(Stdio::null())
             .output()
             .expect("run relreward")
     }
+}
+
+/// How the harness reaches a server with access control or TLS: the endpoint scheme, the
+/// client library's options and the CLI's environment (`RELREWARD_TOKEN`, `RELREWARD_CA_CERT`..).
+#[derive(Debug, Clone, Default)]
+pub struct Access {
+    pub https: bool,
+    pub options: ConnectOptions,
+    pub cli_env: Vec<(String, String)>,
 }
 
 impl Drop for TestServer {

@@ -59,7 +59,8 @@ fn units(field: &str, raw: i32) -> Result<Units> {
 /// by `Serving::prepare`, which knows the model).
 fn decode_x(field: &str, x: Option<&pb::Tensor>) -> Result<(Vec<i64>, Vec<f32>)> {
     let x = x.ok_or_else(|| Error::invalid(format!("{field}: missing")))?;
-    let mut values = Vec::new();
+    // Sized for float32 (float64 needs half): one allocation per request, not a doubling series.
+    let mut values = Vec::with_capacity(x.data.len() / 4);
     tensor::for_each_float(x, |v| values.push(v as f32)).map_err(|e| Error::invalid(format!("{field}: {e}")))?;
     let shape = x
         .shape
@@ -201,11 +202,16 @@ fn plan(req: &pb::SampleRequest, space: &Space, normalize_obs: impl Fn(&[f32]) -
     })
 }
 
+/// A float32 wire tensor, its bytes copied straight out of the tensor's storage (one copy, no
+/// intermediate `Vec<f32>`): the wire is little-endian, as every target this builds for.
 fn tensor_f32(t: &Tensor) -> Result<pb::Tensor> {
+    const _: () = assert!(cfg!(target_endian = "little"), "tensor_f32 copies native floats as little-endian");
     let shape: Vec<u64> = t.size().iter().map(|&d| d as u64).collect();
-    let flat = t.to_kind(Kind::Float).contiguous().view(-1);
-    let values = Vec::<f32>::try_from(&flat).map_err(|e| Error::internal("reading samples", e))?;
-    Ok(tensor::encode_f32(&shape, &values))
+    let flat = t.f_to_kind(Kind::Float)?.f_contiguous()?;
+    let numel = flat.numel();
+    let mut data = vec![0u8; numel * 4];
+    flat.f_copy_data_u8(&mut data, numel).map_err(|e| Error::internal("reading a result tensor", e))?;
+    tensor::from_raw(&shape, pb::Dtype::Float32, data).map_err(|e| Error::internal("encoding a result tensor", e))
 }
 
 /// The reward model that guides a Sample request, checked against the base model: same

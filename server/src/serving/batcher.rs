@@ -265,19 +265,30 @@ fn compute(queue: &ModelQueue, kind: BatchKind, batch: &[Pending]) -> Result<Vec
             let (rho, grad) = model.grad(&x, &t)?;
             drop(model);
             let _no_grad = tch::no_grad_guard();
-            let jacobian = {
+            // The normalizer's Jacobian only for batches with a raw-unit gradient (planners ask
+            // in normalized units; building it costs tensor allocations per batch).
+            let raw_units = batch.iter().any(|p| p.query.gradient_post.as_ref().is_some_and(|g| g.raw_units));
+            let jacobian = raw_units.then(|| {
                 let m = &queue.model.manifest;
                 m.normalizer.jacobian(&x, m.space.normalizer_dims())
-            };
+            });
             let mut answers = Vec::with_capacity(batch.len());
             for ((p, rewards), gradient) in batch.iter().zip(split(rho)?).zip(split(grad)?) {
                 let gradient = match &p.query.gradient_post {
                     None => gradient,
                     Some(post) => {
-                        let mut shape = vec![-1i64];
-                        shape.extend(std::iter::repeat_n(1, gradient.dim() - 1));
-                        let g = gradient.f_mul(&post.factor.f_view(shape.as_slice())?)?;
-                        if post.raw_units { g.f_mul(&jacobian)? } else { g }
+                        let g = match &post.factor {
+                            None => gradient,
+                            Some(factor) => {
+                                let mut shape = vec![-1i64];
+                                shape.extend(std::iter::repeat_n(1, gradient.dim() - 1));
+                                gradient.f_mul(&factor.f_view(shape.as_slice())?)?
+                            }
+                        };
+                        match (&jacobian, post.raw_units) {
+                            (Some(j), true) => g.f_mul(j)?,
+                            _ => g,
+                        }
                     }
                 };
                 answers.push(Answer { rewards, gradient: Some(gradient), per_window: None, per_step: None });

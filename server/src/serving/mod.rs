@@ -23,7 +23,7 @@ use std::collections::HashMap;
 use std::sync::{Arc, Mutex, PoisonError};
 use std::time::{Duration, Instant};
 
-use tch::{Kind, Tensor};
+use tch::Tensor;
 use tokio::sync::Semaphore;
 
 use crate::config::ServingConfig;
@@ -93,7 +93,9 @@ pub struct Prepared {
 
 #[derive(Debug)]
 struct GradientPost {
-    factor: Tensor,
+    /// `[B]` float32; `None` when every factor is exactly 1 (omega unset or 1, no variance
+    /// scaling: the planner's common case), which saves a multiply per query.
+    factor: Option<Tensor>,
     raw_units: bool,
 }
 
@@ -191,10 +193,9 @@ impl Serving {
                         *f *= variance[ti as usize];
                     }
                 }
-                Some(GradientPost {
-                    factor: Tensor::from_slice(&factor).to_kind(Kind::Float),
-                    raw_units: *units == Units::Raw,
-                })
+                let factor = (!factor.iter().all(|&f| f == 1.0))
+                    .then(|| Tensor::from_slice(&factor.iter().map(|&f| f as f32).collect::<Vec<_>>()));
+                Some(GradientPost { factor, raw_units: *units == Units::Raw })
             }
         };
         let mut shape = vec![n_items as i64];

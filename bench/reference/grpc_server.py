@@ -1,0 +1,283 @@
+#!/usr/bin/env python3
+"""A Python gRPC server for relreward.v1 RewardService.Gradient and GradientStream, written the
+way a researcher would wrap the paper's PyTorch code: grpcio's thread-pool server, stubs
+generated at start from relreward's own .proto files, the reward network from the PyTorch
+reference (tests/python/reward_nets_reference.py, which loads relreward's safetensors weights
+strictly), and one forward/backward pass per request. It is the baseline of the serving
+benchmark (tests/bench/serving.sh) and is cross-checked against relreward by
+tests/tests/reference_server.rs, so both compute the same numbers on the same weights.
+
+    .venv/bin/python bench/reference/grpc_server.py --data-dir DATA --model maze-reward
+    .venv/bin/python bench/reference/grpc_server.py --weights W.safetensors --manifest M.json --model NAME
+
+Models come from a relreward data directory (the `models` table of `metadata.sqlite3`, opened
+read-only, and the weights at `blobs/<blob_key>/<file>`), or from a weights file and a reward
+manifest (JSON, as relreward stores it) given on the command line. Prints
+`reference grpc_server listening on HOST:PORT` as its first stdout line once serving.
+
+What it answers, as relreward does (proto/relreward/v1/reward.proto):
+- `x` float32 or float64 `[B, *item_shape]`; `t` empty (0), one value (broadcast) or B values;
+- `input_units` and `gradient_units` raw (the default) or normalized; rho takes normalized
+  inputs, and a raw-unit gradient is the normalized one times the normalizer's Jacobian
+  (it is affine: d x_norm / d x_raw = scale per coordinate);
+- `omega` multiplies the gradient (unset: 1);
+- Algorithm 2 rewards (`step_normalization`): rho sees (x - input_mean[t]) / input_std[t],
+  differentiated through by autograd.
+`scale_by_posterior_variance_of` needs a diffusion model's schedule and is answered
+UNIMPLEMENTED. Errors are INVALID_ARGUMENT / NOT_FOUND naming the field; on GradientStream
+they go into the response's `error` and the stream goes on.
+
+grpcio's synchronous server runs each RPC on a pool thread, and a GradientStream holds its
+thread for the whole stream: `--workers` must be at least the number of concurrent streams
+(default 128), or further streams wait for a free thread.
+"""
+
+import argparse
+import json
+import pathlib
+import signal
+import sqlite3
+import sys
+import tempfile
+import threading
+from concurrent import futures
+
+import numpy as np
+import torch
+
+ROOT = pathlib.Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(ROOT / "tests" / "python"))
+
+from nets_reference import read_safetensors  # noqa: E402
+from reward_nets_reference import build  # noqa: E402
+
+STEP_NORM_FILE = "step_norm.safetensors"
+# relreward's threshold (server/src/engine/normalizer.rs): narrower ranges are constant
+# coordinates, normalized to 0.
+MIN_RANGE = 1e-12
+
+
+def load_stubs(proto_dir: pathlib.Path, out: pathlib.Path):
+    """Generates the relreward.v1 Python stubs into `out` and imports them."""
+    from grpc_tools import protoc
+
+    files = sorted(str(p.relative_to(proto_dir)) for p in (proto_dir / "relreward" / "v1").glob("*.proto"))
+    include = pathlib.Path(protoc.__file__).parent / "_proto"
+    args = ["protoc", f"-I{proto_dir}", f"-I{include}", f"--python_out={out}", f"--grpc_python_out={out}", *files]
+    if protoc.main(args) != 0:
+        sys.exit("grpc_server.py: could not generate the Python stubs from " + str(proto_dir))
+    sys.path.insert(0, str(out))
+    from relreward.v1 import reward_pb2, reward_pb2_grpc, tensor_pb2
+
+    return reward_pb2, reward_pb2_grpc, tensor_pb2
+
+
+def item_shape(space):
+    if space["kind"] == "trajectory":
+        return [space["horizon"], space["action_dim"] + space["obs_dim"]]
+    return list(space["shape"])
+
+
+class BadRequest(Exception):
+    """A request error: a gRPC status code name and a message naming the field."""
+
+    def __init__(self, code: str, message: str):
+        super().__init__(message)
+        self.code = code
+
+
+class RewardModel:
+    """rho_theta with its manifest: normalizer, T, item shape, optional step tables."""
+
+    def __init__(self, name: str, manifest: dict, weights: pathlib.Path):
+        self.name = name
+        self.item_shape = item_shape(manifest["space"])
+        self.n_timesteps = int(manifest["n_timesteps"])
+        self.net = build(manifest["architecture"], self.item_shape)
+        self.net.load_state_dict(read_safetensors(weights), strict=True)
+        self.net.eval()
+        for p in self.net.parameters():
+            p.requires_grad_(False)  # only grad_x is wanted
+        self.offset, self.scale = affine(manifest.get("normalizer", {"kind": "identity"}), manifest["space"])
+        self.step_norm = None
+        if manifest.get("step_normalization"):
+            tables = read_safetensors(weights.parent / STEP_NORM_FILE)
+            self.step_norm = (tables["input_mean"].float(), tables["input_std"].float())
+
+    def rho(self, x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+        if self.step_norm is not None:
+            mean, std = self.step_norm
+            x = (x - mean[t]) / std[t]
+        return self.net(x, t)
+
+
+def affine(normalizer: dict, space: dict):
+    """(offset, scale) float32 tensors broadcasting over an item, x_norm = (x - offset) * scale;
+    (None, None) for the identity. Computed in float64 and rounded once, as relreward does."""
+    kind = normalizer["kind"]
+    if kind == "identity":
+        return None, None
+    if kind == "limits":
+        lo, hi = np.asarray(normalizer["min"], np.float64), np.asarray(normalizer["max"], np.float64)
+        offset = (lo + hi) / 2.0
+        scale = np.where(hi - lo > MIN_RANGE, 2.0 / np.maximum(hi - lo, MIN_RANGE), 0.0)
+    elif kind == "gaussian":
+        offset = np.asarray(normalizer["mean"], np.float64)
+        std = np.asarray(normalizer["std"], np.float64)
+        scale = np.where(std > MIN_RANGE, 1.0 / np.maximum(std, MIN_RANGE), 0.0)
+    else:
+        raise ValueError(f"unknown normalizer kind {kind}")
+    # Trajectories: per coordinate along the last axis; samples: over all item elements.
+    shape = [-1] if space["kind"] == "trajectory" else list(space["shape"])
+    return (
+        torch.from_numpy(offset.astype(np.float32)).reshape(shape),
+        torch.from_numpy(scale.astype(np.float32)).reshape(shape),
+    )
+
+
+def models_from_data_dir(data_dir: pathlib.Path, names):
+    uri = f"file:{data_dir / 'metadata.sqlite3'}?mode=ro"
+    with sqlite3.connect(uri, uri=True) as db:
+        rows = {}
+        for name in names:
+            row = db.execute("SELECT record FROM models WHERE name = ?", (name,)).fetchone()
+            if row is None:
+                sys.exit(f"grpc_server.py: no model '{name}' in {data_dir}")
+            rows[name] = json.loads(row[0])
+    models = {}
+    for name, record in rows.items():
+        if record["kind"] not in ("reward", "discriminator"):
+            sys.exit(f"grpc_server.py: model '{name}' is a {record['kind']} model, not a reward model")
+        weights = data_dir / "blobs" / record["blob_key"] / record["file"]
+        models[name] = RewardModel(name, record["manifest"], weights)
+    return models
+
+
+def make_servicer(models, reward_pb2, reward_pb2_grpc, tensor_pb2):
+    import grpc
+
+    units_raw = (reward_pb2.UNITS_UNSPECIFIED, reward_pb2.UNITS_RAW)
+
+    def decode_x(request):
+        if not request.HasField("x"):
+            raise BadRequest("INVALID_ARGUMENT", "x: missing")
+        x = request.x
+        dtype = {tensor_pb2.DTYPE_FLOAT32: "<f4", tensor_pb2.DTYPE_FLOAT64: "<f8"}.get(x.dtype)
+        if dtype is None:
+            raise BadRequest("INVALID_ARGUMENT", "x: dtype must be float32 or float64")
+        shape = list(x.shape)
+        if len(x.data) != int(np.prod(shape)) * np.dtype(dtype).itemsize:
+            raise BadRequest("INVALID_ARGUMENT", f"x: {len(x.data)} bytes do not fill the shape {shape}")
+        array = np.frombuffer(x.data, dtype=dtype).reshape(shape)
+        if not np.isfinite(array).all():
+            raise BadRequest("INVALID_ARGUMENT", "x: not every element is finite")
+        return torch.from_numpy(array.astype(np.float32))  # a copy: frombuffer is read-only
+
+    def tensor(t: torch.Tensor):
+        array = np.ascontiguousarray(t.detach().numpy(), dtype="<f4")
+        return tensor_pb2.Tensor(shape=list(array.shape), dtype=tensor_pb2.DTYPE_FLOAT32, data=array.tobytes())
+
+    def answer(request):
+        model = models.get(request.model)
+        if model is None:
+            raise BadRequest("NOT_FOUND", f"model: no reward model '{request.model}'")
+        if request.scale_by_posterior_variance_of:
+            raise BadRequest("UNIMPLEMENTED", "scale_by_posterior_variance_of: not supported by the reference server")
+        x = decode_x(request)
+        if x.dim() != len(model.item_shape) + 1 or list(x.shape[1:]) != model.item_shape or x.shape[0] < 1:
+            want = ", ".join(["B", *map(str, model.item_shape)])
+            raise BadRequest("INVALID_ARGUMENT", f"x: expected shape [{want}] for this model, got {list(x.shape)}")
+        b = x.shape[0]
+        t = list(request.t)
+        if len(t) not in (0, 1, b):
+            raise BadRequest("INVALID_ARGUMENT", f"t: {len(t)} values for {b} items")
+        t = torch.tensor(t if len(t) == b else (t or [0]) * b, dtype=torch.int64)
+        if (t >= model.n_timesteps).any():
+            raise BadRequest("INVALID_ARGUMENT", f"t: values must lie in [0, {model.n_timesteps})")
+        if model.scale is not None and request.input_units in units_raw:
+            x = (x - model.offset) * model.scale
+        x.requires_grad_(True)
+        rho = model.rho(x, t)
+        (grad,) = torch.autograd.grad(rho.sum(), x)
+        if request.HasField("omega"):
+            grad = grad * request.omega
+        if model.scale is not None and request.gradient_units in units_raw:
+            grad = grad * model.scale
+        return reward_pb2.GradientResponse(request_id=request.request_id, gradient=tensor(grad), rewards=tensor(rho))
+
+    class Servicer(reward_pb2_grpc.RewardServiceServicer):
+        def Gradient(self, request, context):
+            try:
+                return answer(request)
+            except BadRequest as e:
+                context.abort(getattr(grpc.StatusCode, e.code), str(e))
+
+        def GradientStream(self, request_iterator, context):
+            # One request at a time, in order: forward, backward, answer, next.
+            for request in request_iterator:
+                try:
+                    yield answer(request)
+                except BadRequest as e:
+                    code = getattr(grpc.StatusCode, e.code).value[0]
+                    yield reward_pb2.GradientResponse(
+                        request_id=request.request_id, error=reward_pb2.StreamError(code=code, message=str(e))
+                    )
+
+    return Servicer()
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--listen", default="127.0.0.1:0", help="HOST:PORT (port 0: any free port)")
+    ap.add_argument("--data-dir", type=pathlib.Path, help="a relreward data directory")
+    ap.add_argument("--model", action="append", required=True, help="reward model name (repeatable)")
+    ap.add_argument("--weights", type=pathlib.Path, help="safetensors weights (with --manifest, one --model)")
+    ap.add_argument("--manifest", type=pathlib.Path, help="reward manifest JSON (with --weights)")
+    ap.add_argument("--workers", type=int, default=128, help="grpcio thread-pool size")
+    ap.add_argument("--threads", type=int, default=0, help="torch intra-op threads (0: torch's default)")
+    ap.add_argument("--proto-dir", type=pathlib.Path, default=ROOT / "proto")
+    args = ap.parse_args()
+    if (args.weights is None) != (args.manifest is None) or (args.weights is None) == (args.data_dir is None):
+        ap.error("give either --data-dir, or --weights with --manifest")
+    if args.weights is not None and len(args.model) != 1:
+        ap.error("--weights serves exactly one --model")
+    if args.threads > 0:
+        torch.set_num_threads(args.threads)
+
+    import grpc
+
+    with tempfile.TemporaryDirectory() as tmp:
+        reward_pb2, reward_pb2_grpc, tensor_pb2 = load_stubs(args.proto_dir, pathlib.Path(tmp))
+        if args.data_dir is not None:
+            models = models_from_data_dir(args.data_dir, args.model)
+        else:
+            manifest = json.loads(args.manifest.read_text())
+            models = {args.model[0]: RewardModel(args.model[0], manifest, args.weights)}
+        server = grpc.server(
+            futures.ThreadPoolExecutor(max_workers=args.workers),
+            options=[("grpc.max_receive_message_length", 16 << 20), ("grpc.max_send_message_length", 16 << 20)],
+        )
+        reward_pb2_grpc.add_RewardServiceServicer_to_server(
+            make_servicer(models, reward_pb2, reward_pb2_grpc, tensor_pb2), server
+        )
+        host = args.listen.rsplit(":", 1)[0]
+        port = server.add_insecure_port(args.listen)
+        if port == 0:
+            sys.exit(f"grpc_server.py: cannot listen on {args.listen}")
+        server.start()
+        print(f"reference grpc_server listening on {host}:{port}", flush=True)
+        print(
+            f"reference grpc_server: {len(models)} model(s), torch intra-op threads {torch.get_num_threads()}, "
+            f"{args.workers} pool threads",
+            file=sys.stderr,
+            flush=True,
+        )
+        stop = threading.Event()
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            signal.signal(sig, lambda *_: stop.set())
+        stop.wait()
+        server.stop(grace=1).wait()
+
+
+if __name__ == "__main__":
+    main()
