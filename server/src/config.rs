@@ -37,6 +37,13 @@ pub struct ServerConfig {
     pub max_request_bytes: usize,
     /// Largest response message sent.
     pub max_response_bytes: usize,
+    /// Connections served at once; one beyond is closed at once (the client sees
+    /// UNAVAILABLE and can back off) rather than left waiting unanswered in the accept backlog.
+    pub max_connections: usize,
+    /// HTTP/2 streams (calls) open at once on one connection, announced to the client in
+    /// SETTINGS_MAX_CONCURRENT_STREAMS: a client with more calls queues them itself, so one
+    /// connection cannot open unbounded handler tasks.
+    pub max_concurrent_streams: u32,
     /// How long in-flight calls may take to finish after SIGINT/SIGTERM.
     pub shutdown_grace_secs: u64,
 }
@@ -48,6 +55,9 @@ pub struct StorageConfig {
     /// traits leave room for a PostgreSQL + object store backend.
     pub backend: String,
     pub data_dir: PathBuf,
+    /// Bytes the data directory may hold (datasets, models, checkpoints, metadata); an upload
+    /// that would go beyond it is RESOURCE_EXHAUSTED before any of it is written. 0: no budget.
+    pub max_bytes: u64,
 }
 
 #[derive(Debug, Clone, PartialEq, Deserialize)]
@@ -101,6 +111,10 @@ pub struct ServingConfig {
     pub max_delay_us: u64,
     /// Requests waiting per model; more are RESOURCE_EXHAUSTED at once.
     pub queue_capacity: usize,
+    /// Deadline given to Score, Gradient and OIP ModelInfer calls that carry no
+    /// `grpc-timeout`, in milliseconds, so an abandoned query leaves the queue instead of
+    /// being computed (0: none; see `limits::DeadlineLayer`).
+    pub default_deadline_ms: u64,
 }
 
 /// Prometheus metrics over plain HTTP (`GET /metrics`).
@@ -228,6 +242,12 @@ impl Config {
         if !(1024..=1 << 30).contains(&self.server.max_response_bytes) {
             return invalid("server.max_response_bytes", "must be between 1024 and 1073741824".into());
         }
+        if !(1..=1 << 20).contains(&self.server.max_connections) {
+            return invalid("server.max_connections", "must be between 1 and 1048576".into());
+        }
+        if self.server.max_concurrent_streams == 0 {
+            return invalid("server.max_concurrent_streams", "must be positive".into());
+        }
         if self.server.shutdown_grace_secs > 3600 {
             return invalid("server.shutdown_grace_secs", "must be at most 3600".into());
         }
@@ -269,6 +289,9 @@ impl Config {
         }
         if !(1..=1 << 20).contains(&self.serving.queue_capacity) {
             return invalid("serving.queue_capacity", "must be between 1 and 1048576".into());
+        }
+        if self.serving.default_deadline_ms > 3_600_000 {
+            return invalid("serving.default_deadline_ms", "must be at most 3600000 (one hour; 0: none)".into());
         }
         if !self.metrics.listen.is_empty() && self.metrics.listen.parse::<SocketAddr>().is_err() {
             return invalid(
@@ -380,6 +403,9 @@ mod tests {
             (&[("RELREWARD__STORAGE__BACKEND", "cassandra")], "storage.backend"),
             (&[("RELREWARD__DATASETS__MAX_UPLOAD_BYTES", "0")], "datasets.max_upload_bytes"),
             (&[("RELREWARD__LOG__FORMAT", "xml")], "log.format"),
+            (&[("RELREWARD__SERVER__MAX_CONNECTIONS", "0")], "server.max_connections"),
+            (&[("RELREWARD__SERVER__MAX_CONCURRENT_STREAMS", "0")], "server.max_concurrent_streams"),
+            (&[("RELREWARD__SERVING__DEFAULT_DEADLINE_MS", "3600001")], "serving.default_deadline_ms"),
         ];
         for (vars, key) in cases {
             let err = load(None, vars, &Overrides::default()).expect_err(key).to_string();

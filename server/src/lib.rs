@@ -11,6 +11,7 @@
 //! - [`jobs`]: the job system (queue, threads, events, checkpoints) and the training runners.
 //! - [`store`]: metadata ([`store::MetadataStore`]) and files ([`store::BlobStore`]),
 //!   dataset ingestion and crash recovery.
+//! - [`limits`]: server-wide limits: connections, call deadlines, the data directory's disk budget.
 //! - [`config`]: layered configuration and its validation.
 //! - [`metrics`]: Prometheus metrics, the per-call recording layer and the `/metrics` endpoint.
 //! - [`error`]: the one error type and its one mapping to gRPC status codes.
@@ -22,7 +23,9 @@ pub mod api;
 pub mod config;
 pub mod engine;
 pub mod error;
+pub mod fault;
 pub mod jobs;
+pub mod limits;
 pub mod metrics;
 pub mod security;
 pub mod serving;
@@ -104,7 +107,9 @@ pub async fn run(
     // the client's delayed ACK (Nagle), about 40 ms per Gradient call. tonic's own
     // `tcp_nodelay` setting does not apply to a listener passed in.
     let incoming = tonic::transport::server::TcpIncoming::from(listener).with_nodelay(Some(true));
-    let mut builder = tonic::transport::Server::builder();
+    let incoming = limits::limit_connections(incoming, config.server.max_connections);
+    let mut builder =
+        tonic::transport::Server::builder().max_concurrent_streams(Some(config.server.max_concurrent_streams));
     if let Some(tls) = security.tls {
         // The one listener then speaks TLS only: native API, OIP, health and reflection.
         builder = builder.tls_config(tls)?;
@@ -115,6 +120,8 @@ pub async fn run(
             // Metrics outermost, so refused calls are counted with their status like any other.
             .layer(metrics::GrpcMetricsLayer::new(metrics))
             .layer(security.layer)
+            // Inside the security layer: a refused call gets no default deadline.
+            .layer(limits::DeadlineLayer::new(config.serving.default_deadline_ms))
             .add_routes(api::routes(&config, store, job_manager.clone(), serving, slots))
             .add_service(health_service)
             .add_service(reflection_v1)

@@ -393,6 +393,15 @@ pub struct Lines {
 
 /// Uploads [`Lines`] trajectories (observations, actions, timeouts) as dataset `name`.
 pub async fn upload_lines(client: &Client, name: &str, lines: &Lines) {
+    try_upload_lines(client, name, lines).await.expect("upload lines");
+}
+
+/// As [`upload_lines`], returning the server's answer (for tests of refused uploads).
+pub async fn try_upload_lines(
+    client: &Client,
+    name: &str,
+    lines: &Lines,
+) -> Result<pb::Dataset, relreward_client::ClientError> {
     let Lines { episodes, seed, start: [sx, sy], velocity: [svx, svy] } = *lines;
     let len = 24usize;
     let mut obs = Vec::with_capacity(episodes * len * 2);
@@ -421,7 +430,7 @@ pub async fn upload_lines(client: &Client, name: &str, lines: &Lines) {
         description: String::new(),
         chunk_bytes: 1 << 20,
     };
-    client.upload_dataset(upload, source, Arc::new(UploadProgress::default())).await.expect("upload lines");
+    client.upload_dataset(upload, source, Arc::new(UploadProgress::default())).await
 }
 
 /// What [`train_tiny_reward`] registered on a server.
@@ -483,5 +492,89 @@ pub fn train_tiny_reward(server: &TestServer, dir: &Path) -> TinyModels {
         horizon: 8,
         transition_dim: 4,
         n_timesteps: 10,
+    }
+}
+
+/// Crash-test helpers: fault injection (`RELREWARD_FAULT`, see the server's `fault` module),
+/// waiting for the injected abort, and digests of every stored file.
+impl TestServer {
+    /// Sets (`Some`) or removes (`None`) a server environment variable for the next
+    /// [`TestServer::restart`] (e.g. disarming `RELREWARD_FAULT`).
+    pub fn set_env(&mut self, key: &str, value: Option<&str>) {
+        self.env.retain(|(k, _)| k != key);
+        if let Some(v) = value {
+            self.env.push((key.to_owned(), v.to_owned()));
+        }
+    }
+
+    /// Waits up to `secs` for the server process to exit by itself (an injected fault aborts
+    /// it); returns whether it did.
+    pub fn wait_exit(&mut self, secs: u64) -> bool {
+        let Some(child) = self.child.as_mut() else { return true };
+        for _ in 0..secs * 20 {
+            if let Ok(Some(_)) = child.try_wait() {
+                self.child = None;
+                return true;
+            }
+            std::thread::sleep(Duration::from_millis(50));
+        }
+        false
+    }
+
+    /// Every published file under `blobs/<namespace>/`, as "namespace/key/file" -> (sha256,
+    /// size).
+    pub fn blob_files(&self, namespace: &str) -> std::collections::BTreeMap<String, (String, u64)> {
+        use sha2::{Digest, Sha256};
+        let mut out = std::collections::BTreeMap::new();
+        let root = self.data_dir.join("blobs").join(namespace);
+        for blob in std::fs::read_dir(&root).into_iter().flatten().flatten() {
+            for file in std::fs::read_dir(blob.path()).into_iter().flatten().flatten() {
+                let bytes = std::fs::read(file.path()).expect("read stored file");
+                let name = format!(
+                    "{namespace}/{}/{}",
+                    blob.file_name().to_string_lossy(),
+                    file.file_name().to_string_lossy()
+                );
+                out.insert(name, (hex::encode(Sha256::digest(&bytes)), bytes.len() as u64));
+            }
+        }
+        out
+    }
+
+    /// Published blob directories under `blobs/<namespace>/`.
+    pub fn blob_count(&self, namespace: &str) -> usize {
+        std::fs::read_dir(self.data_dir.join("blobs").join(namespace)).map(|d| d.count()).unwrap_or(0)
+    }
+}
+
+/// Flips one bit of the byte at `offset` from the end of `path` (1: the last byte): silent
+/// on-disk corruption for integrity tests.
+pub fn flip_byte(path: &Path, offset_from_end: usize) {
+    let mut bytes = std::fs::read(path).expect("read file to corrupt");
+    let i = bytes.len() - offset_from_end;
+    bytes[i] ^= 0x10;
+    std::fs::write(path, bytes).expect("write corrupted file");
+}
+
+impl TestServer {
+    /// The server's process id (for memory sampling), while it runs.
+    pub fn pid(&self) -> Option<u32> {
+        self.child.as_ref().map(Child::id)
+    }
+}
+
+/// Resident memory of process `pid` in bytes (Linux `/proc/PID/status` VmRSS), if readable.
+pub fn rss_bytes(pid: u32) -> Option<u64> {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
+    let kb = status.lines().find_map(|l| l.strip_prefix("VmRSS:"))?.trim().strip_suffix("kB")?.trim();
+    kb.parse::<u64>().ok().map(|kb| kb * 1024)
+}
+
+/// The gRPC status of a failed client call, or None for errors that are not a status (a
+/// connection that could not be made, a local file).
+pub fn status_code(error: &relreward_client::ClientError) -> Option<tonic::Code> {
+    match error {
+        relreward_client::ClientError::Status(s) => Some(s.code()),
+        _ => None,
     }
 }

@@ -9,6 +9,7 @@ use tonic::{Request, Response, Status, Streaming};
 use super::{next_upload, page_limit, timestamp};
 use crate::error::Error;
 use crate::jobs::JobManager;
+use crate::limits::{DiskBudget, is_disk_full};
 use crate::store::ingest::DatasetIngest;
 use crate::store::names::validate_name;
 use crate::store::{DatasetKind, DatasetRecord, Store};
@@ -17,14 +18,34 @@ pub struct Datasets {
     store: Store,
     jobs: JobManager,
     max_upload_bytes: u64,
+    /// `storage.max_bytes`, shared by every upload.
+    budget: DiskBudget,
 }
 
 impl Datasets {
-    pub fn new(store: Store, jobs: JobManager, max_upload_bytes: u64) -> Self {
-        Self { store, jobs, max_upload_bytes }
+    pub fn new(store: Store, jobs: JobManager, max_upload_bytes: u64, budget: DiskBudget) -> Self {
+        Self { store, jobs, max_upload_bytes, budget }
     }
 
-    async fn upload(&self, mut stream: Streaming<pb::UploadDatasetRequest>) -> Result<pb::Dataset, Error> {
+    /// An upload, with a full disk (ENOSPC, a filesystem quota) reported as what it is: the
+    /// client can free space and retry, which INTERNAL would not tell it. Whatever failed, the
+    /// staging directory is gone by now (dropped with the ingest), so nothing half-written stays.
+    async fn upload(&self, stream: Streaming<pb::UploadDatasetRequest>) -> Result<pb::Dataset, Error> {
+        self.upload_inner(stream).await.map_err(|e| {
+            if is_disk_full(&e) {
+                tracing::warn!(error = %e, "dataset upload refused: disk full");
+                Error::ResourceExhausted(
+                    "the disk holding storage.data_dir is full (or its filesystem quota is reached); the upload was \
+                     discarded"
+                        .into(),
+                )
+            } else {
+                e
+            }
+        })
+    }
+
+    async fn upload_inner(&self, mut stream: Streaming<pb::UploadDatasetRequest>) -> Result<pb::Dataset, Error> {
         let header = match next_upload(&mut stream, |m: pb::UploadDatasetRequest| m.message).await? {
             Some(Message::Header(h)) => h,
             Some(_) => return Err(Error::invalid("message 1: the first message of an upload must be a header")),
@@ -34,8 +55,18 @@ impl Datasets {
         if self.store.meta.get_dataset(&header.name).await?.is_some() {
             return Err(Error::AlreadyExists(format!("dataset '{}' already exists", header.name)));
         }
+        let name = header.name.clone();
+        let needs = disk_bytes(&header);
         let staging = self.store.blobs.staging()?;
-        let mut ingest = DatasetIngest::begin(header, self.max_upload_bytes, staging)?;
+        let mut ingest = DatasetIngest::begin(header, self.max_upload_bytes, staging).map_err(|e| match e {
+            // The ingest names the header field; the operator also needs the key to raise.
+            Error::ResourceExhausted(m) => Error::ResourceExhausted(format!("{m} (datasets.max_upload_bytes)")),
+            other => other,
+        })?;
+        // After the header is known valid (its sizes are then trustworthy), before any payload
+        // is written; held until the files are published and counted on disk.
+        let _reservation =
+            tokio::task::block_in_place(|| self.budget.reserve(needs, &format!("header: dataset '{name}'")))?;
         let sha256 = loop {
             match next_upload(&mut stream, |m: pb::UploadDatasetRequest| m.message).await? {
                 // Hashing, statistics and file writes are CPU and disk work: keep them off the
@@ -126,6 +157,18 @@ impl DatasetService for Datasets {
         tracing::info!(dataset = req.name, "dataset deleted");
         Ok(Response::new(pb::DeleteDatasetResponse {}))
     }
+}
+
+/// Bytes the upload described by `header` takes on disk: its payload plus one `.npy` header
+/// per array (at most a few hundred bytes; 4 KiB each leaves room for the filesystem's blocks).
+/// An array with an invalid dtype or shape counts 0: `DatasetIngest::begin` refuses those.
+fn disk_bytes(header: &pb::UploadHeader) -> u64 {
+    header.arrays.iter().fold(0u64, |total, spec| {
+        let payload = relreward_client::tensor::known_dtype(spec.dtype)
+            .and_then(|dtype| relreward_client::tensor::byte_len(&spec.shape, dtype))
+            .unwrap_or(0);
+        total.saturating_add(payload).saturating_add(4096)
+    })
 }
 
 fn to_proto(r: &DatasetRecord, view: pb::DatasetView) -> pb::Dataset {

@@ -68,10 +68,12 @@ pub fn routes(
 ) -> Routes {
     let registry = serving.registry().clone();
     let (max_in, max_out) = (config.server.max_request_bytes, config.server.max_response_bytes);
+    let budget = crate::limits::DiskBudget::new(&config.storage.data_dir, config.storage.max_bytes);
     let datasets = DatasetServiceServer::new(datasets::Datasets::new(
         store.clone(),
         job_manager.clone(),
         config.datasets.max_upload_bytes,
+        budget,
     ))
     .max_decoding_message_size(max_in)
     .max_encoding_message_size(max_out);

@@ -26,11 +26,9 @@
 //! (lock it on a blocking thread, where tensor work belongs anyway).
 
 use std::collections::HashMap;
-use std::io::Read;
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex, MutexGuard, PoisonError};
 
-use sha2::{Digest, Sha256};
 use tch::Device;
 
 use super::denoiser::Denoiser;
@@ -42,6 +40,7 @@ use super::reward_model::RewardModel;
 use super::torchscript::TorchScriptDenoiser;
 use crate::config::ModelsConfig;
 use crate::error::{Error, Result};
+use crate::store::digests::{self, Verified};
 use crate::store::{ModelFormat, ModelKind, ModelRecord, Store};
 
 /// A loaded diffusion model, shared between requests.
@@ -83,6 +82,10 @@ struct Inner {
     cache: Mutex<Cache>,
     /// One async gate per name, so concurrent first requests load a model once.
     loading: Mutex<HashMap<String, Arc<tokio::sync::Mutex<()>>>>,
+    /// Models found corrupt: name -> (blob key, the DataLoss message). Blobs are immutable,
+    /// so a corrupt one stays corrupt: later requests get the same answer without hashing
+    /// the file again. Keyed by blob key, so a model registered again is loaded afresh.
+    corrupt: Mutex<HashMap<String, (String, String)>>,
 }
 
 #[derive(Default)]
@@ -138,6 +141,7 @@ impl ModelRegistry {
                 cache_bytes: config.cache_bytes,
                 cache: Mutex::new(Cache::default()),
                 loading: Mutex::new(HashMap::new()),
+                corrupt: Mutex::new(HashMap::new()),
             }),
         }
     }
@@ -194,6 +198,11 @@ impl ModelRegistry {
         if let Some(model) = self.lookup(name, &record.blob_key, generation) {
             return Ok(model);
         }
+        if let Some((key, message)) = lock(&self.inner.corrupt).get(name)
+            && *key == record.blob_key
+        {
+            return Err(Error::DataLoss(message.clone()));
+        }
         let gate = Arc::clone(lock(&self.inner.loading).entry(name.to_owned()).or_default());
         let _loading = gate.lock().await;
         // Whoever held the gate before may have loaded it.
@@ -214,7 +223,13 @@ impl ModelRegistry {
             Err(e) => {
                 // Deleted (or replaced) while loading: say so rather than report lost data.
                 match self.inner.store.meta.get_model(name).await? {
-                    Some(current) if current.blob_key == blob_key => return Err(e),
+                    Some(current) if current.blob_key == blob_key => {
+                        if let Error::DataLoss(message) = &e {
+                            tracing::error!(model = name, blob = blob_key, "{message}");
+                            lock(&self.inner.corrupt).insert(name.to_owned(), (blob_key, message.clone()));
+                        }
+                        return Err(e);
+                    }
                     _ => return Err(Error::NotFound(format!("model '{name}' not found (deleted while loading)"))),
                 }
             }
@@ -316,6 +331,7 @@ impl ModelRegistry {
             }
         }
         lock(&self.inner.loading).remove(name);
+        lock(&self.inner.corrupt).remove(name);
     }
 
     /// Names of the models in memory, sorted (for tests and diagnostics).
@@ -351,22 +367,7 @@ fn kind_name(kind: ModelKind) -> &'static str {
     }
 }
 
-/// Lowercase hex sha256 and size of a file, read in 1 MiB blocks.
-pub fn sha256_file(path: &Path) -> std::io::Result<(String, u64)> {
-    let mut file = std::fs::File::open(path)?;
-    let mut hasher = Sha256::new();
-    let mut buf = vec![0u8; 1 << 20];
-    let mut size = 0u64;
-    loop {
-        let n = file.read(&mut buf)?;
-        if n == 0 {
-            break;
-        }
-        hasher.update(&buf[..n]);
-        size += n as u64;
-    }
-    Ok((hex::encode(hasher.finalize()), size))
-}
+pub use crate::store::digests::sha256_file;
 
 /// A private, uncached copy of a stored diffusion model (blocking), for a training job that
 /// must not hold the shared copy's lock for its whole run.
@@ -376,14 +377,26 @@ pub fn load_diffusion_copy(record: &ModelRecord, dir: &Path, device: Device) -> 
 }
 
 /// The stored file of `record`, checked against its recorded sha256; returns its path and size.
+/// Every file of the blob is checked against the blob's digest list (a reward model's step
+/// tables too), and the list's entry for the model file must be the record's sha256, so each
+/// file is hashed once. A blob without a list (published before lists existed) is checked
+/// by the record's sha256 of the model file alone.
 fn verified_file(record: &ModelRecord, dir: &Path) -> Result<(PathBuf, u64)> {
     let path = dir.join(&record.file);
-    let (sha256, size) = match sha256_file(&path) {
-        Ok(v) => v,
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
-            return Err(lost(record, "its stored file is missing".into()));
-        }
-        Err(e) => return Err(e.into()),
+    let sha256 = match digests::verify_dir(dir, &format!("model '{}'", record.name)) {
+        Ok(Verified::Intact(sums)) => match sums.get(&record.file) {
+            Some(sum) => sum.clone(),
+            None => return Err(lost(record, "its stored file is not in its digest list".into())),
+        },
+        Ok(Verified::NoList) => match sha256_file(&path) {
+            Ok((sum, _)) => sum,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+                return Err(lost(record, "its stored file is missing".into()));
+            }
+            Err(e) => return Err(e.into()),
+        },
+        Err(Error::DataLoss(m)) => return Err(Error::DataLoss(format!("{m}; it will not be served"))),
+        Err(e) => return Err(e),
     };
     if sha256 != record.sha256 {
         return Err(lost(
@@ -391,6 +404,7 @@ fn verified_file(record: &ModelRecord, dir: &Path) -> Result<(PathBuf, u64)> {
             format!("the stored file fails its integrity check (sha256 {sha256}, recorded {})", record.sha256),
         ));
     }
+    let size = std::fs::metadata(&path)?.len();
     Ok((path, size))
 }
 

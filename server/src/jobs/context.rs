@@ -176,15 +176,26 @@ impl JobContext {
     }
 
     /// Writes a checkpoint: `write` fills a staging directory, which is published and then
-    /// recorded as the job's latest checkpoint in one store transaction; only then is the
-    /// previous checkpoint removed, so a crash at any point leaves a usable checkpoint.
+    /// recorded as the job's latest checkpoint in one store transaction. The checkpoint it
+    /// replaces stays as `previous` (the fallback if the new one is ever found corrupt); only
+    /// the one before that is removed, after the record is committed. A crash at any point
+    /// leaves the recorded checkpoints intact; unrecorded files are collected at next start.
     pub fn checkpoint(&mut self, step: u64, write: impl FnOnce(&std::path::Path) -> Result<()>) -> Result<()> {
         let staging = self.store.blobs.staging()?;
         write(staging.path())?;
+        crate::fault::point("checkpoint.before_publish");
         let key = format!("checkpoints/{}", uuid::Uuid::new_v4().simple());
         self.rt.block_on(self.store.blobs.publish(staging, &key))?;
-        let previous = self.record.checkpoint.take();
-        let new = CheckpointRef { blob_key: key.clone(), step };
+        crate::fault::point("checkpoint.after_publish");
+        let saved = self.record.checkpoint.clone();
+        let (previous, released) = match self.record.checkpoint.take() {
+            Some(mut latest) => {
+                let released = latest.previous.take();
+                (Some(Box::new(latest)), released)
+            }
+            None => (None, None),
+        };
+        let new = CheckpointRef { blob_key: key.clone(), step, previous };
         let result = self.update(
             |rec| {
                 rec.checkpoint = Some(new);
@@ -194,26 +205,72 @@ impl JobContext {
         );
         match result {
             Ok(()) => {
-                if let Some(old) = previous
-                    && let Err(e) = self.rt.block_on(self.store.blobs.remove(&old.blob_key))
-                {
-                    tracing::warn!(job = self.record.id, key = old.blob_key, error = %e, "old checkpoint not removed; removed at next start");
+                crate::fault::point("checkpoint.after_record");
+                if let Some(old) = released {
+                    self.remove_checkpoint(&old.blob_key);
                 }
                 Ok(())
             }
             Err(e) => {
-                self.record.checkpoint = previous;
+                self.record.checkpoint = saved;
                 let _ = self.rt.block_on(self.store.blobs.remove(&key));
                 Err(e)
             }
         }
     }
 
-    /// The latest checkpoint's step and local directory, if the job has one.
-    pub fn latest_checkpoint(&self) -> Result<Option<(u64, PathBuf)>> {
-        match &self.record.checkpoint {
-            None => Ok(None),
-            Some(c) => Ok(Some((c.step, self.rt.block_on(self.store.blobs.local_dir(&c.blob_key))?))),
+    fn remove_checkpoint(&self, key: &str) {
+        if let Err(e) = self.rt.block_on(self.store.blobs.remove(key)) {
+            tracing::warn!(job = self.record.id, key, error = %e, "old checkpoint not removed; removed at next start");
+        }
+    }
+
+    /// The job's newest intact checkpoint, as its step and local directory, each candidate
+    /// checked against its digest list (the latest, then its fallback). A corrupt one is
+    /// logged, reported as a job log event and dropped from the record (its files removed),
+    /// so later checkpoints never keep it as their fallback. `DataLoss` if the job has
+    /// checkpoints and none is intact: the job must not silently start over.
+    pub fn intact_checkpoint(&mut self) -> Result<Option<(u64, PathBuf)>> {
+        let mut candidates = Vec::new();
+        if let Some(latest) = &self.record.checkpoint {
+            let mut first = latest.clone();
+            let previous = first.previous.take();
+            candidates.push(first);
+            candidates.extend(previous.map(|p| *p));
+        }
+        let mut first_error = None;
+        for (i, candidate) in candidates.iter().enumerate() {
+            let dir = self.rt.block_on(self.store.blobs.local_dir(&candidate.blob_key))?;
+            let what = format!("job '{}': checkpoint at step {}", self.record.id, candidate.step);
+            match crate::store::digests::verify_dir(&dir, &what) {
+                Ok(_) if i == 0 => return Ok(Some((candidate.step, dir))),
+                Ok(_) => {
+                    // The fallback becomes the only checkpoint; the corrupt one goes.
+                    let kept = candidate.clone();
+                    let message = format!("resuming from the previous checkpoint, at step {}", kept.step);
+                    self.update(|r| r.checkpoint = Some(kept), vec![JobEventKind::Log { message }])?;
+                    self.remove_checkpoint(&candidates[0].blob_key);
+                    return Ok(Some((candidate.step, dir)));
+                }
+                Err(Error::DataLoss(m)) => {
+                    tracing::error!(job = self.record.id, step = candidate.step, blob = candidate.blob_key, "{m}");
+                    self.log(format!("{m}; not resuming from it"))?;
+                    first_error.get_or_insert(Error::DataLoss(m));
+                }
+                Err(e) => return Err(e),
+            }
+        }
+        first_error.map_or(Ok(None), Err)
+    }
+
+    /// Removes the files of checkpoints the record no longer refers to (a finished job's,
+    /// after its terminal state was recorded without them).
+    pub(super) fn remove_checkpoints(&self, released: Option<CheckpointRef>) {
+        if let Some(latest) = released {
+            if let Some(previous) = &latest.previous {
+                self.remove_checkpoint(&previous.blob_key);
+            }
+            self.remove_checkpoint(&latest.blob_key);
         }
     }
 

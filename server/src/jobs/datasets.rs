@@ -14,7 +14,10 @@ pub(crate) fn array<'a>(ds: &'a DatasetRecord, name: &str) -> Option<&'a crate::
 }
 
 /// Loads the dataset's rows in raw units and, for trajectories, the window starts.
+/// Checks the files' digests first (once per load), so a corrupt dataset fails the job with
+/// `DataLoss` naming it instead of training on damaged rows.
 pub(crate) fn load_rows(store_dir: &Path, ds: &DatasetRecord, horizon: usize) -> Result<(Tensor, Option<Vec<i64>>)> {
+    crate::store::Store::verify_dataset(store_dir, ds)?;
     let read = |name: &str| -> Result<Option<npy::Array>> {
         let Some(a) = array(ds, name) else { return Ok(None) };
         let dtype = relreward_client::tensor::parse_dtype(&a.dtype)

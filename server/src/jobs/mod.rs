@@ -454,15 +454,20 @@ fn run_job(mut ctx: JobContext) {
         }
     };
     tracing::info!(job = id, state = state.as_str(), "job finished");
+    // A finished job never resumes: its checkpoints are released with the terminal state
+    // (record first, files after, so a crash in between leaves only collectable files).
+    let checkpoints = ctx.record().checkpoint.clone();
     let finished = ctx.update(
         |r| {
             r.state = state;
             r.error = error;
             r.finished_at_ms = Some(now_ms());
+            r.checkpoint = None;
         },
         vec![JobEventKind::State { state, message }],
     );
-    if let Err(e) = finished {
-        tracing::error!(job = id, error = %e, "could not record the job's final state");
+    match finished {
+        Ok(()) => ctx.remove_checkpoints(checkpoints),
+        Err(e) => tracing::error!(job = id, error = %e, "could not record the job's final state"),
     }
 }

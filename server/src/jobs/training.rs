@@ -54,9 +54,19 @@ impl TrainLoop {
         }
     }
 
-    /// Restores the job's latest checkpoint, if it has one; returns the step resumed at.
+    /// Restores the job's newest intact checkpoint, if it has one; returns the step resumed
+    /// at. Each checkpoint's files are checked against their digests first (once, here); a
+    /// corrupt latest checkpoint falls back to the previous one, and a job whose every
+    /// checkpoint is corrupt fails with `DataLoss` rather than silently starting over.
     pub fn resume(&mut self, ctx: &mut JobContext) -> Result<Option<u64>> {
-        let Some((ckpt_step, dir)) = ctx.latest_checkpoint()? else { return Ok(None) };
+        let Some((ckpt_step, dir)) = ctx.intact_checkpoint()? else { return Ok(None) };
+        self.restore(&dir, ckpt_step)?;
+        ctx.log(format!("resumed from the checkpoint at step {}", self.step))?;
+        Ok(Some(self.step))
+    }
+
+    /// Loads one checkpoint directory into the network, the optimiser and the loop state.
+    fn restore(&mut self, dir: &Path, ckpt_step: u64) -> Result<()> {
         let stored: HashMap<String, Tensor> = Tensor::read_safetensors(dir.join("weights.safetensors"))
             .map_err(|e| Error::DataLoss(format!("checkpoint weights unreadable: {e}")))?
             .into_iter()
@@ -85,8 +95,7 @@ impl TrainLoop {
         self.rng = state.rng;
         self.adam.steps = state.adam_steps;
         self.loss = state.loss;
-        ctx.log(format!("resumed from the checkpoint at step {}", self.step))?;
-        Ok(Some(self.step))
+        Ok(())
     }
 
     /// Runs to `opt.steps`. `loss_fn` draws a batch with the loop's RNG and returns the

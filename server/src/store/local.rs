@@ -1,8 +1,9 @@
 //! Embedded blob store: directories under the data directory.
 //!
 //! Layout: `<data_dir>/blobs/<key>/...` for published files and `<data_dir>/staging/<uuid>/`
-//! while being written. Publishing fsyncs every file, renames the staging directory into place
-//! (atomic on one filesystem) and fsyncs the parent, so a published key is complete or absent.
+//! while being written. Publishing writes the blob's digest list ([`super::digests`]), fsyncs
+//! every file, renames the staging directory into place (atomic on one filesystem) and fsyncs
+//! the parent, so a published key is complete or absent, and carries the digest of each file.
 
 use std::fs;
 use std::path::{Path, PathBuf};
@@ -55,6 +56,9 @@ impl BlobStore for LocalBlobs {
     async fn publish(&self, staging: Staging, key: &str) -> Result<()> {
         let target = self.dir(key)?;
         tokio::task::block_in_place(|| -> Result<()> {
+            // Hashed here, after the writer closed its files, so the list covers exactly the
+            // bytes that are published; the files are still in the page cache.
+            super::digests::write_list(staging.path())?;
             for entry in fs::read_dir(staging.path())? {
                 fs::File::open(entry?.path())?.sync_all()?;
             }

@@ -12,7 +12,14 @@
 //! published first and the record inserted second; deletion removes the record first and the
 //! files second. A crash between the two steps leaves only unreferenced files, which
 //! [`Store::open`] removes at the next start, together with abandoned staging directories.
+//!
+//! Integrity rule: every published blob carries a digest list ([`digests`]), checked once each
+//! time the resource is loaded (a dataset by a job, a model by the registry, a checkpoint on
+//! resume). A mismatch is `Error::DataLoss` naming the resource; it is never served.
+//! Checkpoints keep their predecessor until the next one is recorded, so a corrupt latest
+//! checkpoint falls back to the previous one.
 
+pub mod digests;
 pub mod ingest;
 pub mod local;
 pub mod names;
@@ -161,6 +168,11 @@ impl JobState {
 pub struct CheckpointRef {
     pub blob_key: String,
     pub step: u64,
+    /// The checkpoint before this one, kept (and referenced, so recovery does not collect it)
+    /// until the next one is recorded: the fallback when this one turns out corrupt. Never
+    /// itself has a `previous`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub previous: Option<Box<CheckpointRef>>,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -313,6 +325,41 @@ impl Drop for Staging {
 /// Every blob namespace; keys are "<namespace><id>".
 pub const BLOB_NAMESPACES: [&str; 3] = ["datasets/", "models/", "checkpoints/"];
 
+/// Hashes a dataset's payload as ingestion did and compares it with the record (blocking).
+fn verify_payload(dir: &Path, record: &DatasetRecord, what: &str) -> Result<()> {
+    use sha2::{Digest, Sha256};
+    use std::io::Read;
+    let mut hasher = Sha256::new();
+    let mut buf = vec![0u8; 1 << 20];
+    for array in &record.arrays {
+        let dtype = relreward_client::tensor::parse_dtype(&array.dtype)
+            .ok_or_else(|| Error::DataLoss(format!("{what}: unknown stored dtype {}", array.dtype)))?;
+        let header_len = npy::header(dtype, &array.shape).len();
+        let mut file = std::fs::File::open(dir.join(&array.file)).map_err(|e| match e.kind() {
+            std::io::ErrorKind::NotFound => Error::DataLoss(format!("{what}: stored file {} is missing", array.file)),
+            _ => e.into(),
+        })?;
+        let mut skipped = 0;
+        loop {
+            let n = file.read(&mut buf)?;
+            if n == 0 {
+                break;
+            }
+            let skip = (header_len - skipped).min(n);
+            skipped += skip;
+            hasher.update(&buf[skip..n]);
+        }
+    }
+    let actual = hex::encode(hasher.finalize());
+    if actual != record.sha256 {
+        return Err(Error::DataLoss(format!(
+            "{what} is corrupt: its stored payload fails its integrity check (sha256 {actual}, recorded {})",
+            record.sha256
+        )));
+    }
+    Ok(())
+}
+
 /// The store the API layer talks to.
 #[derive(Clone)]
 pub struct Store {
@@ -362,7 +409,9 @@ impl Store {
     pub async fn commit_dataset(&self, staging: Staging, mut record: DatasetRecord) -> Result<DatasetRecord> {
         let key = format!("datasets/{}", uuid::Uuid::new_v4().simple());
         record.blob_key = key.clone();
+        crate::fault::point("upload.before_publish");
         self.blobs.publish(staging, &key).await?;
+        crate::fault::point("upload.after_publish");
         if let Err(e) = self.meta.insert_dataset(&record).await {
             if let Err(cleanup) = self.blobs.remove(&key).await {
                 tracing::warn!(key, error = %cleanup, "could not remove files of a rejected dataset; removed at next start");
@@ -376,7 +425,9 @@ impl Store {
     pub async fn commit_model(&self, staging: Staging, mut record: ModelRecord) -> Result<ModelRecord> {
         let key = format!("models/{}", uuid::Uuid::new_v4().simple());
         record.blob_key = key.clone();
+        crate::fault::point("model.before_publish");
         self.blobs.publish(staging, &key).await?;
+        crate::fault::point("model.after_publish");
         if let Err(e) = self.meta.insert_model(&record).await {
             if let Err(cleanup) = self.blobs.remove(&key).await {
                 tracing::warn!(key, error = %cleanup, "could not remove files of a rejected model; removed at next start");
@@ -402,6 +453,22 @@ impl Store {
             tracing::warn!(key = record.blob_key, error = %e, "could not remove model files; removed at next start");
         }
         Ok(())
+    }
+
+    /// Checks a stored dataset's files before a job reads them (blocking; once per load): its
+    /// digest list when the blob has one, else the record's payload sha256 (the arrays' bytes
+    /// after their `.npy` headers, in record order). `DataLoss` naming the dataset otherwise.
+    pub fn verify_dataset(dir: &Path, record: &DatasetRecord) -> Result<()> {
+        let what = format!("dataset '{}'", record.name);
+        let result = match digests::verify_dir(dir, &what) {
+            Ok(digests::Verified::Intact(_)) => Ok(()),
+            Ok(digests::Verified::NoList) => verify_payload(dir, record, &what),
+            Err(e) => Err(e),
+        };
+        if let Err(Error::DataLoss(m)) = &result {
+            tracing::error!(dataset = record.name, blob = record.blob_key, "{m}");
+        }
+        result
     }
 
     /// Removes a dataset: record first (so it disappears atomically), files second.

@@ -40,6 +40,9 @@ const MIGRATIONS: &[&str] = &[
         event TEXT NOT NULL,
         PRIMARY KEY (job_id, seq)
     ) STRICT, WITHOUT ROWID;",
+    // A job's previous checkpoint is kept as a fallback (see `CheckpointRef::previous`);
+    // its key is a column so recovery's garbage collection sees it without decoding records.
+    "ALTER TABLE jobs ADD COLUMN previous_checkpoint_key TEXT;",
 ];
 
 pub struct SqliteMetadata {
@@ -183,6 +186,13 @@ impl SqliteMetadata {
     }
 }
 
+/// The blob keys of a job's latest and previous checkpoints (the indexed columns).
+fn checkpoint_keys(record: &JobRecord) -> (Option<String>, Option<String>) {
+    let latest = record.checkpoint.as_ref();
+    let previous = latest.and_then(|c| c.previous.as_ref()).map(|p| p.blob_key.clone());
+    (latest.map(|c| c.blob_key.clone()), previous)
+}
+
 fn is_constraint(e: &rusqlite::Error) -> bool {
     matches!(e, rusqlite::Error::SqliteFailure(f, _) if f.code == rusqlite::ErrorCode::ConstraintViolation)
 }
@@ -209,7 +219,8 @@ impl MetadataStore for SqliteMetadata {
         self.with_conn(|c| {
             let mut stmt = c.prepare(
                 "SELECT blob_key FROM datasets UNION SELECT blob_key FROM models
-                 UNION SELECT checkpoint_key FROM jobs WHERE checkpoint_key IS NOT NULL",
+                 UNION SELECT checkpoint_key FROM jobs WHERE checkpoint_key IS NOT NULL
+                 UNION SELECT previous_checkpoint_key FROM jobs WHERE previous_checkpoint_key IS NOT NULL",
             )?;
             let keys = stmt.query_map([], |r| r.get::<_, String>(0))?;
             Ok(keys.collect::<Result<HashSet<_>, _>>()?)
@@ -236,13 +247,13 @@ impl MetadataStore for SqliteMetadata {
     async fn insert_job(&self, record: &JobRecord, events: &[JobEvent]) -> Result<()> {
         let json = encode(record)?;
         let events: Vec<(u64, String)> = events.iter().map(|e| Ok((e.seq, encode(e)?))).collect::<Result<_>>()?;
-        let (id, state, ckpt) =
-            (record.id.clone(), record.state.as_str(), record.checkpoint.as_ref().map(|c| c.blob_key.clone()));
+        let (id, state) = (record.id.clone(), record.state.as_str());
+        let (ckpt, previous) = checkpoint_keys(record);
         self.with_conn(move |c| {
             let tx = c.transaction()?;
             match tx.execute(
-                "INSERT INTO jobs (id, state, checkpoint_key, record) VALUES (?1, ?2, ?3, ?4)",
-                params![id, state, ckpt, json],
+                "INSERT INTO jobs (id, state, checkpoint_key, previous_checkpoint_key, record) VALUES (?1, ?2, ?3, ?4, ?5)",
+                params![id, state, ckpt, previous, json],
             ) {
                 Ok(_) => {}
                 Err(e) if is_constraint(&e) => return Err(Error::AlreadyExists(format!("job '{id}' already exists"))),
@@ -326,8 +337,8 @@ impl MetadataStore for SqliteMetadata {
     async fn record_job(&self, record: &JobRecord, events: &[JobEvent]) -> Result<()> {
         let json = encode(record)?;
         let events: Vec<(u64, String)> = events.iter().map(|e| Ok((e.seq, encode(e)?))).collect::<Result<_>>()?;
-        let (id, state, ckpt) =
-            (record.id.clone(), record.state, record.checkpoint.as_ref().map(|c| c.blob_key.clone()));
+        let (id, state) = (record.id.clone(), record.state);
+        let (ckpt, previous) = checkpoint_keys(record);
         self.with_conn(move |c| {
             let tx = c.transaction()?;
             let current: Option<String> =
@@ -343,8 +354,8 @@ impl MetadataStore for SqliteMetadata {
                 )));
             }
             tx.execute(
-                "UPDATE jobs SET state = ?2, checkpoint_key = ?3, record = ?4 WHERE id = ?1",
-                params![id, state.as_str(), ckpt, json],
+                "UPDATE jobs SET state = ?2, checkpoint_key = ?3, previous_checkpoint_key = ?4, record = ?5 WHERE id = ?1",
+                params![id, state.as_str(), ckpt, previous, json],
             )?;
             for (seq, event) in &events {
                 tx.execute(

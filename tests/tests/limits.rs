@@ -1,0 +1,155 @@
+//! Server-wide limits, end to end: the data directory's disk budget (`storage.max_bytes`),
+//! connections (`server.max_connections`), calls per connection
+//! (`server.max_concurrent_streams`) and deadlines (`serving.default_deadline_ms`, and
+//! DEADLINE_EXCEEDED when a call's own deadline passes).
+
+use std::time::Duration;
+
+use relreward_client::tensor::encode_f32;
+use relreward_client::{Client, pb};
+use relreward_tests::{Lines, TestServer, status_code, train_tiny_reward, try_upload_lines};
+use tokio_stream::wrappers::ReceiverStream;
+use tonic::Code;
+
+/// 7000 episodes of 24 rows x (2 + 2 float32 + 1 bool) = 2 856 000 payload bytes.
+const BIG: Lines =
+    Lines { episodes: 7000, seed: 1, start: [(1.0, 0.0), (1.0, 0.0)], velocity: [(0.1, 0.0), (0.1, 0.0)] };
+
+#[tokio::test(flavor = "multi_thread")]
+async fn disk_budget_refuses_uploads_beyond_it_and_leaves_nothing_behind() {
+    // Room for two BIG uploads and the metadata database, not three.
+    let server = TestServer::start_with_env(&[("RELREWARD__STORAGE__MAX_BYTES", "7500000")]);
+    let client = server.client().await;
+    try_upload_lines(&client, "one", &BIG).await.expect("first upload fits");
+    try_upload_lines(&client, "two", &BIG).await.expect("second upload fits");
+    let err = try_upload_lines(&client, "three", &BIG).await.expect_err("third is beyond the budget");
+    assert_eq!(status_code(&err), Some(Code::ResourceExhausted), "{err}");
+    let msg = err.to_string();
+    assert!(msg.contains("storage.max_bytes") && msg.contains("'three'"), "names the limit and the upload: {msg}");
+    assert_eq!(server.staging_entries(), 0, "the refused upload left staging files");
+    assert_eq!(server.dataset_blobs(), 2, "only the two stored datasets are on disk");
+    let err = client.get_dataset("three").await.expect_err("not stored");
+    assert_eq!(status_code(&err), Some(Code::NotFound));
+
+    // Deleting one gives its room back.
+    client.delete_dataset("one").await.expect("delete");
+    try_upload_lines(&client, "three", &BIG).await.expect("fits after a delete");
+    assert_eq!(server.dataset_blobs(), 2);
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn the_per_upload_quota_names_its_key() {
+    let server = TestServer::start_with_env(&[("RELREWARD__DATASETS__MAX_UPLOAD_BYTES", "100000")]);
+    let client = server.client().await;
+    let err = try_upload_lines(&client, "big", &BIG).await.expect_err("beyond the quota");
+    assert_eq!(status_code(&err), Some(Code::ResourceExhausted), "{err}");
+    assert!(err.to_string().contains("datasets.max_upload_bytes"), "{err}");
+    assert_eq!(server.staging_entries(), 0);
+    assert_eq!(server.dataset_blobs(), 0);
+}
+
+/// Whether a fresh connection gets a ListDatasets answered.
+async fn served(server: &TestServer) -> Result<Client, String> {
+    let client = Client::connect(&server.endpoint()).await.map_err(|e| e.to_string())?;
+    match tokio::time::timeout(Duration::from_secs(5), client.list_datasets()).await {
+        Ok(Ok(_)) => Ok(client),
+        Ok(Err(e)) => Err(e.to_string()),
+        Err(_) => Err("no answer in 5 s".into()),
+    }
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn connections_beyond_the_maximum_are_refused_until_one_closes() {
+    let server = TestServer::start_with_env(&[("RELREWARD__SERVER__MAX_CONNECTIONS", "2")]);
+    let first = served(&server).await.expect("first connection");
+    let second = served(&server).await.expect("second connection");
+    let started = std::time::Instant::now();
+    let err = served(&server).await.err().expect("a third connection must be refused");
+    // Refused at once (closed by the server), not left to time out.
+    assert!(started.elapsed() < Duration::from_secs(4), "refusal took {:?}: {err}", started.elapsed());
+    // The connections admitted keep working.
+    first.list_datasets().await.expect("first still served");
+    second.list_datasets().await.expect("second still served");
+
+    drop(first);
+    let mut third = None;
+    for _ in 0..100 {
+        if let Ok(c) = served(&server).await {
+            third = Some(c);
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    assert!(third.is_some(), "the slot of a closed connection never came back");
+    assert!(server.log().contains("server.max_connections"), "the refusal is logged with its key");
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn calls_beyond_the_stream_limit_wait_for_a_free_stream() {
+    let server = TestServer::start_with_env(&[("RELREWARD__SERVER__MAX_CONCURRENT_STREAMS", "1")]);
+    let client = server.client().await;
+    // An open GradientStream holds the connection's one stream.
+    let stream = client.gradient_stream().await.expect("open stream");
+    let waiting = tokio::time::timeout(Duration::from_millis(700), client.list_datasets()).await;
+    assert!(waiting.is_err(), "a second call on the connection was not held back: {waiting:?}");
+    // Per connection: another connection is served meanwhile.
+    let other = Client::connect(&server.endpoint()).await.expect("connect");
+    other.list_datasets().await.expect("another connection has its own streams");
+    // Ending the stream frees the slot.
+    let mut responses = stream.close();
+    while responses.message().await.expect("stream ends cleanly").is_some() {}
+    tokio::time::timeout(Duration::from_secs(5), client.list_datasets())
+        .await
+        .expect("served once the stream ended")
+        .expect("list");
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn a_passed_deadline_is_deadline_exceeded_and_an_upload_leaves_nothing() {
+    let server = TestServer::start();
+    let client = server.client().await;
+    // Connected before the timed call: the client's own timer for the deadline also runs
+    // while it connects, which the server cannot see.
+    client.list_datasets().await.expect("warm-up call");
+    let (tx, rx) = tokio::sync::mpsc::channel(4);
+    let header = pb::UploadHeader {
+        name: "stalled".into(),
+        kind: pb::DatasetKind::Samples as i32,
+        arrays: vec![pb::ArraySpec { name: "samples".into(), dtype: pb::Dtype::Float32 as i32, shape: vec![4, 2] }],
+        description: String::new(),
+    };
+    tx.send(pb::UploadDatasetRequest { message: Some(pb::upload_dataset_request::Message::Header(header)) })
+        .await
+        .expect("queue header");
+    let mut request = tonic::Request::new(ReceiverStream::new(rx));
+    request.set_timeout(Duration::from_millis(400));
+    // The client then stalls (keeps `tx` open and sends nothing more).
+    let err = client.datasets().upload_dataset(request).await.expect_err("the deadline passes");
+    assert_eq!(err.code(), Code::DeadlineExceeded, "{err:?}");
+    drop(tx);
+    assert!(relreward_tests::eventually(5, || server.staging_entries() == 0).await, "staging left behind");
+    assert_eq!(server.dataset_blobs(), 0);
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn unary_serving_calls_without_a_deadline_get_the_default_one() {
+    // Batches wait 300 ms for company; the default deadline of 100 ms passes in the queue.
+    let server = TestServer::start_with_env(&[
+        ("RELREWARD__SERVING__MAX_DELAY_US", "300000"),
+        ("RELREWARD__SERVING__DEFAULT_DEADLINE_MS", "100"),
+    ]);
+    let tmp = tempfile::tempdir().expect("tmp");
+    let m = train_tiny_reward(&server, tmp.path());
+    let client = server.client().await;
+    let x = encode_f32(&[1, m.horizon as u64, m.transition_dim as u64], &vec![0.1; m.horizon * m.transition_dim]);
+    let score = pb::ScoreRequest { model: m.reward.clone(), x: Some(x), ..Default::default() };
+
+    let err = client.score(score.clone()).await.expect_err("the default deadline passes in the queue");
+    assert_eq!(status_code(&err), Some(Code::DeadlineExceeded), "{err}");
+
+    // A caller's own deadline wins over the default.
+    let mut request = tonic::Request::new(score);
+    request.set_timeout(Duration::from_secs(10));
+    let answer = client.rewards().score(request).await.expect("own deadline of 10 s").into_inner();
+    assert!(answer.rewards.is_some());
+}
