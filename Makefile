@@ -16,7 +16,7 @@ BIN := target/release
 # Arguments for `make run`, e.g. make run ARGS="--listen 127.0.0.1:6000 --data-dir /tmp/rr".
 ARGS ?=
 
-.PHONY: help setup build run test test-rust lint fmt clean demo bench
+.PHONY: help setup build run test test-rust lint fmt clean demo bench soak
 # Arguments for `make demo`, e.g. make demo DEMO_ARGS="--layout medium --goals 4".
 DEMO_ARGS ?=
 
@@ -24,7 +24,8 @@ help:
 	@echo "make run    set everything up, build, and start relreward-server on 127.0.0.1:50051"
 	@echo "make test   set everything up and run every test"
 	@echo "make demo   the Maze2D pipeline end to end (starts a server if none answers)"
-	@echo "make bench  the serving benchmark (tests/bench/serving.sh)"
+	@echo "make bench  relreward against the PyTorch references: serving, training, sampling (writes BENCHMARKS.md)"
+	@echo "make soak   the 10-minute load and soak test (tests/soak.sh; make test runs 60 s of it)"
 	@echo "make lint   rustfmt check and clippy"
 	@echo "make clean  remove build outputs (keeps .venv and data/)"
 
@@ -62,8 +63,16 @@ demo: build
 	  $(BIN)/relreward demo $(DEMO_ARGS); \
 	fi
 
+## bench: each script runs relreward and its reference alternately and splices its own section
+## of BENCHMARKS.md (tests/bench/splice.py); about 20 minutes on a 2-core machine.
 bench: build
 	tests/bench/serving.sh
+	tests/bench/training.sh
+
+## soak: concurrent Score, GradientStream, Sample, uploads and a training job for SOAK_SECS
+## (default 600) against one loopback server; see docs/reliability.md.
+soak: build
+	tests/soak.sh
 
 lint: setup
 	$(CARGO) fmt --all -- --check
