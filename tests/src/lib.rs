@@ -578,3 +578,43 @@ pub fn status_code(error: &relreward_client::ClientError) -> Option<tonic::Code>
         _ => None,
     }
 }
+
+/// A tiny diffusion job on a trajectories dataset (TemporalUnet dim 8, dim_mults (1, 2),
+/// horizon 8, T = 10): seconds on a CPU, with the caller's seed and optimization settings.
+pub fn tiny_diffusion_spec(dataset: &str, output: &str, seed: u64, optimization: pb::Optimization) -> pb::JobSpec {
+    pb::JobSpec {
+        output_model: output.into(),
+        seed: Some(seed),
+        optimization: Some(optimization),
+        kind: Some(pb::job_spec::Kind::Diffusion(pb::TrainDiffusion {
+            dataset: dataset.into(),
+            horizon: Some(8),
+            n_timesteps: Some(10),
+            architecture: Some(pb::train_diffusion::Architecture::TemporalUnet(pb::TemporalUnet {
+                dim: Some(8),
+                dim_mults: vec![1, 2],
+            })),
+            ..Default::default()
+        })),
+    }
+}
+
+/// Every event of job `id` from `from_seq` until its stream ends (the job reached a terminal
+/// state); panics if an event takes more than 5 minutes.
+pub async fn watch_all(client: &Client, id: &str, from_seq: u64) -> Vec<pb::JobEvent> {
+    use tokio_stream::StreamExt;
+    let mut stream = client.watch_job(id, from_seq).await.expect("watch");
+    let mut out = Vec::new();
+    while let Some(e) = tokio::time::timeout(Duration::from_secs(300), stream.next()).await.expect("event in time") {
+        out.push(e.expect("event"));
+    }
+    out
+}
+
+/// The last state change among `events`.
+pub fn final_state(events: &[pb::JobEvent]) -> Option<pb::JobState> {
+    events.iter().rev().find_map(|e| match &e.event {
+        Some(pb::job_event::Event::State(s)) => Some(s.state()),
+        _ => None,
+    })
+}

@@ -8,12 +8,13 @@
 //! Each test prints one `FIGURE` line (run with `--nocapture`) for docs/reliability.md.
 
 use std::collections::BTreeMap;
-use std::time::Duration;
 
 use relreward_client::Client;
 use relreward_client::pb::{self, job_event::Event};
-use relreward_tests::{Lines, TestServer, eventually, flip_byte, ok, refused, train_tiny_reward, upload_lines};
-use tokio_stream::StreamExt;
+use relreward_tests::{
+    Lines, TestServer, eventually, final_state, flip_byte, ok, refused, tiny_diffusion_spec, train_tiny_reward,
+    upload_lines, watch_all,
+};
 
 const FAULT: &str = "RELREWARD_FAULT";
 
@@ -25,48 +26,18 @@ const STEPS: u64 = 60;
 const EVERY: u64 = 20;
 
 fn spec(dataset: &str, output: &str) -> pb::JobSpec {
-    pb::JobSpec {
-        output_model: output.into(),
-        seed: Some(3),
-        optimization: Some(pb::Optimization {
-            steps: Some(STEPS),
-            batch_size: Some(8),
-            checkpoint_every: Some(EVERY),
-            log_every: Some(10),
-            ..Default::default()
-        }),
-        kind: Some(pb::job_spec::Kind::Diffusion(pb::TrainDiffusion {
-            dataset: dataset.into(),
-            horizon: Some(8),
-            n_timesteps: Some(10),
-            architecture: Some(pb::train_diffusion::Architecture::TemporalUnet(pb::TemporalUnet {
-                dim: Some(8),
-                dim_mults: vec![1, 2],
-            })),
-            ..Default::default()
-        })),
-    }
+    let optimization = pb::Optimization {
+        steps: Some(STEPS),
+        batch_size: Some(8),
+        checkpoint_every: Some(EVERY),
+        log_every: Some(10),
+        ..Default::default()
+    };
+    tiny_diffusion_spec(dataset, output, 3, optimization)
 }
 
 async fn submit(client: &Client, dataset: &str, output: &str, id: &str) {
     client.submit_job(spec(dataset, output), Some(id)).await.expect("submit");
-}
-
-/// Every event of job `id` until its stream ends (the job reached a terminal state).
-async fn watch_all(client: &Client, id: &str) -> Vec<pb::JobEvent> {
-    let mut stream = client.watch_job(id, 0).await.expect("watch");
-    let mut out = Vec::new();
-    while let Some(e) = tokio::time::timeout(Duration::from_secs(300), stream.next()).await.expect("event in time") {
-        out.push(e.expect("event"));
-    }
-    out
-}
-
-fn final_state(events: &[pb::JobEvent]) -> Option<pb::JobState> {
-    events.iter().rev().find_map(|e| match &e.event {
-        Some(Event::State(s)) => Some(s.state()),
-        _ => None,
-    })
 }
 
 /// State and log messages, in order.
@@ -186,12 +157,12 @@ async fn registration_crash(fault: &str) {
     let (mut server, client) = armed(fault).await;
     upload_lines(&client, "lines", &LINES).await;
     submit(&client, "lines", "first", "job-first").await;
-    assert_eq!(final_state(&watch_all(&client, "job-first").await), Some(pb::JobState::Succeeded));
+    assert_eq!(final_state(&watch_all(&client, "job-first", 0).await), Some(pb::JobState::Succeeded));
     let before = snapshot(&server, &client).await;
     submit(&client, "lines", "second", "job-second").await;
     let client = crash_and_restart(&mut server, fault).await;
 
-    let events = watch_all(&client, "job-second").await;
+    let events = watch_all(&client, "job-second", 0).await;
     assert_eq!(final_state(&events), Some(pb::JobState::Succeeded), "{:?}", messages(&events));
     let after = snapshot(&server, &client).await;
     let lost = assert_kept(&before, &after);
@@ -221,7 +192,7 @@ async fn job_crash(fault: &str, damage: impl FnOnce(&TestServer)) -> (TestServer
     assert!(server.wait_exit(120), "the server did not abort at {fault}; log:\n{}", server.log());
     damage(&server);
     let client = crash_and_restart(&mut server, fault).await;
-    let events = watch_all(&client, "job").await;
+    let events = watch_all(&client, "job", 0).await;
     (server, client, before, events)
 }
 
@@ -355,7 +326,7 @@ async fn corrupt_models_and_datasets_are_reported_never_served() {
         server.blob_files("datasets").into_iter().find(|(k, _)| k.ends_with("observations.npy")).expect("obs");
     flip_byte(&server.data_dir.join("blobs").join(&file), 4);
     client.submit_job(spec("traj", "from-corrupt"), Some("corrupt-data")).await.expect("submit");
-    let events = watch_all(&client, "corrupt-data").await;
+    let events = watch_all(&client, "corrupt-data", 0).await;
     assert_eq!(final_state(&events), Some(pb::JobState::Failed));
     let job = client.get_job("corrupt-data").await.expect("job");
     assert!(job.error.contains("dataset 'traj' is corrupt"), "{}", job.error);

@@ -1,11 +1,10 @@
 //! Training jobs end to end: submission, idempotent ids, watch replay, cancellation, and a
 //! kill -9 of the server in the middle of a RUNNING diffusion job.
 
-use std::time::Duration;
 
 use relreward_client::Client;
 use relreward_client::pb::{self, job_event::Event};
-use relreward_tests::{Lines, TestServer, upload_lines};
+use relreward_tests::{Lines, TestServer, final_state, upload_lines, watch_all};
 use tokio_stream::StreamExt;
 use tonic::Code;
 
@@ -48,24 +47,6 @@ fn spec(dataset: &str, output: &str, steps: u64, checkpoint_every: u64) -> pb::J
 
 async fn submit(client: &Client, spec: pb::JobSpec, id: &str) -> Result<pb::Job, tonic::Status> {
     client.jobs().submit_job(pb::SubmitJobRequest { spec: Some(spec), job_id: id.into() }).await.map(|r| r.into_inner())
-}
-
-/// Every event from `from_seq` until the stream ends.
-async fn watch_all(client: &Client, id: &str, from_seq: u64) -> Vec<pb::JobEvent> {
-    let mut stream =
-        client.jobs().watch_job(pb::WatchJobRequest { id: id.into(), from_seq }).await.expect("watch").into_inner();
-    let mut out = Vec::new();
-    while let Some(e) = tokio::time::timeout(Duration::from_secs(300), stream.next()).await.expect("event in time") {
-        out.push(e.expect("event"));
-    }
-    out
-}
-
-fn final_state(events: &[pb::JobEvent]) -> Option<pb::JobState> {
-    events.iter().rev().find_map(|e| match &e.event {
-        Some(Event::State(s)) => Some(s.state()),
-        _ => None,
-    })
 }
 
 fn progress(events: &[pb::JobEvent]) -> Vec<pb::job_event::Progress> {

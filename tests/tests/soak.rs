@@ -14,7 +14,9 @@ use std::time::{Duration, Instant};
 
 use relreward_client::tensor::encode_f32;
 use relreward_client::{Client, ClientError, pb};
-use relreward_tests::{Lines, TestServer, TinyModels, rss_bytes, train_tiny_reward, try_upload_lines};
+use relreward_tests::{
+    Lines, TestServer, TinyModels, rss_bytes, tiny_diffusion_spec, train_tiny_reward, try_upload_lines,
+};
 use tokio_stream::StreamExt;
 use tonic::Code;
 
@@ -63,28 +65,15 @@ async fn backoff(status: &tonic::Status) {
 }
 
 fn job_spec(dataset: &str, output: &str) -> pb::JobSpec {
-    pb::JobSpec {
-        output_model: output.into(),
-        seed: Some(11),
-        optimization: Some(pb::Optimization {
-            steps: Some(150),
-            batch_size: Some(16),
-            learning_rate: Some(1e-3),
-            checkpoint_every: Some(50),
-            log_every: Some(10),
-            ..Default::default()
-        }),
-        kind: Some(pb::job_spec::Kind::Diffusion(pb::TrainDiffusion {
-            dataset: dataset.into(),
-            horizon: Some(8),
-            n_timesteps: Some(10),
-            architecture: Some(pb::train_diffusion::Architecture::TemporalUnet(pb::TemporalUnet {
-                dim: Some(8),
-                dim_mults: vec![1, 2],
-            })),
-            ..Default::default()
-        })),
-    }
+    let optimization = pb::Optimization {
+        steps: Some(150),
+        batch_size: Some(16),
+        learning_rate: Some(1e-3),
+        checkpoint_every: Some(50),
+        log_every: Some(10),
+        ..Default::default()
+    };
+    tiny_diffusion_spec(dataset, output, 11, optimization)
 }
 
 /// Submits `spec` and waits until the job ends; returns it and its output model.
