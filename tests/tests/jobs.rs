@@ -1,7 +1,6 @@
 //! Training jobs end to end: submission, idempotent ids, watch replay, cancellation, and a
 //! kill -9 of the server in the middle of a RUNNING diffusion job.
 
-
 use relreward_client::Client;
 use relreward_client::pb::{self, job_event::Event};
 use relreward_tests::{Lines, TestServer, final_state, upload_lines, watch_all};
