@@ -71,12 +71,22 @@ impl Space {
         }
     }
 
-    /// Number of normalizer coordinates.
+    /// Number of normalizer coordinates (saturating: a manifest that passed `validate` never
+    /// gets near `usize::MAX`, and an unvalidated one must not panic here).
     pub fn coordinates(&self) -> usize {
         match self {
-            Self::Trajectory { action_dim, obs_dim, .. } => action_dim + obs_dim,
-            Self::Sample { shape } => shape.iter().product(),
+            Self::Trajectory { action_dim, obs_dim, .. } => action_dim.saturating_add(*obs_dim),
+            Self::Sample { shape } => shape.iter().fold(1usize, |acc, &d| acc.saturating_mul(d)),
         }
+    }
+
+    /// Elements of one item, `None` when the count does not fit in an `i64` (tch's sizes).
+    fn checked_item_elements(&self) -> Option<usize> {
+        let n = match self {
+            Self::Trajectory { horizon, action_dim, obs_dim } => action_dim.checked_add(*obs_dim)?.checked_mul(*horizon)?,
+            Self::Sample { shape } => shape.iter().try_fold(1usize, |acc, &d| acc.checked_mul(d))?,
+        };
+        i64::try_from(n).is_ok().then_some(n)
     }
 }
 
@@ -145,7 +155,7 @@ impl DiffusionManifest {
         }
         match &self.space {
             Space::Trajectory { horizon, action_dim, obs_dim } => {
-                if *horizon == 0 || action_dim + obs_dim == 0 {
+                if *horizon == 0 || action_dim.checked_add(*obs_dim).is_none_or(|d| d == 0) {
                     return Err(Error::invalid(format!(
                         "manifest.space: horizon {horizon}, action_dim {action_dim}, obs_dim {obs_dim}: horizon and action_dim + obs_dim must be positive"
                     )));
@@ -159,6 +169,14 @@ impl DiffusionManifest {
                 }
             }
         }
+        // Regression inputs in fuzz/regressions/manifest_parse: huge dimensions overflowed the
+        // coordinate count and, cast to i64, became negative sizes.
+        if self.space.checked_item_elements().is_none() {
+            return Err(Error::invalid(format!(
+                "manifest.space: {:?} has more elements per item than fit in 64 bits",
+                self.space
+            )));
+        }
         self.normalizer.validate("manifest.normalizer", self.space.coordinates())?;
         if let Some(arch) = &self.architecture {
             match arch {
@@ -171,7 +189,14 @@ impl DiffusionManifest {
                             "manifest.architecture: temporal_unet dim {dim} must be a positive multiple of 8 (GroupNorm(8)) and dim_mults {dim_mults:?} non-empty and positive"
                         )));
                     }
-                    let factor = 1usize << (dim_mults.len() - 1);
+                    // 65 or more levels overflowed the shift (fuzz/regressions/manifest_parse).
+                    let Some(factor) = u32::try_from(dim_mults.len() - 1).ok().and_then(|l| 1usize.checked_shl(l))
+                    else {
+                        return Err(Error::invalid(format!(
+                            "manifest.architecture: temporal_unet has {} levels (dim_mults), far more than any horizon allows",
+                            dim_mults.len()
+                        )));
+                    };
                     if horizon % factor != 0 {
                         return Err(Error::invalid(format!(
                             "manifest.space.horizon: {horizon} must be divisible by 2^(levels - 1) = {factor} for dim_mults {dim_mults:?}"
@@ -231,6 +256,25 @@ mod tests {
         for (text, needle) in cases {
             let err = DiffusionManifest::parse(&text).expect_err(needle).to_string();
             assert!(err.contains(needle), "{err} should contain {needle}");
+        }
+    }
+
+    /// The inputs in fuzz/regressions/manifest_parse: each once overflowed (a panic in debug
+    /// builds, a wrong size in release) and must now be a clean INVALID_ARGUMENT.
+    #[test]
+    fn fuzz_regressions_manifest_sizes_overflow() {
+        let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../fuzz/regressions/manifest_parse");
+        let cases = [
+            ("trajectory_dims_overflow.json", "manifest.space"),
+            ("sample_shape_overflow.json", "manifest.space"),
+            ("item_elements_over_i64.json", "manifest.space"),
+            ("unet_levels_shift_overflow.json", "manifest.architecture"),
+        ];
+        for (file, needle) in cases {
+            let text = std::fs::read_to_string(dir.join(file)).expect(file);
+            let err = DiffusionManifest::parse(&text).expect_err(file);
+            assert!(matches!(err, Error::InvalidArgument(_)), "{file}: {err}");
+            assert!(err.to_string().contains(needle), "{file}: {err} should contain {needle}");
         }
     }
 }
