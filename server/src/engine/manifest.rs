@@ -83,7 +83,9 @@ impl Space {
     /// Elements of one item, `None` when the count does not fit in an `i64` (tch's sizes).
     fn checked_item_elements(&self) -> Option<usize> {
         let n = match self {
-            Self::Trajectory { horizon, action_dim, obs_dim } => action_dim.checked_add(*obs_dim)?.checked_mul(*horizon)?,
+            Self::Trajectory { horizon, action_dim, obs_dim } => {
+                action_dim.checked_add(*obs_dim)?.checked_mul(*horizon)?
+            }
             Self::Sample { shape } => shape.iter().try_fold(1usize, |acc, &d| acc.checked_mul(d))?,
         };
         i64::try_from(n).is_ok().then_some(n)
