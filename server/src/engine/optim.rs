@@ -52,14 +52,25 @@ impl Adam {
         self.steps += 1;
         let bc1 = 1.0 - self.beta1.powf(self.steps as f64);
         let bc2 = 1.0 - self.beta2.powf(self.steps as f64);
+        let step_size = self.lr / bc1;
+        let bc2_sqrt = bc2.sqrt();
+        // torch.optim.Adam's CPU update (`_single_tensor_adam`) op for op, so that the weights
+        // are bitwise those PyTorch would produce (server/tests/training_vs_pytorch.rs):
+        //   m.lerp_(g, 1 - beta1); v.mul_(beta2).addcmul_(g, g, value = 1 - beta2);
+        //   denom = (sqrt(v) / sqrt(bc2)).add_(eps); p.addcdiv_(m, denom, value = -lr / bc1).
+        // tch's addcmul_ / addcdiv_ take no `value`: scaling the first factor gives the same
+        // (value * t1) * t2 and (value * t1) / t2 that libtorch's kernels compute. In place, this
+        // makes four temporaries per parameter where the composed formula made eight: about
+        // 17 ms instead of 55 ms per update of the benchmark's 3.7M-parameter TemporalUnet (one
+        // thread, the same libtorch ops timed from Python), some 5% of a DDPM step.
         for (((_, p), g), (m, v)) in params.iter().zip(&grads).zip(self.m.iter_mut().zip(self.v.iter_mut())) {
             let Some(g) = g else { continue };
             let g = if scale == 1.0 { g.shallow_clone() } else { g * scale };
-            let _ = m.g_mul_scalar_(self.beta1).g_add_(&(&g * (1.0 - self.beta1)));
-            let _ = v.g_mul_scalar_(self.beta2).g_add_(&(g.square() * (1.0 - self.beta2)));
-            let denom = v.sqrt() / bc2.sqrt() + self.eps;
+            let _ = m.lerp_(&g, 1.0 - self.beta1);
+            let _ = v.g_mul_scalar_(self.beta2).addcmul_(&(&g * (1.0 - self.beta2)), &g);
+            let denom = v.sqrt().g_div_scalar_(bc2_sqrt).g_add_scalar_(self.eps);
             let mut p = p.shallow_clone();
-            let _ = p.g_sub_(&(m.shallow_clone() / denom * (self.lr / bc1)));
+            let _ = p.addcdiv_(&(&*m * -step_size), &denom);
         }
         for (_, p) in params {
             let mut g = p.grad();

@@ -88,6 +88,22 @@ pub fn target_and_point(
     Ok((y.detach(), point.detach()))
 }
 
+/// Algorithm 1's batch at given draws: x_t = q_sample(x0, t, noise) under no-grad, then
+/// [`target_and_point`]. The reward job passes its own Rng's draws; the PyTorch cross-check
+/// (server/tests/training_vs_pytorch.rs) passes fixed ones, so both run this same code.
+pub fn noised_target_and_point(
+    base: &DiffusionModel,
+    expert: &DiffusionModel,
+    x0: &Tensor,
+    t: &Tensor,
+    noise: &Tensor,
+    target: Target,
+    eval_point: EvalPoint,
+) -> Result<(Tensor, Tensor)> {
+    let x_t = tch::no_grad(|| base.q_sample(x0, t, noise))?;
+    target_and_point(base, expert, &x_t, t, target, eval_point)
+}
+
 /// || grad_x rho(point, t) - target ||^2 summed over an item, averaged over the batch, plus
 /// the optional rho^2 penalty. Differentiable with respect to rho's parameters.
 pub fn alignment_loss(reward: &RewardNet, point: &Tensor, t: &Tensor, target: &Tensor, rho_l2: f64) -> Result<Tensor> {

@@ -15,7 +15,7 @@ use crate::engine::nets::reward::{RewardArchitecture, RewardNet};
 use crate::engine::normalizer::Normalizer;
 use crate::engine::registry::load_diffusion_copy;
 use crate::engine::relative_reward::{
-    EvalPoint, Objective, RewardManifest, Target, alignment_loss, check_pair, target_and_point,
+    EvalPoint, Objective, RewardManifest, Target, alignment_loss, check_pair, noised_target_and_point,
 };
 use crate::engine::reward_model::STEP_NORM_FILE;
 use crate::engine::rng::Rng;
@@ -339,8 +339,8 @@ pub fn run(ctx: &mut JobContext, job: &RewardJob) -> std::result::Result<String,
                 let n = x0.size()[0] as usize;
                 let t = rng.randint(t_max, n, device);
                 let noise = rng.randn(&x0.size(), device);
-                let x_t = tch::no_grad(|| base.q_sample(&x0, &t, &noise))?;
-                let (target, point) = target_and_point(&base, &expert, &x_t, &t, job.target, job.eval_point)?;
+                let (target, point) =
+                    noised_target_and_point(&base, &expert, &x0, &t, &noise, job.target, job.eval_point)?;
                 Ok(Some((t, target, point)))
             }
             Pairs::Chains(c) => {

@@ -1,0 +1,216 @@
+"""Times the PyTorch references (reference.py) on the work relreward does in
+tests/bench/training.sh, and prints one JSON line per run.
+
+    bench.py alg1   --data-dir DIR --base B --expert E --dataset maze.npz [--steps S --warmup W ...]
+    bench.py ddpm   --dataset maze.npz --manifest-of B --data-dir DIR [--steps S --warmup W ...]
+    bench.py sample --data-dir DIR --base B --reward R --n N [--repeats K ...]
+
+Models are read from a relreward data directory (the `models` table of metadata.sqlite3,
+opened read-only, and the weights at blobs/<blob_key>/<file>), so the reference runs the same
+diffusion models, with the same weights, manifests and normalizer, as relreward. Trained
+networks start from PyTorch's default initialisation (relreward's tch initialisation follows
+the same scheme); their values do not change the cost of a step.
+
+Training: `--warmup` steps untimed, then `--steps` timed steps, each drawing its batch (x0
+windows from the dataset, t, noise) like relreward's jobs do, logging the loss (`.item()`, as
+a researcher's loop prints it), Adam and the EMA (decay 0.995 every 10 steps from step 2000,
+relreward's defaults). Sampling: three untimed guided steps, then `--repeats` timed runs of
+Diffuser's guided p_sample_loop over `--n` trajectories in one batch.
+
+Each line also carries the multiply-accumulates of one forward pass of every network (counted
+with hooks on the real modules, see reference.count_macs), the threads used and this
+process's peak RSS.
+"""
+
+import argparse
+import json
+import sqlite3
+import sys
+import time
+
+import torch
+
+from reference import (
+    Diffusion,
+    Ema,
+    Windows,
+    alg1_step,
+    build_denoiser,
+    build_reward,
+    count_macs,
+    ddpm_step,
+    guided_sample,
+    guided_step,
+    item_shape,
+    peak_rss_mib,
+    read_safetensors,
+)
+
+
+def stored_model(data_dir, name):
+    """(manifest, weights path) of a model in a relreward data directory."""
+    with sqlite3.connect(f"file:{data_dir}/metadata.sqlite3?mode=ro", uri=True) as db:
+        row = db.execute("SELECT record FROM models WHERE name = ?", (name,)).fetchone()
+    if row is None:
+        sys.exit(f"bench.py: no model '{name}' in {data_dir}")
+    record = json.loads(row[0])
+    return record["manifest"], f"{data_dir}/blobs/{record['blob_key']}/{record['file']}"
+
+
+def load_diffusion(data_dir, name):
+    manifest, weights = stored_model(data_dir, name)
+    net = build_denoiser(manifest["architecture"], manifest["space"])
+    net.load_state_dict(read_safetensors(weights), strict=True)
+    for p in net.parameters():
+        p.requires_grad_(False)
+    return Diffusion(net, manifest)
+
+
+def normalize_obs(manifest, obs):
+    """A raw observation in the model's normalized units (Limits normalizer over [action | obs])."""
+    space, norm = manifest["space"], manifest["normalizer"]
+    a = space["action_dim"]
+    lo = torch.tensor(norm["min"][a:], dtype=torch.float64)
+    hi = torch.tensor(norm["max"][a:], dtype=torch.float64)
+    x = torch.tensor(obs, dtype=torch.float64)
+    scale = torch.where(hi - lo > 1e-12, 2.0 / (hi - lo).clamp_min(1e-12), torch.zeros_like(lo))
+    return ((x - (lo + hi) / 2) * scale).float()
+
+
+def timed_training(step_fn, warmup, steps):
+    for k in range(1, warmup + 1):
+        step_fn(k).item()
+    start = time.perf_counter()
+    for k in range(warmup + 1, warmup + steps + 1):
+        step_fn(k).item()
+    return time.perf_counter() - start
+
+
+def run_alg1(args):
+    base, expert = load_diffusion(args.data_dir, args.base), load_diffusion(args.data_dir, args.expert)
+    shape = item_shape(base.manifest["space"])
+    arch = {"kind": "windowed_mlp", "window": args.window, "hidden": [int(h) for h in args.hidden.split(",")]}
+    torch.manual_seed(args.seed)
+    reward = build_reward(arch, shape)
+    optimizer = torch.optim.Adam(reward.parameters(), lr=args.lr)
+    ema = Ema(reward)
+    data = Windows(args.dataset, shape[0])
+    big_t = base.n_timesteps
+
+    def step(k):
+        x0 = data.batch(args.batch)
+        t = torch.randint(big_t, (args.batch,))
+        noise = torch.randn_like(x0)
+        return alg1_step(base, expert, reward, optimizer, ema, k, x0, t, noise)
+
+    seconds = timed_training(step, args.warmup, args.steps)
+    x, t = torch.zeros(args.batch, *shape), torch.zeros(args.batch, dtype=torch.long)
+    return {"steps": args.steps, "seconds": seconds, "steps_per_second": args.steps / seconds,
+            "macs": {"diffusion": count_macs(base.net, x, t), "reward": count_macs(reward, x, t)},
+            "parameters": {"diffusion": sum(p.numel() for p in base.net.parameters()),
+                           "reward": sum(p.numel() for p in reward.parameters())}}
+
+
+def run_ddpm(args):
+    # The architecture, schedule, parametrization and normalizer of a relreward model trained
+    # with the benchmark's config; fresh weights (this is the model being trained).
+    manifest, _ = stored_model(args.data_dir, args.manifest_of)
+    torch.manual_seed(args.seed)
+    net = build_denoiser(manifest["architecture"], manifest["space"])
+    model = Diffusion(net, manifest)
+    optimizer = torch.optim.Adam(net.parameters(), lr=args.lr)
+    ema = Ema(net)
+    shape = item_shape(manifest["space"])
+    data = Windows(args.dataset, shape[0])
+
+    def step(k):
+        x0 = data.batch(args.batch)
+        t = torch.randint(model.n_timesteps, (args.batch,))
+        noise = torch.randn_like(x0)
+        return ddpm_step(model, optimizer, ema, k, x0, t, noise)
+
+    seconds = timed_training(step, args.warmup, args.steps)
+    x, t = torch.zeros(args.batch, *shape), torch.zeros(args.batch, dtype=torch.long)
+    return {"steps": args.steps, "seconds": seconds, "steps_per_second": args.steps / seconds,
+            "macs": {"diffusion": count_macs(net, x, t)},
+            "parameters": {"diffusion": sum(p.numel() for p in net.parameters())}}
+
+
+def run_sample(args):
+    model = load_diffusion(args.data_dir, args.base)
+    manifest, weights = stored_model(args.data_dir, args.reward)
+    shape = item_shape(manifest["space"])
+    reward = build_reward(manifest["architecture"], shape)
+    reward.load_state_dict(read_safetensors(weights), strict=True)
+    for p in reward.parameters():
+        p.requires_grad_(False)
+    conditions = []
+    for spec in args.condition:
+        index, values = spec.split("=")
+        conditions.append((int(index), normalize_obs(model.manifest, [float(v) for v in values.split(",")])))
+    guide = dict(omega=args.omega, n_guide_steps=args.n_guide_steps, t_stopgrad=args.t_stopgrad,
+                 scale_grad_by_std=args.scale_grad_by_std)
+    torch.manual_seed(args.seed)
+    # Warm-up: a few guided steps at the timed batch size (oneDNN builds its kernels per shape).
+    with torch.no_grad():
+        x = torch.randn(args.n, *shape)
+        for i in (model.n_timesteps - 1, 1, 0):
+            x, _ = guided_step(model, reward, x, torch.full((args.n,), i), conditions, torch.randn_like(x), **guide)
+    times = []
+    for _ in range(args.repeats):
+        start = time.perf_counter()
+        x, y = guided_sample(model, reward, args.n, conditions, **guide)
+        # relreward reports rho(x, 0) of each final sample; so does a planner ranking its plans.
+        with torch.no_grad():
+            reward(x, torch.zeros(args.n, dtype=torch.long))
+        times.append(time.perf_counter() - start)
+    times.sort()
+    median = times[len(times) // 2]
+    x, t = torch.zeros(args.n, *shape), torch.zeros(args.n, dtype=torch.long)
+    return {"n": args.n, "seconds": median, "seconds_per_trajectory": median / args.n, "all_seconds": times,
+            "macs": {"diffusion": count_macs(model.net, x, t), "reward": count_macs(reward, x, t)},
+            "n_timesteps": model.n_timesteps}
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="benchmark", required=True)
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--data-dir", required=True, help="relreward data directory holding the models")
+    common.add_argument("--threads", type=int, required=True, help="torch.set_num_threads (relreward's intra-op threads)")
+    common.add_argument("--seed", type=int, default=0)
+    training = argparse.ArgumentParser(add_help=False)
+    training.add_argument("--dataset", required=True, help="the .npz relreward was given")
+    training.add_argument("--batch", type=int, default=64)
+    training.add_argument("--steps", type=int, default=50)
+    training.add_argument("--warmup", type=int, default=10)
+    alg1 = sub.add_parser("alg1", parents=[common, training])
+    alg1.add_argument("--base", required=True)
+    alg1.add_argument("--expert", required=True)
+    alg1.add_argument("--window", type=int, default=4)
+    alg1.add_argument("--hidden", default="128,64,32")
+    alg1.add_argument("--lr", type=float, default=5e-5)
+    ddpm = sub.add_parser("ddpm", parents=[common, training])
+    ddpm.add_argument("--manifest-of", required=True, help="a relreward model with the architecture to train")
+    ddpm.add_argument("--lr", type=float, default=2e-4)
+    sample = sub.add_parser("sample", parents=[common])
+    sample.add_argument("--base", required=True)
+    sample.add_argument("--reward", required=True)
+    sample.add_argument("--n", type=int, default=64)
+    sample.add_argument("--repeats", type=int, default=1)
+    sample.add_argument("--omega", type=float, default=0.1)
+    sample.add_argument("--n-guide-steps", type=int, default=1)
+    sample.add_argument("--t-stopgrad", type=int, default=0)
+    sample.add_argument("--scale-grad-by-std", action="store_true")
+    sample.add_argument("--condition", action="append", default=[], help="INDEX=v1,v2,.. in raw units")
+    args = parser.parse_args()
+
+    torch.set_num_threads(args.threads)
+    result = {"alg1": run_alg1, "ddpm": run_ddpm, "sample": run_sample}[args.benchmark](args)
+    result.update({"benchmark": args.benchmark, "threads": torch.get_num_threads(), "torch": torch.__version__,
+                   "peak_rss_mib": peak_rss_mib()})
+    print(json.dumps(result))
+
+
+if __name__ == "__main__":
+    main()
