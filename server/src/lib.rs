@@ -12,6 +12,7 @@
 //! - [`store`]: metadata ([`store::MetadataStore`]) and files ([`store::BlobStore`]),
 //!   dataset ingestion and crash recovery.
 //! - [`limits`]: server-wide limits: connections, call deadlines, the data directory's disk budget.
+//! - [`fault`]: the test-only fault-injection hook (`RELREWARD_FAULT`), a no-op when unset.
 //! - [`config`]: layered configuration and its validation.
 //! - [`metrics`]: Prometheus metrics, the per-call recording layer and the `/metrics` endpoint.
 //! - [`error`]: the one error type and its one mapping to gRPC status codes.
