@@ -174,7 +174,7 @@ pub const UNKNOWN_METHOD: &str = "unknown";
 /// Every service the server can route (ours, the inference protocol's, health, both
 /// reflection versions). A service served without its descriptor set here is counted as
 /// `method="unknown"`.
-const DESCRIPTOR_SETS: &[&[u8]] = &[
+pub(crate) const DESCRIPTOR_SETS: &[&[u8]] = &[
     relreward_proto::FILE_DESCRIPTOR_SET,
     relreward_proto::INFERENCE_FILE_DESCRIPTOR_SET,
     tonic_health::pb::FILE_DESCRIPTOR_SET,

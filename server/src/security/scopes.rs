@@ -109,14 +109,9 @@ mod tests {
 
     use super::*;
 
-    /// The descriptor sets of every service the server registers (see `crate::run`).
-    const DESCRIPTOR_SETS: &[&[u8]] = &[
-        relreward_proto::FILE_DESCRIPTOR_SET,
-        relreward_proto::INFERENCE_FILE_DESCRIPTOR_SET,
-        tonic_health::pb::FILE_DESCRIPTOR_SET,
-        tonic_reflection::pb::v1::FILE_DESCRIPTOR_SET,
-        tonic_reflection::pb::v1alpha::FILE_DESCRIPTOR_SET,
-    ];
+    // The descriptor sets of every service the server registers: the same list that names
+    // the metrics' method labels, so the two cannot drift apart.
+    use crate::metrics::DESCRIPTOR_SETS;
 
     fn served_methods() -> BTreeSet<String> {
         let mut paths = BTreeSet::new();
