@@ -16,13 +16,14 @@ BIN := target/release
 # Arguments for `make run`, e.g. make run ARGS="--listen 127.0.0.1:6000 --data-dir /tmp/rr".
 ARGS ?=
 
-.PHONY: help setup build run test test-rust lint fmt clean demo bench soak
+.PHONY: help setup build run test test-cluster lint fmt clean demo bench soak
 # Arguments for `make demo`, e.g. make demo DEMO_ARGS="--layout medium --goals 4".
 DEMO_ARGS ?=
 
 help:
 	@echo "make run    set everything up, build, and start relreward-server on 127.0.0.1:50051"
-	@echo "make test   set everything up and run every test"
+	@echo "make test   set everything up and run every test (and validate deploy/)"
+	@echo "make test-cluster  PostgreSQL + S3 server + 2 serving replicas + 2 workers on loopback"
 	@echo "make demo   the Maze2D pipeline end to end (starts a server if none answers)"
 	@echo "make bench  relreward against the PyTorch references: serving, training, sampling (writes BENCHMARKS.md)"
 	@echo "make soak   the 10-minute load and soak test (tests/soak.sh; make test runs 60 s of it)"
@@ -47,8 +48,16 @@ run: build
 	$(BIN)/relreward-server $(ARGS)
 
 ## test: every test. The end-to-end crate spawns target/release/relreward-server, built above.
+## Then the container image and manifests are checked (hadolint, kubernetes-validate, yamllint).
 test: build
 	$(CARGO) test $(CARGO_PROFILE) --workspace --no-fail-fast
+	deploy/validate.sh
+
+## test-cluster: the shared backend across processes (tests/cluster/run.sh): a real PostgreSQL
+## (Debian package, installed if missing) and s3s-fs (built into .tools/ once), two serving
+## replicas and two workers; see tests/tests/cluster.rs.
+test-cluster: build
+	tests/cluster/run.sh
 
 ## demo: uses the server at RELREWARD_ENDPOINT (default 127.0.0.1:50051) if it answers,
 ## otherwise starts one on that port with its data under demo-out/ and stops it afterwards.
@@ -77,6 +86,7 @@ soak: build
 lint: setup
 	$(CARGO) fmt --all -- --check
 	$(CARGO) clippy $(CARGO_PROFILE) --workspace --all-targets -- -D warnings
+	deploy/validate.sh
 
 fmt:
 	$(CARGO) fmt --all

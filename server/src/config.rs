@@ -46,18 +46,111 @@ pub struct ServerConfig {
     pub max_concurrent_streams: u32,
     /// How long in-flight calls may take to finish after SIGINT/SIGTERM.
     pub shutdown_grace_secs: u64,
+    /// What this process does: "serve" (every RPC; submitted jobs go to the queue), "work"
+    /// (runs queued jobs; its port answers health checks only) or "all" (both).
+    pub role: String,
+}
+
+/// What a process does (`server.role`, `--role`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Role {
+    Serve,
+    Work,
+    All,
+}
+
+impl Role {
+    pub fn parse(s: &str) -> Option<Self> {
+        match s {
+            "serve" => Some(Self::Serve),
+            "work" => Some(Self::Work),
+            "all" => Some(Self::All),
+            _ => None,
+        }
+    }
+
+    /// Answers the relreward and OIP APIs.
+    pub fn serves(self) -> bool {
+        matches!(self, Self::Serve | Self::All)
+    }
+
+    /// Takes jobs from the queue and runs them.
+    pub fn works(self) -> bool {
+        matches!(self, Self::Work | Self::All)
+    }
 }
 
 #[derive(Debug, Clone, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct StorageConfig {
-    /// Only "embedded" (SQLite metadata + files under data_dir) exists today; the storage
-    /// traits leave room for a PostgreSQL + object store backend.
+    /// "embedded": SQLite metadata and files under data_dir, for one process. "shared":
+    /// PostgreSQL metadata and job queue, files in an S3-compatible object store, for many
+    /// processes; data_dir then holds staging files and a local cache of downloaded blobs.
     pub backend: String,
     pub data_dir: PathBuf,
     /// Bytes the data directory may hold (datasets, models, checkpoints, metadata); an upload
     /// that would go beyond it is RESOURCE_EXHAUSTED before any of it is written. 0: no budget.
+    /// With the shared backend it bounds the local directory (staging and cache) only.
     pub max_bytes: u64,
+    pub postgres: PostgresConfig,
+    pub s3: S3Config,
+}
+
+/// The shared backend's metadata database (`storage.backend = "shared"`).
+#[derive(Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PostgresConfig {
+    /// libpq-style URL, e.g. postgres://relreward:PASSWORD@db:5432/relreward. Holds a
+    /// password: set it through RELREWARD__STORAGE__POSTGRES__URL from a secret.
+    pub url: String,
+    /// Connections kept open by this process.
+    pub pool_size: usize,
+}
+
+/// The shared backend's object store (`storage.backend = "shared"`).
+#[derive(Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct S3Config {
+    /// Empty: AWS S3 itself; otherwise the URL of an S3-compatible server.
+    pub endpoint: String,
+    /// Must exist.
+    pub bucket: String,
+    pub region: String,
+    /// Prepended to every key ("team-a/" keeps several deployments in one bucket).
+    pub prefix: String,
+    pub access_key_id: String,
+    pub secret_access_key: String,
+    /// Allow a plain-HTTP endpoint (an object store inside the cluster or on loopback).
+    pub allow_http: bool,
+    /// Unreferenced files younger than this are left alone by start-up garbage collection:
+    /// another process may be between publishing them and recording them.
+    pub orphan_grace_secs: u64,
+}
+
+// By hand, so that no log line or error message ever prints a password.
+impl std::fmt::Debug for PostgresConfig {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let shown = match self.url.split_once('@') {
+            Some((_, host)) => format!("postgres://***@{host}"),
+            None => self.url.clone(),
+        };
+        f.debug_struct("PostgresConfig").field("url", &shown).field("pool_size", &self.pool_size).finish()
+    }
+}
+
+impl std::fmt::Debug for S3Config {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("S3Config")
+            .field("endpoint", &self.endpoint)
+            .field("bucket", &self.bucket)
+            .field("region", &self.region)
+            .field("prefix", &self.prefix)
+            .field("access_key_id", &self.access_key_id)
+            .field("secret_access_key", &"***")
+            .field("allow_http", &self.allow_http)
+            .field("orphan_grace_secs", &self.orphan_grace_secs)
+            .finish()
+    }
 }
 
 #[derive(Debug, Clone, PartialEq, Deserialize)]
@@ -87,6 +180,12 @@ pub struct JobsConfig {
     pub max_concurrent: usize,
     /// Jobs waiting beyond those; more submissions are RESOURCE_EXHAUSTED.
     pub queue_capacity: usize,
+    /// A running job's lease: its worker renews it every lease_secs / 5; a job whose lease
+    /// ran out (its worker died) is taken over by another worker, from its last checkpoint.
+    pub lease_secs: u64,
+    /// How often an idle worker looks for queued jobs (a submission to the same process
+    /// wakes it at once).
+    pub poll_ms: u64,
 }
 
 #[derive(Debug, Clone, PartialEq, Deserialize)]
@@ -188,6 +287,7 @@ impl TlsConfig {
 pub struct Overrides {
     pub listen: Option<String>,
     pub data_dir: Option<PathBuf>,
+    pub role: Option<String>,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -222,6 +322,9 @@ impl Config {
         if let Some(dir) = &overrides.data_dir {
             builder = builder.set_override("storage.data_dir", dir.to_string_lossy().as_ref())?;
         }
+        if let Some(role) = &overrides.role {
+            builder = builder.set_override("server.role", role.as_str())?;
+        }
         let cfg: Config = builder.build()?.try_deserialize()?;
         cfg.validate()?;
         Ok(cfg)
@@ -251,11 +354,30 @@ impl Config {
         if self.server.shutdown_grace_secs > 3600 {
             return invalid("server.shutdown_grace_secs", "must be at most 3600".into());
         }
-        if self.storage.backend != "embedded" {
+        if Role::parse(&self.server.role).is_none() {
             return invalid(
-                "storage.backend",
-                format!("unknown backend '{}' (supported: \"embedded\")", self.storage.backend),
+                "server.role",
+                format!("'{}' is not a role (\"serve\", \"work\" or \"all\")", self.server.role),
             );
+        }
+        match self.storage.backend.as_str() {
+            "embedded" => {
+                if self.role() != Role::All {
+                    return invalid(
+                        "server.role",
+                        "only \"all\" with storage.backend = \"embedded\": its SQLite file and data directory belong \
+                         to one process; separate serve and work processes need storage.backend = \"shared\""
+                            .into(),
+                    );
+                }
+            }
+            "shared" => self.validate_shared()?,
+            other => {
+                return invalid(
+                    "storage.backend",
+                    format!("unknown backend '{other}' (supported: \"embedded\", \"shared\")"),
+                );
+            }
         }
         if self.storage.data_dir.as_os_str().is_empty() {
             return invalid("storage.data_dir", "must not be empty".into());
@@ -271,6 +393,12 @@ impl Config {
         }
         if self.jobs.queue_capacity == 0 {
             return invalid("jobs.queue_capacity", "must be positive".into());
+        }
+        if !(2..=86_400).contains(&self.jobs.lease_secs) {
+            return invalid("jobs.lease_secs", "must be between 2 and 86400".into());
+        }
+        if !(10..=600_000).contains(&self.jobs.poll_ms) {
+            return invalid("jobs.poll_ms", "must be between 10 and 600000".into());
         }
         if self.engine.inference_workers == 0 || self.engine.inference_workers > 256 {
             return invalid("engine.inference_workers", "must be between 1 and 256".into());
@@ -318,6 +446,54 @@ impl Config {
             return invalid("server.listen", message);
         }
         Ok(())
+    }
+
+    /// The shared backend's keys: present and well-formed.
+    fn validate_shared(&self) -> Result<(), ConfigError> {
+        let invalid = |key, message: String| Err(ConfigError::Invalid { key, message });
+        let pg = &self.storage.postgres;
+        if !(pg.url.starts_with("postgres://") || pg.url.starts_with("postgresql://")) {
+            return invalid(
+                "storage.postgres.url",
+                "must be a postgres:// URL with storage.backend = \"shared\" (e.g. \
+                 postgres://relreward:PASSWORD@db:5432/relreward)"
+                    .into(),
+            );
+        }
+        if !(1..=1024).contains(&pg.pool_size) {
+            return invalid("storage.postgres.pool_size", "must be between 1 and 1024".into());
+        }
+        let s3 = &self.storage.s3;
+        if s3.bucket.is_empty() {
+            return invalid("storage.s3.bucket", "must be set with storage.backend = \"shared\"".into());
+        }
+        if s3.region.is_empty() {
+            return invalid("storage.s3.region", "must not be empty (e.g. us-east-1)".into());
+        }
+        if !s3.endpoint.is_empty() && !(s3.endpoint.starts_with("http://") || s3.endpoint.starts_with("https://")) {
+            return invalid("storage.s3.endpoint", format!("'{}' is not an http(s):// URL", s3.endpoint));
+        }
+        if s3.endpoint.starts_with("http://") && !s3.allow_http {
+            return invalid(
+                "storage.s3.endpoint",
+                "is plain http: set storage.s3.allow_http = true to send data and credentials unencrypted".into(),
+            );
+        }
+        if s3.access_key_id.is_empty() != s3.secret_access_key.is_empty() {
+            return invalid(
+                "storage.s3.secret_access_key",
+                "access_key_id and secret_access_key go together (both empty: credentials from the environment)".into(),
+            );
+        }
+        if s3.prefix.starts_with('/') || s3.prefix.contains("..") {
+            return invalid("storage.s3.prefix", "must be relative and must not contain '..'".into());
+        }
+        Ok(())
+    }
+
+    /// The validated `server.role`.
+    pub fn role(&self) -> Role {
+        Role::parse(&self.server.role).unwrap_or(Role::All)
     }
 
     /// Why serving on `listen` is refused: a non-loopback address with no tokens, unless
@@ -389,7 +565,7 @@ mod tests {
         assert_eq!(c.datasets.max_upload_bytes, 12345);
         assert_eq!(c.server.shutdown_grace_secs, 3, "file value kept where env is silent");
 
-        let o = Overrides { listen: Some("127.0.0.1:7002".into()), data_dir: Some("/tmp/x".into()) };
+        let o = Overrides { listen: Some("127.0.0.1:7002".into()), data_dir: Some("/tmp/x".into()), role: None };
         let c = load(Some(f.path()), &vars, &o).expect("flags");
         assert_eq!(c.server.listen, "127.0.0.1:7002");
         assert_eq!(c.storage.data_dir, PathBuf::from("/tmp/x"));
@@ -406,6 +582,11 @@ mod tests {
             (&[("RELREWARD__SERVER__MAX_CONNECTIONS", "0")], "server.max_connections"),
             (&[("RELREWARD__SERVER__MAX_CONCURRENT_STREAMS", "0")], "server.max_concurrent_streams"),
             (&[("RELREWARD__SERVING__DEFAULT_DEADLINE_MS", "3600001")], "serving.default_deadline_ms"),
+            (&[("RELREWARD__SERVER__ROLE", "boss")], "server.role"),
+            // Separate roles need the shared backend: the SQLite file belongs to one process.
+            (&[("RELREWARD__SERVER__ROLE", "serve")], "server.role"),
+            (&[("RELREWARD__JOBS__LEASE_SECS", "1")], "jobs.lease_secs"),
+            (&[("RELREWARD__STORAGE__BACKEND", "shared")], "storage.postgres.url"),
         ];
         for (vars, key) in cases {
             let err = load(None, vars, &Overrides::default()).expect_err(key).to_string();
@@ -451,6 +632,38 @@ mod tests {
         let f = write_file(inline);
         let c = load(Some(f.path()), &[("RELREWARD__SERVER__LISTEN", "0.0.0.0:1")], &Overrides::default());
         assert!(c.is_ok(), "{c:?}");
+    }
+
+    #[test]
+    fn the_shared_backend_checks_its_keys_and_never_prints_secrets() {
+        let shared = [
+            ("RELREWARD__STORAGE__BACKEND", "shared"),
+            ("RELREWARD__SERVER__ROLE", "work"),
+            ("RELREWARD__STORAGE__POSTGRES__URL", "postgres://rr:hunter2@db:5432/rr"),
+            ("RELREWARD__STORAGE__S3__BUCKET", "b"),
+            ("RELREWARD__STORAGE__S3__ENDPOINT", "http://s3:9000"),
+            ("RELREWARD__STORAGE__S3__ACCESS_KEY_ID", "AKIA"),
+            ("RELREWARD__STORAGE__S3__SECRET_ACCESS_KEY", "s3cret"),
+        ];
+        let err = load(None, &shared, &Overrides::default()).expect_err("plain http").to_string();
+        assert!(err.contains("storage.s3.endpoint") && err.contains("allow_http"), "{err}");
+        let mut vars = shared.to_vec();
+        vars.push(("RELREWARD__STORAGE__S3__ALLOW_HTTP", "true"));
+        let c = load(None, &vars, &Overrides::default()).expect("shared config");
+        assert_eq!(c.role(), Role::Work);
+        let o = Overrides { role: Some("serve".into()), ..Overrides::default() };
+        assert_eq!(load(None, &vars, &o).expect("flag").role(), Role::Serve, "--role wins");
+        let shown = format!("{c:?}");
+        assert!(!shown.contains("hunter2") && !shown.contains("s3cret"), "{shown}");
+
+        let mut one_key = vars.clone();
+        one_key.retain(|(k, _)| *k != "RELREWARD__STORAGE__S3__SECRET_ACCESS_KEY");
+        let err = load(None, &one_key, &Overrides::default()).expect_err("half the credentials").to_string();
+        assert!(err.contains("storage.s3.secret_access_key"), "{err}");
+        let mut no_bucket = vars.clone();
+        no_bucket.retain(|(k, _)| *k != "RELREWARD__STORAGE__S3__BUCKET");
+        let err = load(None, &no_bucket, &Overrides::default()).expect_err("no bucket").to_string();
+        assert!(err.contains("storage.s3.bucket"), "{err}");
     }
 
     #[test]

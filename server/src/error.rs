@@ -68,6 +68,18 @@ impl From<rusqlite::Error> for Error {
     }
 }
 
+impl From<tokio_postgres::Error> for Error {
+    fn from(e: tokio_postgres::Error) -> Self {
+        // No SQLSTATE: the connection failed or closed (the database is down or unreachable),
+        // which a client may retry; a statement the database refused is a bug.
+        if e.code().is_none() {
+            Self::Unavailable(format!("metadata database unreachable: {e}"))
+        } else {
+            Self::Internal(anyhow::Error::new(e).context("metadata database"))
+        }
+    }
+}
+
 impl From<Error> for Status {
     fn from(e: Error) -> Self {
         let (code, msg) = match e {

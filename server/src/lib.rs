@@ -70,8 +70,11 @@ pub async fn run(
     let metrics_listener = bind_metrics(&config).await?;
     engine::init(&config.engine);
     let store = store::Store::open(&config).await?;
-    // On shutdown, jobs stop at their next step (checkpointing first) and resume at the next start.
-    let job_manager = jobs::JobManager::start(store.clone(), config.jobs.clone(), CancellationToken::new()).await?;
+    let role = config.role();
+    // On shutdown, jobs stop at their next step (checkpointing first) and resume on the next
+    // worker to claim them (this process after a restart, with the embedded store).
+    let job_manager =
+        jobs::JobManager::start(store.clone(), config.jobs.clone(), role.works(), CancellationToken::new()).await?;
     // Diffusion models, loaded from the store on demand and cached (models.cache_bytes).
     let registry = engine::registry::ModelRegistry::new(store.clone(), &config.models, tch::Device::Cpu);
     // Inference compute (batched Score/Gradient passes and sampling runs) at once.
@@ -86,8 +89,10 @@ pub async fn run(
         tokio::spawn(metrics::serve_http(listener, metrics.clone(), refresh, stop_metrics.clone()))
     });
 
+    // A worker ("work") answers health checks only, for its orchestrator's probes.
+    let served_services: &[&str] = if role.serves() { api::SERVICE_NAMES } else { &[] };
     let (health, health_service) = tonic_health::server::health_reporter();
-    for name in api::SERVICE_NAMES {
+    for name in served_services {
         health.set_service_status(*name, ServingStatus::Serving).await;
     }
     health.set_service_status("", ServingStatus::Serving).await;
@@ -115,6 +120,11 @@ pub async fn run(
         // The one listener then speaks TLS only: native API, OIP, health and reflection.
         builder = builder.tls_config(tls)?;
     }
+    let routes = if role.serves() {
+        api::routes(&config, store, job_manager.clone(), serving, slots)
+    } else {
+        tonic::service::Routes::default()
+    };
     let server = {
         let token = stop_accepting.clone();
         builder
@@ -123,7 +133,7 @@ pub async fn run(
             .layer(security.layer)
             // Inside the security layer: a refused call gets no default deadline.
             .layer(limits::DeadlineLayer::new(config.serving.default_deadline_ms))
-            .add_routes(api::routes(&config, store, job_manager.clone(), serving, slots))
+            .add_routes(routes)
             .add_service(health_service)
             .add_service(reflection_v1)
             .add_service(reflection_v1alpha)
@@ -136,7 +146,7 @@ pub async fn run(
     }
 
     tracing::info!("shutdown requested: reporting NOT_SERVING and draining in-flight calls");
-    for name in api::SERVICE_NAMES {
+    for name in served_services {
         health.set_service_status(*name, ServingStatus::NotServing).await;
     }
     health.set_service_status("", ServingStatus::NotServing).await;

@@ -1,4 +1,4 @@
-//! `relreward-server [--config FILE] [--listen ADDR] [--data-dir DIR]`: loads the layered
+//! `relreward-server [--config FILE] [--listen ADDR] [--data-dir DIR] [--role ROLE]`: loads the layered
 //! configuration, sets up logging, binds, and hands over to [`relreward_server::run`] until
 //! SIGINT or SIGTERM.
 //!
@@ -29,6 +29,10 @@ struct Args {
     /// Data directory (overrides storage.data_dir).
     #[arg(long, value_name = "DIR")]
     data_dir: Option<PathBuf>,
+    /// serve (the API; jobs go to the queue), work (runs queued jobs) or all (overrides
+    /// server.role; serve and work need storage.backend = "shared").
+    #[arg(long, value_name = "ROLE")]
+    role: Option<String>,
     #[command(subcommand)]
     command: Option<ServerCommand>,
 }
@@ -62,7 +66,7 @@ fn main() -> ExitCode {
     if let Some(ServerCommand::Token(TokenCommand::Create { scopes, name, expires })) = args.command {
         return token_create(&scopes, name, expires.as_deref());
     }
-    let overrides = Overrides { listen: args.listen, data_dir: args.data_dir };
+    let overrides = Overrides { listen: args.listen, data_dir: args.data_dir, role: args.role };
     let config = match Config::load(args.config.as_deref(), &overrides) {
         Ok(c) => c,
         Err(e) => {
@@ -136,7 +140,13 @@ async fn serve(config: Config) -> anyhow::Result<()> {
         .await
         .map_err(|e| anyhow::anyhow!("cannot listen on {addr} (server.listen): {e}"))?;
     let local = listener.local_addr()?;
-    tracing::info!(%local, data_dir = %config.storage.data_dir.display(), "relreward-server listening");
+    tracing::info!(
+        %local,
+        role = config.server.role,
+        backend = config.storage.backend,
+        data_dir = %config.storage.data_dir.display(),
+        "relreward-server listening"
+    );
     // One machine-readable line on stdout, for scripts and tests that start the server on port 0.
     println!("relreward-server listening on {local}");
     relreward_server::run(config, listener, shutdown_signal()).await

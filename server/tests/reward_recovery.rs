@@ -291,7 +291,9 @@ async fn kill_9_during_a_reward_job_resumes_and_still_recovers_the_reward() {
         Some(Event::State(s)) if s.message.starts_with("resumed at step") => Some(s.message.clone()),
         _ => None,
     });
-    let at: u64 = resumed.expect("resumed").trim_start_matches("resumed at step ").parse().expect("step");
+    let resumed = resumed.expect("resumed");
+    let at: u64 =
+        resumed["resumed at step ".len()..].split_whitespace().next().and_then(|n| n.parse().ok()).expect("step");
     assert!(at >= 300, "resumed at {at}");
     let model =
         client.models().get_model(pb::GetModelRequest { name: "r-crash".into() }).await.expect("model").into_inner();

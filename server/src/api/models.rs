@@ -245,11 +245,12 @@ mod tests {
     #[tokio::test(flavor = "multi_thread")]
     async fn delete_is_refused_while_a_job_uses_the_model() {
         let tmp = tempfile::tempdir().expect("tempdir");
-        let overrides = Overrides { listen: None, data_dir: Some(tmp.path().join("data")) };
+        let overrides = Overrides { data_dir: Some(tmp.path().join("data")), ..Overrides::default() };
         let env = config::Environment::with_prefix("RELREWARD").source(Some(HashMap::new()));
         let config = Config::load_with_env(None, &overrides, env).expect("config");
         let store = Store::open(&config).await.expect("store");
-        let jobs = JobManager::start(store.clone(), config.jobs.clone(), CancellationToken::new()).await.expect("jobs");
+        let jobs =
+            JobManager::start(store.clone(), config.jobs.clone(), true, CancellationToken::new()).await.expect("jobs");
         let registry = ModelRegistry::new(store.clone(), &config.models, tch::Device::Cpu);
         let models = Models::new(store.clone(), registry, jobs, config.models.clone());
 
@@ -299,7 +300,7 @@ mod tests {
         assert!(store.meta.get_model("base").await.expect("get").is_some(), "still registered");
 
         job.state = JobState::Cancelled;
-        store.meta.record_job(&job, &[]).await.expect("cancel");
+        store.meta.record_job(&job, &[], None).await.expect("cancel");
         models.delete("base").await.expect("delete once no job uses it");
         assert!(matches!(models.delete("base").await, Err(Error::NotFound(_))));
         assert!(matches!(models.delete("Bad Name").await, Err(Error::InvalidArgument(_))));

@@ -481,7 +481,7 @@ mod tests {
     use crate::store::Provenance;
 
     async fn open_store(dir: &Path) -> (Store, Config) {
-        let overrides = Overrides { listen: None, data_dir: Some(dir.join("data")) };
+        let overrides = Overrides { data_dir: Some(dir.join("data")), ..Overrides::default() };
         let env = config::Environment::with_prefix("RELREWARD").source(Some(HashMap::new()));
         let config = Config::load_with_env(None, &overrides, env).expect("config");
         (Store::open(&config).await.expect("store"), config)

@@ -22,7 +22,8 @@ use crate::store::{CheckpointRef, JobEvent, JobEventKind, JobRecord, ModelRecord
 pub enum Stop {
     /// A user cancelled it: the job ends CANCELLED.
     Cancelled,
-    /// The server is shutting down: the job stays RUNNING and resumes at the next start.
+    /// The server is shutting down, or another worker took the job over: the job stays
+    /// RUNNING and resumes on the next worker to claim it.
     Interrupted,
     /// It failed: the job ends FAILED with this error.
     Failed(Error),
@@ -61,25 +62,42 @@ pub struct JobContext {
     record: JobRecord,
     store: Store,
     rt: tokio::runtime::Handle,
+    /// The lease holder's name: every record write is made in it.
+    owner: String,
     cancel: CancellationToken,
     shutdown: CancellationToken,
+    /// Cancelled when another worker took the job over (see `JobManager::keep_lease`).
+    lost: CancellationToken,
     live: broadcast::Sender<JobEvent>,
     /// Rate measurement: (instant, step) at the start of this run (after a resume, too).
     started: (Instant, u64),
 }
 
 impl JobContext {
+    #[allow(clippy::too_many_arguments)]
     pub(super) fn new(
         record: JobRecord,
         spec: JobSpec,
         store: Store,
         rt: tokio::runtime::Handle,
+        owner: String,
         cancel: CancellationToken,
         shutdown: CancellationToken,
+        lost: CancellationToken,
         live: broadcast::Sender<JobEvent>,
     ) -> Self {
         let step = record.step;
-        Self { spec, record, store, rt, cancel, shutdown, live, started: (Instant::now(), step) }
+        Self { spec, record, store, rt, owner, cancel, shutdown, lost, live, started: (Instant::now(), step) }
+    }
+
+    /// The worker (process) running this job.
+    pub fn owner(&self) -> &str {
+        &self.owner
+    }
+
+    /// Another worker took the job over: this one must stop and write nothing more.
+    pub(super) fn lease_lost(&self) -> bool {
+        self.lost.is_cancelled()
     }
 
     pub fn id(&self) -> &str {
@@ -103,7 +121,7 @@ impl JobContext {
     pub fn check_stop(&self) -> std::result::Result<(), Stop> {
         if self.cancel.is_cancelled() {
             Err(Stop::Cancelled)
-        } else if self.shutdown.is_cancelled() {
+        } else if self.shutdown.is_cancelled() || self.lost.is_cancelled() {
             Err(Stop::Interrupted)
         } else {
             Ok(())
@@ -120,7 +138,7 @@ impl JobContext {
             .collect();
         let mut next = self.record.clone();
         next.last_seq += events.len() as u64;
-        self.rt.block_on(self.store.meta.record_job(&next, &events))?;
+        self.rt.block_on(self.store.meta.record_job(&next, &events, Some(&self.owner)))?;
         self.record = next;
         for e in events {
             // No receiver is fine; a lagging receiver re-reads from the store.

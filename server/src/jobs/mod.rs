@@ -3,6 +3,15 @@
 //! thread checking a cancellation token every step), durable events with sequence numbers,
 //! replay-then-follow watching, checkpoints, cancellation, and resumption after a restart.
 //!
+//! The queue is the metadata store: a submitted job is a PENDING record, and a worker process
+//! (role "work" or "all") claims jobs with a lease it renews while the job runs
+//! ([`crate::store::MetadataStore::claim_job`]). So with the shared backend any replica can
+//! take a submission, any worker runs it (exactly one at a time: a worker whose lease was taken
+//! over can no longer write), a worker that dies loses its jobs to another worker once their
+//! leases lapse, and cancellation reaches the worker through the store. Watching replays the
+//! store and then follows live events when the job runs in this process, or polls the store
+//! when it runs elsewhere.
+//!
 //! Module map:
 //! - [`spec`]: the stored, fully explicit job specification.
 //! - [`context`]: [`context::JobContext`], what a running job may do.
@@ -12,8 +21,8 @@
 //! - [`reward`]: the relative-reward runner (Algorithm 1).
 //!
 //! State machine: PENDING -> RUNNING -> SUCCEEDED | FAILED | CANCELLED, and PENDING ->
-//! CANCELLED. The store refuses any way out of a terminal state. A job found RUNNING at start
-//! (the server stopped or crashed under it) is queued again and resumes from its checkpoint.
+//! CANCELLED. The store refuses any way out of a terminal state. A RUNNING job whose worker
+//! stopped or crashed is claimed again and resumes from its checkpoint.
 
 pub mod context;
 pub mod datasets;
@@ -22,7 +31,7 @@ pub mod reward;
 pub mod spec;
 pub mod training;
 
-use std::collections::{HashMap, VecDeque};
+use std::collections::HashMap;
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
@@ -36,7 +45,7 @@ use crate::config::JobsConfig;
 use crate::error::{Error, Result};
 use crate::store::ingest::now_ms;
 use crate::store::names::validate_name;
-use crate::store::{JobEvent, JobEventKind, JobRecord, JobState, Store};
+use crate::store::{JobEvent, JobEventKind, JobRecord, JobState, Lease, Store};
 
 /// Live-event buffer per job; a watcher further behind re-reads from the store.
 const LIVE_BUFFER: usize = 256;
@@ -52,9 +61,11 @@ struct Inner {
     store: Store,
     config: JobsConfig,
     rt: tokio::runtime::Handle,
-    queue: Mutex<VecDeque<String>>,
+    /// This process's name in job leases and events: host, pid and a random suffix, unique
+    /// per start.
+    owner: String,
     wake: Notify,
-    /// Jobs queued or running: their cancel token and live event channel.
+    /// Jobs running in this process: their cancel token and live event channel.
     live: Mutex<HashMap<String, Live>>,
     running: Mutex<HashMap<String, std::thread::JoinHandle<()>>>,
     shutdown: CancellationToken,
@@ -73,102 +84,165 @@ fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
 }
 
 impl JobManager {
-    /// Starts the dispatcher and re-queues jobs left PENDING or RUNNING by a previous process.
-    pub async fn start(store: Store, config: JobsConfig, shutdown: CancellationToken) -> Result<Self> {
+    /// Starts the job system. With `work`, this process also runs jobs: a dispatcher claims
+    /// queued jobs, and jobs interrupted by a previous process are resumed (with the embedded
+    /// store at once; with the shared store once their leases lapse).
+    pub async fn start(store: Store, config: JobsConfig, work: bool, shutdown: CancellationToken) -> Result<Self> {
         let inner = Arc::new(Inner {
             store,
             config,
             rt: tokio::runtime::Handle::current(),
-            queue: Mutex::new(VecDeque::new()),
+            owner: process_name(),
             wake: Notify::new(),
             live: Mutex::new(HashMap::new()),
             running: Mutex::new(HashMap::new()),
             shutdown,
         });
         let manager = Self { inner };
-        let mut recovered = manager.inner.store.meta.jobs_in_states(&[JobState::Running]).await?;
-        recovered.extend(manager.inner.store.meta.jobs_in_states(&[JobState::Pending]).await?);
-        for job in &recovered {
-            manager.enqueue(&job.id);
+        if manager.inner.store.is_exclusive() {
+            // The one process owning the store has just started: every lease is its
+            // predecessor's, and its jobs can resume now rather than when the leases lapse.
+            let broken = manager.inner.store.meta.break_leases().await?;
+            if broken > 0 {
+                tracing::info!(jobs = broken, "jobs interrupted by the previous shutdown resume now");
+            }
         }
-        if !recovered.is_empty() {
-            tracing::info!(jobs = recovered.len(), "re-queued jobs interrupted by the previous shutdown");
+        if work {
+            tracing::info!(
+                worker = manager.inner.owner,
+                max_concurrent = manager.inner.config.max_concurrent,
+                "running jobs"
+            );
+            let dispatcher = manager.clone();
+            tokio::spawn(async move { dispatcher.dispatch().await });
         }
-        let dispatcher = manager.clone();
-        tokio::spawn(async move { dispatcher.dispatch().await });
         Ok(manager)
     }
 
-    fn enqueue(&self, id: &str) {
-        let (events, _) = broadcast::channel(LIVE_BUFFER);
-        lock(&self.inner.live).insert(id.to_owned(), Live { cancel: CancellationToken::new(), events });
-        lock(&self.inner.queue).push_back(id.to_owned());
-        self.inner.wake.notify_one();
+    fn lease(&self) -> Duration {
+        Duration::from_secs(self.inner.config.lease_secs)
     }
 
-    /// Starts queued jobs while fewer than `max_concurrent` run.
+    /// Claims queued jobs while fewer than `max_concurrent` run here; looks again when woken
+    /// (a job was submitted here or finished) and every `jobs.poll_ms`.
     async fn dispatch(self) {
+        let poll = Duration::from_millis(self.inner.config.poll_ms);
         loop {
+            lock(&self.inner.running).retain(|_, h| !h.is_finished());
+            while !self.inner.shutdown.is_cancelled()
+                && lock(&self.inner.running).len() < self.inner.config.max_concurrent
+            {
+                match self.inner.store.meta.claim_job(&self.inner.owner, self.lease()).await {
+                    Ok(Some(record)) => {
+                        let id = record.id.clone();
+                        if let Err(e) = self.launch(record).await {
+                            tracing::error!(job = id, error = %e, "could not start job");
+                            self.fail_unstarted(&id, &e).await;
+                        }
+                    }
+                    Ok(None) => break,
+                    Err(e) => {
+                        tracing::warn!(error = %e, "cannot claim jobs; trying again");
+                        break;
+                    }
+                }
+            }
             tokio::select! {
                 () = self.inner.wake.notified() => {}
                 () = self.inner.shutdown.cancelled() => return,
-                // Finished threads are reaped on a timer as well as on wake-ups.
-                () = tokio::time::sleep(Duration::from_millis(200)) => {}
-            }
-            lock(&self.inner.running).retain(|_, h| !h.is_finished());
-            loop {
-                if self.inner.shutdown.is_cancelled()
-                    || lock(&self.inner.running).len() >= self.inner.config.max_concurrent
-                {
-                    break;
-                }
-                let Some(id) = lock(&self.inner.queue).pop_front() else { break };
-                if let Err(e) = self.launch(&id).await {
-                    tracing::error!(job = id, error = %e, "could not start job");
-                    self.fail_unstarted(&id, &e).await;
-                }
+                () = tokio::time::sleep(poll) => {}
             }
         }
     }
 
-    async fn launch(&self, id: &str) -> Result<()> {
-        let record =
-            self.inner.store.meta.get_job(id).await?.ok_or_else(|| Error::NotFound(format!("job '{id}' not found")))?;
-        if record.state.is_terminal() {
-            lock(&self.inner.live).remove(id);
-            return Ok(());
-        }
+    /// Runs a claimed job on its own thread, with a task renewing its lease.
+    async fn launch(&self, record: JobRecord) -> Result<()> {
+        let id = record.id.clone();
         let spec: JobSpec = serde_json::from_value(record.spec.clone())
             .map_err(|e| Error::DataLoss(format!("job '{id}' has an unreadable spec: {e}")))?;
-        let live =
-            lock(&self.inner.live).get(id).cloned().ok_or_else(|| Error::internal("jobs", "job without live entry"))?;
+        let (events, _) = broadcast::channel(LIVE_BUFFER);
+        let live = Live { cancel: CancellationToken::new(), events };
+        // Stops the job like a shutdown does when another worker took it over.
+        let lost = CancellationToken::new();
         let ctx = JobContext::new(
             record,
             spec,
             self.inner.store.clone(),
             self.inner.rt.clone(),
+            self.inner.owner.clone(),
             live.cancel.clone(),
             self.inner.shutdown.clone(),
+            lost.clone(),
             live.events.clone(),
         );
+        lock(&self.inner.live).insert(id.clone(), live.clone());
+        let finished = CancellationToken::new();
+        tokio::spawn(self.clone().keep_lease(id.clone(), live.cancel.clone(), lost, finished.clone()));
         let manager = self.clone();
-        let job_id = id.to_owned();
-        let handle = std::thread::Builder::new()
-            .name(format!("job-{}", &id[..id.len().min(11)]))
-            .spawn(move || {
-                run_job(ctx);
-                lock(&manager.inner.live).remove(&job_id);
-                manager.inner.wake.notify_one();
-            })
-            .map_err(|e| Error::internal("spawning job thread", e))?;
-        lock(&self.inner.running).insert(id.to_owned(), handle);
-        Ok(())
+        let job_id = id.clone();
+        let spawned = std::thread::Builder::new().name(format!("job-{}", &id[..id.len().min(11)])).spawn(move || {
+            let released = run_job(ctx);
+            finished.cancel();
+            if released {
+                // Interrupted (shutdown): hand the job over at once rather than at lease expiry.
+                let store = manager.inner.store.clone();
+                if let Err(e) = manager.inner.rt.block_on(store.meta.release_lease(&job_id, &manager.inner.owner)) {
+                    tracing::warn!(job = job_id, error = %e, "could not release the lease; it lapses instead");
+                }
+            }
+            lock(&manager.inner.live).remove(&job_id);
+            manager.inner.wake.notify_one();
+        });
+        match spawned {
+            Ok(handle) => {
+                lock(&self.inner.running).insert(id, handle);
+                Ok(())
+            }
+            Err(e) => {
+                lock(&self.inner.live).remove(&id);
+                Err(Error::internal("spawning job thread", e))
+            }
+        }
+    }
+
+    /// Renews a running job's lease until it finishes: every second, or lease/5 if shorter.
+    /// A requested cancellation cancels the job; a lost lease stops it without a write.
+    async fn keep_lease(
+        self,
+        id: String,
+        cancel: CancellationToken,
+        lost: CancellationToken,
+        finished: CancellationToken,
+    ) {
+        let lease = self.lease();
+        let mut every = tokio::time::interval((lease / 5).min(Duration::from_secs(1)));
+        every.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+        loop {
+            tokio::select! {
+                () = finished.cancelled() => return,
+                _ = every.tick() => {}
+            }
+            match self.inner.store.meta.renew_lease(&id, &self.inner.owner, lease).await {
+                Ok(Lease::Held { cancel_requested }) => {
+                    if cancel_requested {
+                        cancel.cancel();
+                    }
+                }
+                Ok(Lease::Lost) => {
+                    tracing::warn!(job = id, "lease lost: another worker runs this job now; stopping here");
+                    lost.cancel();
+                    return;
+                }
+                // The store is unreachable: keep computing and retrying. If the lease lapses
+                // meanwhile, another worker may take over, and this one's writes are refused.
+                Err(e) => tracing::warn!(job = id, error = %e, "cannot renew the job's lease"),
+            }
+        }
     }
 
     /// Records FAILED for a job that could not even start (its stored spec is unreadable, its
     /// thread could not be spawned), so it does not stay PENDING forever.
     async fn fail_unstarted(&self, id: &str, error: &Error) {
-        lock(&self.inner.live).remove(id);
         let Ok(Some(mut record)) = self.inner.store.meta.get_job(id).await else { return };
         if record.state.is_terminal() {
             return;
@@ -182,7 +256,7 @@ impl JobManager {
             time_ms: now_ms(),
             event: JobEventKind::State { state: JobState::Failed, message: record.error.clone() },
         };
-        if let Err(e) = self.inner.store.meta.record_job(&record, &[event]).await {
+        if let Err(e) = self.inner.store.meta.record_job(&record, &[event], Some(&self.inner.owner)).await {
             tracing::error!(job = id, error = %e, "could not record the job's failure");
         }
     }
@@ -218,8 +292,9 @@ impl JobManager {
             JobKind::Reward(r) => reward::validate_inputs(&self.inner.store, r).await?,
             JobKind::Discriminator(d) => reward::validate_discriminator(&self.inner.store, d).await?,
         }
-        let queued = lock(&self.inner.queue).len();
-        if queued >= self.inner.config.queue_capacity {
+        let counts = self.inner.store.meta.count_jobs_by_state().await?;
+        let queued = counts.iter().find(|(s, _)| *s == JobState::Pending).map_or(0, |(_, n)| *n);
+        if queued >= self.inner.config.queue_capacity as u64 {
             return Err(Error::ResourceExhausted(format!(
                 "the job queue is full ({queued} jobs waiting, jobs.queue_capacity = {})",
                 self.inner.config.queue_capacity
@@ -249,7 +324,7 @@ impl JobManager {
         };
         // The job and its first event appear together: a watcher never sees a job without it.
         self.inner.store.meta.insert_job(&record, &[first]).await?;
-        self.enqueue(&id);
+        self.inner.wake.notify_one();
         tracing::info!(job = id, kind = record.kind, "job submitted");
         Ok(record)
     }
@@ -263,21 +338,15 @@ impl JobManager {
         self.inner.store.meta.list_jobs(state, after, limit).await
     }
 
-    /// Cancels a job: a PENDING job becomes CANCELLED at once; a RUNNING job stops at its next
-    /// step (this waits briefly for that). Cancelling a finished job is FAILED_PRECONDITION.
+    /// Cancels a job: a queued job becomes CANCELLED at once; a running one stops at its next
+    /// step, wherever it runs (its worker sees the request when renewing its lease; this waits
+    /// a few seconds for that). Cancelling a finished job is FAILED_PRECONDITION.
     pub async fn cancel(&self, id: &str) -> Result<JobRecord> {
         let record = self.get(id).await?;
         if record.state.is_terminal() {
             return Err(Error::FailedPrecondition(format!("job '{id}' already finished ({})", record.state.as_str())));
         }
-        let live = lock(&self.inner.live).get(id).cloned();
-        let was_queued = {
-            let mut q = lock(&self.inner.queue);
-            let before = q.len();
-            q.retain(|j| j != id);
-            q.len() != before
-        };
-        if was_queued {
+        if record.state == JobState::Pending {
             let mut next = record.clone();
             next.state = JobState::Cancelled;
             next.finished_at_ms = Some(now_ms());
@@ -290,13 +359,15 @@ impl JobManager {
                     message: "cancelled before it started".into(),
                 },
             };
-            self.inner.store.meta.record_job(&next, std::slice::from_ref(&event)).await?;
-            if let Some(live) = lock(&self.inner.live).remove(id) {
-                let _ = live.events.send(event);
+            // Refused if a worker claimed it meanwhile: then it is cancelled as a running job.
+            match self.inner.store.meta.record_job(&next, std::slice::from_ref(&event), None).await {
+                Ok(()) => return Ok(next),
+                Err(Error::FailedPrecondition(_)) => {}
+                Err(e) => return Err(e),
             }
-            return Ok(next);
         }
-        if let Some(live) = live {
+        self.inner.store.meta.request_cancel(id).await?;
+        if let Some(live) = lock(&self.inner.live).get(id) {
             live.cancel.cancel();
         }
         for _ in 0..50 {
@@ -408,12 +479,31 @@ impl JobManager {
     }
 }
 
-/// The body of a job thread: RUNNING, run the kind's runner, then the terminal state (or,
-/// when interrupted by shutdown, nothing: the job stays RUNNING and resumes later).
-fn run_job(mut ctx: JobContext) {
+/// This process's name in leases and job events: `host/pid/random`, so a log line or an event
+/// tells which pod ran a job, and a restarted process never passes for its predecessor.
+fn process_name() -> String {
+    let host = std::fs::read_to_string("/proc/sys/kernel/hostname")
+        .map(|h| h.trim().to_owned())
+        .ok()
+        .filter(|h| !h.is_empty())
+        .unwrap_or_else(|| "localhost".to_owned());
+    let suffix = &uuid::Uuid::new_v4().simple().to_string()[..6];
+    format!("{host}/{}/{suffix}", std::process::id())
+}
+
+/// The body of a job thread: RUNNING, run the kind's runner, then the terminal state. When
+/// halted (shutdown, or the lease was lost) it records nothing more: the job stays RUNNING
+/// and resumes on the next worker to claim it. Returns true when halted by shutdown, i.e.
+/// when the lease is still this process's to release.
+fn run_job(mut ctx: JobContext) -> bool {
     let id = ctx.id().to_owned();
     let resumed = ctx.record().state == JobState::Running;
-    let message = if resumed { format!("resumed at step {}", ctx.record().step) } else { "started".to_owned() };
+    let worker = ctx.owner().to_owned();
+    let message = if resumed {
+        format!("resumed at step {} on {worker}", ctx.record().step)
+    } else {
+        format!("started on {worker}")
+    };
     let started = ctx.update(
         |r| {
             r.state = JobState::Running;
@@ -434,6 +524,11 @@ fn run_job(mut ctx: JobContext) {
             .unwrap_or_else(|_| Err(Stop::Failed(Error::internal("job runner", "panicked"))))
         }
     };
+    if ctx.lease_lost() {
+        // Whatever the runner ended with, another worker owns the job now.
+        tracing::info!(job = id, step = ctx.record().step, "job handed over to another worker");
+        return false;
+    }
     let (state, message, error) = match outcome {
         Ok(msg) => (JobState::Succeeded, msg, String::new()),
         Err(Stop::Cancelled) => (JobState::Cancelled, "cancelled".to_owned(), String::new()),
@@ -441,9 +536,9 @@ fn run_job(mut ctx: JobContext) {
             tracing::info!(
                 job = id,
                 step = ctx.record().step,
-                "job interrupted by shutdown; it resumes at the next start"
+                "job interrupted by shutdown; it resumes on the next worker to claim it"
             );
-            return;
+            return true;
         }
         Err(Stop::Failed(e)) => {
             let text = match &e {
@@ -470,4 +565,5 @@ fn run_job(mut ctx: JobContext) {
         Ok(()) => ctx.remove_checkpoints(checkpoints),
         Err(e) => tracing::error!(job = id, error = %e, "could not record the job's final state"),
     }
+    false
 }

@@ -51,7 +51,7 @@ struct Fixture {
 
 async fn fixture(tune: impl FnOnce(&mut ServingConfig)) -> Fixture {
     let tmp = tempfile::tempdir().expect("tempdir");
-    let overrides = Overrides { listen: None, data_dir: Some(tmp.path().join("data")) };
+    let overrides = Overrides { data_dir: Some(tmp.path().join("data")), ..Overrides::default() };
     let env = config::Environment::with_prefix("RELREWARD").source(Some(HashMap::new()));
     let mut config = Config::load_with_env(None, &overrides, env).expect("config");
     tune(&mut config.serving);

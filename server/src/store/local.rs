@@ -80,8 +80,9 @@ impl BlobStore for LocalBlobs {
         }
     }
 
-    async fn list_keys(&self, prefix: &str) -> Result<Vec<String>> {
-        // Keys are "<namespace>/<id>": list the namespace directory.
+    async fn collectable_keys(&self, prefix: &str) -> Result<Vec<String>> {
+        // One process owns the directory, so every key is collectable: nothing is between
+        // publishing and recording while recovery runs. Keys are "<namespace>/<id>".
         let ns = prefix.trim_end_matches('/');
         let dir = self.dir(ns)?;
         let entries = match fs::read_dir(&dir) {

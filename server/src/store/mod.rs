@@ -1,12 +1,20 @@
 //! Durable state: metadata records and the files they describe.
 //!
 //! Two small interfaces keep the API layer independent of where things live:
-//! - [`MetadataStore`]: records (datasets now; models and jobs later), transactional.
-//!   Embedded implementation: SQLite ([`sqlite::SqliteMetadata`]).
+//! - [`MetadataStore`]: records of datasets, models and jobs, transactional, and the job
+//!   queue's leases. Embedded: SQLite ([`sqlite::SqliteMetadata`]); shared: PostgreSQL
+//!   ([`postgres::PostgresMetadata`]).
 //! - [`BlobStore`]: immutable file sets under a key, published atomically from a local staging
-//!   directory. Embedded implementation: a directory tree ([`local::LocalBlobs`]).
+//!   directory. Embedded: a directory tree ([`local::LocalBlobs`]); shared: an S3-compatible
+//!   object store with a local cache ([`s3::S3Blobs`]).
 //!
-//! A PostgreSQL + object-store deployment implements the same two traits.
+//! `storage.backend` picks the pair: "embedded" (one process owns the data directory) or
+//! "shared" (any number of serve and work processes, see docs/deployment.md).
+//!
+//! Job leases: a worker claims a job ([`MetadataStore::claim_job`]) for a lease it renews while
+//! the job runs; every write of a running job's record names its lease owner and is refused
+//! once another worker holds the lease, so a job is run by exactly one worker at a time, and
+//! a job whose worker died is claimed again when its lease runs out.
 //!
 //! Visibility rule: a resource exists exactly when its metadata record exists. Files are
 //! published first and the record inserted second; deletion removes the record first and the
@@ -24,12 +32,15 @@ pub mod ingest;
 pub mod local;
 pub mod names;
 pub mod npy;
+pub mod postgres;
+pub mod s3;
 pub mod sqlite;
 
 use std::collections::HashSet;
 use std::path::{Path, PathBuf};
-use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Weak};
+use std::time::Duration;
 
 use async_trait::async_trait;
 use serde::{Deserialize, Serialize};
@@ -230,6 +241,15 @@ pub struct JobEvent {
     pub event: JobEventKind,
 }
 
+/// What a lease renewal found.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Lease {
+    /// Still this worker's; `cancel_requested` once someone asked for the job to stop.
+    Held { cancel_requested: bool },
+    /// Another worker holds it now, or the job is gone: stop without writing anything.
+    Lost,
+}
+
 /// Metadata records. Implementations must make each call atomic.
 #[async_trait]
 pub trait MetadataStore: Send + Sync {
@@ -262,9 +282,26 @@ pub trait MetadataStore: Send + Sync {
     /// How many jobs are in each state, every state listed (zero included); for the metrics
     /// endpoint, which asks at every scrape, so it must not read the records.
     async fn count_jobs_by_state(&self) -> Result<Vec<(JobState, u64)>>;
-    /// Replaces the job record and appends events, in one transaction. Refuses to move a job
-    /// out of a terminal state (`Error::FailedPrecondition`).
-    async fn record_job(&self, record: &JobRecord, events: &[JobEvent]) -> Result<()>;
+    /// Replaces the job record and appends events, in one transaction. `owner` is the lease
+    /// holder writing (a worker running the job), or `None` for a write that needs the job
+    /// unclaimed (cancelling a queued job). Refuses (`Error::FailedPrecondition`) a write by
+    /// anyone else, and any way out of a terminal state. A terminal state releases the lease.
+    async fn record_job(&self, record: &JobRecord, events: &[JobEvent], owner: Option<&str>) -> Result<()>;
+    /// Leases the oldest job no live worker holds (PENDING, or RUNNING with a lapsed lease:
+    /// its worker died) to `owner` for `lease`, and returns it; `None` when there is none.
+    async fn claim_job(&self, owner: &str, lease: Duration) -> Result<Option<JobRecord>>;
+    /// Extends `owner`'s lease on job `id` by `lease` from now.
+    async fn renew_lease(&self, id: &str, owner: &str, lease: Duration) -> Result<Lease>;
+    /// Gives `owner`'s lease on job `id` up, so another worker may claim it at once.
+    async fn release_lease(&self, id: &str, owner: &str) -> Result<()>;
+    /// Drops every lease. Only for the embedded backend at start: the one process that owns
+    /// the database has just started, so whoever held a lease is gone.
+    async fn break_leases(&self) -> Result<u64>;
+    /// Asks the worker running job `id` to cancel it (it sees this when renewing its lease).
+    async fn request_cancel(&self, id: &str) -> Result<()>;
+    /// A counter bumped by every model insert or delete, by any process (cache invalidation
+    /// across replicas).
+    async fn models_version(&self) -> Result<u64>;
     /// Events with seq >= from_seq, in order, at most `limit`.
     async fn job_events(&self, id: &str, from_seq: u64, limit: usize) -> Result<Vec<JobEvent>>;
 }
@@ -279,8 +316,10 @@ pub trait BlobStore: Send + Sync {
     async fn publish(&self, staging: Staging, key: &str) -> Result<()>;
     /// Removes the files under `key` (no error if absent).
     async fn remove(&self, key: &str) -> Result<()>;
-    /// Keys that exist under a prefix such as "datasets/".
-    async fn list_keys(&self, prefix: &str) -> Result<Vec<String>>;
+    /// Keys under a prefix such as "datasets/" that garbage collection may remove when no
+    /// record refers to them (with a shared store: only those older than a grace period, as
+    /// another process may be between publishing and recording them).
+    async fn collectable_keys(&self, prefix: &str) -> Result<Vec<String>>;
     /// A local directory holding the files of `key`.
     async fn local_dir(&self, key: &str) -> Result<PathBuf>;
     /// Removes staging directories left by a previous process.
@@ -365,12 +404,18 @@ fn verify_payload(dir: &Path, record: &DatasetRecord, what: &str) -> Result<()> 
 pub struct Store {
     pub meta: Arc<dyn MetadataStore>,
     pub blobs: Arc<dyn BlobStore>,
-    /// Bumped after every model record this process inserts or deletes, so caches keyed by
-    /// model name can skip re-reading the record while it is unchanged (the serving hot path).
-    /// One process owns the embedded store; a shared metadata backend must bump it from its
-    /// own change notifications.
+    /// Bumped after every model record this process inserts or deletes, and, with the shared
+    /// backend, whenever [`MetadataStore::models_version`] shows another process did, so caches
+    /// keyed by model name can skip re-reading the record while it is unchanged (the serving
+    /// hot path).
     models_generation: Arc<AtomicU64>,
+    /// One process owns this store (embedded backend): no other process holds job leases.
+    exclusive: bool,
 }
+
+/// How often a shared store looks for model changes made by other processes; a model deleted
+/// or replaced elsewhere is served from cache at most this much longer.
+const MODELS_VERSION_POLL: Duration = Duration::from_millis(500);
 
 impl Store {
     /// Opens the configured backend and repairs what a crash may have left: abandoned staging
@@ -379,11 +424,52 @@ impl Store {
         let dir = &config.storage.data_dir;
         std::fs::create_dir_all(dir)
             .map_err(|e| Error::internal(&format!("creating data dir {}", dir.display()), e))?;
-        let meta = sqlite::SqliteMetadata::open(&dir.join("metadata.sqlite3"))?;
-        let blobs = local::LocalBlobs::open(dir)?;
-        let store = Self { meta: Arc::new(meta), blobs: Arc::new(blobs), models_generation: Arc::default() };
+        let store = if config.storage.backend == "shared" {
+            let meta = postgres::PostgresMetadata::connect(&config.storage.postgres).await?;
+            let blobs = s3::S3Blobs::open(&config.storage.s3, dir).await?;
+            let store = Self {
+                meta: Arc::new(meta),
+                blobs: Arc::new(blobs),
+                models_generation: Arc::default(),
+                exclusive: false,
+            };
+            store.follow_model_changes().await?;
+            store
+        } else {
+            let meta = sqlite::SqliteMetadata::open(&dir.join("metadata.sqlite3"))?;
+            let blobs = local::LocalBlobs::open(dir)?;
+            Self { meta: Arc::new(meta), blobs: Arc::new(blobs), models_generation: Arc::default(), exclusive: true }
+        };
         store.recover().await?;
         Ok(store)
+    }
+
+    /// True when one process owns the store (embedded backend).
+    pub fn is_exclusive(&self) -> bool {
+        self.exclusive
+    }
+
+    /// Bumps the models generation whenever another process changed a model record, polling
+    /// [`MetadataStore::models_version`] until the store is dropped.
+    async fn follow_model_changes(&self) -> Result<()> {
+        let meta = Arc::downgrade(&self.meta);
+        let generation: Weak<AtomicU64> = Arc::downgrade(&self.models_generation);
+        let mut seen = self.meta.models_version().await?;
+        tokio::spawn(async move {
+            loop {
+                tokio::time::sleep(MODELS_VERSION_POLL).await;
+                let (Some(meta), Some(generation)) = (meta.upgrade(), generation.upgrade()) else { return };
+                match meta.models_version().await {
+                    Ok(version) if version != seen => {
+                        seen = version;
+                        generation.fetch_add(1, Ordering::SeqCst);
+                    }
+                    Ok(_) => {}
+                    Err(e) => tracing::warn!(error = %e, "cannot read the models version; cached models may be stale"),
+                }
+            }
+        });
+        Ok(())
     }
 
     async fn recover(&self) -> Result<()> {
@@ -391,7 +477,7 @@ impl Store {
         let referenced = self.meta.referenced_blob_keys().await?;
         let mut orphans = 0;
         for ns in BLOB_NAMESPACES {
-            for key in self.blobs.list_keys(ns).await? {
+            for key in self.blobs.collectable_keys(ns).await? {
                 if !referenced.contains(&key) {
                     self.blobs.remove(&key).await?;
                     orphans += 1;

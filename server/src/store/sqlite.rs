@@ -7,12 +7,14 @@
 use std::collections::HashSet;
 use std::path::Path;
 use std::sync::{Arc, Mutex};
+use std::time::Duration;
 
 use async_trait::async_trait;
 use rusqlite::{Connection, OptionalExtension, params};
 
-use super::{DatasetRecord, JobEvent, JobRecord, JobState, MetadataStore, ModelRecord};
+use super::{DatasetRecord, JobEvent, JobRecord, JobState, Lease, MetadataStore, ModelRecord};
 use crate::error::{Error, Result};
+use crate::store::ingest::now_ms;
 
 /// Schema migrations, applied in order; `PRAGMA user_version` records how many ran.
 const MIGRATIONS: &[&str] = &[
@@ -43,6 +45,12 @@ const MIGRATIONS: &[&str] = &[
     // A job's previous checkpoint is kept as a fallback (see `CheckpointRef::previous`);
     // its key is a column so recovery's garbage collection sees it without decoding records.
     "ALTER TABLE jobs ADD COLUMN previous_checkpoint_key TEXT;",
+    // Job leases (see `MetadataStore::claim_job`) and the models change counter.
+    "ALTER TABLE jobs ADD COLUMN lease_owner TEXT;
+    ALTER TABLE jobs ADD COLUMN lease_expires_ms INTEGER;
+    ALTER TABLE jobs ADD COLUMN cancel_requested INTEGER NOT NULL DEFAULT 0;
+    CREATE TABLE counters (name TEXT PRIMARY KEY NOT NULL, value INTEGER NOT NULL) STRICT;
+    INSERT INTO counters (name, value) VALUES ('models', 0);",
 ];
 
 pub struct SqliteMetadata {
@@ -119,20 +127,32 @@ impl Named {
             Self::Models => "model",
         }
     }
+
+    /// Models changes are counted (`MetadataStore::models_version`).
+    fn bump_counter(self, tx: &rusqlite::Transaction<'_>) -> Result<()> {
+        if matches!(self, Self::Models) {
+            tx.execute("UPDATE counters SET value = value + 1 WHERE name = 'models'", [])?;
+        }
+        Ok(())
+    }
 }
 
 impl SqliteMetadata {
     async fn insert_named(&self, kind: Named, name: &str, blob_key: &str, json: String) -> Result<()> {
         let (name, key) = (name.to_owned(), blob_key.to_owned());
         self.with_conn(move |c| {
+            let tx = c.transaction()?;
             let sql = format!("INSERT INTO {} (name, blob_key, record) VALUES (?1, ?2, ?3)", kind.table());
-            match c.execute(&sql, params![name, key, json]) {
-                Ok(_) => Ok(()),
+            match tx.execute(&sql, params![name, key, json]) {
+                Ok(_) => {}
                 Err(e) if is_constraint(&e) => {
-                    Err(Error::AlreadyExists(format!("{} '{name}' already exists", kind.what())))
+                    return Err(Error::AlreadyExists(format!("{} '{name}' already exists", kind.what())));
                 }
-                Err(e) => Err(e.into()),
+                Err(e) => return Err(e.into()),
             }
+            kind.bump_counter(&tx)?;
+            tx.commit()?;
+            Ok(())
         })
         .await
     }
@@ -179,6 +199,7 @@ impl SqliteMetadata {
             let json: Option<String> = tx.query_row(&select, [&name], |r| r.get(0)).optional()?;
             let Some(json) = json else { return Ok(None) };
             tx.execute(&format!("DELETE FROM {} WHERE name = ?1", kind.table()), [&name])?;
+            kind.bump_counter(&tx)?;
             tx.commit()?;
             decode(&json).map(Some)
         })
@@ -191,6 +212,36 @@ fn checkpoint_keys(record: &JobRecord) -> (Option<String>, Option<String>) {
     let latest = record.checkpoint.as_ref();
     let previous = latest.and_then(|c| c.previous.as_ref()).map(|p| p.blob_key.clone());
     (latest.map(|c| c.blob_key.clone()), previous)
+}
+
+fn lease_ms(lease: Duration) -> i64 {
+    i64::try_from(lease.as_millis()).unwrap_or(i64::MAX)
+}
+
+/// The rules every backend applies to a job record write (see `MetadataStore::record_job`):
+/// `holder` is the current lease owner, `writer` who writes.
+pub(crate) fn check_transition(
+    id: &str,
+    current: &str,
+    next: JobState,
+    holder: Option<&str>,
+    writer: Option<&str>,
+) -> Result<()> {
+    let terminal = ["succeeded", "failed", "cancelled"].contains(&current);
+    if terminal && current != next.as_str() {
+        return Err(Error::FailedPrecondition(format!(
+            "job '{id}' is {current}, a terminal state; it cannot become {}",
+            next.as_str()
+        )));
+    }
+    if holder != writer && !terminal {
+        return Err(Error::FailedPrecondition(match (holder, writer) {
+            (Some(h), Some(_)) => format!("job '{id}' is now run by {h}: this worker's lease on it was lost"),
+            (Some(h), None) => format!("job '{id}' was taken by worker {h}"),
+            (None, _) => format!("job '{id}' is not leased to this worker"),
+        }));
+    }
+    Ok(())
 }
 
 fn is_constraint(e: &rusqlite::Error) -> bool {
@@ -334,28 +385,28 @@ impl MetadataStore for SqliteMetadata {
         .await
     }
 
-    async fn record_job(&self, record: &JobRecord, events: &[JobEvent]) -> Result<()> {
+    async fn record_job(&self, record: &JobRecord, events: &[JobEvent], owner: Option<&str>) -> Result<()> {
         let json = encode(record)?;
         let events: Vec<(u64, String)> = events.iter().map(|e| Ok((e.seq, encode(e)?))).collect::<Result<_>>()?;
         let (id, state) = (record.id.clone(), record.state);
         let (ckpt, previous) = checkpoint_keys(record);
+        let owner = owner.map(str::to_owned);
         self.with_conn(move |c| {
             let tx = c.transaction()?;
-            let current: Option<String> =
-                tx.query_row("SELECT state FROM jobs WHERE id = ?1", [&id], |r| r.get(0)).optional()?;
-            let Some(current) = current else {
+            let current: Option<(String, Option<String>)> = tx
+                .query_row("SELECT state, lease_owner FROM jobs WHERE id = ?1", [&id], |r| Ok((r.get(0)?, r.get(1)?)))
+                .optional()?;
+            let Some((current, holder)) = current else {
                 return Err(Error::NotFound(format!("job '{id}' not found")));
             };
-            let terminal = ["succeeded", "failed", "cancelled"].contains(&current.as_str());
-            if terminal && current != state.as_str() {
-                return Err(Error::FailedPrecondition(format!(
-                    "job '{id}' is {current}, a terminal state; it cannot become {}",
-                    state.as_str()
-                )));
-            }
+            check_transition(&id, &current, state, holder.as_deref(), owner.as_deref())?;
+            // A terminal state ends the lease.
+            let keep_lease = if state.is_terminal() { None } else { holder };
             tx.execute(
-                "UPDATE jobs SET state = ?2, checkpoint_key = ?3, previous_checkpoint_key = ?4, record = ?5 WHERE id = ?1",
-                params![id, state.as_str(), ckpt, previous, json],
+                "UPDATE jobs SET state = ?2, checkpoint_key = ?3, previous_checkpoint_key = ?4, record = ?5,
+                 lease_owner = ?6, lease_expires_ms = CASE WHEN ?6 IS NULL THEN NULL ELSE lease_expires_ms END
+                 WHERE id = ?1",
+                params![id, state.as_str(), ckpt, previous, json, keep_lease],
             )?;
             for (seq, event) in &events {
                 tx.execute(
@@ -365,6 +416,87 @@ impl MetadataStore for SqliteMetadata {
             }
             tx.commit()?;
             Ok(())
+        })
+        .await
+    }
+
+    async fn claim_job(&self, owner: &str, lease: Duration) -> Result<Option<JobRecord>> {
+        let owner = owner.to_owned();
+        self.with_conn(move |c| {
+            let now = now_ms();
+            let tx = c.transaction_with_behavior(rusqlite::TransactionBehavior::Immediate)?;
+            let found: Option<(String, String)> = tx
+                .query_row(
+                    "SELECT id, record FROM jobs WHERE state IN ('pending', 'running')
+                     AND (lease_owner IS NULL OR lease_expires_ms < ?1) ORDER BY seq LIMIT 1",
+                    [now],
+                    |r| Ok((r.get(0)?, r.get(1)?)),
+                )
+                .optional()?;
+            let Some((id, json)) = found else { return Ok(None) };
+            tx.execute(
+                "UPDATE jobs SET lease_owner = ?2, lease_expires_ms = ?3 WHERE id = ?1",
+                params![id, owner, now.saturating_add(lease_ms(lease))],
+            )?;
+            tx.commit()?;
+            decode(&json).map(Some)
+        })
+        .await
+    }
+
+    async fn renew_lease(&self, id: &str, owner: &str, lease: Duration) -> Result<Lease> {
+        let (id, owner) = (id.to_owned(), owner.to_owned());
+        self.with_conn(move |c| {
+            let expires = now_ms().saturating_add(lease_ms(lease));
+            let n = c.execute(
+                "UPDATE jobs SET lease_expires_ms = ?3 WHERE id = ?1 AND lease_owner = ?2",
+                params![id, owner, expires],
+            )?;
+            if n == 0 {
+                return Ok(Lease::Lost);
+            }
+            let cancel: bool = c.query_row("SELECT cancel_requested FROM jobs WHERE id = ?1", [&id], |r| r.get(0))?;
+            Ok(Lease::Held { cancel_requested: cancel })
+        })
+        .await
+    }
+
+    async fn release_lease(&self, id: &str, owner: &str) -> Result<()> {
+        let (id, owner) = (id.to_owned(), owner.to_owned());
+        self.with_conn(move |c| {
+            c.execute(
+                "UPDATE jobs SET lease_owner = NULL, lease_expires_ms = NULL WHERE id = ?1 AND lease_owner = ?2",
+                params![id, owner],
+            )?;
+            Ok(())
+        })
+        .await
+    }
+
+    async fn break_leases(&self) -> Result<u64> {
+        self.with_conn(|c| {
+            let n = c.execute(
+                "UPDATE jobs SET lease_owner = NULL, lease_expires_ms = NULL WHERE lease_owner IS NOT NULL",
+                [],
+            )?;
+            Ok(n as u64)
+        })
+        .await
+    }
+
+    async fn request_cancel(&self, id: &str) -> Result<()> {
+        let id = id.to_owned();
+        self.with_conn(move |c| {
+            c.execute("UPDATE jobs SET cancel_requested = 1 WHERE id = ?1", [id])?;
+            Ok(())
+        })
+        .await
+    }
+
+    async fn models_version(&self) -> Result<u64> {
+        self.with_conn(|c| {
+            let v: i64 = c.query_row("SELECT value FROM counters WHERE name = 'models'", [], |r| r.get(0))?;
+            Ok(u64::try_from(v).unwrap_or(0))
         })
         .await
     }
@@ -417,9 +549,14 @@ mod tests {
         db.insert_job(&job(JobState::Pending, 1), &[event(1, JobState::Pending)]).await.expect("insert");
         let dup = db.insert_job(&job(JobState::Pending, 1), &[event(1, JobState::Pending)]).await;
         assert!(matches!(dup, Err(Error::AlreadyExists(_))));
-        db.record_job(&job(JobState::Running, 2), &[event(2, JobState::Running)]).await.expect("running");
-        db.record_job(&job(JobState::Succeeded, 3), &[event(3, JobState::Succeeded)]).await.expect("done");
-        let back = db.record_job(&job(JobState::Running, 4), &[event(4, JobState::Running)]).await;
+        let claimed = db.claim_job("w1", Duration::from_secs(60)).await.expect("claim").expect("a job");
+        assert_eq!(claimed.id, "j");
+        assert_eq!(db.claim_job("w2", Duration::from_secs(60)).await.expect("claim"), None, "leased to w1");
+        let stranger = db.record_job(&job(JobState::Running, 2), &[event(2, JobState::Running)], Some("w2")).await;
+        assert!(matches!(stranger, Err(Error::FailedPrecondition(_))), "{stranger:?}");
+        db.record_job(&job(JobState::Running, 2), &[event(2, JobState::Running)], Some("w1")).await.expect("running");
+        db.record_job(&job(JobState::Succeeded, 3), &[event(3, JobState::Succeeded)], Some("w1")).await.expect("done");
+        let back = db.record_job(&job(JobState::Running, 4), &[event(4, JobState::Running)], None).await;
         assert!(matches!(back, Err(Error::FailedPrecondition(_))), "{back:?}");
         let events = db.job_events("j", 1, 100).await.expect("events");
         assert_eq!(events.iter().map(|e| e.seq).collect::<Vec<_>>(), vec![1, 2, 3], "the refused update wrote nothing");
@@ -428,6 +565,31 @@ mod tests {
         drop(db);
         let db = SqliteMetadata::open(&dir.path().join("m.sqlite3")).expect("reopen");
         assert_eq!(db.job_events("j", 2, 100).await.expect("events").len(), 2);
+    }
+
+    #[tokio::test(flavor = "multi_thread")]
+    async fn leases_lapse_renew_release_and_carry_cancellation() {
+        let dir = tempfile::tempdir().expect("tmp");
+        let db = SqliteMetadata::open(&dir.path().join("m.sqlite3")).expect("open");
+        db.insert_job(&job(JobState::Pending, 1), &[event(1, JobState::Pending)]).await.expect("insert");
+        let short = Duration::from_millis(50);
+        assert!(db.claim_job("w1", short).await.expect("claim").is_some());
+        assert_eq!(db.renew_lease("j", "w1", short).await.expect("renew"), Lease::Held { cancel_requested: false });
+        assert_eq!(db.renew_lease("j", "w2", short).await.expect("renew"), Lease::Lost);
+        tokio::time::sleep(Duration::from_millis(80)).await;
+        // Lapsed: another worker takes the job over, and the first one's lease is gone.
+        assert!(db.claim_job("w2", Duration::from_secs(60)).await.expect("claim").is_some());
+        assert_eq!(db.renew_lease("j", "w1", short).await.expect("renew"), Lease::Lost);
+        db.request_cancel("j").await.expect("cancel");
+        assert_eq!(
+            db.renew_lease("j", "w2", Duration::from_secs(60)).await.expect("renew"),
+            Lease::Held { cancel_requested: true }
+        );
+        db.release_lease("j", "w2").await.expect("release");
+        assert!(db.claim_job("w3", Duration::from_secs(60)).await.expect("claim").is_some(), "released: claimable");
+        assert_eq!(db.break_leases().await.expect("break"), 1);
+        assert!(db.claim_job("w4", Duration::from_secs(60)).await.expect("claim").is_some());
+        assert_eq!(db.models_version().await.expect("version"), 0);
     }
 
     #[tokio::test(flavor = "multi_thread")]
