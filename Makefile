@@ -25,7 +25,7 @@ help:
 	@echo "make test   set everything up and run every test (and validate deploy/)"
 	@echo "make test-cluster  PostgreSQL + S3 server + 2 serving replicas + 2 workers on loopback"
 	@echo "make demo   the Maze2D pipeline end to end (starts a server if none answers)"
-	@echo "make bench  relreward against the PyTorch references: serving, training, sampling (writes BENCHMARKS.md)"
+	@echo "make bench  relreward against the PyTorch references: serving, training, sampling; 1 vs 2 replicas (writes BENCHMARKS.md)"
 	@echo "make soak   the 10-minute load and soak test (tests/soak.sh; make test runs 60 s of it)"
 	@echo "make lint   rustfmt check and clippy"
 	@echo "make clean  remove build outputs (keeps .venv and data/)"
@@ -77,6 +77,7 @@ demo: build
 bench: build
 	tests/bench/serving.sh
 	tests/bench/training.sh
+	tests/bench/cluster.sh
 
 ## soak: concurrent Score, GradientStream, Sample, uploads and a training job for SOAK_SECS
 ## (default 600) against one loopback server; see docs/reliability.md.

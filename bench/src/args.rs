@@ -19,8 +19,10 @@ use tonic::codegen::http::Uri;
 #[command(name = "relreward-loadgen", version)]
 pub struct Args {
     /// Server address; its host must be a loopback address (127.0.0.0/8, ::1) or `localhost`.
+    /// Repeat it for several replicas: client i connects to the (i mod n)-th, a client-side
+    /// round-robin over connections.
     #[arg(long, default_value = "http://127.0.0.1:50051")]
-    pub endpoint: String,
+    pub endpoint: Vec<String>,
 
     /// Reward model to query.
     #[arg(long)]
@@ -244,7 +246,7 @@ mod tests {
     #[test]
     fn defaults() {
         let a = parse(&["--model", "m"]).expect("parses");
-        assert_eq!(a.endpoint, "http://127.0.0.1:50051");
+        assert_eq!(a.endpoint, ["http://127.0.0.1:50051"]);
         assert_eq!((a.batch, a.t, a.clients, a.mode, a.json), (1, 0, 1, Mode::Unary, false));
         assert_eq!(a.shape, None);
         assert_eq!(a.warmup, 1.0);
@@ -275,7 +277,7 @@ mod tests {
             "--json",
         ])
         .expect("parses");
-        assert_eq!(a.endpoint, "http://127.0.0.1:7000");
+        assert_eq!(a.endpoint, ["http://127.0.0.1:7000"]);
         assert_eq!(a.model, "maze-reward");
         assert_eq!(a.shape, Some(ItemShape(vec![64, 6])));
         assert_eq!((a.batch, a.t, a.clients, a.mode), (8, 5, 64, Mode::Stream));

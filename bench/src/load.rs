@@ -80,13 +80,15 @@ fn new_histogram() -> Histogram<u64> {
     Histogram::new_with_bounds(1, MAX_LATENCY_US, 3).expect("constant histogram bounds are valid")
 }
 
-/// Runs the plan against `endpoint` (already checked to be loopback).
-pub async fn run(endpoint: &str, plan: Plan) -> Result<Totals> {
+/// Runs the plan against `endpoints` (already checked to be loopback), client i on the
+/// (i mod n)-th.
+pub async fn run(endpoints: &[String], plan: Plan) -> Result<Totals> {
     // Connect everyone first, one connection each (as separate planner processes would), so
     // that connection set-up is not part of the load.
     let mut callers = Vec::with_capacity(plan.clients as usize);
     for i in 0..plan.clients {
-        let client = Client::connect(endpoint).await.with_context(|| format!("client {i}"))?;
+        let endpoint = &endpoints[i as usize % endpoints.len()];
+        let client = Client::connect(endpoint).await.with_context(|| format!("client {i} ({endpoint})"))?;
         callers.push(Caller::new(plan.mode, client.rewards()));
     }
     let plan = Arc::new(plan);

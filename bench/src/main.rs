@@ -46,11 +46,13 @@ fn main() -> ExitCode {
 
 /// Exit status: success when at least one request succeeded (errors are in the report).
 async fn run(args: Args) -> Result<ExitCode> {
-    let uri = args::check_loopback(&args.endpoint)?;
-    args::check_resolved(&uri).await?;
+    for endpoint in &args.endpoint {
+        let uri = args::check_loopback(endpoint)?;
+        args::check_resolved(&uri).await?;
+    }
     let item_shape = match &args.shape {
         Some(shape) => shape.0.clone(),
-        None => input_shape(&args.endpoint, &args.model).await?,
+        None => input_shape(&args.endpoint[0], &args.model).await?,
     };
     let plan = Plan {
         model: args.model.clone(),
@@ -66,7 +68,7 @@ async fn run(args: Args) -> Result<ExitCode> {
     let sampler =
         args.rss_pid.map(|pid| rss::RssSampler::start(pid, Duration::from_secs_f64(args.rss_every))).transpose()?;
     let totals = load::run(&args.endpoint, plan.clone()).await?;
-    let mut report = Report::new(&args.endpoint, &plan, &totals);
+    let mut report = Report::new(&args.endpoint.join(","), &plan, &totals);
     if let Some(sampler) = sampler {
         report.rss = Some(sampler.finish(totals.measure_start).await?);
     }
