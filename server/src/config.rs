@@ -180,8 +180,9 @@ pub struct JobsConfig {
     pub max_concurrent: usize,
     /// Jobs waiting beyond those; more submissions are RESOURCE_EXHAUSTED.
     pub queue_capacity: usize,
-    /// A running job's lease: its worker renews it every lease_secs / 5; a job whose lease
-    /// ran out (its worker died) is taken over by another worker, from its last checkpoint.
+    /// A running job's lease: its worker renews it every second (lease_secs / 5 if shorter),
+    /// reading cancellation requests as it does; a job whose lease ran out (its worker died)
+    /// is taken over by another worker, from its last checkpoint.
     pub lease_secs: u64,
     /// How often an idle worker looks for queued jobs (a submission to the same process
     /// wakes it at once).
@@ -470,7 +471,7 @@ impl Config {
         if s3.region.is_empty() {
             return invalid("storage.s3.region", "must not be empty (e.g. us-east-1)".into());
         }
-        if !s3.endpoint.is_empty() && !(s3.endpoint.starts_with("http://") || s3.endpoint.starts_with("https://")) {
+        if !(s3.endpoint.is_empty() || s3.endpoint.starts_with("http://") || s3.endpoint.starts_with("https://")) {
             return invalid("storage.s3.endpoint", format!("'{}' is not an http(s):// URL", s3.endpoint));
         }
         if s3.endpoint.starts_with("http://") && !s3.allow_http {

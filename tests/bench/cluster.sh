@@ -21,7 +21,7 @@ REPS=${REPS:-3}
 DURATION=${DURATION:-10}
 CLIENTS=${CLIENTS:-64}
 JOBS=${JOBS:-10}
-POLL_MS=${POLL_MS:-1000}
+POLLS=${POLLS:-1000 100}
 SPLICE=${SPLICE:-1}
 BIN=target/release
 PY=.venv/bin/python
@@ -39,12 +39,15 @@ cleanup() {
 trap cleanup EXIT
 started=$(date +%s)
 
+# The PostgreSQL server runs as the postgres user (initdb refuses root): it must reach infra/.
+chmod o+x "$tmp"
 mkdir -p "$tmp/infra"
 tests/cluster/infra.sh start "$tmp/infra" >"$tmp/infra.log" 2>&1 || { cat "$tmp/infra.log" >&2; exit 1; }
 # shellcheck disable=SC1091
 source "$tmp/infra/env"
 
-# start NAME ROLE|embedded: a server on 127.0.0.1:0; sets ${NAME}_endpoint.
+# start NAME ROLE|embedded [POLL_MS]: a server on 127.0.0.1:0; sets ${NAME}_endpoint and
+# ${NAME}_pid.
 start() {
   local name=$1 role=$2 env=(RELREWARD__METRICS__LISTEN= RELREWARD__ENGINE__INTRA_OP_THREADS=1)
   if [[ $role != embedded ]]; then
@@ -55,11 +58,12 @@ start() {
       RELREWARD__STORAGE__S3__REGION="$RELREWARD_TEST_S3_REGION"
       RELREWARD__STORAGE__S3__ACCESS_KEY_ID="$RELREWARD_TEST_S3_ACCESS_KEY_ID"
       RELREWARD__STORAGE__S3__SECRET_ACCESS_KEY="$RELREWARD_TEST_S3_SECRET_ACCESS_KEY"
-      RELREWARD__STORAGE__S3__ALLOW_HTTP=true RELREWARD__JOBS__POLL_MS="$POLL_MS")
+      RELREWARD__STORAGE__S3__ALLOW_HTTP=true RELREWARD__JOBS__POLL_MS="${3:-1000}")
   fi
   env "${env[@]}" "$BIN/relreward-server" --listen 127.0.0.1:0 --data-dir "$tmp/$name" \
     >"$tmp/$name.out" 2>"$tmp/$name.log" &
   pids+=($!)
+  printf -v "${name}_pid" '%s' "$!"
   for _ in $(seq 600); do
     if grep -q '^relreward-server listening on ' "$tmp/$name.out"; then
       printf -v "${name}_endpoint" 'http://%s' "$(sed -n 's/^relreward-server listening on //p' "$tmp/$name.out")"
@@ -107,7 +111,7 @@ done
 # --- 2. Queue overhead: submit-to-start, shared vs embedded --------------------------------
 latencies() { # LABEL: JOBS one-step jobs, one at a time, against $RELREWARD_ENDPOINT
   for i in $(seq "$JOBS"); do
-    rr --json train diffusion --name "q-$1-$i" --dataset maze --config "$tmp/unet.toml" --steps 1 \
+    rr --json train diffusion --name "q-${1//[^a-z0-9]/-}-$i" --dataset maze --config "$tmp/unet.toml" --steps 1 \
       --batch-size 2 --watch >"$tmp/events" 2>>"$tmp/cmd.log"
     "$PY" - "$1" "$tmp/events" <<'PY' >>"$tmp/queue.jsonl"
 import json, sys
@@ -126,7 +130,14 @@ PY
   done
 }
 : >"$tmp/queue.jsonl"
-latencies shared
+# The worker that trained the models, then one per poll interval.
+kill "$work1_pid"; wait "$work1_pid" 2>/dev/null || true
+for poll in $POLLS; do
+  start "work_$poll" work "$poll"
+  latencies "shared:$poll"
+  pid_var="work_${poll}_pid"
+  kill "${!pid_var}"; wait "${!pid_var}" 2>/dev/null || true
+done
 start solo embedded
 export RELREWARD_ENDPOINT=$solo_endpoint
 quiet rr dataset upload "$tmp/maze.npz" --name maze
@@ -135,9 +146,9 @@ latencies embedded
 # --- Report -------------------------------------------------------------------------------------
 cpu=$(sed -n 's/^model name[[:space:]]*: //p' /proc/cpuinfo | head -1)
 "$PY" - "$tmp/load.jsonl" "$tmp/queue.jsonl" "$cpu" "$(nproc)" "$(( $(date +%s) - started ))" \
-  "$REPS" "$DURATION" "$CLIENTS" "$JOBS" "$POLL_MS" >"$tmp/cluster.md" <<'PY'
+  "$REPS" "$DURATION" "$CLIENTS" "$JOBS" "$POLLS" >"$tmp/cluster.md" <<'PY'
 import json, statistics, sys, datetime
-load_file, queue_file, cpu, cores, secs, reps, duration, clients, jobs, poll = sys.argv[1:]
+load_file, queue_file, cpu, cores, secs, reps, duration, clients, jobs, polls = sys.argv[1:]
 runs = [json.loads(l) for l in open(load_file)]
 queue = [json.loads(l) for l in open(queue_file)]
 def med(xs): return statistics.median(xs)
@@ -148,7 +159,7 @@ print("Scale-out on one machine (`tests/bench/cluster.sh`): PostgreSQL and s3s-f
 print()
 print(f"Machine: {cpu}, {cores} cores; libtorch intra-op threads 1 per process; "
       f"{datetime.date.today()}. Command: `cargo build --release --workspace --bins && REPS={reps} "
-      f"DURATION={duration} CLIENTS={clients} JOBS={jobs} POLL_MS={poll} tests/bench/cluster.sh` ({secs} s).")
+      f"DURATION={duration} CLIENTS={clients} JOBS={jobs} POLLS='{polls}' tests/bench/cluster.sh` ({secs} s).")
 print()
 print(f"Gradient throughput, GradientStream, {clients} closed-loop clients, {duration} s, maze-sized "
       "windowed MLP reward [64, 6], B = 1; two replicas: client i connects to replica i mod 2 "
@@ -177,16 +188,20 @@ print(f"Queue overhead per job: submit-to-start latency of {jobs} one-step diffu
 print()
 print("| backend | how the job reaches a worker | median ms | max ms |")
 print("|---|---|---|---|")
-how = {"shared": f"submitted to a serving replica; a separate worker claims it from PostgreSQL "
-                 f"(`FOR UPDATE SKIP LOCKED`), polling every jobs.poll_ms = {poll}",
-       "embedded": "one process: the submission wakes its dispatcher, which claims from SQLite"}
-for b in ("shared", "embedded"):
+for b in [f"shared:{p}" for p in polls.split()] + ["embedded"]:
     ms = [q["ms"] for q in queue if q["backend"] == b]
-    print(f"| {b} | {how[b]} | {med(ms):.0f} | {max(ms):.0f} |")
+    if b == "embedded":
+        how = "one process: the submission wakes its dispatcher, which claims from SQLite"
+    else:
+        how = (f"submitted to a serving replica; a separate worker claims it from PostgreSQL "
+               f"(`FOR UPDATE SKIP LOCKED`), polling every jobs.poll_ms = {b.split(':')[1]}")
+    print(f"| {b.split(':')[0]} | {how} | {med(ms):.0f} | {max(ms):.0f} |")
 print()
-print("With the shared backend the latency is dominated by the worker's poll interval (on average "
-      "half of jobs.poll_ms); the claim itself is one short transaction. Lower `jobs.poll_ms` for "
-      "interactive use; a worker that receives the submission itself (role all) is woken at once.")
+print("With the shared backend the latency is the wait for the worker's next poll, up to "
+      "jobs.poll_ms (here close to it: each job is submitted right after the previous one ended, "
+      "when the idle worker has just gone back to sleep); the claim itself is one short "
+      "transaction. Lower `jobs.poll_ms` where submissions are interactive; a submission to a "
+      "process that also works (role all) wakes its dispatcher at once.")
 PY
 cat "$tmp/cluster.md"
 [[ $SPLICE == 1 ]] && "$PY" tests/bench/splice.py cluster "$tmp/cluster.md"

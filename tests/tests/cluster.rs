@@ -153,7 +153,7 @@ fn blob_is_whole(files: &[PathBuf]) -> Result<(), String> {
 async fn two_replicas_and_two_workers_share_one_store() {
     let infra = Infra::from_env();
     let serve = [infra.start("serve"), infra.start("serve")];
-    let mut work = vec![infra.start("work"), infra.start("work")];
+    let mut work = [infra.start("work"), infra.start("work")];
     let a = serve[0].client().await;
     let b = serve[1].client().await;
 

@@ -377,3 +377,19 @@ async fn uploads_are_off_by_default_and_bounded_in_size() {
     assert!(eventually(5, || server.staging_entries() == 0).await);
     assert_eq!(model_blobs(&server), 0);
 }
+
+#[tokio::test(flavor = "multi_thread")]
+async fn uploads_count_against_the_disk_budget() {
+    // A budget the metadata database alone nearly fills: a 2 MB module does not fit.
+    let server = TestServer::start_with_env(&[ENABLE, ("RELREWARD__STORAGE__MAX_BYTES", "1000000")]);
+    let client = server.client().await;
+    let bytes = vec![7u8; 2_000_000];
+    let err = raw_upload(&client, upload_messages(header("huge", Some(sample_manifest(&[3]))), &bytes, None))
+        .await
+        .expect_err("beyond the disk budget");
+    assert_eq!(err.code(), Code::ResourceExhausted, "{}", err.message());
+    assert!(err.message().contains("storage.max_bytes") && err.message().contains("'huge'"), "{}", err.message());
+    assert!(names(&client).await.is_empty());
+    assert!(eventually(5, || server.staging_entries() == 0).await, "the refused upload left staging files");
+    assert_eq!(model_blobs(&server), 0);
+}

@@ -73,12 +73,12 @@ pub fn routes(
         store.clone(),
         job_manager.clone(),
         config.datasets.max_upload_bytes,
-        budget,
+        budget.clone(),
     ))
     .max_decoding_message_size(max_in)
     .max_encoding_message_size(max_out);
     let model_service =
-        models::Models::new(store.clone(), registry.clone(), job_manager.clone(), config.models.clone());
+        models::Models::new(store.clone(), registry.clone(), job_manager.clone(), config.models.clone(), budget);
     let models =
         ModelServiceServer::new(model_service).max_decoding_message_size(max_in).max_encoding_message_size(max_out);
     let jobs = JobServiceServer::new(jobs::Jobs::new(store.clone(), job_manager))

@@ -25,6 +25,7 @@ use crate::config::ModelsConfig;
 use crate::engine::registry::ModelRegistry;
 use crate::error::{Error, Result};
 use crate::jobs::JobManager;
+use crate::limits::DiskBudget;
 use crate::store::ingest::now_ms;
 use crate::store::names::validate_name;
 use crate::store::{ModelFormat, ModelKind, ModelRecord, Provenance, Store};
@@ -36,16 +37,26 @@ pub const MANIFEST_FILE: &str = "manifest.json";
 /// Longest description accepted, in bytes.
 const MAX_DESCRIPTION_BYTES: usize = 4096;
 
+/// An upload of unknown size reserves disk budget in steps of this many bytes as it grows.
+const BUDGET_STEP: u64 = 64 << 20;
+
 pub struct Models {
     store: Store,
     registry: ModelRegistry,
     jobs: JobManager,
     config: ModelsConfig,
+    budget: DiskBudget,
 }
 
 impl Models {
-    pub fn new(store: Store, registry: ModelRegistry, jobs: JobManager, config: ModelsConfig) -> Self {
-        Self { store, registry, jobs, config }
+    pub fn new(
+        store: Store,
+        registry: ModelRegistry,
+        jobs: JobManager,
+        config: ModelsConfig,
+        budget: DiskBudget,
+    ) -> Self {
+        Self { store, registry, jobs, config, budget }
     }
 
     async fn upload(&self, mut stream: Streaming<pb::UploadModelRequest>) -> Result<pb::Model> {
@@ -80,6 +91,10 @@ impl Models {
         let mut hasher = Sha256::new();
         let mut size = 0u64;
         let max = self.config.max_upload_bytes;
+        // The header declares no size: the disk budget (storage.max_bytes) is reserved step by
+        // step as chunks arrive, and given back when the upload ends either way.
+        let mut reservations = Vec::new();
+        let mut reserved = 0u64;
         let digest = loop {
             match next_upload(&mut stream, |m: pb::UploadModelRequest| m.message).await? {
                 Some(Message::Chunk(bytes)) => {
@@ -88,6 +103,12 @@ impl Models {
                         return Err(Error::ResourceExhausted(format!(
                             "chunk: the module exceeds models.max_upload_bytes ({max} bytes)"
                         )));
+                    }
+                    if size > reserved {
+                        let step = BUDGET_STEP.min(max - reserved).max(size - reserved);
+                        let what = format!("chunk: model '{}'", header.name);
+                        reservations.push(tokio::task::block_in_place(|| self.budget.reserve(step, &what))?);
+                        reserved += step;
                     }
                     tokio::task::block_in_place(|| -> Result<()> {
                         use std::io::Write;
@@ -252,7 +273,13 @@ mod tests {
         let jobs =
             JobManager::start(store.clone(), config.jobs.clone(), true, CancellationToken::new()).await.expect("jobs");
         let registry = ModelRegistry::new(store.clone(), &config.models, tch::Device::Cpu);
-        let models = Models::new(store.clone(), registry, jobs, config.models.clone());
+        let models = Models::new(
+            store.clone(),
+            registry,
+            jobs,
+            config.models.clone(),
+            DiskBudget::new(&config.storage.data_dir, 0),
+        );
 
         let staging = store.blobs.staging().expect("staging");
         std::fs::write(staging.path().join(MODULE_FILE), b"weights").expect("write");
