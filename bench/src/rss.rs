@@ -124,7 +124,9 @@ fn summarise(pid: u32, every_s: f64, samples: Vec<(f64, u64)>, peak_kib: u64) ->
         growth_kib: end_kib as i64 - start_kib as i64,
         slope_kib_per_min: slope(&window).map(|s| s * 60.0),
         slope_second_half_kib_per_min: slope(&second_half).map(|s| s * 60.0),
-        peak_kib,
+        // The kernel raises VmHWM lazily (RSS counters are batched per CPU), so a VmRSS sample
+        // can read above it: the peak is at least the largest sample.
+        peak_kib: peak_kib.max(max_kib),
         samples,
     }
 }
