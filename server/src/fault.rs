@@ -7,6 +7,7 @@
 //! no-op costing one atomic load after the first call.
 //!
 //! Points (grep for `fault::point(`):
+//! - `upload.chunk`: a dataset upload's chunk was written to staging (mid-stream).
 //! - `upload.before_publish`, `upload.after_publish`: a dataset's staged files are complete /
 //!   published but not yet recorded.
 //! - `model.before_publish`, `model.after_publish`: the same for a model (upload or a job's

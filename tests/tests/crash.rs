@@ -122,7 +122,8 @@ async fn crash_and_restart(server: &mut TestServer, fault: &str) -> Client {
 }
 
 async fn upload_crash(fault: &str) {
-    // The second upload's commit aborts; the first is the data that must survive.
+    // The second upload aborts (at its commit, or mid-stream); the first is the data that must
+    // survive.
     let (mut server, client) = armed(fault).await;
     upload_lines(&client, "kept", &LINES).await;
     let before = snapshot(&server, &client).await;
@@ -139,6 +140,14 @@ async fn upload_crash(fault: &str) {
     // The name was never taken: the same upload now succeeds.
     upload_lines(&client, "lost", &Lines { seed: 8, ..LINES }).await;
     println!("FIGURE fault={fault} outcome=upload invisible, no leftovers, re-upload ok bytes_lost={lost}");
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn crash_in_the_middle_of_an_upload_stream_leaves_nothing() {
+    // The client sends one chunk per array here (observations, actions, timeouts): chunks 1-3
+    // are the kept upload's, chunk 4 the lost upload's observations. The server dies with
+    // one array of three in staging.
+    upload_crash("upload.chunk:4").await;
 }
 
 #[tokio::test(flavor = "multi_thread")]

@@ -71,7 +71,10 @@ impl Datasets {
             match next_upload(&mut stream, |m: pb::UploadDatasetRequest| m.message).await? {
                 // Hashing, statistics and file writes are CPU and disk work: keep them off the
                 // async worker's poll loop.
-                Some(Message::Chunk(c)) => tokio::task::block_in_place(|| ingest.accept(c))?,
+                Some(Message::Chunk(c)) => {
+                    tokio::task::block_in_place(|| ingest.accept(c))?;
+                    crate::fault::point("upload.chunk");
+                }
                 Some(Message::Commit(c)) => break c.sha256,
                 Some(Message::Header(_)) => {
                     return Err(Error::invalid("header: sent twice; one upload has one header"));
