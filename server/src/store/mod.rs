@@ -33,6 +33,7 @@ pub mod local;
 pub mod names;
 pub mod npy;
 pub mod postgres;
+mod records;
 pub mod s3;
 pub mod sqlite;
 

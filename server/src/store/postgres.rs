@@ -17,7 +17,7 @@ use deadpool_postgres::{Manager, ManagerConfig, Pool, RecyclingMethod, Runtime};
 use tokio_postgres::error::SqlState;
 use tokio_postgres::{NoTls, Transaction};
 
-use super::sqlite::check_transition;
+use super::records::{Named, check_transition, checkpoint_keys, decode, encode};
 use super::{DatasetRecord, JobEvent, JobRecord, JobState, Lease, MetadataStore, ModelRecord};
 use crate::config::PostgresConfig;
 use crate::error::{Error, Result};
@@ -130,14 +130,6 @@ impl PostgresMetadata {
     }
 }
 
-fn decode<T: serde::de::DeserializeOwned>(json: &str) -> Result<T> {
-    serde_json::from_str(json).map_err(|e| Error::DataLoss(format!("a stored record is unreadable: {e}")))
-}
-
-fn encode<T: serde::Serialize>(value: &T) -> Result<String> {
-    serde_json::to_string(value).map_err(|e| Error::internal("encoding record", e))
-}
-
 fn is_unique_violation(e: &tokio_postgres::Error) -> bool {
     e.code() == Some(&SqlState::UNIQUE_VIOLATION)
 }
@@ -150,34 +142,12 @@ fn seq_i64(seq: u64) -> i64 {
     i64::try_from(seq).unwrap_or(i64::MAX)
 }
 
-/// The tables of named records, as in the SQLite store.
-#[derive(Clone, Copy)]
-enum Named {
-    Datasets,
-    Models,
-}
-
-impl Named {
-    fn table(self) -> &'static str {
-        match self {
-            Self::Datasets => "datasets",
-            Self::Models => "models",
-        }
+/// Counts a model change (`MetadataStore::models_version`) in the same transaction.
+async fn bump_counter(kind: Named, tx: &Transaction<'_>) -> Result<()> {
+    if kind.counts_changes() {
+        tx.execute("UPDATE counters SET value = value + 1 WHERE name = 'models'", &[]).await?;
     }
-
-    fn what(self) -> &'static str {
-        match self {
-            Self::Datasets => "dataset",
-            Self::Models => "model",
-        }
-    }
-
-    async fn bump_counter(self, tx: &Transaction<'_>) -> Result<()> {
-        if matches!(self, Self::Models) {
-            tx.execute("UPDATE counters SET value = value + 1 WHERE name = 'models'", &[]).await?;
-        }
-        Ok(())
-    }
+    Ok(())
 }
 
 impl PostgresMetadata {
@@ -192,7 +162,7 @@ impl PostgresMetadata {
             }
             Err(e) => return Err(e.into()),
         }
-        kind.bump_counter(&tx).await?;
+        bump_counter(kind, &tx).await?;
         tx.commit().await?;
         Ok(())
     }
@@ -226,17 +196,10 @@ impl PostgresMetadata {
         let tx = client.transaction().await?;
         let sql = format!("DELETE FROM {} WHERE name = $1 RETURNING record", kind.table());
         let Some(row) = tx.query_opt(&sql, &[&name]).await? else { return Ok(None) };
-        kind.bump_counter(&tx).await?;
+        bump_counter(kind, &tx).await?;
         tx.commit().await?;
         decode(row.get::<_, &str>(0)).map(Some)
     }
-}
-
-/// The blob keys of a job's latest and previous checkpoints (the indexed columns).
-fn checkpoint_keys(record: &JobRecord) -> (Option<String>, Option<String>) {
-    let latest = record.checkpoint.as_ref();
-    let previous = latest.and_then(|c| c.previous.as_ref()).map(|p| p.blob_key.clone());
-    (latest.map(|c| c.blob_key.clone()), previous)
 }
 
 async fn insert_events(tx: &Transaction<'_>, id: &str, events: &[JobEvent]) -> Result<()> {

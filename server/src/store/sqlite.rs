@@ -12,6 +12,7 @@ use std::time::Duration;
 use async_trait::async_trait;
 use rusqlite::{Connection, OptionalExtension, params};
 
+use super::records::{Named, check_transition, checkpoint_keys, decode, encode};
 use super::{DatasetRecord, JobEvent, JobRecord, JobState, Lease, MetadataStore, ModelRecord};
 use crate::error::{Error, Result};
 use crate::store::ingest::now_ms;
@@ -97,44 +98,12 @@ fn migrate(conn: &Connection) -> Result<()> {
     Ok(())
 }
 
-fn decode<T: serde::de::DeserializeOwned>(json: &str) -> Result<T> {
-    serde_json::from_str(json).map_err(|e| Error::DataLoss(format!("a stored record is unreadable: {e}")))
-}
-
-fn encode<T: serde::Serialize>(value: &T) -> Result<String> {
-    serde_json::to_string(value).map_err(|e| Error::internal("encoding record", e))
-}
-
-/// The tables of named records (name, blob_key, record): datasets and models share their
-/// insert, get, list and delete.
-#[derive(Clone, Copy)]
-enum Named {
-    Datasets,
-    Models,
-}
-
-impl Named {
-    fn table(self) -> &'static str {
-        match self {
-            Self::Datasets => "datasets",
-            Self::Models => "models",
-        }
+/// Counts a model change (`MetadataStore::models_version`) in the same transaction.
+fn bump_counter(kind: Named, tx: &rusqlite::Transaction<'_>) -> Result<()> {
+    if kind.counts_changes() {
+        tx.execute("UPDATE counters SET value = value + 1 WHERE name = 'models'", [])?;
     }
-
-    fn what(self) -> &'static str {
-        match self {
-            Self::Datasets => "dataset",
-            Self::Models => "model",
-        }
-    }
-
-    /// Models changes are counted (`MetadataStore::models_version`).
-    fn bump_counter(self, tx: &rusqlite::Transaction<'_>) -> Result<()> {
-        if matches!(self, Self::Models) {
-            tx.execute("UPDATE counters SET value = value + 1 WHERE name = 'models'", [])?;
-        }
-        Ok(())
-    }
+    Ok(())
 }
 
 impl SqliteMetadata {
@@ -150,7 +119,7 @@ impl SqliteMetadata {
                 }
                 Err(e) => return Err(e.into()),
             }
-            kind.bump_counter(&tx)?;
+            bump_counter(kind, &tx)?;
             tx.commit()?;
             Ok(())
         })
@@ -199,7 +168,7 @@ impl SqliteMetadata {
             let json: Option<String> = tx.query_row(&select, [&name], |r| r.get(0)).optional()?;
             let Some(json) = json else { return Ok(None) };
             tx.execute(&format!("DELETE FROM {} WHERE name = ?1", kind.table()), [&name])?;
-            kind.bump_counter(&tx)?;
+            bump_counter(kind, &tx)?;
             tx.commit()?;
             decode(&json).map(Some)
         })
@@ -207,41 +176,8 @@ impl SqliteMetadata {
     }
 }
 
-/// The blob keys of a job's latest and previous checkpoints (the indexed columns).
-fn checkpoint_keys(record: &JobRecord) -> (Option<String>, Option<String>) {
-    let latest = record.checkpoint.as_ref();
-    let previous = latest.and_then(|c| c.previous.as_ref()).map(|p| p.blob_key.clone());
-    (latest.map(|c| c.blob_key.clone()), previous)
-}
-
 fn lease_ms(lease: Duration) -> i64 {
     i64::try_from(lease.as_millis()).unwrap_or(i64::MAX)
-}
-
-/// The rules every backend applies to a job record write (see `MetadataStore::record_job`):
-/// `holder` is the current lease owner, `writer` who writes.
-pub(crate) fn check_transition(
-    id: &str,
-    current: &str,
-    next: JobState,
-    holder: Option<&str>,
-    writer: Option<&str>,
-) -> Result<()> {
-    let terminal = ["succeeded", "failed", "cancelled"].contains(&current);
-    if terminal && current != next.as_str() {
-        return Err(Error::FailedPrecondition(format!(
-            "job '{id}' is {current}, a terminal state; it cannot become {}",
-            next.as_str()
-        )));
-    }
-    if holder != writer && !terminal {
-        return Err(Error::FailedPrecondition(match (holder, writer) {
-            (Some(h), Some(_)) => format!("job '{id}' is now run by {h}: this worker's lease on it was lost"),
-            (Some(h), None) => format!("job '{id}' was taken by worker {h}"),
-            (None, _) => format!("job '{id}' is not leased to this worker"),
-        }));
-    }
-    Ok(())
 }
 
 fn is_constraint(e: &rusqlite::Error) -> bool {
