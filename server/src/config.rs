@@ -46,6 +46,11 @@ pub struct ServerConfig {
     pub max_concurrent_streams: u32,
     /// How long in-flight calls may take to finish after SIGINT/SIGTERM.
     pub shutdown_grace_secs: u64,
+    /// Connections older than this are asked to go away (HTTP/2 GOAWAY; 0: never), so that
+    /// long-lived clients reconnect and spread over replicas added since they connected.
+    pub max_connection_age_secs: u64,
+    /// How long calls still open on such a connection may take before it is closed.
+    pub max_connection_age_grace_secs: u64,
     /// What this process does: "serve" (every RPC; submitted jobs go to the queue), "work"
     /// (runs queued jobs; its port answers health checks only) or "all" (both).
     pub role: String,
@@ -354,6 +359,9 @@ impl Config {
         }
         if self.server.shutdown_grace_secs > 3600 {
             return invalid("server.shutdown_grace_secs", "must be at most 3600".into());
+        }
+        if self.server.max_connection_age_grace_secs > 86_400 {
+            return invalid("server.max_connection_age_grace_secs", "must be at most 86400".into());
         }
         if Role::parse(&self.server.role).is_none() {
             return invalid(

@@ -116,6 +116,11 @@ pub async fn run(
     let incoming = limits::limit_connections(incoming, config.server.max_connections);
     let mut builder =
         tonic::transport::Server::builder().max_concurrent_streams(Some(config.server.max_concurrent_streams));
+    if config.server.max_connection_age_secs > 0 {
+        builder = builder
+            .max_connection_age(Duration::from_secs(config.server.max_connection_age_secs))
+            .max_connection_age_grace(Duration::from_secs(config.server.max_connection_age_grace_secs));
+    }
     if let Some(tls) = security.tls {
         // The one listener then speaks TLS only: native API, OIP, health and reflection.
         builder = builder.tls_config(tls)?;

@@ -153,3 +153,43 @@ async fn unary_serving_calls_without_a_deadline_get_the_default_one() {
     let answer = client.rewards().score(request).await.expect("own deadline of 10 s").into_inner();
     assert!(answer.rewards.is_some());
 }
+
+/// A grpc.health.v1 Watch stream on its own connection: it stays open until the server ends it.
+async fn health_watch(
+    server: &TestServer,
+) -> (
+    tonic_health::pb::health_client::HealthClient<tonic::transport::Channel>,
+    tonic::Streaming<tonic_health::pb::HealthCheckResponse>,
+) {
+    use tonic_health::pb::{HealthCheckRequest, health_client::HealthClient};
+    let channel = tonic::transport::Endpoint::from_shared(server.endpoint()).expect("endpoint");
+    let mut health = HealthClient::new(channel.connect().await.expect("connect"));
+    let request = HealthCheckRequest { service: String::new() };
+    let mut watch = health.watch(request).await.expect("watch").into_inner();
+    assert!(watch.message().await.expect("first status").is_some());
+    (health, watch)
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn old_connections_are_sent_away_and_clients_reconnect() {
+    // Control: with no maximum age (the default) a quiet stream stays open.
+    let server = TestServer::start();
+    let (_, mut watch) = health_watch(&server).await;
+    assert!(tokio::time::timeout(Duration::from_secs(3), watch.message()).await.is_err(), "still open after 3 s");
+    drop(server);
+
+    // With a 1 s age and 1 s of grace, the server ends the connection and the stream on it.
+    let server = TestServer::start_with_env(&[
+        ("RELREWARD__SERVER__MAX_CONNECTION_AGE_SECS", "1"),
+        ("RELREWARD__SERVER__MAX_CONNECTION_AGE_GRACE_SECS", "1"),
+    ]);
+    let (mut health, mut watch) = health_watch(&server).await;
+    let started = std::time::Instant::now();
+    let ended = tokio::time::timeout(Duration::from_secs(20), watch.message()).await;
+    assert!(ended.is_ok(), "the old connection was not closed within 20 s");
+    assert!(!matches!(ended, Ok(Ok(Some(_)))), "no status change was expected: {ended:?}");
+    assert!(started.elapsed() < Duration::from_secs(10), "closed after age + grace, not later");
+    // The same client reconnects for its next call (a new connection, to any replica).
+    let request = tonic_health::pb::HealthCheckRequest { service: String::new() };
+    health.check(request).await.expect("a call after the GOAWAY goes over a new connection");
+}
