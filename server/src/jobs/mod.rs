@@ -86,7 +86,8 @@ fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
 impl JobManager {
     /// Starts the job system. With `work`, this process also runs jobs: a dispatcher claims
     /// queued jobs, and jobs interrupted by a previous process are resumed (with the embedded
-    /// store at once; with the shared store once their leases lapse).
+    /// store at once, its leases broken by `Store::open`; with the shared store once their
+    /// leases lapse).
     pub async fn start(store: Store, config: JobsConfig, work: bool, shutdown: CancellationToken) -> Result<Self> {
         let inner = Arc::new(Inner {
             store,
@@ -99,14 +100,6 @@ impl JobManager {
             shutdown,
         });
         let manager = Self { inner };
-        if manager.inner.store.is_exclusive() {
-            // The one process owning the store has just started: every lease is its
-            // predecessor's, and its jobs can resume now rather than when the leases lapse.
-            let broken = manager.inner.store.meta.break_leases().await?;
-            if broken > 0 {
-                tracing::info!(jobs = broken, "jobs interrupted by the previous shutdown resume now");
-            }
-        }
         if work {
             tracing::info!(
                 worker = manager.inner.owner,

@@ -295,9 +295,6 @@ pub trait MetadataStore: Send + Sync {
     async fn renew_lease(&self, id: &str, owner: &str, lease: Duration) -> Result<Lease>;
     /// Gives `owner`'s lease on job `id` up, so another worker may claim it at once.
     async fn release_lease(&self, id: &str, owner: &str) -> Result<()>;
-    /// Drops every lease. Only for the embedded backend at start: the one process that owns
-    /// the database has just started, so whoever held a lease is gone.
-    async fn break_leases(&self) -> Result<u64>;
     /// Asks the worker running job `id` to cancel it (it sees this when renewing its lease).
     async fn request_cancel(&self, id: &str) -> Result<()>;
     /// A counter bumped by every model insert or delete, by any process (cache invalidation
@@ -410,8 +407,6 @@ pub struct Store {
     /// keyed by model name can skip re-reading the record while it is unchanged (the serving
     /// hot path).
     models_generation: Arc<AtomicU64>,
-    /// One process owns this store (embedded backend): no other process holds job leases.
-    exclusive: bool,
 }
 
 /// How often a shared store looks for model changes made by other processes; a model deleted
@@ -428,26 +423,22 @@ impl Store {
         let store = if config.storage.backend == "shared" {
             let meta = postgres::PostgresMetadata::connect(&config.storage.postgres).await?;
             let blobs = s3::S3Blobs::open(&config.storage.s3, dir).await?;
-            let store = Self {
-                meta: Arc::new(meta),
-                blobs: Arc::new(blobs),
-                models_generation: Arc::default(),
-                exclusive: false,
-            };
+            let store = Self { meta: Arc::new(meta), blobs: Arc::new(blobs), models_generation: Arc::default() };
             store.follow_model_changes().await?;
             store
         } else {
             let meta = sqlite::SqliteMetadata::open(&dir.join("metadata.sqlite3"))?;
+            // One process owns the embedded store and it has just started: every job lease is
+            // its predecessor's, so interrupted jobs can resume now rather than at lease expiry.
+            let broken = meta.break_leases().await?;
+            if broken > 0 {
+                tracing::info!(jobs = broken, "jobs interrupted by the previous shutdown resume now");
+            }
             let blobs = local::LocalBlobs::open(dir)?;
-            Self { meta: Arc::new(meta), blobs: Arc::new(blobs), models_generation: Arc::default(), exclusive: true }
+            Self { meta: Arc::new(meta), blobs: Arc::new(blobs), models_generation: Arc::default() }
         };
         store.recover().await?;
         Ok(store)
-    }
-
-    /// True when one process owns the store (embedded backend).
-    pub fn is_exclusive(&self) -> bool {
-        self.exclusive
     }
 
     /// Bumps the models generation whenever another process changed a model record, polling

@@ -395,12 +395,6 @@ impl MetadataStore for PostgresMetadata {
         Ok(())
     }
 
-    async fn break_leases(&self) -> Result<u64> {
-        // Other processes may hold leases on a shared database: only lapsed ones can be broken,
-        // and claiming already ignores those.
-        Err(Error::internal("metadata database", "leases on a shared database are never broken"))
-    }
-
     async fn request_cancel(&self, id: &str) -> Result<()> {
         let client = self.client().await?;
         client.execute("UPDATE jobs SET cancel_requested = TRUE WHERE id = $1", &[&id]).await?;

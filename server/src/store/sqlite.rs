@@ -68,6 +68,19 @@ impl SqliteMetadata {
         Ok(Self { conn: Arc::new(Mutex::new(conn)) })
     }
 
+    /// Drops every job lease: only right after opening, when this process owns the file and
+    /// whoever held a lease (its predecessor) is gone.
+    pub async fn break_leases(&self) -> Result<u64> {
+        self.with_conn(|c| {
+            let n = c.execute(
+                "UPDATE jobs SET lease_owner = NULL, lease_expires_ms = NULL WHERE lease_owner IS NOT NULL",
+                [],
+            )?;
+            Ok(n as u64)
+        })
+        .await
+    }
+
     /// Runs `f` with the connection on the blocking pool.
     async fn with_conn<T: Send + 'static>(
         &self,
@@ -405,17 +418,6 @@ impl MetadataStore for SqliteMetadata {
                 params![id, owner],
             )?;
             Ok(())
-        })
-        .await
-    }
-
-    async fn break_leases(&self) -> Result<u64> {
-        self.with_conn(|c| {
-            let n = c.execute(
-                "UPDATE jobs SET lease_owner = NULL, lease_expires_ms = NULL WHERE lease_owner IS NOT NULL",
-                [],
-            )?;
-            Ok(n as u64)
         })
         .await
     }
