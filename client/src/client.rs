@@ -5,6 +5,11 @@
 //! with the digest computed on the fly, and listing through every page. Following a job's
 //! events across reconnects is in [`crate::watch`].
 //!
+//! Reads and pure computations (health, Get/List, Score, Gradient) are retried for a few
+//! seconds when they fail on the connection rather than in the server ([`idempotent`]): a call
+//! that races a closing connection (a server's `max_connection_age` GOAWAY, a replica
+//! restarting) then goes over a new one. Writes are never retried behind the caller's back.
+//!
 //! [`Client::connect_with`] takes [`ConnectOptions`]: a bearer token sent with every call
 //! (servers with `security.tokens`) and TLS settings for `https://` endpoints (a CA file,
 //! a client certificate for mutual TLS).
@@ -13,6 +18,7 @@ use std::io::Read;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
+use std::time::Duration;
 
 use relreward_proto::v1 as pb;
 use sha2::{Digest, Sha256};
@@ -24,6 +30,7 @@ use tonic::service::interceptor::InterceptedService;
 use tonic::transport::{Certificate, Channel, ClientTlsConfig, Endpoint, Identity};
 
 use crate::upload::{UploadSource, row_bytes, rows_per_chunk, total_bytes};
+use crate::watch::{Backoff, RetryPolicy, is_retryable};
 
 /// Messages up to this size are accepted from the server (tensors in responses can be large).
 pub const MAX_MESSAGE_BYTES: usize = 64 << 20;
@@ -179,6 +186,44 @@ impl Interceptor for Credentials {
     }
 }
 
+/// How long [`idempotent`] keeps trying: long enough to ride over a closing connection or a
+/// replica restart, short enough that a server that is really gone is reported promptly.
+const IDEMPOTENT_RETRY: RetryPolicy = RetryPolicy {
+    initial_delay: Duration::from_millis(50),
+    max_delay: Duration::from_secs(1),
+    budget: Duration::from_secs(5),
+};
+
+/// Runs `call`, again (with backoff, within [`IDEMPOTENT_RETRY`]) while it fails on the
+/// connection ([`is_retryable`]); errors the server chose are returned at once. Only for calls
+/// that may safely run twice: a read or a pure computation whose answer may have been lost.
+async fn idempotent<T, F, Fut>(call: F) -> Result<T, ClientError>
+where
+    F: FnMut() -> Fut,
+    Fut: std::future::Future<Output = Result<tonic::Response<T>, tonic::Status>>,
+{
+    retry_connection_failures(IDEMPOTENT_RETRY, call).await
+}
+
+async fn retry_connection_failures<T, F, Fut>(policy: RetryPolicy, mut call: F) -> Result<T, ClientError>
+where
+    F: FnMut() -> Fut,
+    Fut: std::future::Future<Output = Result<tonic::Response<T>, tonic::Status>>,
+{
+    let started = tokio::time::Instant::now();
+    let mut backoff = Backoff::new(policy);
+    loop {
+        let status = match call().await {
+            Ok(response) => return Ok(response.into_inner()),
+            Err(status) => status,
+        };
+        match backoff.next_delay(started.elapsed()) {
+            Some(delay) if is_retryable(&status) => tokio::time::sleep(delay).await,
+            _ => return Err(status.into()),
+        }
+    }
+}
+
 /// What the typed service clients of a [`Client`] run on: its channel, with its credentials.
 pub type Transport = InterceptedService<Channel, Credentials>;
 
@@ -266,9 +311,12 @@ impl Client {
 
     /// Overall serving status from `grpc.health.v1` (service name "" = the whole server).
     pub async fn health(&self) -> Result<tonic_health::pb::health_check_response::ServingStatus, ClientError> {
-        let mut health = tonic_health::pb::health_client::HealthClient::new(self.transport());
-        let resp = health.check(tonic_health::pb::HealthCheckRequest { service: String::new() }).await?;
-        Ok(resp.into_inner().status())
+        let resp = idempotent(|| {
+            let mut health = tonic_health::pb::health_client::HealthClient::new(self.transport());
+            async move { health.check(tonic_health::pb::HealthCheckRequest { service: String::new() }).await }
+        })
+        .await?;
+        Ok(resp.status())
     }
 
     /// Uploads a dataset: header, every array in row chunks, then the sha256 of the payload.
@@ -299,14 +347,22 @@ impl Client {
 
     pub async fn get_dataset(&self, name: &str) -> Result<pb::Dataset, ClientError> {
         let req = pb::GetDatasetRequest { name: name.to_owned(), view: pb::DatasetView::Full as i32 };
-        Ok(self.datasets().get_dataset(req).await?.into_inner())
+        idempotent(|| {
+            let (mut datasets, req) = (self.datasets(), req.clone());
+            async move { datasets.get_dataset(req).await }
+        })
+        .await
     }
 
     /// Every dataset, following pagination to the end.
     pub async fn list_datasets(&self) -> Result<Vec<pb::Dataset>, ClientError> {
         all_pages(|page| async move {
             let req = pb::ListDatasetsRequest { page: Some(page), view: pb::DatasetView::Basic as i32 };
-            let resp = self.datasets().list_datasets(req).await?.into_inner();
+            let resp = idempotent(|| {
+                let (mut datasets, req) = (self.datasets(), req.clone());
+                async move { datasets.list_datasets(req).await }
+            })
+            .await?;
             Ok((resp.datasets, resp.next_page_token))
         })
         .await
@@ -339,14 +395,22 @@ impl Client {
     }
 
     pub async fn get_model(&self, name: &str) -> Result<pb::Model, ClientError> {
-        Ok(self.models().get_model(pb::GetModelRequest { name: name.to_owned() }).await?.into_inner())
+        idempotent(|| {
+            let mut models = self.models();
+            async move { models.get_model(pb::GetModelRequest { name: name.to_owned() }).await }
+        })
+        .await
     }
 
     /// Every model of `kind` (`ModelKind::Unspecified`: every model), following pagination.
     pub async fn list_models(&self, kind: pb::ModelKind) -> Result<Vec<pb::Model>, ClientError> {
         all_pages(|page| async move {
             let req = pb::ListModelsRequest { page: Some(page), kind: kind as i32 };
-            let resp = self.models().list_models(req).await?.into_inner();
+            let resp = idempotent(|| {
+                let (mut models, req) = (self.models(), req.clone());
+                async move { models.list_models(req).await }
+            })
+            .await?;
             Ok((resp.models, resp.next_page_token))
         })
         .await
@@ -367,7 +431,11 @@ impl Client {
     }
 
     pub async fn get_job(&self, id: &str) -> Result<pb::Job, ClientError> {
-        Ok(self.jobs().get_job(pb::GetJobRequest { id: id.to_owned() }).await?.into_inner())
+        idempotent(|| {
+            let mut jobs = self.jobs();
+            async move { jobs.get_job(pb::GetJobRequest { id: id.to_owned() }).await }
+        })
+        .await
     }
 
     /// Every job in `state` (`JobState::Unspecified`: every job), newest first, following
@@ -375,7 +443,11 @@ impl Client {
     pub async fn list_jobs(&self, state: pb::JobState) -> Result<Vec<pb::Job>, ClientError> {
         all_pages(|page| async move {
             let req = pb::ListJobsRequest { page: Some(page), state: state as i32 };
-            let resp = self.jobs().list_jobs(req).await?.into_inner();
+            let resp = idempotent(|| {
+                let (mut jobs, req) = (self.jobs(), req.clone());
+                async move { jobs.list_jobs(req).await }
+            })
+            .await?;
             Ok((resp.jobs, resp.next_page_token))
         })
         .await
@@ -398,12 +470,20 @@ impl Client {
 
     /// rho per item (and per window and per step when the request asks for them).
     pub async fn score(&self, request: pb::ScoreRequest) -> Result<pb::ScoreResponse, ClientError> {
-        Ok(self.rewards().score(request).await?.into_inner())
+        idempotent(|| {
+            let (mut rewards, request) = (self.rewards(), request.clone());
+            async move { rewards.score(request).await }
+        })
+        .await
     }
 
     /// grad_x rho(x_t, t) and rho for one batch.
     pub async fn gradient(&self, request: pb::GradientRequest) -> Result<pb::GradientResponse, ClientError> {
-        Ok(self.rewards().gradient(request).await?.into_inner())
+        idempotent(|| {
+            let (mut rewards, request) = (self.rewards(), request.clone());
+            async move { rewards.gradient(request).await }
+        })
+        .await
     }
 
     /// Opens a `GradientStream`: one stream per planner episode, one request per denoising
@@ -605,4 +685,63 @@ pub fn payload_sha256<S: UploadSource>(source: &mut S) -> std::io::Result<String
         }
     }
     Ok(hex::encode(hasher.finalize()))
+}
+
+#[cfg(test)]
+mod tests {
+    use std::sync::atomic::AtomicU32;
+
+    use super::*;
+
+    /// [`IDEMPOTENT_RETRY`] scaled down a hundredfold, so the tests take milliseconds.
+    const FAST: RetryPolicy = RetryPolicy {
+        initial_delay: Duration::from_micros(500),
+        max_delay: Duration::from_millis(10),
+        budget: Duration::from_millis(50),
+    };
+
+    /// A status like the one tonic makes when the connection under a call closes.
+    fn connection_closed() -> tonic::Status {
+        let cause = std::io::Error::new(std::io::ErrorKind::ConnectionReset, "connection closed");
+        tonic::Status::from_error(Box::new(cause))
+    }
+
+    #[tokio::test]
+    async fn idempotent_calls_ride_over_a_closed_connection() {
+        let calls = AtomicU32::new(0);
+        let answer = retry_connection_failures(FAST, || {
+            let n = calls.fetch_add(1, Ordering::SeqCst);
+            async move { if n < 2 { Err(connection_closed()) } else { Ok(tonic::Response::new(n)) } }
+        })
+        .await;
+        assert_eq!(answer.expect("third try"), 2);
+        assert_eq!(calls.load(Ordering::SeqCst), 3);
+    }
+
+    #[tokio::test]
+    async fn errors_the_server_chose_are_not_retried() {
+        let calls = AtomicU32::new(0);
+        let answer: Result<(), _> = retry_connection_failures(FAST, || {
+            calls.fetch_add(1, Ordering::SeqCst);
+            async { Err(tonic::Status::not_found("model \"m\" not found")) }
+        })
+        .await;
+        assert!(matches!(answer, Err(ClientError::Status(s)) if s.code() == tonic::Code::NotFound));
+        assert_eq!(calls.load(Ordering::SeqCst), 1);
+    }
+
+    #[tokio::test]
+    async fn a_server_that_stays_away_is_reported_within_the_budget() {
+        let calls = AtomicU32::new(0);
+        let started = tokio::time::Instant::now();
+        let answer: Result<(), _> = retry_connection_failures(FAST, || {
+            calls.fetch_add(1, Ordering::SeqCst);
+            async { Err(tonic::Status::unavailable("connection refused")) }
+        })
+        .await;
+        assert!(matches!(answer, Err(ClientError::Status(s)) if s.code() == tonic::Code::Unavailable));
+        let waited = started.elapsed();
+        assert!(waited >= FAST.budget && waited < Duration::from_secs(2), "{waited:?}");
+        assert!(calls.load(Ordering::SeqCst) > 3, "a few attempts with backoff");
+    }
 }
