@@ -110,6 +110,9 @@ pub struct PostgresConfig {
     pub url: String,
     /// Connections kept open by this process.
     pub pool_size: usize,
+    /// PEM CA certificate(s) for the database server's certificate; empty: the system's roots.
+    /// Whether TLS is used follows the URL's `sslmode` (prefer, require, disable).
+    pub ca_file: String,
 }
 
 /// The shared backend's object store (`storage.backend = "shared"`).
@@ -139,7 +142,11 @@ impl std::fmt::Debug for PostgresConfig {
             Some((_, host)) => format!("postgres://***@{host}"),
             None => self.url.clone(),
         };
-        f.debug_struct("PostgresConfig").field("url", &shown).field("pool_size", &self.pool_size).finish()
+        f.debug_struct("PostgresConfig")
+            .field("url", &shown)
+            .field("pool_size", &self.pool_size)
+            .field("ca_file", &self.ca_file)
+            .finish()
     }
 }
 

@@ -18,7 +18,7 @@ use std::time::Duration;
 
 use relreward_server::config::{PostgresConfig, S3Config};
 use relreward_server::error::Error;
-use relreward_server::store::postgres::PostgresMetadata;
+use relreward_server::store::postgres::{self, PostgresMetadata};
 use relreward_server::store::s3::S3Blobs;
 use relreward_server::store::{
     BlobStore, JobEvent, JobEventKind, JobRecord, JobState, Lease, MetadataStore, ModelFormat, ModelKind, ModelRecord,
@@ -29,16 +29,34 @@ fn var(name: &str) -> String {
     std::env::var(name).unwrap_or_else(|_| panic!("{name} is not set: run these tests through `make test-cluster`"))
 }
 
+/// The test database's settings: the server takes TCP connections over TLS only, with a
+/// certificate from the CA in RELREWARD_TEST_PG_CA.
+fn pg_config(url: String) -> PostgresConfig {
+    PostgresConfig { url, pool_size: 16, ca_file: var("RELREWARD_TEST_PG_CA") }
+}
+
+/// `url` with `param` added to its query string.
+fn with_param(url: &str, param: &str) -> String {
+    let sep = if url.contains('?') { '&' } else { '?' };
+    format!("{url}{sep}{param}")
+}
+
+/// A direct connection through the store's own TLS connector, for set-up and inspection.
+async fn direct_client(config: &PostgresConfig) -> tokio_postgres::Client {
+    let tls = postgres::tls_connector(config).expect("connector");
+    let (client, connection) = tokio_postgres::connect(&config.url, tls).await.expect("connect");
+    tokio::spawn(connection);
+    client
+}
+
 /// A metadata store in a fresh schema (search_path set through the connection options).
 async fn fresh_metadata() -> PostgresMetadata {
     let url = var("RELREWARD_TEST_PG_URL");
     let schema = format!("t{}", &uuid::Uuid::new_v4().simple().to_string()[..12]);
-    let (client, connection) = tokio_postgres::connect(&url, tokio_postgres::NoTls).await.expect("connect");
-    tokio::spawn(connection);
+    let client = direct_client(&pg_config(url.clone())).await;
     client.batch_execute(&format!("CREATE SCHEMA {schema}")).await.expect("schema");
-    let sep = if url.contains('?') { '&' } else { '?' };
-    let url = format!("{url}{sep}options=-c%20search_path%3D{schema}");
-    PostgresMetadata::connect(&PostgresConfig { url, pool_size: 16 }).await.expect("metadata store")
+    let url = with_param(&url, &format!("options=-c%20search_path%3D{schema}"));
+    PostgresMetadata::connect(&pg_config(url)).await.expect("metadata store")
 }
 
 fn job(id: &str, state: JobState, last_seq: u64) -> JobRecord {
@@ -205,4 +223,45 @@ async fn blobs_travel_between_nodes_whole_or_not_at_all() {
     let gone = impatient.local_dir("models/k1").await.expect_err("removed");
     assert!(matches!(gone, Error::DataLoss(_)), "{gone:?}");
     assert!(impatient.collectable_keys("models/").await.expect("list").is_empty());
+}
+
+#[tokio::test(flavor = "multi_thread")]
+#[ignore = "needs PostgreSQL: run with `make test-cluster`"]
+async fn tls_to_the_database_is_verified_and_bad_settings_fail_fast() {
+    // The store connects (the server refuses plaintext TCP), and the session is encrypted.
+    let url = var("RELREWARD_TEST_PG_URL");
+    PostgresMetadata::connect(&pg_config(url.clone())).await.expect("TLS with the test CA");
+    let require = pg_config(with_param(&url, "sslmode=require"));
+    let client = direct_client(&require).await;
+    let row = client.query_one("SELECT ssl FROM pg_stat_ssl WHERE pid = pg_backend_pid()", &[]).await.expect("ssl");
+    assert!(row.get::<_, bool>(0), "pg_stat_ssl: the connection is not encrypted");
+
+    // Settings a retry cannot mend fail at once (not after the 60 s wait for a database that
+    // is starting), with a message that says what to change.
+    let cases = [
+        // The system's roots do not hold the test CA: the certificate is not trusted.
+        (PostgresConfig { ca_file: String::new(), ..pg_config(url.clone()) }, "storage.postgres.ca_file"),
+        // Plaintext is refused by the server (hostssl): an authentication-class error.
+        (pg_config(with_param(&url, "sslmode=disable")), "refused the connection"),
+        (pg_config(url.replacen("://relreward:", "://relreward:x", 1)), "password authentication failed"),
+    ];
+    for (config, expected) in cases {
+        let started = std::time::Instant::now();
+        let Err(e) = PostgresMetadata::connect(&config).await else { panic!("{config:?} connected") };
+        let text = e.to_string();
+        assert!(matches!(e, Error::Unavailable(_)), "{text}");
+        assert!(text.contains(expected), "{config:?}: {text}");
+        assert!(!text.contains(&var("RELREWARD_TEST_PG_URL")), "the message shows the password: {text}");
+        assert!(started.elapsed() < Duration::from_secs(15), "{config:?} took {:?}", started.elapsed());
+    }
+
+    // A CA file that cannot be used names its key.
+    let dir = tempfile::tempdir().expect("tmp");
+    let not_pem = dir.path().join("ca.pem");
+    std::fs::write(&not_pem, "not a certificate").expect("write");
+    for ca_file in [not_pem.display().to_string(), dir.path().join("missing.pem").display().to_string()] {
+        let config = PostgresConfig { ca_file, ..pg_config(url.clone()) };
+        let Err(e) = PostgresMetadata::connect(&config).await else { panic!("{config:?} connected") };
+        assert!(format!("{e:#}").contains("storage.postgres.ca_file"), "{e:#}");
+    }
 }

@@ -12,7 +12,8 @@
 #   tests/cluster/infra.sh stop  DIR   stop both; never fails, even if already stopped
 #   tests/cluster/infra.sh check DIR   smoke test through DIR/env (psql + signed curl requests)
 #
-# DIR layout: env (export lines), pids, postgres.log, s3.log, pg/data, pg/sock, s3/<bucket>.
+# DIR layout: env (export lines), pids, postgres.log, s3.log, pg/data, pg/sock, pg/tls (CA and
+# server certificate: PostgreSQL takes TCP connections over TLS only), s3/<bucket>.
 #
 # Requirements: PostgreSQL server binaries (installed with apt-get when missing and running as
 # root), cargo (only for the first run: s3s-fs is built into <repo>/.tools), curl >= 7.75
@@ -232,6 +233,34 @@ unix_socket_permissions = 0700
 EOF
 }
 
+# pg_tls: a throwaway CA and a server certificate for 127.0.0.1, TLS on, and pg_hba.conf's TCP
+# lines turned into hostssl: every TCP connection must use TLS, so the tests prove that
+# relreward's connections do, verifying the server against the CA (RELREWARD_TEST_PG_CA).
+pg_tls() {
+    local tls="$DIR/pg/tls" ec=(-newkey ec -pkeyopt ec_paramgen_curve:prime256v1 -nodes)
+    mkdir -p "$tls"
+    openssl req -x509 "${ec[@]}" -days 2 -subj "/CN=relreward test CA" \
+        -addext "basicConstraints=critical,CA:TRUE" -addext "keyUsage=critical,keyCertSign,cRLSign" \
+        -keyout "$tls/ca.key" -out "$tls/ca.pem" 2>>"$PG_LOG"
+    openssl req -new "${ec[@]}" -subj "/CN=127.0.0.1" -keyout "$tls/server.key" -out "$tls/server.csr" 2>>"$PG_LOG"
+    printf '%s\n' "subjectAltName=IP:127.0.0.1,DNS:localhost" "basicConstraints=critical,CA:FALSE" \
+        "keyUsage=critical,digitalSignature" "extendedKeyUsage=serverAuth" >"$tls/server.ext"
+    openssl x509 -req -in "$tls/server.csr" -CA "$tls/ca.pem" -CAkey "$tls/ca.key" -CAcreateserial -days 2 \
+        -extfile "$tls/server.ext" -out "$tls/server.pem" 2>>"$PG_LOG"
+    rm -f "$tls/ca.key" "$tls/ca.srl" "$tls/server.csr" "$tls/server.ext"
+    # PostgreSQL insists on a private key only its own user can read.
+    chmod 600 "$tls/server.key"
+    if is_root; then
+        chown postgres "$tls/server.key" "$tls/server.pem"
+    fi
+    as_pg tee -a "$PG_DATA/postgresql.conf" >/dev/null <<EOF
+ssl = on
+ssl_cert_file = '$tls/server.pem'
+ssl_key_file = '$tls/server.key'
+EOF
+    as_pg sed -i 's/^host\([[:space:]]\)/hostssl\1/' "$PG_DATA/pg_hba.conf"
+}
+
 pg_start() {
     local attempt
     for attempt in 1 2 3; do
@@ -420,6 +449,8 @@ write_env() {
     umask 077
     cat >"$ENV_FILE.tmp" <<EOF
 export RELREWARD_TEST_PG_URL=$PG_URL
+# The CA of the server's certificate: PostgreSQL accepts TCP connections over TLS only.
+export RELREWARD_TEST_PG_CA=$DIR/pg/tls/ca.pem
 export RELREWARD_TEST_S3_ENDPOINT=http://127.0.0.1:$S3_PORT
 export RELREWARD_TEST_S3_BUCKET=$BUCKET
 export RELREWARD_TEST_S3_REGION=$REGION
@@ -490,6 +521,7 @@ cmd_start() {
 
     step "PostgreSQL: prepare directories" "" prepare_pg_dirs
     step "PostgreSQL: initdb" "$PG_LOG" pg_initdb
+    step "PostgreSQL: TLS certificates (hostssl only)" "$PG_LOG" pg_tls
     step "PostgreSQL: start" "$PG_LOG" pg_start
     log "PostgreSQL listening on 127.0.0.1:$PG_PORT"
     step "PostgreSQL: wait for pg_isready" "$PG_LOG" pg_wait_ready
@@ -563,6 +595,17 @@ cmd_check() {
         check_fail "psql select 1: $got"
     [[ $got == 1 ]] || check_fail "psql select 1 returned '$got'"
     pass "PostgreSQL: select 1 through RELREWARD_TEST_PG_URL (TCP, password auth)"
+    local sep='?'
+    [[ $RELREWARD_TEST_PG_URL == *'?'* ]] && sep='&'
+    got=$("$PG_BIN/psql" -X -qAt -v ON_ERROR_STOP=1 \
+        "$RELREWARD_TEST_PG_URL${sep}sslmode=verify-full&sslrootcert=$RELREWARD_TEST_PG_CA" \
+        -c 'select ssl from pg_stat_ssl where pid = pg_backend_pid()' 2>&1) ||
+        check_fail "psql with sslmode=verify-full against RELREWARD_TEST_PG_CA: $got"
+    [[ $got == t ]] || check_fail "pg_stat_ssl says ssl = '$got' for a verify-full connection"
+    if got=$("$PG_BIN/psql" -X -qAt "$RELREWARD_TEST_PG_URL${sep}sslmode=disable" -c 'select 1' 2>&1); then
+        check_fail "a plaintext TCP connection was accepted: $got"
+    fi
+    pass "PostgreSQL: TLS verified against RELREWARD_TEST_PG_CA (verify-full); plaintext TCP refused"
 
     # ---- S3, through the same credentials the server under test gets
     CHECK_LOG=$S3_LOG

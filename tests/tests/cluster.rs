@@ -25,6 +25,8 @@ const LINES: Lines =
 /// The infrastructure `tests/cluster/infra.sh start` wrote to its env file.
 struct Infra {
     pg_url: String,
+    /// The CA of the database server's certificate (it takes TLS connections only).
+    pg_ca: String,
     s3_endpoint: String,
     bucket: String,
     region: String,
@@ -45,6 +47,7 @@ impl Infra {
         let bucket = var("RELREWARD_TEST_S3_BUCKET");
         Self {
             pg_url: var("RELREWARD_TEST_PG_URL"),
+            pg_ca: var("RELREWARD_TEST_PG_CA"),
             s3_endpoint: var("RELREWARD_TEST_S3_ENDPOINT"),
             region: var("RELREWARD_TEST_S3_REGION"),
             key: var("RELREWARD_TEST_S3_ACCESS_KEY_ID"),
@@ -63,6 +66,7 @@ impl Infra {
             ("RELREWARD__SERVER__ROLE", role),
             ("RELREWARD__STORAGE__BACKEND", "shared"),
             ("RELREWARD__STORAGE__POSTGRES__URL", &self.pg_url),
+            ("RELREWARD__STORAGE__POSTGRES__CA_FILE", &self.pg_ca),
             ("RELREWARD__STORAGE__S3__ENDPOINT", &self.s3_endpoint),
             ("RELREWARD__STORAGE__S3__BUCKET", &self.bucket),
             ("RELREWARD__STORAGE__S3__REGION", &self.region),

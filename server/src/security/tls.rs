@@ -45,19 +45,10 @@ pub fn server_config(tls: &TlsConfig) -> Result<Option<ServerTlsConfig>, Securit
     }
     // Build the rustls acceptor now (tonic parses the PEM here) to report errors at start.
     tonic::transport::Server::builder().tls_config(config.clone()).map_err(|e| {
-        SecurityError::new("security.tls", format!("cannot use the certificate and key: {}", chain(&e)))
+        SecurityError::new(
+            "security.tls",
+            format!("cannot use the certificate and key: {}", crate::error::error_chain(&e)),
+        )
     })?;
     Ok(Some(config))
-}
-
-/// An error with its sources (tonic's own message is only "transport error").
-fn chain(e: &dyn std::error::Error) -> String {
-    let mut text = e.to_string();
-    let mut source = e.source();
-    while let Some(s) = source {
-        text.push_str(": ");
-        text.push_str(&s.to_string());
-        source = s.source();
-    }
-    text
 }

@@ -7,20 +7,28 @@
 //! - job claims use `SELECT ... FOR UPDATE SKIP LOCKED`: concurrent workers never wait on
 //!   each other's candidate rows and never claim the same job;
 //! - lease times are the database's clock (`now()`), never a worker's, so clock skew between
-//!   nodes cannot shorten or stretch a lease.
+//!   nodes cannot shorten or stretch a lease;
+//! - TLS as the URL's `sslmode` says (prefer, require, disable), through rustls: the server's
+//!   certificate is always verified, against `storage.postgres.ca_file` or the system's roots,
+//!   and its name against the URL's host (libpq's verify-full), since a TLS connection whose
+//!   peer is not checked protects the password from no one who can intercept it.
 
 use std::collections::HashSet;
+use std::path::Path;
+use std::sync::Arc;
 use std::time::Duration;
 
 use async_trait::async_trait;
 use deadpool_postgres::{Manager, ManagerConfig, Pool, RecyclingMethod, Runtime};
+use tokio_postgres::Transaction;
+use tokio_postgres::config::SslMode;
 use tokio_postgres::error::SqlState;
-use tokio_postgres::{NoTls, Transaction};
+use tokio_postgres_rustls::MakeRustlsConnect;
 
 use super::records::{Named, check_transition, checkpoint_keys, decode, encode};
 use super::{DatasetRecord, JobEvent, JobRecord, JobState, Lease, MetadataStore, ModelRecord};
 use crate::config::PostgresConfig;
-use crate::error::{Error, Result};
+use crate::error::{Error, Result, error_chain};
 
 /// Schema migrations, applied in order; `relreward_schema.version` records how many ran.
 const MIGRATIONS: &[&str] = &["CREATE TABLE datasets (
@@ -68,7 +76,8 @@ impl PostgresMetadata {
             .url
             .parse()
             .map_err(|e| Error::internal("storage.postgres.url", format!("not a valid PostgreSQL URL: {e}")))?;
-        let manager = Manager::from_config(pg, NoTls, ManagerConfig { recycling_method: RecyclingMethod::Fast });
+        let tls = tls_connector(config)?;
+        let manager = Manager::from_config(pg, tls, ManagerConfig { recycling_method: RecyclingMethod::Fast });
         let pool = Pool::builder(manager)
             .max_size(config.pool_size)
             .runtime(Runtime::Tokio1)
@@ -79,18 +88,21 @@ impl PostgresMetadata {
         let store = Self { pool };
         let started = tokio::time::Instant::now();
         loop {
-            match store.migrate().await {
-                Ok(version) => {
-                    tracing::info!(schema_version = version, "metadata database ready (PostgreSQL)");
-                    return Ok(store);
-                }
-                Err(Error::Unavailable(m)) if started.elapsed() < CONNECT_PATIENCE => {
-                    tracing::warn!("waiting for the metadata database: {m}");
+            match store.pool.get().await {
+                Ok(_) => break,
+                Err(e) => {
+                    let failure = first_connection_failure(e);
+                    if failure.is_fatal() || started.elapsed() >= CONNECT_PATIENCE {
+                        return Err(Error::Unavailable(failure.message()));
+                    }
+                    tracing::warn!("waiting for the metadata database: {}", failure.message());
                     tokio::time::sleep(Duration::from_secs(2)).await;
                 }
-                Err(e) => return Err(e),
             }
         }
+        let version = store.migrate().await?;
+        tracing::info!(schema_version = version, "metadata database ready (PostgreSQL)");
+        Ok(store)
     }
 
     async fn migrate(&self) -> Result<usize> {
@@ -128,6 +140,104 @@ impl PostgresMetadata {
     async fn client(&self) -> Result<deadpool_postgres::Object> {
         self.pool.get().await.map_err(|e| Error::Unavailable(format!("metadata database unreachable: {e}")))
     }
+}
+
+/// Why the first connection failed: worth waiting for (the database is starting, the network
+/// is not up yet) or not (settings a retry cannot change).
+enum FirstConnection {
+    Waiting(String),
+    Tls(String),
+    Refused(String),
+}
+
+impl FirstConnection {
+    fn is_fatal(&self) -> bool {
+        !matches!(self, Self::Waiting(_))
+    }
+
+    fn message(&self) -> String {
+        match self {
+            Self::Waiting(m) => format!("metadata database unreachable: {m}"),
+            Self::Tls(m) => format!(
+                "TLS to the metadata database failed: {m} (storage.postgres.ca_file must hold the CA that signed the \
+                 database server's certificate, or be empty to use the system's roots; the certificate must name \
+                 the host in storage.postgres.url; sslmode=disable there turns TLS off)"
+            ),
+            Self::Refused(m) => {
+                format!("the metadata database refused the connection: {m} (check storage.postgres.url)")
+            }
+        }
+    }
+}
+
+fn first_connection_failure(e: deadpool_postgres::PoolError) -> FirstConnection {
+    let text = error_chain(&e);
+    let deadpool_postgres::PoolError::Backend(backend) = &e else { return FirstConnection::Waiting(text) };
+    // Class 28: authentication (bad password, no pg_hba.conf entry, TLS required);
+    // 3D000: no such database. A retry gives the same answer.
+    if let Some(code) = backend.code().map(SqlState::code)
+        && (code.starts_with("28") || code == SqlState::INVALID_CATALOG_NAME.code())
+    {
+        return FirstConnection::Refused(text);
+    }
+    if text.contains("TLS handshake") || text.contains("does not support TLS") {
+        return FirstConnection::Tls(text);
+    }
+    FirstConnection::Waiting(text)
+}
+
+/// What connections to the database go through: TLS per the URL's `sslmode`, verified against
+/// `storage.postgres.ca_file` or the system's roots.
+pub fn tls_connector(config: &PostgresConfig) -> Result<MakeRustlsConnect> {
+    let mode = match config.url.parse::<tokio_postgres::Config>() {
+        Ok(pg) => pg.get_ssl_mode(),
+        Err(_) => SslMode::Prefer,
+    };
+    Ok(MakeRustlsConnect::new(tls_config(&config.ca_file, mode)?))
+}
+
+/// The rustls settings for connections to the database: roots from `ca_file` (PEM), or the
+/// system's when it is empty. Not needed with `sslmode=disable`, so missing system roots only
+/// matter when TLS may be used.
+fn tls_config(ca_file: &str, mode: SslMode) -> Result<rustls::ClientConfig> {
+    let key = "storage.postgres.ca_file";
+    let mut roots = rustls::RootCertStore::empty();
+    if ca_file.is_empty() {
+        let found = rustls_native_certs::load_native_certs();
+        let (added, _) = roots.add_parsable_certificates(found.certs);
+        if added == 0 && mode != SslMode::Disable {
+            tracing::warn!(
+                "no trusted root certificates found on this system: TLS to the metadata database will fail unless \
+                 {key} is set"
+            );
+        }
+    } else {
+        for cert in read_pem_certificates(Path::new(ca_file)).map_err(|m| Error::internal(key, m))? {
+            roots.add(cert).map_err(|e| Error::internal(key, format!("{ca_file}: {e}")))?;
+        }
+    }
+    // ring, named explicitly: rustls refuses to guess when a dependency enables another provider.
+    let provider = Arc::new(rustls::crypto::ring::default_provider());
+    let config = rustls::ClientConfig::builder_with_provider(provider)
+        .with_safe_default_protocol_versions()
+        .map_err(|e| Error::internal("TLS to the metadata database", e))?
+        .with_root_certificates(roots)
+        .with_no_client_auth();
+    Ok(config)
+}
+
+/// Every certificate in the PEM file at `path`; at least one.
+fn read_pem_certificates(path: &Path) -> std::result::Result<Vec<rustls::pki_types::CertificateDer<'static>>, String> {
+    use rustls::pki_types::pem::PemObject;
+    let shown = path.display();
+    let bytes = std::fs::read(path).map_err(|e| format!("cannot read {shown}: {e}"))?;
+    let certs = rustls::pki_types::CertificateDer::pem_slice_iter(&bytes)
+        .collect::<std::result::Result<Vec<_>, _>>()
+        .map_err(|e| format!("{shown} is not PEM: {e}"))?;
+    if certs.is_empty() {
+        return Err(format!("{shown} holds no certificate (expected PEM, -----BEGIN CERTIFICATE-----)"));
+    }
+    Ok(certs)
 }
 
 fn is_unique_violation(e: &tokio_postgres::Error) -> bool {
