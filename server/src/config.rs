@@ -133,6 +133,10 @@ pub struct S3Config {
     /// Unreferenced files younger than this are left alone by start-up garbage collection:
     /// another process may be between publishing them and recording them.
     pub orphan_grace_secs: u64,
+    /// Bound on the local blob cache (least recently used evicted first); 0: none.
+    pub cache_max_bytes: u64,
+    /// A cached blob used this recently is never evicted: its files may still be being read.
+    pub cache_hold_secs: u64,
 }
 
 // By hand, so that no log line or error message ever prints a password.
@@ -161,6 +165,8 @@ impl std::fmt::Debug for S3Config {
             .field("secret_access_key", &"***")
             .field("allow_http", &self.allow_http)
             .field("orphan_grace_secs", &self.orphan_grace_secs)
+            .field("cache_max_bytes", &self.cache_max_bytes)
+            .field("cache_hold_secs", &self.cache_hold_secs)
             .finish()
     }
 }

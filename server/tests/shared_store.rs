@@ -177,6 +177,8 @@ fn s3_config(prefix: &str, grace_secs: u64) -> S3Config {
         secret_access_key: var("RELREWARD_TEST_S3_SECRET_ACCESS_KEY"),
         allow_http: true,
         orphan_grace_secs: grace_secs,
+        cache_max_bytes: 0,
+        cache_hold_secs: 60,
     }
 }
 
@@ -263,5 +265,60 @@ async fn tls_to_the_database_is_verified_and_bad_settings_fail_fast() {
         let config = PostgresConfig { ca_file, ..pg_config(url.clone()) };
         let Err(e) = PostgresMetadata::connect(&config).await else { panic!("{config:?} connected") };
         assert!(format!("{e:#}").contains("storage.postgres.ca_file"), "{e:#}");
+    }
+}
+
+#[tokio::test(flavor = "multi_thread")]
+#[ignore = "needs the S3-protocol server: run with `make test-cluster`"]
+async fn the_blob_cache_stays_under_its_bound_least_recently_used_first() {
+    let prefix = format!("test-{}/", &uuid::Uuid::new_v4().simple().to_string()[..8]);
+    let nodes = tempfile::tempdir().expect("tmp");
+    let writer = S3Blobs::open(&s3_config(&prefix, 3600), &nodes.path().join("a")).await.expect("node a");
+    const MB: usize = 1 << 20;
+    for (i, key) in ["models/k1", "models/k2", "models/k3"].into_iter().enumerate() {
+        let staging = writer.staging().expect("staging");
+        std::fs::write(staging.path().join("weights.bin"), vec![i as u8; MB]).expect("write");
+        writer.publish(staging, key).await.expect("publish");
+    }
+    assert!(writer.cached_bytes() > 3 * MB as u64, "the publisher keeps its copies (no bound)");
+
+    // Room for two blobs, nothing held: the least recently used goes first.
+    let cached = |node: &str, key: &str| nodes.path().join(node).join("cache").join(key).is_dir();
+    let config = S3Config { cache_max_bytes: (5 * MB / 2) as u64, cache_hold_secs: 0, ..s3_config(&prefix, 3600) };
+    let reader = S3Blobs::open(&config, &nodes.path().join("b")).await.expect("node b");
+    reader.local_dir("models/k1").await.expect("k1");
+    reader.local_dir("models/k2").await.expect("k2");
+    assert!(cached("b", "models/k1") && cached("b", "models/k2"));
+    let dir = reader.local_dir("models/k3").await.expect("k3");
+    assert_eq!(read(&dir, "weights.bin"), vec![2u8; MB]);
+    assert!(!cached("b", "models/k1") && cached("b", "models/k2") && cached("b", "models/k3"), "k1 was the oldest");
+    assert!(reader.cached_bytes() <= config.cache_max_bytes);
+    // A use refreshes a blob: k2 is now newer than k3, so k3 makes room for k1.
+    reader.local_dir("models/k2").await.expect("k2 from the cache");
+    let dir = reader.local_dir("models/k1").await.expect("k1 again");
+    assert_eq!(read(&dir, "weights.bin"), vec![0u8; MB], "downloaded again, whole");
+    assert!(cached("b", "models/k1") && cached("b", "models/k2") && !cached("b", "models/k3"));
+    let leftovers: Vec<_> = std::fs::read_dir(nodes.path().join("b/cache"))
+        .expect("cache dir")
+        .map(|e| e.expect("entry").file_name().to_string_lossy().into_owned())
+        .filter(|name| name.starts_with('.'))
+        .collect();
+    assert!(leftovers.is_empty(), "evicted or partial copies left behind: {leftovers:?}");
+
+    // Blobs in use (within the hold) are never evicted, even beyond the bound.
+    let config = S3Config { cache_max_bytes: MB as u64, cache_hold_secs: 3600, ..s3_config(&prefix, 3600) };
+    let holder = S3Blobs::open(&config, &nodes.path().join("c")).await.expect("node c");
+    let first = holder.local_dir("models/k1").await.expect("k1");
+    holder.local_dir("models/k2").await.expect("k2");
+    assert_eq!(read(&first, "weights.bin"), vec![0u8; MB], "a held blob stays readable");
+    assert!(cached("c", "models/k1") && cached("c", "models/k2"));
+
+    // Removal forgets the cached copy too.
+    writer.remove("models/k2").await.expect("remove");
+    reader.remove("models/k2").await.expect("remove on the reader (objects already gone)");
+    assert!(!cached("b", "models/k2"));
+    assert!(reader.cached_bytes() < 2 * MB as u64);
+    for key in ["models/k1", "models/k3"] {
+        writer.remove(key).await.expect("clean up");
     }
 }

@@ -12,11 +12,14 @@
 //! `storage.s3.orphan_grace_secs` (a younger one may belong to an upload in flight in another
 //! process). Blobs are immutable, so a cached copy never goes stale; a download is checked
 //! against its digest list before it enters the cache, and loaders check it again once per
-//! load, as on local disk. The cache is emptied at start (a pod's local disk is scratch).
+//! load, as on local disk. The cache is emptied at start (a pod's local disk is scratch) and
+//! kept under `storage.s3.cache_max_bytes` by evicting the least recently used blobs, never one
+//! used within `storage.s3.cache_hold_secs` (whoever asked for it may still be reading it).
 
+use std::collections::HashMap;
 use std::path::{Path, PathBuf};
-use std::sync::Arc;
-use std::time::Duration;
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
 
 use async_trait::async_trait;
 use futures::{StreamExt, TryStreamExt};
@@ -39,8 +42,114 @@ pub struct S3Blobs {
     prefix: String,
     bucket: String,
     staging: PathBuf,
-    cache: PathBuf,
+    cache: Cache,
     grace: Duration,
+}
+
+/// This node's copies of blobs under `dir/<key>/`, bounded in bytes.
+///
+/// The index is the truth about what is cached (the directory is emptied at start): a copy is
+/// entered once complete and verified, and leaves by a rename into a trash name made under the
+/// index's lock, so a caller is never handed a directory that is being deleted.
+struct Cache {
+    dir: PathBuf,
+    /// 0: no bound.
+    max_bytes: u64,
+    hold: Duration,
+    index: Mutex<CacheIndex>,
+}
+
+#[derive(Default)]
+struct CacheIndex {
+    /// Size and last use of each cached blob.
+    entries: HashMap<String, (u64, Instant)>,
+    total_bytes: u64,
+}
+
+impl Cache {
+    fn path(&self, key: &str) -> PathBuf {
+        self.dir.join(key)
+    }
+
+    fn index(&self) -> std::sync::MutexGuard<'_, CacheIndex> {
+        // The index holds plain numbers: a panic elsewhere cannot leave it half-updated.
+        self.index.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
+    }
+
+    /// The cached copy of `key`, marked as used now; `None` when there is none.
+    fn get(&self, key: &str) -> Option<PathBuf> {
+        let mut index = self.index();
+        let entry = index.entries.get_mut(key)?;
+        entry.1 = Instant::now();
+        Some(self.path(key))
+    }
+
+    /// Enters the complete copy of `key` (already at its path), then evicts least recently
+    /// used blobs beyond the bound, except `key` and those used within the hold.
+    fn insert(&self, key: &str, bytes: u64) {
+        let mut trash = Vec::new();
+        {
+            let mut index = self.index();
+            if let Some((old, _)) = index.entries.insert(key.to_owned(), (bytes, Instant::now())) {
+                index.total_bytes -= old;
+            }
+            index.total_bytes += bytes;
+            if self.max_bytes > 0 && index.total_bytes > self.max_bytes {
+                let mut by_age: Vec<(Instant, String, u64)> = index
+                    .entries
+                    .iter()
+                    .filter(|(k, (_, used))| k.as_str() != key && used.elapsed() >= self.hold)
+                    .map(|(k, (b, used))| (*used, k.clone(), *b))
+                    .collect();
+                by_age.sort();
+                for (_, victim, victim_bytes) in by_age {
+                    if index.total_bytes <= self.max_bytes {
+                        break;
+                    }
+                    let to = self.dir.join(format!(".evicted-{}", uuid::Uuid::new_v4().simple()));
+                    if let Err(e) = std::fs::rename(self.path(&victim), &to) {
+                        tracing::warn!(key = victim, error = %e, "cannot evict a cached blob");
+                        continue;
+                    }
+                    index.entries.remove(&victim);
+                    index.total_bytes -= victim_bytes;
+                    trash.push((victim, victim_bytes, to));
+                }
+            }
+        }
+        for (victim, victim_bytes, to) in trash {
+            tracing::info!(
+                key = victim,
+                bytes = victim_bytes,
+                "evicted from the blob cache (storage.s3.cache_max_bytes)"
+            );
+            if let Err(e) = std::fs::remove_dir_all(&to) {
+                tracing::warn!(path = %to.display(), error = %e, "cannot delete an evicted blob");
+            }
+        }
+    }
+
+    /// Forgets `key` (its blob was removed); the caller deletes the directory.
+    fn forget(&self, key: &str) {
+        let mut index = self.index();
+        if let Some((bytes, _)) = index.entries.remove(key) {
+            index.total_bytes -= bytes;
+        }
+    }
+
+    /// Bytes the cache holds, as the index counts them.
+    fn total_bytes(&self) -> u64 {
+        self.index().total_bytes
+    }
+}
+
+/// Total size of the files in `dir` (a blob's directory is flat).
+fn dir_bytes(dir: &Path) -> std::io::Result<u64> {
+    let mut total = 0;
+    for entry in std::fs::read_dir(dir)? {
+        total += entry?.metadata()?.len();
+    }
+    Ok(total)
 }
 
 fn s3_error(context: &str, e: object_store::Error) -> Error {
@@ -85,7 +194,12 @@ impl S3Blobs {
             prefix,
             bucket: config.bucket.clone(),
             staging,
-            cache,
+            cache: Cache {
+                dir: cache,
+                max_bytes: config.cache_max_bytes,
+                hold: Duration::from_secs(config.cache_hold_secs),
+                index: Mutex::default(),
+            },
             grace: Duration::from_secs(config.orphan_grace_secs),
         };
         let started = tokio::time::Instant::now();
@@ -107,6 +221,11 @@ impl S3Blobs {
         }
         tracing::info!(bucket = blobs.bucket, prefix = blobs.prefix, "blob store ready (S3-compatible)");
         Ok(blobs)
+    }
+
+    /// Bytes held in this node's blob cache.
+    pub fn cached_bytes(&self) -> u64 {
+        self.cache.total_bytes()
     }
 
     /// Refuses keys that could escape their directory in the cache.
@@ -199,12 +318,13 @@ impl BlobStore for S3Blobs {
             }
         }
         // This node has the files already: keep them as its cached copy.
-        let cached = self.cache.join(key);
+        let cached = self.cache.path(key);
         if let Some(parent) = cached.parent() {
             std::fs::create_dir_all(parent)?;
         }
         if std::fs::rename(staging.path(), &cached).is_ok() {
             staging.disarm();
+            self.cache.insert(key, dir_bytes(&cached)?);
         }
         Ok(())
     }
@@ -217,7 +337,8 @@ impl BlobStore for S3Blobs {
                 Err(e) => return Err(s3_error(&format!("deleting {location}"), e)),
             }
         }
-        let cached = self.cache.join(key);
+        self.cache.forget(key);
+        let cached = self.cache.path(key);
         match tokio::task::block_in_place(|| std::fs::remove_dir_all(&cached)) {
             Ok(()) => Ok(()),
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(()),
@@ -249,11 +370,11 @@ impl BlobStore for S3Blobs {
 
     async fn local_dir(&self, key: &str) -> Result<PathBuf> {
         Self::check_key(key)?;
-        let cached = self.cache.join(key);
-        if cached.is_dir() {
+        if let Some(cached) = self.cache.get(key) {
             return Ok(cached);
         }
-        let partial = self.cache.join(format!(".partial-{}", uuid::Uuid::new_v4().simple()));
+        let cached = self.cache.path(key);
+        let partial = self.cache.dir.join(format!(".partial-{}", uuid::Uuid::new_v4().simple()));
         tokio::fs::create_dir_all(&partial).await?;
         let fetched = async {
             self.download(key, &partial).await?;
@@ -272,9 +393,13 @@ impl BlobStore for S3Blobs {
         if std::fs::rename(&partial, &cached).is_err() {
             let _ = std::fs::remove_dir_all(&partial);
             if !cached.is_dir() {
-                return Err(Error::internal("blob cache", format!("cannot place {key} in {}", self.cache.display())));
+                return Err(Error::internal(
+                    "blob cache",
+                    format!("cannot place {key} in {}", self.cache.dir.display()),
+                ));
             }
         }
+        self.cache.insert(key, dir_bytes(&cached)?);
         Ok(cached)
     }
 
