@@ -53,8 +53,10 @@ pub enum ClientError {
     Invalid(String),
 }
 
-/// An error and its causes, `: `-separated.
-fn error_chain(e: &dyn std::error::Error) -> String {
+/// An error and its causes, `: `-separated: libraries such as tonic and tokio-postgres keep the
+/// reason ("invalid peer certificate", "connection refused") in the source, not the message.
+/// The server uses it too.
+pub fn error_chain(e: &dyn std::error::Error) -> String {
     let mut text = e.to_string();
     let mut source = e.source();
     while let Some(cause) = source {

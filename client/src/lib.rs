@@ -30,6 +30,6 @@ pub mod npz;
 #[cfg(feature = "cli")]
 pub mod npz_write;
 
-pub use client::{Client, ClientError};
+pub use client::{Client, ClientError, error_chain};
 pub use relreward_proto::v1 as pb;
 pub use upload::{MemorySource, UploadSource};

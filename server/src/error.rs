@@ -68,21 +68,8 @@ impl From<rusqlite::Error> for Error {
     }
 }
 
-/// An error and its causes, `: `-separated: libraries such as tonic and tokio-postgres keep
-/// the reason ("invalid peer certificate", "password authentication failed") in the source.
-pub fn error_chain(e: &dyn std::error::Error) -> String {
-    let mut text = e.to_string();
-    let mut source = e.source();
-    while let Some(cause) = source {
-        let more = cause.to_string();
-        if !text.contains(&more) {
-            text.push_str(": ");
-            text.push_str(&more);
-        }
-        source = cause.source();
-    }
-    text
-}
+/// An error with its causes (the client library's, so both ends word them alike).
+pub use relreward_client::error_chain;
 
 impl From<tokio_postgres::Error> for Error {
     fn from(e: tokio_postgres::Error) -> Self {
