@@ -324,7 +324,8 @@ impl BlobStore for S3Blobs {
         }
         if std::fs::rename(staging.path(), &cached).is_ok() {
             staging.disarm();
-            self.cache.insert(key, dir_bytes(&cached)?);
+            // Off the async workers: an eviction may delete gigabytes.
+            tokio::task::block_in_place(|| dir_bytes(&cached).map(|bytes| self.cache.insert(key, bytes)))?;
         }
         Ok(())
     }
@@ -399,7 +400,8 @@ impl BlobStore for S3Blobs {
                 ));
             }
         }
-        self.cache.insert(key, dir_bytes(&cached)?);
+        // Off the async workers: an eviction may delete gigabytes.
+        tokio::task::block_in_place(|| dir_bytes(&cached).map(|bytes| self.cache.insert(key, bytes)))?;
         Ok(cached)
     }
 
