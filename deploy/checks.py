@@ -10,8 +10,9 @@ together:
               exists, and every RELREWARD__* variable is a real configuration key.
   k8s         deploy/k8s: kustomization.yaml lists every manifest and nothing missing, the
               ConfigMap's config.toml only has real keys with the right types, Secret keys are
-              real keys, names and label selectors meet, probes hit a declared port, and the
-              grace periods outlast the server's drain.
+              real keys, names and label selectors meet, probes hit a declared port, the
+              grace periods outlast preStop + the server's drain and grace, and the serving
+              pods' drain outlasts their readiness probe's detection (period x failures).
   dockerfile  deploy/Dockerfile: its RELREWARD__* ENV keys are real configuration keys.
 
 "Real configuration key" means present in deploy/config.example.toml, which lists every key.
@@ -227,6 +228,7 @@ def check_k8s(directory: Path, problems: Problems) -> None:
 
     schema = config_schema()
     grace = lookup(schema, ["server", "shutdown_grace_secs"])
+    drain = lookup(schema, ["server", "shutdown_drain_secs"])
     for name, (file, cm) in by_kind.get("ConfigMap", {}).items():
         text = (cm.get("data") or {}).get("config.toml")
         if text is None:
@@ -238,6 +240,7 @@ def check_k8s(directory: Path, problems: Problems) -> None:
             continue
         check_toml_keys(config, schema, f"{file} (config.toml)", problems)
         grace = config.get("server", {}).get("shutdown_grace_secs", grace)
+        drain = config.get("server", {}).get("shutdown_drain_secs", drain)
         if "role" in config.get("server", {}):
             problems.add(file, "server.role belongs to each Deployment's --role, not the shared config")
     for name, (file, secret) in by_kind.get("Secret", {}).items():
@@ -297,11 +300,19 @@ def check_k8s(directory: Path, problems: Problems) -> None:
             if len(cmd) == 2 and cmd[0] == "sleep" and cmd[1].isdigit():
                 pre_stop = int(cmd[1])
             period = pod_spec.get("terminationGracePeriodSeconds", 30)
-            if period <= grace + pre_stop:
+            if period <= pre_stop + drain + grace:
                 problems.add(
                     at,
                     f"terminationGracePeriodSeconds {period} does not outlast preStop {pre_stop} s "
-                    f"+ server.shutdown_grace_secs {grace} s",
+                    f"+ server.shutdown_drain_secs {drain} s + server.shutdown_grace_secs {grace} s",
+                )
+            readiness = c.get("readinessProbe") or {}
+            noticed = readiness.get("periodSeconds", 10) * readiness.get("failureThreshold", 3)
+            if "serve" in args and readiness and drain < noticed:
+                problems.add(
+                    at,
+                    f"server.shutdown_drain_secs {drain} s is shorter than the readinessProbe takes to see "
+                    f"NOT_SERVING (periodSeconds x failureThreshold = {noticed} s)",
                 )
         if not (pod_spec.get("securityContext") or {}).get("runAsNonRoot"):
             problems.add(at, "pods may run as root")

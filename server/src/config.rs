@@ -12,6 +12,11 @@ use serde::Deserialize;
 /// The defaults, also shipped as documentation in `deploy/config.example.toml`.
 pub const DEFAULTS: &str = include_str!("defaults.toml");
 
+/// HTTP/2 flow-control windows: the protocol's initial 65535 bytes at least (smaller only slows
+/// every call), 2^31 - 1 at most (RFC 9113, 6.9.1).
+const MIN_WINDOW: u32 = 65_535;
+const MAX_WINDOW: u32 = (1 << 31) - 1;
+
 #[derive(Debug, Clone, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Config {
@@ -44,8 +49,28 @@ pub struct ServerConfig {
     /// SETTINGS_MAX_CONCURRENT_STREAMS: a client with more calls queues them itself, so one
     /// connection cannot open unbounded handler tasks.
     pub max_concurrent_streams: u32,
-    /// How long in-flight calls may take to finish after SIGINT/SIGTERM.
+    /// How long in-flight calls may take to finish after SIGINT/SIGTERM, once the drain
+    /// (`shutdown_drain_secs`) is over and the listener has closed.
     pub shutdown_grace_secs: u64,
+    /// After SIGINT/SIGTERM, how long the server goes on serving everything, new connections
+    /// and calls included, while health answers NOT_SERVING, so that load balancers and
+    /// health-checking clients see it and stop sending before the listener closes. A second
+    /// signal cuts it short. 0: close at once.
+    pub shutdown_drain_secs: u64,
+    /// HTTP/2 flow-control window of each call (stream), in bytes: what a client may send on a
+    /// call ahead of the handler reading it. It bounds the unread data one call that stops
+    /// reading (a GradientStream whose client does not read its responses) holds in memory.
+    pub http2_stream_window_bytes: u32,
+    /// HTTP/2 flow-control window of a whole connection, in bytes. At least
+    /// `max_concurrent_streams` x `http2_stream_window_bytes`, so that calls that stop reading
+    /// can never hold all of it and starve the other calls on their connection (health checks
+    /// included): each holds at most its stream window.
+    pub http2_connection_window_bytes: u32,
+    /// Compressed responses: "request" (with the request's algorithm, when the request came
+    /// compressed and the client accepts it), "accepted" (whenever the client's
+    /// grpc-accept-encoding lists gzip or deflate: grpcio lists both on every call) or "off".
+    /// Compressed requests (gzip, deflate) are accepted whatever this says.
+    pub response_compression: String,
     /// Connections older than this are asked to go away (HTTP/2 GOAWAY; 0: never), so that
     /// long-lived clients reconnect and spread over replicas added since they connected.
     pub max_connection_age_secs: u64,
@@ -373,6 +398,50 @@ impl Config {
         if self.server.shutdown_grace_secs > 3600 {
             return invalid("server.shutdown_grace_secs", "must be at most 3600".into());
         }
+        if self.server.shutdown_drain_secs > 600 {
+            return invalid("server.shutdown_drain_secs", "must be at most 600 (0: no drain)".into());
+        }
+        if !(MIN_WINDOW..=MAX_WINDOW).contains(&self.server.http2_stream_window_bytes) {
+            return invalid(
+                "server.http2_stream_window_bytes",
+                format!("must be between {MIN_WINDOW} and {MAX_WINDOW} (HTTP/2's largest window)"),
+            );
+        }
+        if self.server.http2_connection_window_bytes > MAX_WINDOW {
+            return invalid(
+                "server.http2_connection_window_bytes",
+                format!("must be at most {MAX_WINDOW} (HTTP/2's largest window)"),
+            );
+        }
+        let all_streams =
+            u64::from(self.server.max_concurrent_streams) * u64::from(self.server.http2_stream_window_bytes);
+        if u64::from(self.server.http2_connection_window_bytes) < all_streams {
+            let hint = if all_streams > u64::from(MAX_WINDOW) {
+                format!(
+                    "; that is beyond HTTP/2's largest window ({MAX_WINDOW}): lower server.max_concurrent_streams or \
+                     server.http2_stream_window_bytes"
+                )
+            } else {
+                String::new()
+            };
+            return invalid(
+                "server.http2_connection_window_bytes",
+                format!(
+                    "{} is below server.max_concurrent_streams x server.http2_stream_window_bytes ({} x {} = \
+                     {all_streams}){hint}: calls that stop reading could then hold the whole connection window and \
+                     stall every other call on their connection, health checks included",
+                    self.server.http2_connection_window_bytes,
+                    self.server.max_concurrent_streams,
+                    self.server.http2_stream_window_bytes,
+                ),
+            );
+        }
+        if !matches!(self.server.response_compression.as_str(), "request" | "accepted" | "off") {
+            return invalid(
+                "server.response_compression",
+                format!("'{}' is none of \"request\", \"accepted\" or \"off\"", self.server.response_compression),
+            );
+        }
         if self.server.max_connection_age_grace_secs > 86_400 {
             return invalid("server.max_connection_age_grace_secs", "must be at most 86400".into());
         }
@@ -603,6 +672,16 @@ mod tests {
             (&[("RELREWARD__LOG__FORMAT", "xml")], "log.format"),
             (&[("RELREWARD__SERVER__MAX_CONNECTIONS", "0")], "server.max_connections"),
             (&[("RELREWARD__SERVER__MAX_CONCURRENT_STREAMS", "0")], "server.max_concurrent_streams"),
+            // 257 streams x 1 MiB no longer fit the default 256 MiB connection window.
+            (&[("RELREWARD__SERVER__MAX_CONCURRENT_STREAMS", "257")], "server.http2_connection_window_bytes"),
+            (
+                &[("RELREWARD__SERVER__HTTP2_CONNECTION_WINDOW_BYTES", "1048576")],
+                "server.http2_connection_window_bytes",
+            ),
+            (&[("RELREWARD__SERVER__HTTP2_STREAM_WINDOW_BYTES", "1024")], "server.http2_stream_window_bytes"),
+            (&[("RELREWARD__SERVER__HTTP2_STREAM_WINDOW_BYTES", "2147483648")], "server.http2_stream_window_bytes"),
+            (&[("RELREWARD__SERVER__SHUTDOWN_DRAIN_SECS", "601")], "server.shutdown_drain_secs"),
+            (&[("RELREWARD__SERVER__RESPONSE_COMPRESSION", "zstd")], "server.response_compression"),
             (&[("RELREWARD__SERVING__DEFAULT_DEADLINE_MS", "3600001")], "serving.default_deadline_ms"),
             (&[("RELREWARD__SERVER__ROLE", "boss")], "server.role"),
             // Separate roles need the shared backend: the SQLite file belongs to one process.
@@ -614,6 +693,28 @@ mod tests {
             let err = load(None, vars, &Overrides::default()).expect_err(key).to_string();
             assert!(err.contains(key), "{err} should name {key}");
         }
+    }
+
+    #[test]
+    fn the_connection_window_holds_every_stream_window() {
+        let c = load(None, &[], &Overrides::default()).expect("defaults");
+        let s = &c.server;
+        assert!(
+            u64::from(s.http2_connection_window_bytes)
+                >= u64::from(s.max_concurrent_streams) * u64::from(s.http2_stream_window_bytes),
+            "{s:?}"
+        );
+        assert_eq!((s.http2_stream_window_bytes, s.response_compression.as_str()), (1 << 20, "request"));
+        // Raising the streams alone is refused; with the connection window raised too, fine.
+        let more = [("RELREWARD__SERVER__MAX_CONCURRENT_STREAMS", "512")];
+        let err = load(None, &more, &Overrides::default()).expect_err("window too small").to_string();
+        assert!(err.contains("512 x 1048576 = 536870912"), "{err}");
+        let both = [more[0], ("RELREWARD__SERVER__HTTP2_CONNECTION_WINDOW_BYTES", "536870912")];
+        assert!(load(None, &both, &Overrides::default()).is_ok());
+        // Beyond what HTTP/2 can announce: says which keys to lower.
+        let huge = [("RELREWARD__SERVER__MAX_CONCURRENT_STREAMS", "4096")];
+        let err = load(None, &huge, &Overrides::default()).expect_err("beyond 2^31 - 1").to_string();
+        assert!(err.contains("largest window") && err.contains("lower server.max_concurrent_streams"), "{err}");
     }
 
     #[test]

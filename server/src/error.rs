@@ -3,6 +3,15 @@
 //! Status codes are API: they are decided here, in a single exhaustive match, and nowhere
 //! else. Internal errors are logged with their full chain and reach the client as a short
 //! message with a correlation id, never as a backtrace or a file path.
+//!
+//! Messages stay short: a value the client sent is quoted with [`quote`] or [`brief`] (an
+//! escaped prefix, never the whole value), and every status message is cut at
+//! [`MAX_MESSAGE_BYTES`] as a backstop, because C-core gRPC clients turn an answer whose
+//! metadata passes about 8 KiB into RESOURCE_EXHAUSTED. [`wire`] applies the same rules to the
+//! statuses that tonic and the other layers make themselves (an oversized message, a status
+//! from the security layer).
+
+pub mod wire;
 
 use tonic::{Code, Status};
 
@@ -40,9 +49,64 @@ pub enum Error {
     Internal(#[from] anyhow::Error),
 }
 
+/// Most bytes of a status message; longer ones are cut (at a character boundary) and marked.
+pub const MAX_MESSAGE_BYTES: usize = 1024;
+/// Most characters of a client's value that a message quotes.
+pub const QUOTE_CHARS: usize = 48;
+
+/// A client-supplied string for an error message: single-quoted, escaped (control and
+/// non-ASCII characters as `\u{..}`), and cut after [`QUOTE_CHARS`] characters with its full
+/// length said, so that no input can make a message long or unprintable.
+pub fn quote(value: &str) -> String {
+    let mut chars = value.chars();
+    let head: String = chars.by_ref().take(QUOTE_CHARS).collect();
+    let escaped = head.escape_default();
+    if chars.next().is_none() { format!("'{escaped}'") } else { format!("'{escaped}...' ({} bytes)", value.len()) }
+}
+
+/// A client-supplied value that is not a string (a shape, a list) in its `Debug` form, cut
+/// like [`quote`]'s strings.
+pub fn brief(value: &impl std::fmt::Debug) -> String {
+    let text = format!("{value:?}");
+    if text.chars().count() <= QUOTE_CHARS {
+        return text;
+    }
+    let head: String = text.chars().take(QUOTE_CHARS).collect();
+    format!("{}... ({} characters)", head.escape_default(), text.len())
+}
+
+/// `message` cut to at most [`MAX_MESSAGE_BYTES`] (with the cut marked): the last guard
+/// before a message goes on the wire.
+pub fn bounded(mut message: String) -> String {
+    if message.len() <= MAX_MESSAGE_BYTES {
+        return message;
+    }
+    const MARK: &str = " ... (message cut)";
+    let mut end = MAX_MESSAGE_BYTES - MARK.len();
+    while !message.is_char_boundary(end) {
+        end -= 1;
+    }
+    message.truncate(end);
+    message.push_str(MARK);
+    message
+}
+
 impl Error {
     pub fn invalid(msg: impl Into<String>) -> Self {
         Self::InvalidArgument(msg.into())
+    }
+
+    /// The error a broken inbound stream (client streaming) stands for: a message over the
+    /// size limit is RESOURCE_EXHAUSTED naming the setting (as [`wire`] answers for unary
+    /// calls), any other failure to read or decode a frame INVALID_ARGUMENT naming `field`.
+    pub fn from_inbound(field: &str, status: &tonic::Status) -> Self {
+        match wire::message_too_large(status) {
+            Some(too_large) => Self::ResourceExhausted(too_large),
+            None => Self::InvalidArgument(format!(
+                "{field}: a message of the stream could not be read: {}",
+                status.message()
+            )),
+        }
     }
 
     pub fn internal(context: &str, err: impl std::fmt::Display) -> Self {
@@ -102,7 +166,7 @@ impl From<Error> for Status {
                 (Code::Internal, format!("internal error (id {id}; details in the server log)"))
             }
         };
-        Status::new(code, msg)
+        Status::new(code, bounded(msg))
     }
 }
 
@@ -118,6 +182,28 @@ mod tests {
         assert_eq!(Status::from(Error::AlreadyExists("x".into())).code(), Code::AlreadyExists);
         assert_eq!(Status::from(Error::ResourceExhausted("x".into())).code(), Code::ResourceExhausted);
         assert_eq!(Status::from(Error::Unimplemented("x".into())).code(), Code::Unimplemented);
+    }
+
+    #[test]
+    fn quoted_values_are_short_and_escaped() {
+        assert_eq!(quote("abc"), "'abc'");
+        assert_eq!(quote("a\nb\u{7}é"), "'a\\nb\\u{7}\\u{e9}'");
+        let long = "x".repeat(10_000);
+        let q = quote(&long);
+        assert!(q.len() < 80 && q.contains("(10000 bytes)"), "{q}");
+        let exact = "y".repeat(QUOTE_CHARS);
+        assert_eq!(quote(&exact), format!("'{exact}'"));
+        let b = brief(&vec![1u64; 100_000]);
+        assert!(b.len() < 100 && b.contains("characters)"), "{b}");
+        assert_eq!(brief(&[2, 3]), "[2, 3]");
+    }
+
+    #[test]
+    fn every_message_is_bounded() {
+        let s = Status::from(Error::invalid("é".repeat(1 << 20)));
+        assert!(s.message().len() <= MAX_MESSAGE_BYTES, "{}", s.message().len());
+        assert!(s.message().ends_with("(message cut)"));
+        assert_eq!(bounded("short".into()), "short");
     }
 
     #[test]

@@ -11,20 +11,43 @@
 //! - [`jobs`]: the job system (queue, threads, events, checkpoints) and the training runners.
 //! - [`store`]: metadata ([`store::MetadataStore`]) and files ([`store::BlobStore`]),
 //!   dataset ingestion and crash recovery.
+//! - [`fields`]: one rule per kind of request field (names, enums, page tokens, diffusion
+//!   times, guidance scales), used at the door of every RPC.
 //! - [`limits`]: server-wide limits: connections, call deadlines, the data directory's disk budget.
 //! - [`fault`]: the test-only fault-injection hook (`RELREWARD_FAULT`), a no-op when unset.
 //! - [`config`]: layered configuration and its validation.
 //! - [`metrics`]: Prometheus metrics, the per-call recording layer and the `/metrics` endpoint.
 //! - [`error`]: the one error type and its one mapping to gRPC status codes.
+//! - `compression` (private): the response-compression policy layer; `with_compression!`
+//!   (here) puts gzip and deflate on each service.
 //!
 //! Entry point: [`run`], which `main` calls with a bound listener and a shutdown future, and
-//! tests call with a port-0 listener.
+//! tests call with a port-0 listener. Transport settings (HTTP/2 flow-control windows,
+//! compression, the shutdown drain) are applied there too.
+
+/// gzip and deflate on one generated tonic service (`$service`, with `$config`): compressed
+/// requests are always accepted; responses may be compressed unless
+/// `server.response_compression = "off"` (when they are: [`compression::RequestMirrorLayer`]).
+/// Every service of the listener goes through it: relreward.v1, OIP, health, reflection.
+macro_rules! with_compression {
+    ($service:expr, $config:expr) => {{
+        use tonic::codec::CompressionEncoding::{Deflate, Gzip};
+        let service = $service.accept_compressed(Gzip).accept_compressed(Deflate);
+        if $config.server.response_compression == "off" {
+            service
+        } else {
+            service.send_compressed(Gzip).send_compressed(Deflate)
+        }
+    }};
+}
 
 pub mod api;
+mod compression;
 pub mod config;
 pub mod engine;
 pub mod error;
 pub mod fault;
+pub mod fields;
 pub mod jobs;
 pub mod limits;
 pub mod metrics;
@@ -41,8 +64,10 @@ use tonic_health::ServingStatus;
 
 pub use config::Config;
 
-/// Serves until `shutdown` completes, then shuts down gracefully: health goes NOT_SERVING,
-/// the listener closes, in-flight calls get `server.shutdown_grace_secs` to finish.
+/// Serves until `shutdown` completes, then shuts down gracefully: health goes NOT_SERVING
+/// while everything is still served for `server.shutdown_drain_secs` (or until `cut_drain`
+/// completes: `main` passes a second signal), then the listener closes and in-flight calls get
+/// `server.shutdown_grace_secs` to finish.
 ///
 /// Unless `metrics.listen` is empty, also serves Prometheus metrics there (bound first, so a
 /// taken port fails the start at once) and prints `relreward-server metrics on
@@ -51,6 +76,7 @@ pub async fn run(
     config: Config,
     listener: TcpListener,
     shutdown: impl Future<Output = ()> + Send,
+    cut_drain: impl Future<Output = ()> + Send,
 ) -> anyhow::Result<()> {
     // First, so a bad token entry, an unreadable certificate or an exposed unauthenticated
     // listener stops the start before anything is opened.
@@ -96,17 +122,16 @@ pub async fn run(
         health.set_service_status(*name, ServingStatus::Serving).await;
     }
     health.set_service_status("", ServingStatus::Serving).await;
+    let health_service = with_compression!(health_service, config);
 
-    let reflection_v1 = tonic_reflection::server::Builder::configure()
-        .register_encoded_file_descriptor_set(relreward_proto::FILE_DESCRIPTOR_SET)
-        .register_encoded_file_descriptor_set(relreward_proto::INFERENCE_FILE_DESCRIPTOR_SET)
-        .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
-        .build_v1()?;
-    let reflection_v1alpha = tonic_reflection::server::Builder::configure()
-        .register_encoded_file_descriptor_set(relreward_proto::FILE_DESCRIPTOR_SET)
-        .register_encoded_file_descriptor_set(relreward_proto::INFERENCE_FILE_DESCRIPTOR_SET)
-        .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
-        .build_v1alpha()?;
+    // v1 and v1alpha, answering a failed lookup in-stream (api::reflection).
+    let (reflection_v1, reflection_v1alpha) = api::reflection::services(&[
+        relreward_proto::FILE_DESCRIPTOR_SET,
+        relreward_proto::INFERENCE_FILE_DESCRIPTOR_SET,
+        tonic_health::pb::FILE_DESCRIPTOR_SET,
+    ])?;
+    let reflection_v1 = with_compression!(reflection_v1, config);
+    let reflection_v1alpha = with_compression!(reflection_v1alpha, config);
 
     let stop_accepting = CancellationToken::new();
     // TCP_NODELAY on every accepted connection: without it a small unary response waits for
@@ -114,8 +139,18 @@ pub async fn run(
     // `tcp_nodelay` setting does not apply to a listener passed in.
     let incoming = tonic::transport::server::TcpIncoming::from(listener).with_nodelay(Some(true));
     let incoming = limits::limit_connections(incoming, config.server.max_connections);
-    let mut builder =
-        tonic::transport::Server::builder().max_concurrent_streams(Some(config.server.max_concurrent_streams));
+    // Flow control: a call that stops reading its requests (a GradientStream whose client does
+    // not read the responses stops being read: backpressure) holds at most its stream window of
+    // unread data, and the connection window, at least max_concurrent_streams stream windows
+    // (config validation), always leaves room for the connection's other calls. With hyper's
+    // defaults (1 MiB each) one such call held the whole connection window and stalled every
+    // other call on the connection, health checks included. No adaptive window: hyper's BDP
+    // estimate sets both windows to one value, which would bring that back.
+    let mut builder = tonic::transport::Server::builder()
+        .max_concurrent_streams(Some(config.server.max_concurrent_streams))
+        .initial_stream_window_size(config.server.http2_stream_window_bytes)
+        .initial_connection_window_size(config.server.http2_connection_window_bytes)
+        .http2_adaptive_window(Some(false));
     if config.server.max_connection_age_secs > 0 {
         builder = builder
             .max_connection_age(Duration::from_secs(config.server.max_connection_age_secs))
@@ -135,9 +170,12 @@ pub async fn run(
         builder
             // Metrics outermost, so refused calls are counted with their status like any other.
             .layer(metrics::GrpcMetricsLayer::new(metrics))
+            // Statuses tonic and the layers below make themselves, by the error module's rules.
+            .layer(error::wire::WireStatusLayer)
             .layer(security.layer)
             // Inside the security layer: a refused call gets no default deadline.
             .layer(limits::DeadlineLayer::new(config.serving.default_deadline_ms))
+            .layer(compression::RequestMirrorLayer::new(config.server.response_compression == "request"))
             .add_routes(routes)
             .add_service(health_service)
             .add_service(reflection_v1)
@@ -150,11 +188,27 @@ pub async fn run(
         () = shutdown => {}
     }
 
-    tracing::info!("shutdown requested: reporting NOT_SERVING and draining in-flight calls");
+    let drain = Duration::from_secs(config.server.shutdown_drain_secs);
+    tracing::info!(
+        drain_secs = drain.as_secs(),
+        "shutdown requested: reporting NOT_SERVING, serving on for the drain (a second signal ends it)"
+    );
     for name in served_services {
         health.set_service_status(*name, ServingStatus::NotServing).await;
     }
     health.set_service_status("", ServingStatus::NotServing).await;
+    // The drain: everything is still served (new connections and calls too) while health says
+    // NOT_SERVING, so that load balancers and clients polling health see it and stop sending
+    // before the listener closes; closing at once, they saw only UNAVAILABLE.
+    if !drain.is_zero() {
+        tokio::pin!(cut_drain);
+        tokio::select! {
+            result = &mut server => return result.map_err(Into::into),
+            () = tokio::time::sleep(drain) => {}
+            () = &mut cut_drain => tracing::info!("drain cut short"),
+        }
+    }
+    tracing::info!("closing the listener and draining in-flight calls");
     stop_accepting.cancel();
     let grace = Duration::from_secs(config.server.shutdown_grace_secs);
     job_manager.shutdown(grace).await;

@@ -1,6 +1,6 @@
 //! `relreward-server [--config FILE] [--listen ADDR] [--data-dir DIR] [--role ROLE]`: loads the layered
 //! configuration, sets up logging, binds, and hands over to [`relreward_server::run`] until
-//! SIGINT or SIGTERM.
+//! SIGINT or SIGTERM (a second one cuts the shutdown drain short).
 //!
 //! `relreward-server token create --scopes read[,train,admin] [--name NAME] [--expires WHEN]`
 //! prints a new access token once, with the `security.tokens` entry (its salted hash) to put
@@ -149,23 +149,55 @@ async fn serve(config: Config) -> anyhow::Result<()> {
     );
     // One machine-readable line on stdout, for scripts and tests that start the server on port 0.
     println!("relreward-server listening on {local}");
-    relreward_server::run(config, listener, shutdown_signal()).await
+    let (first, second) = shutdown_signals();
+    relreward_server::run(config, listener, first, second).await
 }
 
-async fn shutdown_signal() {
+/// Two futures: the first SIGINT or SIGTERM (shut down: health NOT_SERVING, the drain, then
+/// the grace for calls in flight), and the next one (cut the drain short, e.g. a second Ctrl-C).
+fn shutdown_signals() -> (impl Future<Output = ()> + Send, impl Future<Output = ()> + Send) {
     use tokio::signal::unix::{SignalKind, signal};
-    let mut term = match signal(SignalKind::terminate()) {
-        Ok(s) => s,
-        Err(e) => {
-            tracing::warn!(error = %e, "cannot watch SIGTERM; only SIGINT stops the server");
-            let _ = tokio::signal::ctrl_c().await;
-            return;
+    let (first_tx, first_rx) = tokio::sync::oneshot::channel::<()>();
+    let (second_tx, second_rx) = tokio::sync::oneshot::channel::<()>();
+    // Watched from here on, so that a second signal is never missed between the two.
+    let interrupt = signal(SignalKind::interrupt());
+    let term = signal(SignalKind::terminate());
+    tokio::spawn(async move {
+        let (mut interrupt, mut term) = match (interrupt, term) {
+            (Ok(i), Ok(t)) => (i, t),
+            (i, t) => {
+                if let Err(e) = i.as_ref().and(t.as_ref()) {
+                    tracing::warn!(error = %e, "cannot watch SIGINT/SIGTERM; falling back to Ctrl-C only");
+                }
+                let _ = tokio::signal::ctrl_c().await;
+                let _ = first_tx.send(());
+                let _ = tokio::signal::ctrl_c().await;
+                let _ = second_tx.send(());
+                return;
+            }
+        };
+        for (i, tx) in [first_tx, second_tx].into_iter().enumerate() {
+            let which = tokio::select! {
+                _ = interrupt.recv() => "SIGINT",
+                _ = term.recv() => "SIGTERM",
+            };
+            if i == 0 {
+                tracing::info!("{which} received");
+            } else {
+                tracing::info!("{which} received again: ending the drain now");
+            }
+            let _ = tx.send(());
         }
-    };
-    tokio::select! {
-        _ = tokio::signal::ctrl_c() => tracing::info!("SIGINT received"),
-        _ = term.recv() => tracing::info!("SIGTERM received"),
-    }
+    });
+    // A dropped sender (the task gone) counts as the signal: never hang on shutdown.
+    (
+        async move {
+            let _ = first_rx.await;
+        },
+        async move {
+            let _ = second_rx.await;
+        },
+    )
 }
 
 fn init_tracing(config: &Config) {

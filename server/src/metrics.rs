@@ -5,16 +5,20 @@
 //!   `relreward_grpc_request_seconds{method}` when the response ends: the status code comes
 //!   from the `grpc-status` header (trailers-only errors) or from the trailers that close the
 //!   body ([`RecordedBody`]); a stream is timed to its last message.
-//! - Serving records queue time, compute time, batch sizes, queue depth and dropped queries.
+//! - Serving records queue time, compute time, batch sizes, queue depth and dropped queries,
+//!   and the outcome of every query ([`Metrics::observe_query`]); the same observations also
+//!   add up, per model, to the cumulative [`ModelStats`] the Open Inference Protocol's
+//!   ModelStatistics reports (Triton's counts and nanoseconds, which a histogram cannot give
+//!   back exactly).
 //! - [`serve_http`]: `GET /metrics` over HTTP/1.1; jobs by state and loaded models are read
 //!   when scraped.
-use std::collections::HashSet;
+use std::collections::{HashMap, HashSet};
 use std::convert::Infallible;
 use std::future::Future;
 use std::pin::Pin;
-use std::sync::{Arc, OnceLock};
+use std::sync::{Arc, Mutex, OnceLock, PoisonError};
 use std::task::{Context, Poll, ready};
-use std::time::{Duration, Instant};
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 use bytes::Bytes;
 use http::header::{CONTENT_TYPE, HeaderName, HeaderValue};
@@ -52,8 +56,55 @@ struct Inner {
     batch_items: HistogramVec,
     queue_depth: IntGaugeVec,
     dropped: IntCounterVec,
+    queries: IntCounterVec,
     jobs: IntGaugeVec,
     loaded_models: IntGauge,
+    /// Cumulative statistics per model name, for the life of the process.
+    model_stats: Mutex<HashMap<String, ModelStats>>,
+}
+
+/// A count of events and their cumulative duration (Triton's `StatisticDuration`).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct CountNs {
+    pub count: u64,
+    pub ns: u64,
+}
+
+impl CountNs {
+    fn add(&mut self, count: u64, ns: u64) {
+        self.count = self.count.saturating_add(count);
+        self.ns = self.ns.saturating_add(ns);
+    }
+}
+
+/// What serving did for one model since the process started, in the terms of Triton's
+/// `ModelStatistics`. Every query that found the model counts (either protocol): `success`
+/// and `fail` from its arrival at the serving layer to its answer (validation, queue and
+/// compute), `queue` per computed query, `compute_infer` per computed query with the duration
+/// of the merged batch it was part of. A call cancelled by its client before its answer is not
+/// counted; a request refused before it reached the model (unknown model, malformed
+/// protocol message) has no model to count for.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct ModelStats {
+    pub success: CountNs,
+    pub fail: CountNs,
+    pub queue: CountNs,
+    pub compute_infer: CountNs,
+    /// Items (batch elements) of successful queries.
+    pub inference_count: u64,
+    /// Merged batches computed (one forward, or forward and backward, pass each).
+    pub execution_count: u64,
+    /// Milliseconds since the epoch when the last query was answered (0: never).
+    pub last_inference_ms: u64,
+}
+
+fn nanos(d: Duration) -> u64 {
+    u64::try_from(d.as_nanos()).unwrap_or(u64::MAX)
+}
+
+/// Whole nanoseconds of a non-negative duration in seconds (saturating; NaN reads as 0).
+fn seconds_to_ns(seconds: f64) -> u64 {
+    (seconds * 1e9).round() as u64
 }
 
 impl Default for Metrics {
@@ -101,8 +152,14 @@ impl Metrics {
                 &["model", "reason"],
             )
             .expect("metric"),
+            queries: IntCounterVec::new(
+                Opts::new("serving_queries_total", "Score/Gradient queries (either protocol) by model and outcome"),
+                &["model", "outcome"],
+            )
+            .expect("metric"),
             jobs: IntGaugeVec::new(Opts::new("jobs", "jobs by state"), &["state"]).expect("metric"),
             loaded_models: IntGauge::new("loaded_models", "models loaded in memory").expect("metric"),
+            model_stats: Mutex::new(HashMap::new()),
             registry,
         };
         for c in [
@@ -113,6 +170,7 @@ impl Metrics {
             Box::new(inner.batch_items.clone()),
             Box::new(inner.queue_depth.clone()),
             Box::new(inner.dropped.clone()),
+            Box::new(inner.queries.clone()),
             Box::new(inner.jobs.clone()),
             Box::new(inner.loaded_models.clone()),
         ] {
@@ -127,15 +185,59 @@ impl Metrics {
         self.inner.request_seconds.with_label_values(&[method]).observe(seconds);
     }
 
-    /// One merged batch of `items` computed in `seconds`.
-    pub fn observe_batch(&self, model: &str, items: usize, seconds: f64) {
+    /// One merged batch of `queries` queries and `items` items computed in `seconds`.
+    pub fn observe_batch(&self, model: &str, queries: usize, items: usize, seconds: f64) {
         self.inner.batch_items.with_label_values(&[model]).observe(items as f64);
         self.inner.compute_seconds.with_label_values(&[model]).observe(seconds);
+        let queries = queries as u64;
+        self.update_model(model, |s| {
+            s.execution_count = s.execution_count.saturating_add(1);
+            s.compute_infer.add(queries, seconds_to_ns(seconds).saturating_mul(queries));
+        });
     }
 
     /// Time one query waited between arrival and the start of its batch's compute.
     pub fn observe_queue_wait(&self, model: &str, seconds: f64) {
         self.inner.queue_seconds.with_label_values(&[model]).observe(seconds);
+        self.update_model(model, |s| s.queue.add(1, seconds_to_ns(seconds)));
+    }
+
+    /// One query for `model` answered (`ok`) or refused after `elapsed`; `items` is its batch
+    /// size (counted only when it succeeded).
+    pub fn observe_query(&self, model: &str, ok: bool, items: u64, elapsed: Duration) {
+        self.inner.queries.with_label_values(&[model, if ok { "success" } else { "failure" }]).inc();
+        let now_ms = SystemTime::now().duration_since(UNIX_EPOCH).map_or(0, |d| d.as_millis() as u64);
+        self.update_model(model, |s| {
+            if ok {
+                s.success.add(1, nanos(elapsed));
+                s.inference_count = s.inference_count.saturating_add(items);
+            } else {
+                s.fail.add(1, nanos(elapsed));
+            }
+            s.last_inference_ms = s.last_inference_ms.max(now_ms);
+        });
+    }
+
+    fn update_model(&self, model: &str, update: impl FnOnce(&mut ModelStats)) {
+        // Each update is a few additions: a panic cannot leave a half-updated entry.
+        let mut stats = self.inner.model_stats.lock().unwrap_or_else(PoisonError::into_inner);
+        match stats.get_mut(model) {
+            Some(s) => update(s),
+            None => update(stats.entry(model.to_owned()).or_default()),
+        }
+    }
+
+    /// The statistics of `model`, if serving has seen it.
+    pub fn model_stats(&self, model: &str) -> Option<ModelStats> {
+        self.inner.model_stats.lock().unwrap_or_else(PoisonError::into_inner).get(model).copied()
+    }
+
+    /// Every model serving has seen, with its statistics, sorted by name.
+    pub fn all_model_stats(&self) -> Vec<(String, ModelStats)> {
+        let stats = self.inner.model_stats.lock().unwrap_or_else(PoisonError::into_inner);
+        let mut all: Vec<_> = stats.iter().map(|(k, v)| (k.clone(), *v)).collect();
+        all.sort_by(|a, b| a.0.cmp(&b.0));
+        all
     }
 
     pub fn set_queue_depth(&self, model: &str, depth: usize) {
@@ -538,8 +640,9 @@ mod tests {
         m.observe_call(GET_DATASET, "OK", 0.002);
         m.observe_call(GET_DATASET, "OK", 0.003);
         m.observe_call(GET_DATASET, "NOT_FOUND", 0.001);
-        m.observe_batch("r", 8, 0.01);
+        m.observe_batch("r", 2, 8, 0.01);
         m.observe_queue_wait("r", 0.001);
+        m.observe_query("r", true, 8, Duration::from_millis(12));
         m.set_queue_depth("r", 3);
         m.dropped("r", "deadline");
         m.set_jobs("running", 2);
@@ -556,11 +659,39 @@ mod tests {
             "relreward_serving_queue_seconds_count{model=\"r\"} 1",
             "relreward_serving_queue_depth{model=\"r\"} 3",
             "relreward_serving_dropped_total{model=\"r\",reason=\"deadline\"} 1",
+            "relreward_serving_queries_total{model=\"r\",outcome=\"success\"} 1",
             "relreward_jobs{state=\"running\"} 2",
             "relreward_loaded_models 4",
         ] {
             assert!(text.contains(needle), "missing {needle:?} in\n{text}");
         }
+    }
+
+    #[test]
+    fn model_stats_add_up_per_model() {
+        let m = Metrics::new();
+        assert_eq!(m.model_stats("r"), None);
+        // Two queries (3 and 5 items) merged into one batch, then one that failed validation.
+        m.observe_queue_wait("r", 0.000_002);
+        m.observe_queue_wait("r", 0.000_001);
+        m.observe_batch("r", 2, 8, 0.000_010);
+        m.observe_query("r", true, 3, Duration::from_nanos(20_000));
+        m.observe_query("r", true, 5, Duration::from_nanos(15_000));
+        m.observe_query("r", false, 4, Duration::from_nanos(700));
+        m.observe_query("other", true, 1, Duration::from_nanos(1));
+        let s = m.model_stats("r").expect("stats");
+        assert_eq!(s.success, CountNs { count: 2, ns: 35_000 });
+        assert_eq!(s.fail, CountNs { count: 1, ns: 700 });
+        assert_eq!(s.queue, CountNs { count: 2, ns: 3_000 });
+        assert_eq!(s.compute_infer, CountNs { count: 2, ns: 20_000 }, "each query with its batch's time");
+        assert_eq!((s.inference_count, s.execution_count), (8, 1), "failed items are not inferences");
+        let now_ms = SystemTime::now().duration_since(UNIX_EPOCH).expect("clock").as_millis() as u64;
+        assert!(s.last_inference_ms > 0 && s.last_inference_ms <= now_ms);
+        let names: Vec<String> = m.all_model_stats().into_iter().map(|(n, _)| n).collect();
+        assert_eq!(names, ["other", "r"]);
+        let text = m.render();
+        assert!(text.contains("relreward_serving_queries_total{model=\"r\",outcome=\"failure\"} 1"), "{text}");
+        assert!(text.contains("relreward_serving_queries_total{model=\"r\",outcome=\"success\"} 2"), "{text}");
     }
 
     #[test]

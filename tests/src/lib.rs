@@ -106,6 +106,8 @@ impl TestServer {
             .env("RELREWARD__ENGINE__INTRA_OP_THREADS", "1")
             // Many servers run at once: no fixed metrics port (a test that wants one sets it).
             .env("RELREWARD__METRICS__LISTEN", "")
+            // No health drain on SIGTERM (tests of the drain set their own, through `env`).
+            .env("RELREWARD__SERVER__SHUTDOWN_DRAIN_SECS", "0")
             .stdin(Stdio::null())
             .stdout(Stdio::piped())
             .stderr(log_file);

@@ -6,10 +6,16 @@
 //!   and metadata and infers `reward` and `grad_x`; its answers must equal the native
 //!   RewardService's Score and Gradient on the same input bit for bit, and relreward's
 //!   `inference` descriptors must match the ones shipped inside tritonclient field for field.
+//!   It also reads the model's config, statistics and the repository index with tritonclient's
+//!   own stubs (protobuf and JSON), which proves those answers wire-compatible too.
 //! - Bad requests through the generated Rust client get the native API's status codes
 //!   (NOT_FOUND, FAILED_PRECONDITION, INVALID_ARGUMENT naming the input), as do a few through
 //!   tritonclient, and the server answers normally afterwards.
-//! - An RPC of the protocol that relreward leaves out answers UNIMPLEMENTED.
+//! - ModelConfig reports the model and the serving settings; ModelStatistics counts exactly
+//!   the calls made (successes and failures); RepositoryIndex lists the reward model READY and
+//!   no diffusion model; `t` given once (shape [1] or []) or as [B, 1] gives the same numbers
+//!   as one per item.
+//! - RPCs of the protocol that relreward leaves out answer UNIMPLEMENTED.
 
 use std::time::Duration;
 
@@ -264,10 +270,72 @@ async fn tritonclient_matches_native(server: &TestServer, client: &Client) {
     assert_eq!(status("unknown_model"), "StatusCode.NOT_FOUND");
     assert_eq!(status("diffusion_model"), "StatusCode.FAILED_PRECONDITION");
     assert_eq!(status("unknown_output"), "StatusCode.INVALID_ARGUMENT");
-    for rpc in ["repository_index", "model_statistics", "model_config"] {
-        assert_eq!(status(rpc), "StatusCode.UNIMPLEMENTED", "{rpc}: {}", message(rpc));
+    for (rpc, code) in [
+        ("config_unknown_model", "NOT_FOUND"),
+        ("config_diffusion_model", "FAILED_PRECONDITION"),
+        ("config_unknown_version", "NOT_FOUND"),
+        ("statistics_unknown_model", "NOT_FOUND"),
+        ("statistics_diffusion_model", "FAILED_PRECONDITION"),
+        ("load_model", "UNIMPLEMENTED"),
+        ("shared_memory_status", "UNIMPLEMENTED"),
+        ("log_settings", "UNIMPLEMENTED"),
+    ] {
+        assert_eq!(status(rpc), format!("StatusCode.{code}"), "{rpc}: {}", message(rpc));
     }
     assert_eq!(s["after_errors_equal"], true);
+
+    // ModelConfig, as tritonclient's ModelConfig message and as JSON.
+    let (h, d) = (i64::from(HORIZON), DIM as i64);
+    assert_eq!(
+        s["model_config_proto"],
+        serde_json::json!({
+            "name": "lines-reward",
+            "max_batch_size": MAX_ITEMS,
+            "inputs": [["x", "TYPE_FP32", [h, d], [], false], ["t", "TYPE_INT64", [1], [], true]],
+            "outputs": [["reward", "TYPE_FP32", [1], []], ["grad_x", "TYPE_FP32", [h, d], []]],
+            "scheduling": "dynamic_batching",
+            "preferred_batch_size": [MAX_ITEMS],
+            "version_policy": "specific",
+        })
+    );
+    let config = &s["model_config"];
+    assert_eq!(
+        (config["name"].as_str(), config["platform"].as_str()),
+        (Some("lines-reward"), Some("relreward_native"))
+    );
+    assert_eq!(config["input"][0]["dims"], serde_json::json!([h.to_string(), d.to_string()]), "{config}");
+    assert_eq!(config["input"][1]["reshape"], serde_json::json!({}), "t: one scalar per item: {config}");
+    assert!(config["input"][0].get("reshape").is_none(), "{config}");
+    assert_eq!(config["parameters"]["n_timesteps"]["string_value"], T.to_string(), "{config}");
+
+    // Statistics: the three inferences above (one success each, B items each), no failure
+    // (the bad requests were refused before reaching the model, or were for other models).
+    let delta = &s["statistics_delta"];
+    assert_eq!((delta["name"].as_str(), delta["version"].as_str()), (Some("lines-reward"), Some("1")));
+    assert_eq!((delta["success"].as_u64(), delta["fail"].as_u64()), (Some(3), Some(0)), "{delta}");
+    assert_eq!(delta["inference_count"].as_u64(), Some(3 * b as u64), "{delta}");
+    assert_eq!(delta["compute_infer"].as_u64(), Some(3), "{delta}");
+    assert_eq!(delta["success_ns_grew"], true);
+    let now_ms = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).expect("clock").as_millis();
+    let last = u128::from(delta["last_inference_ms"].as_u64().expect("ms"));
+    assert!(last <= now_ms && last + 600_000 > now_ms, "last_inference {last} vs now {now_ms}");
+    assert_eq!(s["statistics_json"]["model_stats"][0]["name"], "lines-reward");
+    let count = s["statistics_json"]["model_stats"][0]["inference_count"].as_str().expect("uint64 as a JSON string");
+    assert!(count.parse::<u64>().expect("count") >= 3 * b as u64);
+    let all: Vec<&str> = s["statistics_all_json"]["model_stats"]
+        .as_array()
+        .expect("all stats")
+        .iter()
+        .map(|m| m["name"].as_str().expect("name"))
+        .collect();
+    assert_eq!(all, ["lines-reward"], "only reward models with statistics");
+
+    // The repository: the reward model, not the diffusion models.
+    assert_eq!(s["repository_index"], serde_json::json!([["lines-reward", "1", "READY", ""]]));
+    assert_eq!(
+        s["repository_index_json"],
+        serde_json::json!({"models": [{"name": "lines-reward", "version": "1", "state": "READY"}]})
+    );
 }
 
 fn x_input(shape: &[i64]) -> InferInputTensor {
@@ -451,6 +519,214 @@ async fn rust_client_and_bad_inputs(server: &TestServer, client: &Client) {
     assert!(!server.log().contains("panicked"), "server log:\n{}", server.log());
 }
 
+async fn statistics(oip: &mut GrpcInferenceServiceClient<Channel>, name: &str) -> oip::ModelStatistics {
+    let mut all = oip
+        .model_statistics(oip::ModelStatisticsRequest { name: name.into(), version: String::new() })
+        .await
+        .expect("statistics")
+        .into_inner()
+        .model_stats;
+    assert_eq!(all.len(), 1, "one model asked for: {all:?}");
+    all.remove(0)
+}
+
+fn durations(s: &oip::ModelStatistics) -> [(u64, u64); 4] {
+    let i = s.inference_stats.expect("inference_stats");
+    [i.success, i.fail, i.queue, i.compute_infer].map(|d| {
+        let d = d.unwrap_or_default();
+        (d.count, d.ns)
+    })
+}
+
+/// ModelConfig, ModelStatistics and RepositoryIndex through the generated Rust client, and
+/// `t` given once for every item.
+async fn config_statistics_and_index(server: &TestServer, client: &Client) {
+    let mut oip = inference(server).await;
+
+    // ModelConfig.
+    let config = oip
+        .model_config(oip::ModelConfigRequest { name: "lines-reward".into(), version: "1".into() })
+        .await
+        .expect("config")
+        .into_inner()
+        .config
+        .expect("config");
+    let (h, d) = (i64::from(HORIZON), DIM as i64);
+    assert_eq!((config.name.as_str(), config.platform.as_str()), ("lines-reward", "relreward_native"));
+    assert_eq!(config.max_batch_size, MAX_ITEMS as i32, "serving.max_request_items");
+    let inputs: Vec<_> = config
+        .input
+        .iter()
+        .map(|i| (i.name.as_str(), i.data_type(), i.dims.clone(), i.reshape.clone().map(|r| r.shape), i.optional))
+        .collect();
+    assert_eq!(
+        inputs,
+        [
+            ("x", oip::DataType::TypeFp32, vec![h, d], None, false),
+            ("t", oip::DataType::TypeInt64, vec![1], Some(vec![]), true)
+        ]
+    );
+    let outputs: Vec<_> = config
+        .output
+        .iter()
+        .map(|o| (o.name.as_str(), o.data_type(), o.dims.clone(), o.reshape.clone().map(|r| r.shape)))
+        .collect();
+    assert_eq!(
+        outputs,
+        [
+            ("reward", oip::DataType::TypeFp32, vec![1], Some(vec![])),
+            ("grad_x", oip::DataType::TypeFp32, vec![h, d], None)
+        ]
+    );
+    let Some(oip::model_config::SchedulingChoice::DynamicBatching(batching)) = &config.scheduling_choice else {
+        panic!("dynamic batching: {config:?}")
+    };
+    // Defaults: max_batch 256 (capped by max_request_items), max_delay_us 0, queue_capacity
+    // 1024, default_deadline_ms 30000.
+    assert_eq!(batching.preferred_batch_size, [MAX_ITEMS as i32]);
+    assert_eq!(batching.max_queue_delay_microseconds, 0);
+    let policy = batching.default_queue_policy.expect("queue policy");
+    assert_eq!(
+        (policy.max_queue_size, policy.default_timeout_microseconds, policy.allow_timeout_override),
+        (1024, 30_000_000, true)
+    );
+    assert_eq!(policy.timeout_action(), oip::model_queue_policy::TimeoutAction::Reject);
+    assert_eq!(
+        config.version_policy.and_then(|p| p.policy_choice),
+        Some(oip::model_version_policy::PolicyChoice::Specific(oip::model_version_policy::Specific {
+            versions: vec![1]
+        }))
+    );
+    assert_eq!(config.parameters["n_timesteps"].string_value, T.to_string());
+    for (name, version, code) in [
+        ("no-such-model", "", Code::NotFound),
+        ("lines-base", "", Code::FailedPrecondition),
+        ("lines-reward", "2", Code::NotFound),
+        ("Bad Name!", "", Code::InvalidArgument),
+    ] {
+        let err = oip
+            .model_config(oip::ModelConfigRequest { name: name.into(), version: version.into() })
+            .await
+            .expect_err("config of what is not a servable model");
+        assert_eq!(err.code(), code, "ModelConfig({name:?}, {version:?}): {}", err.message());
+        let meta = oip
+            .model_metadata(oip::ModelMetadataRequest { name: name.into(), version: version.into() })
+            .await
+            .expect_err("metadata of what is not a servable model");
+        assert_eq!(meta.code(), code, "ModelConfig answers as ModelMetadata does");
+    }
+
+    // t once for every item ([1] or a scalar) or as [B, 1]: the numbers of t per item.
+    let b = 3usize;
+    let shape = [b as i64, h, d];
+    let (x, _) = batch(b);
+    let (_, _, gradient) = native(client, &x, &[4; 3]).await;
+    let (score, _, _) = native(client, &x, &[4; 3]).await;
+    for t_shape in [&[1][..], &[][..], &[b as i64, 1][..]] {
+        let t: Vec<i64> = vec![4; t_shape.iter().product::<i64>() as usize];
+        let req = infer_request(vec![x_input(&shape), t_input(t_shape)], vec![raw_f32(&x), raw_i64(&t)]);
+        let resp = oip.model_infer(req).await.expect("t broadcast").into_inner();
+        let out = |n: &str| f32_le(&resp.raw_output_contents[resp.outputs.iter().position(|o| o.name == n).expect(n)]);
+        assert_eq!(bits(&out("grad_x")), bits(&gradient), "t shape {t_shape:?}");
+        let mut req = infer_request(vec![x_input(&shape), t_input(t_shape)], vec![raw_f32(&x), raw_i64(&t)]);
+        req.outputs = vec![InferRequestedOutputTensor { name: "reward".into(), ..Default::default() }];
+        let resp = oip.model_infer(req).await.expect("t broadcast, score").into_inner();
+        assert_eq!(bits(&f32_le(&resp.raw_output_contents[0])), bits(&score), "t shape {t_shape:?}");
+    }
+
+    // ModelStatistics: exactly the calls made from here on.
+    let before = statistics(&mut oip, "lines-reward").await;
+    assert_eq!((before.name.as_str(), before.version.as_str()), ("lines-reward", "1"));
+    let (x, t) = batch(b);
+    let good = || infer_request(vec![x_input(&shape), t_input(&[b as i64])], vec![raw_f32(&x), raw_i64(&t)]);
+    let successes = 4;
+    for i in 0..successes {
+        let mut req = good();
+        if i % 2 == 1 {
+            req.outputs = vec![InferRequestedOutputTensor { name: "reward".into(), ..Default::default() }];
+        }
+        oip.model_infer(req).await.expect("infer");
+    }
+    // Refused by the serving layer for this model: failures.
+    let mut t_bad = t.clone();
+    t_bad[0] = i64::from(T);
+    let big = MAX_ITEMS + 1;
+    let (x_big, t_big) = batch(big);
+    let failures = [
+        infer_request(vec![x_input(&shape), t_input(&[b as i64])], vec![raw_f32(&x), raw_i64(&t_bad)]),
+        infer_request(
+            vec![x_input(&[big as i64, h, d]), t_input(&[big as i64])],
+            vec![raw_f32(&x_big), raw_i64(&t_big)],
+        ),
+    ];
+    let n_failures = failures.len() as u64;
+    for req in failures {
+        assert_eq!(oip.model_infer(req).await.expect_err("refused").code(), Code::InvalidArgument);
+    }
+    // Refused before reaching a model (malformed message, unknown model or version): not counted.
+    let mut fp64 = good();
+    fp64.inputs[0].datatype = "FP64".into();
+    let mut unknown = good();
+    unknown.model_name = "no-such-model".into();
+    let mut version = good();
+    version.model_version = "2".into();
+    for req in [fp64, unknown, version] {
+        oip.model_infer(req).await.expect_err("refused before the model");
+    }
+    let after = statistics(&mut oip, "lines-reward").await;
+    let ([s0, f0, q0, c0], [s1, f1, q1, c1]) = (durations(&before), durations(&after));
+    assert_eq!(s1.0 - s0.0, successes, "success count");
+    assert_eq!(f1.0 - f0.0, n_failures, "fail count");
+    assert!(s1.1 > s0.1 && f1.1 > f0.1, "durations grow: {before:?} -> {after:?}");
+    assert_eq!(after.inference_count - before.inference_count, successes * b as u64, "items of the successes");
+    // Sequential calls: each query is its own batch, computed once.
+    assert_eq!(after.execution_count - before.execution_count, successes);
+    assert_eq!((q1.0 - q0.0, c1.0 - c0.0), (successes, successes), "queue and compute per computed query");
+    assert!(c1.1 > c0.1);
+    assert!(after.last_inference >= before.last_inference && after.last_inference > 0);
+    // The native API's queries count for the same model.
+    native(client, &x, &t).await;
+    let native_after = statistics(&mut oip, "lines-reward").await;
+    assert_eq!(durations(&native_after)[0].0 - s1.0, 2, "a native Score and Gradient");
+
+    for (name, version, code) in [
+        ("no-such-model", "", Code::NotFound),
+        ("lines-base", "", Code::FailedPrecondition),
+        ("lines-reward", "2", Code::NotFound),
+    ] {
+        let err = oip
+            .model_statistics(oip::ModelStatisticsRequest { name: name.into(), version: version.into() })
+            .await
+            .expect_err("statistics of what is not a servable model");
+        assert_eq!(err.code(), code, "ModelStatistics({name:?}, {version:?}): {}", err.message());
+    }
+    let all = oip
+        .model_statistics(oip::ModelStatisticsRequest::default())
+        .await
+        .expect("all statistics")
+        .into_inner()
+        .model_stats;
+    let names: Vec<&str> = all.iter().map(|m| m.name.as_str()).collect();
+    assert_eq!(names, ["lines-reward"], "models with statistics, no diffusion model");
+
+    // RepositoryIndex: the reward model READY; diffusion models are not listed.
+    for ready in [false, true] {
+        let index = oip
+            .repository_index(oip::RepositoryIndexRequest { repository_name: String::new(), ready })
+            .await
+            .expect("index")
+            .into_inner()
+            .models;
+        let index: Vec<_> = index.iter().map(|m| (m.name.as_str(), m.version.as_str(), m.state.as_str())).collect();
+        assert_eq!(index, [("lines-reward", "1", "READY")], "ready = {ready}");
+    }
+    let err = oip
+        .repository_index(oip::RepositoryIndexRequest { repository_name: "other".into(), ready: false })
+        .await
+        .expect_err("unknown repository");
+    assert_eq!(err.code(), Code::NotFound);
+}
+
 /// Encodes and decodes messages without fields (the empty protobuf encoding), for calling a
 /// method that has no generated client.
 #[derive(Default)]
@@ -492,7 +768,7 @@ impl tonic::codec::Decoder for EmptyCodec {
 /// (c) Methods of the protocol that relreward leaves out, called on the raw channel.
 async fn unimplemented_rpcs(server: &TestServer) {
     let channel = Channel::from_shared(server.endpoint()).expect("endpoint").connect().await.expect("connect");
-    for method in ["RepositoryIndex", "ModelStatistics", "ModelStreamInfer"] {
+    for method in ["ModelStreamInfer", "RepositoryModelLoad", "SystemSharedMemoryStatus", "LogSettings"] {
         let mut grpc = tonic::client::Grpc::new(channel.clone());
         grpc.ready().await.expect("ready");
         let path = format!("/inference.GRPCInferenceService/{method}");
@@ -514,6 +790,7 @@ async fn open_inference_protocol_serves_rewards_like_the_native_api() {
 
     tritonclient_matches_native(&server, &client).await;
     rust_client_and_bad_inputs(&server, &client).await;
+    config_statistics_and_index(&server, &client).await;
     unimplemented_rpcs(&server).await;
 
     // Health knows the service by its name.

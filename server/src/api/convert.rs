@@ -44,15 +44,11 @@ fn to_usize(v: u64, field: &str) -> Result<usize> {
 
 /// Wire parametrization; UNSPECIFIED is an error (a model must say what its net predicts).
 pub fn parametrization_from_proto(v: i32, field: &str) -> Result<Parametrization> {
-    match pb::Parametrization::try_from(v) {
-        Ok(pb::Parametrization::Epsilon) => Ok(Parametrization::Epsilon),
-        Ok(pb::Parametrization::X0) => Ok(Parametrization::X0),
-        Ok(pb::Parametrization::Unspecified) => {
-            Err(Error::invalid(format!("{field}: unspecified; set PARAMETRIZATION_EPSILON or PARAMETRIZATION_X0")))
-        }
-        Err(_) => Err(Error::invalid(format!(
-            "{field}: unknown value {v}; expected PARAMETRIZATION_EPSILON (1) or PARAMETRIZATION_X0 (2)"
-        ))),
+    const VALUES: &str = "PARAMETRIZATION_EPSILON (1) or PARAMETRIZATION_X0 (2)";
+    match crate::fields::known(field, v, VALUES)? {
+        pb::Parametrization::Epsilon => Ok(Parametrization::Epsilon),
+        pb::Parametrization::X0 => Ok(Parametrization::X0),
+        pb::Parametrization::Unspecified => Err(Error::invalid(format!("{field}: unspecified; set {VALUES}"))),
     }
 }
 
@@ -189,13 +185,14 @@ pub fn diffusion_manifest_to_proto(m: &DiffusionManifest) -> pb::DiffusionManife
 
 /// Wire kind filter: UNSPECIFIED means any kind (`None`).
 pub fn model_kind_filter_from_proto(v: i32, field: &str) -> Result<Option<ModelKind>> {
-    match pb::ModelKind::try_from(v) {
-        Ok(pb::ModelKind::Unspecified) => Ok(None),
-        Ok(pb::ModelKind::Diffusion) => Ok(Some(ModelKind::Diffusion)),
-        Ok(pb::ModelKind::Reward) => Ok(Some(ModelKind::Reward)),
-        Ok(pb::ModelKind::Discriminator) => Ok(Some(ModelKind::Discriminator)),
-        Err(_) => Err(Error::invalid(format!("{field}: unknown model kind {v}"))),
-    }
+    const KINDS: &str =
+        "MODEL_KIND_UNSPECIFIED (any), MODEL_KIND_DIFFUSION, MODEL_KIND_REWARD or MODEL_KIND_DISCRIMINATOR";
+    Ok(match crate::fields::known(field, v, KINDS)? {
+        pb::ModelKind::Unspecified => None,
+        pb::ModelKind::Diffusion => Some(ModelKind::Diffusion),
+        pb::ModelKind::Reward => Some(ModelKind::Reward),
+        pb::ModelKind::Discriminator => Some(ModelKind::Discriminator),
+    })
 }
 
 pub fn model_kind_to_proto(k: ModelKind) -> pb::ModelKind {

@@ -8,10 +8,13 @@ use tonic::{Request, Response, Status, Streaming};
 
 use super::{next_upload, page_limit, timestamp};
 use crate::error::Error;
+use crate::fields::{self, validate_name};
 use crate::jobs::JobManager;
 use crate::limits::{DiskBudget, is_disk_full};
 use crate::store::ingest::DatasetIngest;
-use crate::store::names::validate_name;
+
+const DATASET_VIEW: &str = "view";
+const DATASET_VIEWS: &str = "DATASET_VIEW_UNSPECIFIED, DATASET_VIEW_BASIC or DATASET_VIEW_FULL";
 use crate::store::{DatasetKind, DatasetRecord, Store};
 
 pub struct Datasets {
@@ -104,9 +107,10 @@ impl DatasetService for Datasets {
     async fn get_dataset(&self, request: Request<pb::GetDatasetRequest>) -> Result<Response<pb::Dataset>, Status> {
         let req = request.into_inner();
         validate_name("name", &req.name)?;
-        let view = match pb::DatasetView::try_from(req.view) {
-            Ok(pb::DatasetView::Basic) => pb::DatasetView::Basic,
-            _ => pb::DatasetView::Full,
+        // Unspecified: the full view for a single dataset.
+        let view = match fields::known(DATASET_VIEW, req.view, DATASET_VIEWS)? {
+            pb::DatasetView::Basic => pb::DatasetView::Basic,
+            pb::DatasetView::Unspecified | pb::DatasetView::Full => pb::DatasetView::Full,
         };
         let record = self
             .store
@@ -124,12 +128,14 @@ impl DatasetService for Datasets {
         let req = request.into_inner();
         let page = req.page.unwrap_or_default();
         let limit = page_limit(page.page_size);
-        let view = match pb::DatasetView::try_from(req.view) {
-            Ok(pb::DatasetView::Full) => pb::DatasetView::Full,
-            _ => pb::DatasetView::Basic,
+        // Unspecified: the basic view for a listing.
+        let view = match fields::known(DATASET_VIEW, req.view, DATASET_VIEWS)? {
+            pb::DatasetView::Full => pb::DatasetView::Full,
+            pb::DatasetView::Unspecified | pb::DatasetView::Basic => pb::DatasetView::Basic,
         };
+        let after = fields::name_page_token(&page.page_token, "ListDatasets")?;
         // One extra row tells whether another page exists.
-        let mut records = self.store.meta.list_datasets(&page.page_token, limit + 1).await?;
+        let mut records = self.store.meta.list_datasets(after, limit + 1).await?;
         let next_page_token = if records.len() > limit {
             records.truncate(limit);
             records.last().map(|r| r.name.clone()).unwrap_or_default()

@@ -15,6 +15,7 @@ use crate::engine::manifest::{Architecture, DiffusionManifest, Parametrization, 
 use crate::engine::nets::reward::RewardArchitecture;
 use crate::engine::relative_reward::{EvalPoint, Target};
 use crate::error::Error;
+use crate::fields::{self, validate_name, validate_names};
 use crate::jobs::JobManager;
 use crate::jobs::reward;
 use crate::jobs::spec::{DiffusionJob, DiscriminatorJob, JobKind, JobSpec, Optimization, RewardAlgorithm, RewardJob};
@@ -33,6 +34,7 @@ impl Jobs {
     /// proto -> stored spec, with defaults. Needs the dataset's kind to pick the default
     /// architecture.
     async fn spec_from_proto(&self, spec: pb::JobSpec) -> Result<JobSpec, Error> {
+        validate_spec_names(&spec)?;
         let kind =
             spec.kind.ok_or_else(|| Error::invalid("spec.kind: none of diffusion, reward or discriminator is set"))?;
         let o = spec.optimization.unwrap_or_default();
@@ -101,17 +103,18 @@ impl Jobs {
                     })?
                     .space;
                 let architecture = reward_architecture(r.architecture, &space);
-                let target = match pb::RewardTarget::try_from(r.target) {
-                    Ok(pb::RewardTarget::Unspecified | pb::RewardTarget::Mean) => Target::Mean,
-                    Ok(pb::RewardTarget::Score) => Target::Score,
-                    Err(_) => return Err(Error::invalid(format!("spec.reward.target: unknown value {}", r.target))),
-                };
-                let eval_point = match pb::EvalPoint::try_from(r.eval_point) {
-                    Ok(pb::EvalPoint::Unspecified | pb::EvalPoint::XT) => EvalPoint::XT,
-                    Ok(pb::EvalPoint::MuBase) => EvalPoint::MuBase,
-                    Err(_) => {
-                        return Err(Error::invalid(format!("spec.reward.eval_point: unknown value {}", r.eval_point)));
-                    }
+                let target =
+                    match fields::known("spec.reward.target", r.target, "REWARD_TARGET_MEAN or REWARD_TARGET_SCORE")? {
+                        pb::RewardTarget::Unspecified | pb::RewardTarget::Mean => Target::Mean,
+                        pb::RewardTarget::Score => Target::Score,
+                    };
+                let eval_point = match fields::known(
+                    "spec.reward.eval_point",
+                    r.eval_point,
+                    "EVAL_POINT_X_T or EVAL_POINT_MU_BASE",
+                )? {
+                    pb::EvalPoint::Unspecified | pb::EvalPoint::XT => EvalPoint::XT,
+                    pb::EvalPoint::MuBase => EvalPoint::MuBase,
                 };
                 let algorithm = match r.algorithm {
                     Some(pb::train_reward::Algorithm::WithDataset(w)) => {
@@ -170,6 +173,35 @@ impl Jobs {
                     }),
                 })
             }
+        }
+    }
+}
+
+/// Every name a spec refers to, checked by the name rule before any lookup (a malformed name
+/// is INVALID_ARGUMENT, never NOT_FOUND).
+fn validate_spec_names(spec: &pb::JobSpec) -> Result<(), Error> {
+    use pb::job_spec::Kind;
+    validate_name("spec.output_model", &spec.output_model)?;
+    match &spec.kind {
+        None => Ok(()),
+        Some(Kind::Diffusion(d)) => {
+            validate_name("spec.diffusion.dataset", &d.dataset)?;
+            validate_names("spec.diffusion.normalizer_datasets", &d.normalizer_datasets)
+        }
+        Some(Kind::Reward(r)) => {
+            validate_name("spec.reward.base_model", &r.base_model)?;
+            validate_name("spec.reward.expert_model", &r.expert_model)?;
+            match &r.algorithm {
+                Some(pb::train_reward::Algorithm::WithDataset(w)) => {
+                    validate_names("spec.reward.with_dataset.datasets", &w.datasets)
+                }
+                _ => Ok(()),
+            }
+        }
+        Some(Kind::Discriminator(d)) => {
+            validate_name("spec.discriminator.base_dataset", &d.base_dataset)?;
+            validate_name("spec.discriminator.expert_dataset", &d.expert_dataset)?;
+            validate_name("spec.discriminator.diffusion_model", &d.diffusion_model)
         }
     }
 }
@@ -376,6 +408,9 @@ impl JobService for Jobs {
 
     async fn submit_job(&self, request: Request<pb::SubmitJobRequest>) -> Result<Response<pb::Job>, Status> {
         let req = request.into_inner();
+        if !req.job_id.is_empty() {
+            validate_name("job_id", &req.job_id)?;
+        }
         let spec = req.spec.ok_or_else(|| Error::invalid("spec: missing"))?;
         let spec = self.spec_from_proto(spec).await?;
         let id = (!req.job_id.is_empty()).then_some(req.job_id);
@@ -391,19 +426,15 @@ impl JobService for Jobs {
         let req = request.into_inner();
         let page = req.page.unwrap_or_default();
         let limit = page_limit(page.page_size);
-        let after = if page.page_token.is_empty() {
-            0
-        } else {
-            page.page_token.parse::<i64>().map_err(|_| Error::invalid("page.page_token: not a token from ListJobs"))?
-        };
-        let state = match pb::JobState::try_from(req.state) {
-            Ok(pb::JobState::Unspecified) => None,
-            Ok(pb::JobState::Pending) => Some(JobState::Pending),
-            Ok(pb::JobState::Running) => Some(JobState::Running),
-            Ok(pb::JobState::Succeeded) => Some(JobState::Succeeded),
-            Ok(pb::JobState::Failed) => Some(JobState::Failed),
-            Ok(pb::JobState::Cancelled) => Some(JobState::Cancelled),
-            Err(_) => return Err(Error::invalid(format!("state: unknown value {}", req.state)).into()),
+        let after = fields::position_page_token(&page.page_token, "ListJobs")?;
+        let states = "JOB_STATE_UNSPECIFIED (any), JOB_STATE_PENDING, _RUNNING, _SUCCEEDED, _FAILED or _CANCELLED";
+        let state = match fields::known("state", req.state, states)? {
+            pb::JobState::Unspecified => None,
+            pb::JobState::Pending => Some(JobState::Pending),
+            pb::JobState::Running => Some(JobState::Running),
+            pb::JobState::Succeeded => Some(JobState::Succeeded),
+            pb::JobState::Failed => Some(JobState::Failed),
+            pb::JobState::Cancelled => Some(JobState::Cancelled),
         };
         let mut rows = self.jobs.list(state, after, limit + 1).await?;
         let next_page_token = if rows.len() > limit {

@@ -8,6 +8,7 @@ pub mod datasets;
 pub mod jobs;
 pub mod models;
 pub mod oip;
+pub mod reflection;
 pub mod rewards;
 
 use relreward_proto::inference::grpc_inference_service_server::GrpcInferenceServiceServer;
@@ -38,8 +39,8 @@ pub(crate) fn page_limit(requested: u32) -> usize {
 }
 
 /// The next message of a client-streaming upload with its oneof unwrapped by `inner`: a
-/// message with nothing set is malformed, and a broken stream (the client went away, or sent
-/// an undecodable frame) abandons the upload.
+/// message with nothing set is malformed, and a broken stream (the client went away, sent an
+/// undecodable frame or one over the size limit) abandons the upload.
 pub(crate) async fn next_upload<R, M>(
     stream: &mut tonic::Streaming<R>,
     inner: impl Fn(R) -> Option<M>,
@@ -50,7 +51,7 @@ pub(crate) async fn next_upload<R, M>(
             inner(request).map(Some).ok_or_else(|| Error::invalid("message: none of header, chunk or commit is set"))
         }
         Ok(None) => Ok(None),
-        Err(status) => Err(Error::invalid(format!("upload stream failed: {}", status.message()))),
+        Err(status) => Err(Error::from_inbound("upload stream", &status)),
     }
 }
 
@@ -58,7 +59,9 @@ pub(crate) fn timestamp(ms: i64) -> prost_types::Timestamp {
     prost_types::Timestamp { seconds: ms.div_euclid(1000), nanos: (ms.rem_euclid(1000) * 1_000_000) as i32 }
 }
 
-/// Every relreward.v1 service, and the Open Inference Protocol's, with the configured message limits.
+/// Every relreward.v1 service, and the Open Inference Protocol's, with the configured message
+/// limits and compression (gzip and deflate requests accepted; responses per
+/// `server.response_compression`; a decompressed message is bounded by max_request_bytes too).
 pub fn routes(
     config: &Config,
     store: Store,
@@ -90,7 +93,11 @@ pub fn routes(
     let rewards = RewardServiceServer::new(rewards::Rewards::new(serving, slots))
         .max_decoding_message_size(max_in)
         .max_encoding_message_size(max_out);
-    Routes::new(datasets).add_service(models).add_service(jobs).add_service(rewards).add_service(inference)
+    Routes::new(with_compression!(datasets, config))
+        .add_service(with_compression!(models, config))
+        .add_service(with_compression!(jobs, config))
+        .add_service(with_compression!(rewards, config))
+        .add_service(with_compression!(inference, config))
 }
 
 /// Service names registered with grpc.health.v1, besides "" for the whole server.

@@ -24,10 +24,10 @@ use super::{next_upload, page_limit};
 use crate::config::ModelsConfig;
 use crate::engine::registry::ModelRegistry;
 use crate::error::{Error, Result};
+use crate::fields::{self, validate_name};
 use crate::jobs::JobManager;
 use crate::limits::DiskBudget;
 use crate::store::ingest::now_ms;
-use crate::store::names::validate_name;
 use crate::store::{ModelFormat, ModelKind, ModelRecord, Provenance, Store};
 
 /// File names inside an uploaded model's blob.
@@ -134,8 +134,8 @@ impl Models {
         let sha256 = hex::encode(hasher.finalize());
         if !digest.eq_ignore_ascii_case(&sha256) {
             return Err(Error::invalid(format!(
-                "commit.sha256: '{}' does not match the uploaded bytes (sha256 {sha256}); nothing was stored",
-                digest.escape_default()
+                "commit.sha256: {} does not match the uploaded bytes (sha256 {sha256}); nothing was stored",
+                crate::error::quote(&digest)
             )));
         }
 
@@ -176,7 +176,7 @@ impl Models {
         let kind = model_kind_filter_from_proto(req.kind, "kind")?;
         // Read in pages of limit + 1 until limit + 1 matches are found (one extra tells whether
         // another page exists) or the listing ends.
-        let mut after = page.page_token;
+        let mut after = fields::name_page_token(&page.page_token, "ListModels")?.to_owned();
         let mut matched: Vec<ModelRecord> = Vec::new();
         loop {
             let batch = self.store.meta.list_models(&after, limit + 1).await?;

@@ -7,7 +7,9 @@
 //! A reward (or discriminator) model, version "1", takes
 //! - `x`: FP32 `[B, *item_shape]` (`[B, H, D]` trajectories, or `[B, *shape]` samples), in the
 //!   dataset's raw units (the native API's default);
-//! - `t`: INT64 `[B]`, the diffusion step per item (optional: missing means 0 for every item);
+//! - `t`: INT64, the diffusion step per item, shape `[B]` (or `[B, 1]`, the shape ModelConfig's
+//!   dims `[1]` describe), or one step for every item, shape `[1]` or `[]` (optional: missing
+//!   means 0 for every item);
 //!
 //! and offers
 //! - `reward`: FP32 `[B]`, rho(x, t);
@@ -18,33 +20,64 @@
 //! `contents` fields; outputs always go in `raw_output_contents` (what tritonclient reads).
 //! Every malformed request is INVALID_ARGUMENT naming the input and what was expected, checked
 //! before any model compute; unknown models are NOT_FOUND and diffusion models
-//! FAILED_PRECONDITION, as on the native API. RPCs of the protocol not listed in
-//! `proto/inference/grpc_service.proto` are answered UNIMPLEMENTED by tonic.
+//! FAILED_PRECONDITION, as on the native API.
+//!
+//! Besides inference:
+//! - ModelMetadata and ModelConfig describe a model; ModelConfig in Triton's terms:
+//!   `max_batch_size` is `serving.max_request_items` (the most items one request may carry),
+//!   dims are per item, `t` and `reward` are dims `[1]` reshaped to `[]` (one scalar per item),
+//!   `t` is optional, and `dynamic_batching` is the batcher's settings (`preferred_batch_size`
+//!   `serving.max_batch`, `max_queue_delay_microseconds` `serving.max_delay_us`, a queue of
+//!   `serving.queue_capacity` requests that rejects on timeout, `serving.default_deadline_ms`
+//!   unless the call carries `grpc-timeout`). Both answer NOT_FOUND for an unknown model or
+//!   version and FAILED_PRECONDITION for a diffusion model.
+//! - ModelStatistics: per model, what serving counted since the server started
+//!   ([`crate::metrics::ModelStats`]: Score and Gradient of the native API count too). With a
+//!   name, that model (zeros before its first query); without, every reward model in the store
+//!   that has statistics.
+//! - RepositoryIndex: every reward and discriminator model in the store, version "1", READY
+//!   when ModelReady would say so (it loads and passes its integrity check; so the index may
+//!   load models), else UNAVAILABLE with the reason. Diffusion models are not listed: this
+//!   endpoint never serves them. `ready` keeps the READY ones only.
+//!
+//! The protocol's other RPCs (ModelStreamInfer, RepositoryModelLoad and RepositoryModelUnload
+//! (models load on demand), the system and CUDA shared-memory RPCs, TraceSetting and
+//! LogSettings) are not in `proto/inference/grpc_service.proto` and are answered UNIMPLEMENTED
+//! by tonic.
 
-use std::collections::HashMap;
+use std::collections::{HashMap, HashSet};
 
 use prost::bytes::Bytes;
 use relreward_proto::inference::{
     self as pb, InferParameter, grpc_inference_service_server::GrpcInferenceService,
     model_infer_request::InferInputTensor, model_infer_response::InferOutputTensor,
-    model_metadata_response::TensorMetadata,
+    model_metadata_response::TensorMetadata, repository_index_response::ModelIndex,
 };
 use tch::{Kind, Tensor};
 use tonic::{Request, Response, Status};
 use tracing::Instrument;
 
-use crate::error::{Error, Result};
+use crate::error::{Error, Result, brief, quote};
+use crate::metrics::{CountNs, ModelStats};
 use crate::serving::{self, Op, Query, Serving, Units};
+use crate::store::ModelKind;
 
 /// The one version every model has.
 const VERSION: &str = "1";
 const PLATFORM: &str = "relreward_native";
+/// ModelConfig's backend.
+const BACKEND: &str = "relreward";
 const X: &str = "x";
 const T: &str = "t";
 const REWARD: &str = "reward";
 const GRAD_X: &str = "grad_x";
 const FP32: &str = "FP32";
 const INT64: &str = "INT64";
+/// RepositoryIndex states.
+const READY: &str = "READY";
+const UNAVAILABLE: &str = "UNAVAILABLE";
+/// Store records read per page while building the repository index.
+const INDEX_PAGE: usize = 256;
 /// Parameters that ask the server to read or write shared memory, which it does not offer.
 const SHARED_MEMORY: &[&str] = &["shared_memory_region", "shared_memory_byte_size", "shared_memory_offset"];
 
@@ -63,7 +96,11 @@ fn check_version(name: &str, version: &str) -> Result<()> {
     if version.is_empty() || version == VERSION {
         Ok(())
     } else {
-        Err(Error::NotFound(format!("model '{name}' has no version '{version}' (its only version is \"{VERSION}\")")))
+        Err(Error::NotFound(format!(
+            "model {} has no version {} (its only version is \"{VERSION}\")",
+            quote(name),
+            quote(version)
+        )))
     }
 }
 
@@ -80,8 +117,8 @@ fn refuse_shared_memory(what: &str, parameters: &HashMap<String, InferParameter>
 fn element_count(name: &str, shape: &[i64]) -> Result<usize> {
     shape.iter().try_fold(1usize, |n, &d| {
         let d = usize::try_from(d)
-            .map_err(|_| Error::invalid(format!("{name}: shape {shape:?} has a negative dimension")))?;
-        n.checked_mul(d).ok_or_else(|| Error::invalid(format!("{name}: shape {shape:?} has too many elements")))
+            .map_err(|_| Error::invalid(format!("{name}: shape {} has a negative dimension", brief(&shape))))?;
+        n.checked_mul(d).ok_or_else(|| Error::invalid(format!("{name}: shape {} has too many elements", brief(&shape))))
     })
 }
 
@@ -96,8 +133,9 @@ fn from_raw<const N: usize, V>(
 ) -> Result<Vec<V>> {
     if Some(raw.len()) != count.checked_mul(N) {
         return Err(Error::invalid(format!(
-            "{name}: raw_input_contents has {} bytes but {datatype} shape {shape:?} needs {count} x {N} = {} bytes",
+            "{name}: raw_input_contents has {} bytes but {datatype} shape {} needs {count} x {N} = {} bytes",
             raw.len(),
+            brief(&shape),
             count.saturating_mul(N)
         )));
     }
@@ -108,8 +146,9 @@ fn from_raw<const N: usize, V>(
 fn from_contents<V: Clone>(name: &str, field: &str, shape: &[i64], count: usize, values: &[V]) -> Result<Vec<V>> {
     if values.len() != count {
         return Err(Error::invalid(format!(
-            "{name}: contents.{field} holds {} values but shape {shape:?} needs {count}",
-            values.len()
+            "{name}: contents.{field} holds {} values but shape {} needs {count}",
+            values.len(),
+            brief(&shape)
         )));
     }
     Ok(values.to_vec())
@@ -143,7 +182,8 @@ fn parse_inputs(req: &pb::ModelInferRequest) -> Result<Inputs> {
             T => (INT64, t.is_some()),
             other => {
                 return Err(Error::invalid(format!(
-                    "inputs[{i}]: unknown input '{other}'; reward models take {X} ({FP32}) and {T} ({INT64})"
+                    "inputs[{i}]: unknown input {}; reward models take {X} ({FP32}) and {T} ({INT64})",
+                    quote(other)
                 )));
             }
         };
@@ -152,7 +192,10 @@ fn parse_inputs(req: &pb::ModelInferRequest) -> Result<Inputs> {
         }
         refuse_shared_memory(name, parameters)?;
         if datatype != want {
-            return Err(Error::invalid(format!("{name}: datatype {datatype:?} is not accepted; expected {want}")));
+            return Err(Error::invalid(format!(
+                "{name}: datatype {} is not accepted; expected {want}",
+                quote(datatype)
+            )));
         }
         let count = element_count(name, shape)?;
         let raw = raw.get(i);
@@ -178,9 +221,16 @@ fn parse_inputs(req: &pb::ModelInferRequest) -> Result<Inputs> {
     let t = match (t, x_shape.first()) {
         (None, _) => Vec::new(),
         (Some((shape, values)), Some(&b)) => {
-            if shape != [b] {
+            // One step per item ([B], or [B, 1] as ModelConfig's dims [1] describe), or one
+            // step for every item ([1] or a scalar), which Serving broadcasts.
+            let per_item = shape == [b] || shape == [b, 1];
+            let broadcast = shape.is_empty() || shape == [1];
+            if !(per_item || broadcast) {
                 return Err(Error::invalid(format!(
-                    "{T}: expected shape [{b}] (one diffusion step per item of {X}, whose shape is {x_shape:?}), got {shape:?}"
+                    "{T}: expected shape [{b}] or [{b}, 1] (one diffusion step per item of {X}, whose shape is \
+                     {}), or [1] or [] (one step for every item), got {}",
+                    brief(&x_shape),
+                    brief(&shape)
                 )));
             }
             values
@@ -218,7 +268,8 @@ fn parse_outputs(req: &pb::ModelInferRequest) -> Result<Vec<Output>> {
             GRAD_X => Output::GradX,
             other => {
                 return Err(Error::invalid(format!(
-                    "outputs[{i}]: unknown output '{other}'; reward models offer {REWARD} and {GRAD_X}"
+                    "outputs[{i}]: unknown output {}; reward models offer {REWARD} and {GRAD_X}",
+                    quote(other)
                 )));
             }
         };
@@ -246,6 +297,48 @@ fn fp32_output(name: &str, t: &Tensor) -> Result<(InferOutputTensor, Bytes)> {
 
 fn tensor_metadata(name: &str, datatype: &str, shape: Vec<i64>) -> TensorMetadata {
     TensorMetadata { name: name.to_owned(), datatype: datatype.to_owned(), shape }
+}
+
+/// One scalar per item, in Triton's terms: dims `[1]`, which the model sees as `[]`.
+fn scalar_reshape() -> Option<pb::ModelTensorReshape> {
+    Some(pb::ModelTensorReshape { shape: Vec::new() })
+}
+
+fn duration(d: CountNs) -> Option<pb::StatisticDuration> {
+    Some(pb::StatisticDuration { count: d.count, ns: d.ns })
+}
+
+fn model_statistics(name: String, s: &ModelStats) -> pb::ModelStatistics {
+    pb::ModelStatistics {
+        name,
+        version: VERSION.to_owned(),
+        last_inference: s.last_inference_ms,
+        inference_count: s.inference_count,
+        execution_count: s.execution_count,
+        inference_stats: Some(pb::InferStatistics {
+            success: duration(s.success),
+            fail: duration(s.fail),
+            queue: duration(s.queue),
+            compute_input: duration(CountNs::default()),
+            compute_infer: duration(s.compute_infer),
+            compute_output: duration(CountNs::default()),
+            cache_hit: duration(CountNs::default()),
+            cache_miss: duration(CountNs::default()),
+        }),
+        ..Default::default()
+    }
+}
+
+/// The repository's own error for a repository name other than its one, unnamed, repository.
+fn check_repository(name: &str) -> Result<()> {
+    if name.is_empty() {
+        Ok(())
+    } else {
+        Err(Error::NotFound(format!(
+            "repository {}: relreward has one model repository, the model store; leave repository_name empty",
+            quote(name)
+        )))
+    }
 }
 
 impl Inference {
@@ -300,6 +393,126 @@ impl Inference {
                 tensor_metadata(GRAD_X, FP32, batched(&model.item_shape)),
             ],
         })
+    }
+
+    async fn config(&self, req: pb::ModelConfigRequest) -> Result<pb::ModelConfigResponse> {
+        check_version(&req.name, &req.version)?;
+        let model = self.serving.reward(&req.name).await?;
+        let serving = self.serving.config();
+        let int32 = |what: &str, v: usize| {
+            i32::try_from(v).map_err(|e| Error::internal(&format!("ModelConfig: serving.{what} = {v}"), e))
+        };
+        let max_batch_size = int32("max_request_items", serving.max_request_items)?;
+        let preferred = int32("max_batch", serving.max_batch.min(serving.max_request_items))?;
+        let max_queue_size = u32::try_from(serving.queue_capacity).map_err(|e| {
+            Error::internal(&format!("ModelConfig: serving.queue_capacity = {}", serving.queue_capacity), e)
+        })?;
+        let input =
+            |name: &str, data_type: pb::DataType, dims: Vec<i64>, scalar: bool, optional: bool| pb::ModelInput {
+                name: name.to_owned(),
+                data_type: data_type as i32,
+                dims,
+                reshape: if scalar { scalar_reshape() } else { None },
+                optional,
+            };
+        let output = |name: &str, dims: Vec<i64>, scalar: bool| pb::ModelOutput {
+            name: name.to_owned(),
+            data_type: pb::DataType::TypeFp32 as i32,
+            dims,
+            reshape: if scalar { scalar_reshape() } else { None },
+        };
+        let item = model.item_shape.clone();
+        let parameters = [("n_timesteps", model.manifest.n_timesteps.to_string())]
+            .into_iter()
+            .map(|(k, v)| (k.to_owned(), pb::ModelParameter { string_value: v }))
+            .collect();
+        let config = pb::ModelConfig {
+            name: req.name,
+            platform: PLATFORM.to_owned(),
+            backend: BACKEND.to_owned(),
+            version_policy: Some(pb::ModelVersionPolicy {
+                policy_choice: Some(pb::model_version_policy::PolicyChoice::Specific(
+                    pb::model_version_policy::Specific { versions: vec![1] },
+                )),
+            }),
+            max_batch_size,
+            input: vec![
+                input(X, pb::DataType::TypeFp32, item.clone(), false, false),
+                input(T, pb::DataType::TypeInt64, vec![1], true, true),
+            ],
+            output: vec![output(REWARD, vec![1], true), output(GRAD_X, item, false)],
+            scheduling_choice: Some(pb::model_config::SchedulingChoice::DynamicBatching(pb::ModelDynamicBatching {
+                preferred_batch_size: vec![preferred],
+                max_queue_delay_microseconds: serving.max_delay_us,
+                preserve_ordering: false,
+                default_queue_policy: Some(pb::ModelQueuePolicy {
+                    timeout_action: pb::model_queue_policy::TimeoutAction::Reject as i32,
+                    default_timeout_microseconds: serving.default_deadline_ms.saturating_mul(1000),
+                    allow_timeout_override: true,
+                    max_queue_size,
+                }),
+            })),
+            parameters,
+        };
+        Ok(pb::ModelConfigResponse { config: Some(config) })
+    }
+
+    async fn statistics(&self, req: pb::ModelStatisticsRequest) -> Result<pb::ModelStatisticsResponse> {
+        check_version(if req.name.is_empty() { "any model" } else { &req.name }, &req.version)?;
+        let metrics = self.serving.metrics();
+        if !req.name.is_empty() {
+            self.serving.reward(&req.name).await?;
+            let stats = metrics.model_stats(&req.name).unwrap_or_default();
+            return Ok(pb::ModelStatisticsResponse { model_stats: vec![model_statistics(req.name, &stats)] });
+        }
+        // Statistics outlive a deleted model (they are kept by name): list those in the store.
+        let stored: HashSet<String> = self.reward_models().await?.into_iter().collect();
+        let model_stats = metrics
+            .all_model_stats()
+            .into_iter()
+            .filter(|(name, _)| stored.contains(name))
+            .map(|(name, stats)| model_statistics(name, &stats))
+            .collect();
+        Ok(pb::ModelStatisticsResponse { model_stats })
+    }
+
+    /// Names of the reward and discriminator models in the store, in the store's name order.
+    async fn reward_models(&self) -> Result<Vec<String>> {
+        let registry = self.serving.registry();
+        let mut names = Vec::new();
+        let mut after = String::new();
+        loop {
+            let page = registry.list_records(&after, INDEX_PAGE).await?;
+            let done = page.len() < INDEX_PAGE;
+            if let Some(last) = page.last() {
+                after.clone_from(&last.name);
+            }
+            names.extend(page.into_iter().filter(|r| r.kind != ModelKind::Diffusion).map(|r| r.name));
+            if done {
+                return Ok(names);
+            }
+        }
+    }
+
+    async fn index(&self, req: pb::RepositoryIndexRequest) -> Result<pb::RepositoryIndexResponse> {
+        check_repository(&req.repository_name)?;
+        let mut models = Vec::new();
+        for name in self.reward_models().await? {
+            let (state, reason) = match self.serving.reward(&name).await {
+                Ok(_) => (READY, String::new()),
+                // Deleted since the listing.
+                Err(Error::NotFound(_)) => continue,
+                Err(e @ (Error::FailedPrecondition(_) | Error::InvalidArgument(_) | Error::DataLoss(_))) => {
+                    (UNAVAILABLE, e.to_string())
+                }
+                Err(e) => return Err(e),
+            };
+            if req.ready && state != READY {
+                continue;
+            }
+            models.push(ModelIndex { name, version: VERSION.to_owned(), state: state.to_owned(), reason });
+        }
+        Ok(pb::RepositoryIndexResponse { models })
     }
 
     /// Ready iff the registry can load `name` as a reward or discriminator model.
@@ -376,6 +589,33 @@ impl GrpcInferenceService for Inference {
         let span = span("ModelInfer", &req.model_name);
         Ok(Response::new(self.infer(req, deadline).instrument(span).await?))
     }
+
+    async fn model_config(
+        &self,
+        request: Request<pb::ModelConfigRequest>,
+    ) -> Result<Response<pb::ModelConfigResponse>, Status> {
+        let req = request.into_inner();
+        let span = span("ModelConfig", &req.name);
+        Ok(Response::new(self.config(req).instrument(span).await?))
+    }
+
+    async fn model_statistics(
+        &self,
+        request: Request<pb::ModelStatisticsRequest>,
+    ) -> Result<Response<pb::ModelStatisticsResponse>, Status> {
+        let req = request.into_inner();
+        let span = span("ModelStatistics", &req.name);
+        Ok(Response::new(self.statistics(req).instrument(span).await?))
+    }
+
+    async fn repository_index(
+        &self,
+        request: Request<pb::RepositoryIndexRequest>,
+    ) -> Result<Response<pb::RepositoryIndexResponse>, Status> {
+        let req = request.into_inner();
+        let span = span("RepositoryIndex", &req.repository_name);
+        Ok(Response::new(self.index(req).instrument(span).await?))
+    }
 }
 
 #[cfg(test)]
@@ -419,6 +659,11 @@ mod tests {
         let mut xx = input("x", FP32, &[2, 2]);
         xx.contents = Some(InferTensorContents { fp32_contents: x.to_vec(), ..Default::default() });
         assert_eq!(parse_inputs(&request(vec![xx, tx], vec![])).expect("typed"), want);
+        // One t for every item (Serving broadcasts it), or one per item as [B, 1].
+        for (shape, t) in [(&[1][..], &[7][..]), (&[][..], &[7][..]), (&[2, 1][..], &[3, 4][..])] {
+            let req = request(vec![input("x", FP32, &[2, 2]), input("t", INT64, shape)], vec![raw_f32(&x), raw_i64(t)]);
+            assert_eq!(parse_inputs(&req).expect("t shape").t, t, "t shape {shape:?}");
+        }
         // t is optional.
         let only_x = request(vec![input("x", FP32, &[2, 2])], vec![raw_f32(&x)]);
         assert!(parse_inputs(&only_x).expect("x only").t.is_empty());
@@ -428,9 +673,9 @@ mod tests {
     fn malformed_inputs_name_the_input() {
         let x = raw_f32(&[0.0; 4]);
         let e = err(&request(vec![input("x", "FP64", &[2, 2])], vec![x.clone()]));
-        assert!(e.contains("x: datatype \"FP64\"") && e.contains("expected FP32"), "{e}");
+        assert!(e.contains("x: datatype 'FP64'") && e.contains("expected FP32"), "{e}");
         let e = err(&request(vec![input("x", FP32, &[2, 2]), input("t", "INT32", &[2])], vec![x.clone(), x.clone()]));
-        assert!(e.contains("t: datatype \"INT32\"") && e.contains("expected INT64"), "{e}");
+        assert!(e.contains("t: datatype 'INT32'") && e.contains("expected INT64"), "{e}");
         let e = err(&request(vec![input("x", FP32, &[2, 3])], vec![x.clone()]));
         assert!(e.contains("x: raw_input_contents has 16 bytes") && e.contains("24 bytes"), "{e}");
         let e = err(&request(vec![input("y", FP32, &[2, 2])], vec![x.clone()]));
@@ -441,8 +686,16 @@ mod tests {
         assert!(e.contains("raw_input_contents: 1 entries for 2 inputs"), "{e}");
         let e = err(&request(vec![input("t", INT64, &[2])], vec![raw_i64(&[0, 0])]));
         assert!(e.contains("'x'") && e.contains("missing"), "{e}");
-        let e = err(&request(vec![input("x", FP32, &[2, 2]), input("t", INT64, &[1])], vec![x.clone(), raw_i64(&[0])]));
-        assert!(e.contains("t: expected shape [2]") && e.contains("got [1]"), "{e}");
+        let e = err(&request(
+            vec![input("x", FP32, &[2, 2]), input("t", INT64, &[3])],
+            vec![x.clone(), raw_i64(&[0, 1, 2])],
+        ));
+        assert!(e.contains("t: expected shape [2] or [2, 1]") && e.contains("got [3]"), "{e}");
+        let e = err(&request(
+            vec![input("x", FP32, &[2, 2]), input("t", INT64, &[1, 2])],
+            vec![x.clone(), raw_i64(&[0, 1])],
+        ));
+        assert!(e.contains("got [1, 2]"), "{e}");
         let e = err(&request(vec![input("x", FP32, &[-2, 2])], vec![x.clone()]));
         assert!(e.contains("negative dimension"), "{e}");
         let e = err(&request(vec![input("x", FP32, &[i64::MAX, i64::MAX, 4])], vec![x.clone()]));

@@ -18,9 +18,9 @@ use crate::engine::manifest::Space;
 use crate::engine::registry::{ModelRegistry, ServedReward};
 use crate::engine::rng::Rng;
 use crate::engine::sampling::{Condition, Guidance, GuidedSampler, RewardFn};
-use crate::error::{Error, Result};
+use crate::error::{Error, Result, brief};
+use crate::fields::{self, validate_name};
 use crate::serving::{self, Answer, Op, Query, Serving, Units};
-use crate::store::names::validate_name;
 
 /// Most samples per request and per denoised batch.
 const MAX_SAMPLES: u32 = 10_000;
@@ -48,11 +48,10 @@ impl Rewards {
 
 /// `Units` from the wire: unspecified means raw.
 fn units(field: &str, raw: i32) -> Result<Units> {
-    match pb::Units::try_from(raw) {
-        Ok(pb::Units::Unspecified | pb::Units::Raw) => Ok(Units::Raw),
-        Ok(pb::Units::Normalized) => Ok(Units::Normalized),
-        Err(_) => Err(Error::invalid(format!("{field}: unknown units value {raw}"))),
-    }
+    Ok(match fields::known(field, raw, "UNITS_RAW (the default) or UNITS_NORMALIZED")? {
+        pb::Units::Unspecified | pb::Units::Raw => Units::Raw,
+        pb::Units::Normalized => Units::Normalized,
+    })
 }
 
 /// The shape and float32 values of a float32 or float64 tensor field (finiteness is checked
@@ -141,10 +140,13 @@ struct SamplePlan {
     t_stopgrad: usize,
 }
 
-fn plan(req: &pb::SampleRequest, space: &Space, normalize_obs: impl Fn(&[f32]) -> Vec<f32>) -> Result<SamplePlan> {
-    if !req.omega.is_finite() {
-        return Err(Error::invalid(format!("omega: {} is not finite", req.omega)));
-    }
+fn plan(
+    req: &pb::SampleRequest,
+    space: &Space,
+    n_timesteps: usize,
+    normalize_obs: impl Fn(&[f32]) -> Vec<f32>,
+) -> Result<SamplePlan> {
+    fields::check_omega(req.omega)?;
     if req.reward_model.is_empty() && req.omega != 0.0 {
         return Err(Error::invalid("omega: guidance needs a reward_model (omit omega for plain sampling)"));
     }
@@ -160,7 +162,9 @@ fn plan(req: &pb::SampleRequest, space: &Space, normalize_obs: impl Fn(&[f32]) -
     if batch > MAX_BATCH {
         return Err(Error::invalid(format!("batch_size: {batch} is above the limit of {MAX_BATCH}")));
     }
-    let units = pb::Units::try_from(req.input_units).unwrap_or(pb::Units::Unspecified);
+    let units = units("input_units", req.input_units)?;
+    let t_stopgrad = req.t_stopgrad.unwrap_or(0);
+    fields::diffusion_time("t_stopgrad", i64::from(t_stopgrad), n_timesteps)?;
     let mut conditions = Vec::with_capacity(req.conditions.len());
     for (i, c) in req.conditions.iter().enumerate() {
         let Space::Trajectory { horizon, obs_dim, .. } = space else {
@@ -180,12 +184,12 @@ fn plan(req: &pb::SampleRequest, space: &Space, normalize_obs: impl Fn(&[f32]) -
             tensor::decode_finite_f32(state).map_err(|e| Error::invalid(format!("conditions[{i}].state: {e}")))?;
         if values.len() != *obs_dim {
             return Err(Error::invalid(format!(
-                "conditions[{i}].state: {} values (shape {:?}) but the model's obs_dim is {obs_dim}",
+                "conditions[{i}].state: {} values (shape {}) but the model's obs_dim is {obs_dim}",
                 values.len(),
-                state.shape
+                brief(&state.shape)
             )));
         }
-        let values = if units == pb::Units::Normalized { values } else { normalize_obs(&values) };
+        let values = if units == Units::Normalized { values } else { normalize_obs(&values) };
         conditions.push((c.index as usize, values));
     }
     let seed = req.seed.unwrap_or_else(|| {
@@ -198,7 +202,7 @@ fn plan(req: &pb::SampleRequest, space: &Space, normalize_obs: impl Fn(&[f32]) -
         conditions,
         omega: req.omega,
         n_guide_steps: n_guide_steps as usize,
-        t_stopgrad: req.t_stopgrad.unwrap_or(0) as usize,
+        t_stopgrad: t_stopgrad as usize,
     })
 }
 
@@ -286,7 +290,9 @@ impl RewardService for Rewards {
 
     /// Answers every request of the stream as soon as its batch is done (in any order,
     /// matched by request_id); a failed request gets its error in its response and the
-    /// stream goes on. When the client goes away, queries still queued are skipped.
+    /// stream goes on. A frame that cannot be read (undecodable, or over the size limit) ends
+    /// the stream with INVALID_ARGUMENT (RESOURCE_EXHAUSTED) once the requests before it are
+    /// answered. When the client goes away, queries still queued are skipped.
     async fn gradient_stream(
         &self,
         request: Request<Streaming<pb::GradientRequest>>,
@@ -298,6 +304,9 @@ impl RewardService for Rewards {
         tokio::spawn(async move {
             let mut in_flight = FuturesUnordered::new();
             let mut inbound_open = true;
+            // Why the inbound stream broke, if it did: the stream then ends with this status
+            // once the requests in flight are answered, never with OK.
+            let mut broken: Option<Status> = None;
             loop {
                 tokio::select! {
                     message = inbound.message(), if inbound_open => match message {
@@ -322,10 +331,12 @@ impl RewardService for Rewards {
                         }
                         Ok(None) => inbound_open = false,
                         Err(status) => {
-                            // A broken inbound stream (client error or gone): answer what is
-                            // in flight if anyone still listens, accept nothing more.
+                            // A broken inbound stream (an undecodable frame, one over the size
+                            // limit, or the client gone): answer what is in flight if anyone
+                            // still listens, accept nothing more, end with the error.
                             tracing::debug!(error = %status, "GradientStream: inbound stream ended with an error");
                             inbound_open = false;
+                            broken = Some(Error::from_inbound("request stream", &status).into());
                         }
                     },
                     Some(response) = in_flight.next(), if !in_flight.is_empty() => {
@@ -336,6 +347,9 @@ impl RewardService for Rewards {
                     () = tx.closed() => return,
                 }
                 if !inbound_open && in_flight.is_empty() {
+                    if let Some(status) = broken {
+                        let _ = tx.send(Err(status)).await;
+                    }
                     return;
                 }
             }
@@ -360,7 +374,7 @@ impl RewardService for Rewards {
                 Space::Trajectory { action_dim, .. } => *action_dim,
                 Space::Sample { .. } => 0,
             };
-            plan(&req, &space, move |obs| {
+            plan(&req, &space, n_timesteps, move |obs| {
                 // Normalize an observation as the obs part of a full [action | obs] row.
                 let mut row = vec![0f32; action_dim];
                 row.extend_from_slice(obs);
@@ -410,6 +424,15 @@ impl RewardService for Rewards {
                         Ok(())
                     };
                     let sampled = sampler.sample_with(b, &mut rng, &mut stop_if_gone)?;
+                    if !bool::try_from(sampled.x.f_isfinite()?.f_all()?).unwrap_or(false) {
+                        // Guidance too strong for the model (or a model that diverges): refuse
+                        // rather than send Inf or NaN.
+                        return Err(Error::invalid(format!(
+                            "omega: the samples of batch {} are not finite with omega = {}; lower omega or n_guide_steps",
+                            done / plan.batch,
+                            plan.omega
+                        )));
+                    }
                     let rewards = match &per_call {
                         Some(r) => {
                             let t0 = Tensor::zeros([b as i64], (Kind::Int64, tch::Device::Cpu));

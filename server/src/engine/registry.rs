@@ -181,6 +181,12 @@ impl ModelRegistry {
         self.inner.store.models_generation()
     }
 
+    /// Stored model records with names strictly after `after`, in name order, at most `limit`
+    /// (the store's listing: nothing is loaded).
+    pub async fn list_records(&self, after: &str, limit: usize) -> Result<Vec<ModelRecord>> {
+        self.inner.store.meta.list_models(after, limit).await
+    }
+
     /// The stored record of diffusion model `name` (for what its manifest alone answers, such
     /// as its schedule), without loading it.
     pub async fn diffusion_record(&self, name: &str) -> Result<ModelRecord> {

@@ -15,8 +15,8 @@ use crate::engine::nets::native::NativeDenoiser;
 use crate::engine::normalizer::Normalizer;
 use crate::engine::rng::Rng;
 use crate::error::{Error, Result};
+use crate::fields::validate_name;
 use crate::store::ingest::now_ms;
-use crate::store::names::validate_name;
 use crate::store::{ArrayStats, DatasetKind, DatasetRecord, ModelFormat, ModelKind, ModelRecord, Provenance, Store};
 
 /// Held-out items per evaluation.

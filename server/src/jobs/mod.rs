@@ -43,8 +43,8 @@ use self::context::{JobContext, Stop};
 use self::spec::{JobKind, JobSpec};
 use crate::config::JobsConfig;
 use crate::error::{Error, Result};
+use crate::fields::validate_name;
 use crate::store::ingest::now_ms;
-use crate::store::names::validate_name;
 use crate::store::{JobEvent, JobEventKind, JobRecord, JobState, Lease, Store};
 
 /// Live-event buffer per job; a watcher further behind re-reads from the store.
@@ -379,20 +379,24 @@ impl JobManager {
         Ok(active.into_iter().find(|j| j.inputs.iter().any(|i| i == name)).map(|j| j.id))
     }
 
-    /// Events from `from_seq` on: first those recorded, then live ones, until the job is in a
-    /// terminal state and every event has been sent. Never blocks the job: a watcher that
+    /// Events from `from_seq` on (0 and 1 both mean the first; beyond the last event, the next
+    /// one): first those recorded, then live ones, until the job is in a terminal state and
+    /// every event has been sent. Never blocks the job: a watcher that
     /// falls behind the live buffer re-reads from the store.
     pub async fn watch(
         &self,
         id: &str,
         from_seq: u64,
     ) -> Result<impl Stream<Item = Result<JobEvent>> + Send + 'static> {
-        self.get(id).await?;
+        let job = self.get(id).await?;
+        // A from_seq beyond the last event follows live from the next one: a client resuming
+        // with a stale or made-up number waits for what comes, it never replays from 1.
+        let from_seq = from_seq.clamp(1, job.last_seq.saturating_add(1));
         let manager = self.clone();
         let id = id.to_owned();
         let (tx, rx) = tokio::sync::mpsc::channel(64);
         tokio::spawn(async move {
-            if let Err(e) = manager.follow(&id, from_seq.max(1), &tx).await {
+            if let Err(e) = manager.follow(&id, from_seq, &tx).await {
                 let _ = tx.send(Err(e)).await;
             }
         });

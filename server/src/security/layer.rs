@@ -68,7 +68,7 @@ impl Policy {
 }
 
 fn method_name(path: &str) -> String {
-    format!("'{}'", path.strip_prefix('/').unwrap_or(path).escape_default())
+    crate::error::quote(path.strip_prefix('/').unwrap_or(path))
 }
 
 fn authenticate(table: &TokenTable, headers: &HeaderMap, now: SystemTime) -> Result<Principal, Status> {

@@ -145,7 +145,7 @@ fn serve(inner: &Arc<Inner>, queue: &Arc<ModelQueue>) {
         }
         let items: i64 = batch.iter().map(|p| p.query.batch()).sum();
         let result = compute(queue, kind, &batch);
-        inner.metrics.observe_batch(&name, items as usize, started.elapsed().as_secs_f64());
+        inner.metrics.observe_batch(&name, batch.len(), items as usize, started.elapsed().as_secs_f64());
         match result {
             Ok(answers) => {
                 for (p, a) in batch.into_iter().zip(answers) {

@@ -30,10 +30,16 @@ use crate::config::ServingConfig;
 use crate::engine::manifest::DiffusionManifest;
 use crate::engine::registry::{ModelRegistry, SharedReward};
 use crate::engine::schedule::{Schedule, Table};
-use crate::error::{Error, Result};
+use crate::error::{Error, Result, brief};
 use crate::metrics::Metrics;
 
 use batcher::BatchKind;
+
+/// Largest |x| accepted in the model's normalized units. The normalizer maps the training data
+/// to about [-1, 1] (limits) or to z-scores (gaussian), and a noisy x_t stays within a few
+/// units of that; values beyond this bound are far outside anything the model has seen and
+/// only make rho overflow.
+pub const MAX_NORMALIZED_X: f64 = 1e4;
 
 /// Units of inputs and gradients.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -145,9 +151,19 @@ impl Serving {
         &self.inner.registry
     }
 
+    /// The `[serving]` settings (limits and batching, which the OIP ModelConfig reports).
+    pub fn config(&self) -> &ServingConfig {
+        &self.inner.config
+    }
+
+    /// The per-model statistics serving records.
+    pub fn metrics(&self) -> &Metrics {
+        &self.inner.metrics
+    }
+
     /// The reward model `name` (NotFound, FailedPrecondition for a diffusion model, DataLoss).
     pub async fn reward(&self, name: &str) -> Result<SharedReward> {
-        crate::store::names::validate_name("model", name)?;
+        crate::fields::validate_name("model", name)?;
         self.inner.registry.get_reward(name).await
     }
 
@@ -158,9 +174,9 @@ impl Serving {
         let n_items = check_shape(&query.shape, item, self.inner.config.max_request_items)?;
         if query.values.len() != n_items * item.iter().product::<i64>() as usize {
             return Err(Error::invalid(format!(
-                "x: {} values do not fill the shape {:?}",
+                "x: {} values do not fill the shape {}",
                 query.values.len(),
-                query.shape
+                brief(&query.shape)
             )));
         }
         if let Some(i) = query.values.iter().position(|v| !v.is_finite()) {
@@ -183,9 +199,7 @@ impl Serving {
         let gradient_post = match &query.op {
             Op::Score { .. } => None,
             Op::Gradient { units, omega, variance_of } => {
-                if !omega.is_finite() {
-                    return Err(Error::invalid(format!("omega: {omega} is not finite")));
-                }
+                crate::fields::check_omega(*omega)?;
                 let mut factor = vec![*omega; n_items];
                 if let Some(base) = variance_of {
                     let variance = self.posterior_variance(base, big_t).await?;
@@ -207,6 +221,11 @@ impl Serving {
                 tch::no_grad(|| model.manifest.normalizer.normalize(&x, model.manifest.space.normalizer_dims()))
             }
         };
+        // Only a normalizer fitted to data says what range is meaningful; with identity, the
+        // results' own finiteness is the check.
+        if model.manifest.normalizer != crate::engine::normalizer::Normalizer::Identity {
+            check_normalized_range(&x, query.input_units)?;
+        }
         Ok(Prepared { model, x, t: Tensor::from_slice(&t), kind, gradient_post, deadline: query.deadline })
     }
 
@@ -217,23 +236,31 @@ impl Serving {
             return Err(Error::DeadlineExceeded("the deadline passed before the query was queued".into()));
         }
         let reply = batcher::submit(&self.inner, prepared)?;
-        reply
+        let answer = reply
             .await
-            .map_err(|_| Error::Unavailable("the serving thread stopped (the server is shutting down)".into()))?
+            .map_err(|_| Error::Unavailable("the serving thread stopped (the server is shutting down)".into()))??;
+        check_finite(&answer)?;
+        Ok(answer)
     }
 
-    /// Validates and runs in one call.
+    /// Validates and runs in one call, counting the outcome in the model's statistics (see
+    /// [`crate::metrics::ModelStats`]).
     pub async fn query(&self, name: &str, query: Query) -> Result<Answer> {
         let model = self.reward(name).await?;
-        let prepared = self.prepare(model, query).await?;
-        self.run(prepared).await
+        let (started, items) = (Instant::now(), query.shape.first().map_or(0, |&b| b.max(0) as u64));
+        let answer = match self.prepare(model, query).await {
+            Ok(prepared) => self.run(prepared).await,
+            Err(e) => Err(e),
+        };
+        self.inner.metrics.observe_query(name, answer.is_ok(), items, started.elapsed());
+        answer
     }
 
     /// exp(posterior_log_variance_clipped[t]) of diffusion model `name` for t in [0, T): the
     /// factor Diffuser's `scale_grad_by_std` applies. Its T must equal the reward's.
     async fn posterior_variance(&self, name: &str, big_t: i64) -> Result<VarianceTable> {
         let field = "scale_by_posterior_variance_of";
-        crate::store::names::validate_name(field, name)?;
+        crate::fields::validate_name(field, name)?;
         let generation = self.inner.registry.models_generation();
         let cached = self.inner.variances.lock().unwrap_or_else(PoisonError::into_inner).get(name).cloned();
         if let Some((checked, table)) = cached
@@ -270,12 +297,58 @@ fn check_steps(field: &str, name: &str, table: &VarianceTable, big_t: i64) -> Re
     Ok(Arc::clone(table))
 }
 
+/// Refuses normalized inputs beyond [`MAX_NORMALIZED_X`], naming the first such element and
+/// the units it was given in.
+fn check_normalized_range(x: &Tensor, units: Units) -> Result<()> {
+    let _no_grad = tch::no_grad_guard();
+    let beyond = x.f_abs()?.f_gt(MAX_NORMALIZED_X)?;
+    if !bool::try_from(beyond.f_any()?).map_err(|e| Error::internal("checking x", e))? {
+        return Ok(());
+    }
+    let first = beyond.f_flatten(0, -1)?.f_to_kind(tch::Kind::Uint8)?.f_argmax(0, false)?.int64_value(&[]);
+    let value = x.f_flatten(0, -1)?.f_double_value(&[first])?;
+    let given = match units {
+        Units::Raw => "after normalizing the raw input",
+        Units::Normalized => "as given (input_units normalized)",
+    };
+    Err(Error::invalid(format!(
+        "x: element {first} is {value:e} in the model's normalized units ({given}), outside the accepted \
+         [-{MAX_NORMALIZED_X:e}, {MAX_NORMALIZED_X:e}]; the normalizer maps the training data to about [-1, 1], so \
+         check the input's units and scale"
+    )))
+}
+
+/// An answer must never carry Inf or NaN: inputs inside the accepted ranges that still
+/// overflow the model are refused rather than answered.
+fn check_finite(answer: &Answer) -> Result<()> {
+    let _no_grad = tch::no_grad_guard();
+    let parts = [("rewards", Some(&answer.rewards)), ("gradient", answer.gradient.as_ref())];
+    let parts =
+        parts.into_iter().chain([("per_window", answer.per_window.as_ref()), ("per_step", answer.per_step.as_ref())]);
+    for (what, tensor) in parts {
+        let Some(tensor) = tensor else { continue };
+        let finite =
+            bool::try_from(tensor.f_isfinite()?.f_all()?).map_err(|e| Error::internal("checking results", e))?;
+        if !finite {
+            return Err(Error::invalid(format!(
+                "x: the model's {what} for these inputs is not finite (the inputs or omega are too large for it); \
+                 nothing was returned"
+            )));
+        }
+    }
+    Ok(())
+}
+
 /// Checks `shape` = [B, *item] with 1 <= B <= max; returns B.
 fn check_shape(shape: &[i64], item: &[i64], max: usize) -> Result<usize> {
     if shape.len() != item.len() + 1 || shape[1..] != *item {
         let mut want = vec!["B".to_owned()];
         want.extend(item.iter().map(i64::to_string));
-        return Err(Error::invalid(format!("x: expected shape [{}] for this model, got {shape:?}", want.join(", "))));
+        return Err(Error::invalid(format!(
+            "x: expected shape [{}] for this model, got {}",
+            want.join(", "),
+            brief(&shape)
+        )));
     }
     let b = shape[0];
     if b < 1 {
@@ -297,8 +370,9 @@ fn broadcast_t(t: &[i64], b: usize, big_t: i64) -> Result<Vec<i64>> {
         n if n == b => t.to_vec(),
         n => return Err(Error::invalid(format!("t: {n} values for {b} items (give none, one, or one per item)"))),
     };
-    if let Some((i, v)) = t.iter().enumerate().find(|(_, v)| !(0..big_t).contains(*v)) {
-        return Err(Error::invalid(format!("t[{i}]: {v} is outside [0, {big_t}) for this model")));
+    // The field is named only for the first bad value (no formatting on the hot path).
+    if let Some((i, &v)) = t.iter().enumerate().find(|(_, v)| !(0..big_t).contains(*v)) {
+        crate::fields::diffusion_time(&format!("t[{i}]"), v, big_t as usize)?;
     }
     Ok(t)
 }

@@ -15,7 +15,7 @@ use relreward_proto::v1::{self as pb, Dtype};
 use sha2::{Digest, Sha256};
 
 use super::{ArrayRecord, ArrayStats, DatasetKind, DatasetRecord, EpisodeRecord, Staging, npy};
-use crate::error::{Error, Result};
+use crate::error::{Error, Result, brief, quote};
 
 /// Array names of a trajectory dataset; the first two are required.
 const TRAJECTORY_ARRAYS: [&str; 5] = ["observations", "actions", "terminals", "timeouts", "episode_starts"];
@@ -138,7 +138,7 @@ impl DatasetIngest {
         let mut total_bytes = 0u64;
         let mut arrays = Vec::with_capacity(header.arrays.len());
         for (i, spec) in header.arrays.iter().enumerate() {
-            let field = format!("header.arrays[{i}] ('{}')", spec.name.escape_default());
+            let field = format!("header.arrays[{i}] ({})", quote(&spec.name));
             let role = role_of(kind, &spec.name).ok_or_else(|| {
                 let allowed = match kind {
                     DatasetKind::Trajectories => TRAJECTORY_ARRAYS.join(", "),
@@ -153,8 +153,10 @@ impl DatasetIngest {
             check_array_shape(kind, role, &field, dtype, &spec.shape)?;
             if spec.shape[0] != num_rows {
                 return Err(Error::invalid(format!(
-                    "{field}.shape: {:?} has {} rows but '{}' has {num_rows}; all arrays share the leading dimension",
-                    spec.shape, spec.shape[0], header.arrays[0].name
+                    "{field}.shape: {} has {} rows but '{}' has {num_rows}; all arrays share the leading dimension",
+                    brief(&spec.shape),
+                    spec.shape[0],
+                    header.arrays[0].name
                 )));
             }
             let bytes =
@@ -221,14 +223,14 @@ impl DatasetIngest {
         }
         let Some(a) = self.arrays.get_mut(self.current) else {
             return Err(Error::invalid(format!(
-                "chunk {n} (array '{}'): every array is already complete",
-                chunk.array.escape_default()
+                "chunk {n} (array {}): every array is already complete",
+                quote(&chunk.array)
             )));
         };
         if chunk.array != a.name {
             return Err(Error::invalid(format!(
-                "chunk {n}.array: '{}' but '{}' is incomplete ({} of {} rows); arrays are sent whole, in header order",
-                chunk.array.escape_default(),
+                "chunk {n}.array: {} but '{}' is incomplete ({} of {} rows); arrays are sent whole, in header order",
+                quote(&chunk.array),
                 a.name,
                 a.rows_done,
                 self.num_rows
@@ -248,8 +250,8 @@ impl DatasetIngest {
             let mut expected: Vec<String> = a.shape.iter().map(u64::to_string).collect();
             expected[0] = "rows".into();
             return Err(Error::invalid(format!(
-                "{field}.data.shape: {:?} is inconsistent with the header's [{}]",
-                data.shape,
+                "{field}.data.shape: {} is inconsistent with the header's [{}]",
+                brief(&data.shape),
                 expected.join(", ")
             )));
         }
@@ -306,7 +308,7 @@ impl DatasetIngest {
         }
         let claimed = sha256.to_ascii_lowercase();
         if claimed.len() != 64 || !claimed.bytes().all(|b| b.is_ascii_hexdigit()) {
-            return Err(Error::invalid(format!("commit.sha256: '{}' is not 64 hex digits", sha256.escape_default())));
+            return Err(Error::invalid(format!("commit.sha256: {} is not 64 hex digits", quote(sha256))));
         }
         let actual = hex::encode(self.hasher.finalize());
         if claimed != actual {
@@ -360,7 +362,7 @@ fn role_of(kind: DatasetKind, name: &str) -> Option<Role> {
 fn check_array_shape(kind: DatasetKind, role: Role, field: &str, dtype: Dtype, shape: &[u64]) -> Result<()> {
     let is_float = matches!(dtype, Dtype::Float32 | Dtype::Float64);
     let is_flag = matches!(dtype, Dtype::Bool | Dtype::Uint8);
-    let dims = shape.iter().map(u64::to_string).collect::<Vec<_>>().join(", ");
+    let dims = brief(&shape);
     match role {
         Role::Values if !is_float => Err(Error::invalid(format!(
             "{field}.dtype: {} but values must be float32 or float64",
@@ -371,16 +373,16 @@ fn check_array_shape(kind: DatasetKind, role: Role, field: &str, dtype: Dtype, s
             tensor::dtype_name(dtype)
         ))),
         Role::Values if kind == DatasetKind::Trajectories && shape.len() != 2 => {
-            Err(Error::invalid(format!("{field}.shape: [{dims}] must be [N, dim]")))
+            Err(Error::invalid(format!("{field}.shape: {dims} must be [N, dim]")))
         }
         Role::Values if shape.len() < 2 => {
-            Err(Error::invalid(format!("{field}.shape: [{dims}] must be [N, ...] with at least 2 dimensions")))
+            Err(Error::invalid(format!("{field}.shape: {dims} must be [N, ...] with at least 2 dimensions")))
         }
         Role::EndsAfter | Role::StartsAt if shape.len() != 1 => {
-            Err(Error::invalid(format!("{field}.shape: [{dims}] must be [N]")))
+            Err(Error::invalid(format!("{field}.shape: {dims} must be [N]")))
         }
         _ if shape.iter().skip(1).any(|&d| d == 0) => {
-            Err(Error::invalid(format!("{field}.shape: [{dims}] has an empty dimension")))
+            Err(Error::invalid(format!("{field}.shape: {dims} has an empty dimension")))
         }
         _ => Ok(()),
     }

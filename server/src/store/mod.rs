@@ -30,7 +30,6 @@
 pub mod digests;
 pub mod ingest;
 pub mod local;
-pub mod names;
 pub mod npy;
 pub mod postgres;
 mod records;

@@ -25,7 +25,7 @@ use tokio_postgres::config::SslMode;
 use tokio_postgres::error::SqlState;
 use tokio_postgres_rustls::MakeRustlsConnect;
 
-use super::records::{Named, check_transition, checkpoint_keys, decode, encode};
+use super::records::{Named, check_transition, checkpoint_keys, decode, encode, seq_i64};
 use super::{DatasetRecord, JobEvent, JobRecord, JobState, Lease, MetadataStore, ModelRecord};
 use crate::config::PostgresConfig;
 use crate::error::{Error, Result, error_chain};
@@ -246,10 +246,6 @@ fn is_unique_violation(e: &tokio_postgres::Error) -> bool {
 
 fn lease_secs(lease: Duration) -> f64 {
     lease.as_secs_f64()
-}
-
-fn seq_i64(seq: u64) -> i64 {
-    i64::try_from(seq).unwrap_or(i64::MAX)
 }
 
 /// Counts a model change (`MetadataStore::models_version`) in the same transaction.

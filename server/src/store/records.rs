@@ -9,6 +9,13 @@ pub(crate) fn decode<T: serde::de::DeserializeOwned>(json: &str) -> Result<T> {
     serde_json::from_str(json).map_err(|e| Error::DataLoss(format!("a stored record is unreadable: {e}")))
 }
 
+/// An event sequence number as the databases store it (BIGINT / INTEGER, signed 64 bits):
+/// saturating, so a number past i64::MAX (a client's `from_seq`) means "after every event"
+/// rather than wrapping to a negative one, which would mean "from the first".
+pub(crate) fn seq_i64(seq: u64) -> i64 {
+    i64::try_from(seq).unwrap_or(i64::MAX)
+}
+
 pub(crate) fn encode<T: serde::Serialize>(value: &T) -> Result<String> {
     serde_json::to_string(value).map_err(|e| Error::internal("encoding record", e))
 }

@@ -12,7 +12,7 @@ use std::time::Duration;
 use async_trait::async_trait;
 use rusqlite::{Connection, OptionalExtension, params};
 
-use super::records::{Named, check_transition, checkpoint_keys, decode, encode};
+use super::records::{Named, check_transition, checkpoint_keys, decode, encode, seq_i64};
 use super::{DatasetRecord, JobEvent, JobRecord, JobState, Lease, MetadataStore, ModelRecord};
 use crate::error::{Error, Result};
 use crate::store::ingest::now_ms;
@@ -262,7 +262,7 @@ impl MetadataStore for SqliteMetadata {
             for (seq, event) in &events {
                 tx.execute(
                     "INSERT INTO job_events (job_id, seq, event) VALUES (?1, ?2, ?3)",
-                    params![id, *seq as i64, event],
+                    params![id, seq_i64(*seq), event],
                 )?;
             }
             tx.commit()?;
@@ -360,7 +360,7 @@ impl MetadataStore for SqliteMetadata {
             for (seq, event) in &events {
                 tx.execute(
                     "INSERT INTO job_events (job_id, seq, event) VALUES (?1, ?2, ?3)",
-                    params![id, *seq as i64, event],
+                    params![id, seq_i64(*seq), event],
                 )?;
             }
             tx.commit()?;
@@ -444,7 +444,7 @@ impl MetadataStore for SqliteMetadata {
         self.with_conn(move |c| {
             let mut stmt =
                 c.prepare("SELECT event FROM job_events WHERE job_id = ?1 AND seq >= ?2 ORDER BY seq LIMIT ?3")?;
-            let rows = stmt.query_map(params![id, from_seq as i64, limit as i64], |r| r.get::<_, String>(0))?;
+            let rows = stmt.query_map(params![id, seq_i64(from_seq), limit as i64], |r| r.get::<_, String>(0))?;
             rows.map(|r| decode(&r?)).collect()
         })
         .await
