@@ -1,0 +1,353 @@
+"""What the sync and asyncio clients share: connection settings, request builders, results."""
+
+from __future__ import annotations
+
+import datetime as _dt
+import hashlib
+import pathlib
+from dataclasses import dataclass
+from typing import Any, Callable, Iterator, Sequence
+
+import grpc
+import numpy as np
+
+from relreward import _tensor
+from relreward._proto import datasets_pb2, jobs_pb2, models_pb2, reward_pb2, tensor_pb2
+from relreward.datasets import UploadSource, row_chunks
+
+#: Largest message either way (tensors in requests and responses can be large), as the Rust client.
+MAX_MESSAGE_BYTES = 64 << 20
+#: Default payload bytes per upload chunk, as the Rust client.
+DEFAULT_CHUNK_BYTES = 1 << 20
+
+# Retry policy of idempotent calls (the Rust client's IDEMPOTENT_RETRY): 50 ms doubling to 1 s,
+# within 5 s. And of WatchJob reconnects (its RetryPolicy default): 250 ms doubling to 5 s,
+# within 60 s without an event.
+IDEMPOTENT_INITIAL_S, IDEMPOTENT_MAX_S, IDEMPOTENT_BUDGET_S = 0.05, 1.0, 5.0
+WATCH_INITIAL_S, WATCH_MAX_S, WATCH_BUDGET_S = 0.25, 5.0, 60.0
+
+_UNITS = {"raw": reward_pb2.UNITS_RAW, "normalized": reward_pb2.UNITS_NORMALIZED}
+_TERMINAL = {jobs_pb2.JOB_STATE_SUCCEEDED, jobs_pb2.JOB_STATE_FAILED, jobs_pb2.JOB_STATE_CANCELLED}
+
+
+def backoff_delay(attempt: int, initial: float, maximum: float, left: float) -> float | None:
+    """Delay before retry number ``attempt`` (from 0), or None once ``left`` (seconds of the
+    budget) is spent; the last delay is cut so as not to overrun the budget."""
+    if left <= 0:
+        return None
+    return min(initial * (2 ** min(attempt, 20)), maximum, left)
+
+
+@dataclass(frozen=True)
+class TLS:
+    """TLS settings (PEM bytes or paths to PEM files).
+
+    ``ca_cert``: the CA the server's certificate must chain to (None: the system's roots);
+    ``client_cert`` and ``client_key``: for servers that require mutual TLS; ``server_name``:
+    the name to check the certificate against when it is not the endpoint's host.
+    """
+
+    ca_cert: bytes | str | pathlib.Path | None = None
+    client_cert: bytes | str | pathlib.Path | None = None
+    client_key: bytes | str | pathlib.Path | None = None
+    server_name: str | None = None
+
+    @staticmethod
+    def _read(v: bytes | str | pathlib.Path | None) -> bytes | None:
+        if v is None or isinstance(v, bytes):
+            return v
+        return pathlib.Path(v).read_bytes()
+
+    def credentials(self) -> grpc.ChannelCredentials:
+        if (self.client_cert is None) != (self.client_key is None):
+            raise ValueError("client_cert and client_key go together")
+        return grpc.ssl_channel_credentials(root_certificates=self._read(self.ca_cert),
+                                            private_key=self._read(self.client_key),
+                                            certificate_chain=self._read(self.client_cert))
+
+
+def channel_args(endpoint: str, tls: TLS | bool | None) -> tuple[str, grpc.ChannelCredentials | None, list]:
+    """(target, credentials or None for plaintext, channel options) for an endpoint such as
+    ``127.0.0.1:50051``, ``http://host:port`` or ``https://host:port``."""
+    https = endpoint.startswith("https://")
+    target = endpoint.split("://", 1)[1] if "://" in endpoint else endpoint
+    target = target.rstrip("/")
+    options: list = [("grpc.max_receive_message_length", MAX_MESSAGE_BYTES),
+                     ("grpc.max_send_message_length", MAX_MESSAGE_BYTES)]
+    if endpoint.startswith("http://") and tls:
+        raise ValueError(f"TLS settings were given but {endpoint} is not https://; use an https:// endpoint")
+    if not https and not tls:
+        return target, None, options
+    settings = tls if isinstance(tls, TLS) else TLS()
+    if settings.server_name:
+        options.append(("grpc.ssl_target_name_override", settings.server_name))
+    return target, settings.credentials(), options
+
+
+def metadata_of(token: str | None) -> tuple[tuple[str, str], ...] | None:
+    """The per-call metadata: ``authorization: Bearer <token>`` when a token is given."""
+    if token is None:
+        return None
+    token = token.strip()
+    if not token.isascii() or not token.isprintable():
+        raise ValueError("token: not printable ASCII; copy it again")
+    return (("authorization", f"Bearer {token}"),)
+
+
+def units(u: str) -> int:
+    try:
+        return _UNITS[u]
+    except KeyError:
+        raise ValueError(f"units {u!r}: expected 'raw' or 'normalized'") from None
+
+
+def times(t: int | Sequence[int] | np.ndarray | None) -> list[int]:
+    """The wire's ``t``: [] (0 for all) for None, [t] (broadcast) for one int, else one per item."""
+    if t is None:
+        return []
+    if isinstance(t, (int, np.integer)):
+        return [int(t)]
+    return [int(v) for v in np.asarray(t).reshape(-1)]
+
+
+# --------------------------------------------------------------------------------------------
+# Results
+
+
+@dataclass(frozen=True)
+class ScoreResult:
+    """rho per item, float32 ``[B]``; per window ``[B, H / h]`` and per step ``[B, H]`` when asked
+    for (else None). Read-only views of the response."""
+
+    rewards: np.ndarray
+    per_window: np.ndarray | None = None
+    per_step: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class GradientResult:
+    """grad_x rho, float32, same shape as x (times omega and the posterior variance when asked),
+    in the requested gradient units; and rho per item, float32 ``[B]``. Read-only views."""
+
+    gradient: np.ndarray
+    rewards: np.ndarray
+
+    def __iter__(self) -> Iterator[np.ndarray]:
+        # ``grad, rho = client.gradient(...)`` unpacks.
+        return iter((self.gradient, self.rewards))
+
+
+@dataclass(frozen=True)
+class Sample:
+    """One sample: ``x`` in raw units and ``x_normalized``, ``[H, D]`` or the sample shape
+    (float32), and rho(x, 0) when a reward model was given."""
+
+    index: int
+    x: np.ndarray
+    x_normalized: np.ndarray
+    reward: float | None
+
+
+@dataclass(frozen=True)
+class SampleBatch:
+    """All samples of a ``sample`` call stacked in index order: ``x`` and ``x_normalized``
+    ``[n, H, D]`` (or ``[n, *shape]``) float32, ``rewards`` ``[n]`` float64 (None without a reward
+    model)."""
+
+    x: np.ndarray
+    x_normalized: np.ndarray
+    rewards: np.ndarray | None
+
+
+@dataclass(frozen=True)
+class JobEvent:
+    """One recorded event of a job (``seq`` from 1, no gaps).
+
+    ``kind`` is "state", "progress", "checkpoint" or "log". State changes set ``state`` (e.g.
+    "RUNNING", "SUCCEEDED") and ``message``; progress sets ``step``, ``total_steps``, ``loss``,
+    ``grad_norm``, ``learning_rate``, ``steps_per_second``, ``eta_seconds`` (seconds) and
+    ``eval_loss`` when a held-out loss was evaluated; checkpoints set ``step``; log lines set
+    ``message``. ``raw`` is the protobuf message.
+    """
+
+    seq: int
+    time: _dt.datetime | None
+    kind: str
+    raw: jobs_pb2.JobEvent
+    state: str | None = None
+    message: str = ""
+    step: int | None = None
+    total_steps: int | None = None
+    loss: float | None = None
+    grad_norm: float | None = None
+    learning_rate: float | None = None
+    steps_per_second: float | None = None
+    eta_seconds: float | None = None
+    eval_loss: float | None = None
+
+    @property
+    def terminal(self) -> bool:
+        """Whether this event moved the job to SUCCEEDED, FAILED or CANCELLED."""
+        return self.kind == "state" and self.state in ("SUCCEEDED", "FAILED", "CANCELLED")
+
+    @classmethod
+    def from_proto(cls, e: jobs_pb2.JobEvent) -> "JobEvent":
+        time = e.time.ToDatetime(tzinfo=_dt.timezone.utc) if e.HasField("time") else None
+        kind = e.WhichOneof("event") or "unknown"
+        if kind == "state":
+            return cls(e.seq, time, kind, e, state=state_name(e.state.state), message=e.state.message)
+        if kind == "progress":
+            p = e.progress
+            return cls(e.seq, time, kind, e, step=p.step, total_steps=p.total_steps, loss=p.loss,
+                       grad_norm=p.grad_norm, learning_rate=p.learning_rate, steps_per_second=p.steps_per_second,
+                       eta_seconds=p.eta_seconds, eval_loss=p.eval_loss if p.HasField("eval_loss") else None)
+        if kind == "checkpoint":
+            return cls(e.seq, time, kind, e, step=e.checkpoint.step)
+        if kind == "log":
+            return cls(e.seq, time, kind, e, message=e.log.message)
+        return cls(e.seq, time, kind, e)
+
+
+def state_name(state: int) -> str:
+    """"PENDING", "RUNNING", "SUCCEEDED", "FAILED", "CANCELLED" (or "UNSPECIFIED")."""
+    return jobs_pb2.JobState.Name(state).removeprefix("JOB_STATE_")
+
+
+def is_terminal(state: int) -> bool:
+    return state in _TERMINAL
+
+
+# --------------------------------------------------------------------------------------------
+# Requests
+
+
+def score_request(model: str, x: Any, t: Any, input_units: str, per_window: bool,
+                  per_step: bool) -> reward_pb2.ScoreRequest:
+    return reward_pb2.ScoreRequest(model=model, x=_tensor.encode(x), t=times(t), input_units=units(input_units),
+                                   per_window=per_window, per_step=per_step)
+
+
+def score_result(r: reward_pb2.ScoreResponse) -> ScoreResult:
+    return ScoreResult(_tensor.decode(r.rewards), _tensor.decode(r.per_window) if r.HasField("per_window") else None,
+                       _tensor.decode(r.per_step) if r.HasField("per_step") else None)
+
+
+def gradient_request(model: str, x: Any, t: Any, omega: float | None, input_units: str, gradient_units: str,
+                     scale_by_posterior_variance_of: str | None, request_id: int = 0) -> reward_pb2.GradientRequest:
+    req = reward_pb2.GradientRequest(request_id=request_id, model=model, x=_tensor.encode(x), t=times(t),
+                                     input_units=units(input_units), gradient_units=units(gradient_units),
+                                     scale_by_posterior_variance_of=scale_by_posterior_variance_of or "")
+    if omega is not None:
+        req.omega = omega
+    return req
+
+
+def gradient_result(r: reward_pb2.GradientResponse) -> GradientResult:
+    return GradientResult(_tensor.decode(r.gradient), _tensor.decode(r.rewards))
+
+
+def sample_request(model: str, reward_model: str | None, omega: float, n: int, seed: int | None,
+                   n_guide_steps: int | None, t_stopgrad: int | None, scale_grad_by_std: bool,
+                   conditions: Any, input_units: str, batch_size: int) -> reward_pb2.SampleRequest:
+    req = reward_pb2.SampleRequest(model=model, reward_model=reward_model or "", omega=omega, n=n,
+                                   scale_grad_by_std=scale_grad_by_std, input_units=units(input_units),
+                                   batch_size=batch_size)
+    for name, v in (("seed", seed), ("n_guide_steps", n_guide_steps), ("t_stopgrad", t_stopgrad)):
+        if v is not None:
+            setattr(req, name, v)
+    items = conditions.items() if hasattr(conditions, "items") else (conditions or ())
+    for index, state in items:
+        req.conditions.add(index=int(index), state=_tensor.encode(state))
+    return req
+
+
+def sample_of(r: reward_pb2.SampleResponse) -> Sample:
+    return Sample(r.index, _tensor.decode(r.x), _tensor.decode(r.x_normalized),
+                  r.reward if r.HasField("reward") else None)
+
+
+def stack_samples(samples: list[Sample]) -> SampleBatch:
+    samples = sorted(samples, key=lambda s: s.index)
+    rewards = None
+    if samples and all(s.reward is not None for s in samples):
+        rewards = np.array([s.reward for s in samples], dtype=np.float64)
+    return SampleBatch(np.stack([s.x for s in samples]) if samples else np.zeros((0,), np.float32),
+                       np.stack([s.x_normalized for s in samples]) if samples else np.zeros((0,), np.float32),
+                       rewards)
+
+
+class UploadFailure:
+    """Holds an exception raised while producing an upload's messages (reading the input): the
+    stream then ends without a commit, and the caller reports this rather than the server's
+    complaint about the missing commit."""
+
+    def __init__(self) -> None:
+        self.error: BaseException | None = None
+
+
+Progress = Callable[[int, int], None]
+
+
+def progress_callback(progress: Progress | bool | None, total: int, desc: str) -> tuple[Progress | None, Any]:
+    """(callback(sent_bytes, total_bytes), object to close): ``True`` shows a tqdm bar when tqdm
+    is installed (nothing otherwise); a callable is called after each chunk."""
+    if progress is True:
+        try:
+            from tqdm.auto import tqdm
+        except ImportError:
+            return None, None
+        bar = tqdm(total=total, unit="B", unit_scale=True, desc=desc)
+
+        def update(sent: int, _total: int) -> None:
+            bar.update(sent - bar.n)
+
+        return update, bar
+    if callable(progress):
+        return progress, None
+    return None, None
+
+
+def dataset_messages(name: str, source: UploadSource, description: str, chunk_bytes: int,
+                     progress: Progress | None, failure: UploadFailure) -> Iterator[datasets_pb2.UploadDatasetRequest]:
+    """Header, every array in row chunks of about ``chunk_bytes``, then the commit with the sha256
+    of the concatenated raw little-endian bytes of every array in header order (what the server
+    verifies; independent of the chunking)."""
+    total = source.total_bytes()
+    try:
+        yield datasets_pb2.UploadDatasetRequest(header=datasets_pb2.UploadHeader(
+            name=name, kind=source.kind, arrays=source.specs(), description=description))
+        digest = hashlib.sha256()
+        sent = 0
+        for array_name, array in source.arrays:
+            for chunk in row_chunks(array, max(1, chunk_bytes)):
+                data = chunk.tobytes()
+                digest.update(data)
+                yield datasets_pb2.UploadDatasetRequest(chunk=datasets_pb2.DatasetChunk(
+                    array=array_name, data=tensor_pb2.Tensor(shape=chunk.shape, dtype=_tensor.wire_dtype(chunk.dtype),
+                                                             data=data)))
+                sent += len(data)
+                if progress is not None:
+                    progress(sent, total)
+        yield datasets_pb2.UploadDatasetRequest(commit=datasets_pb2.UploadCommit(sha256=digest.hexdigest()))
+    except Exception as e:  # reading the input failed: end without a commit
+        failure.error = e
+
+
+def model_messages(path: pathlib.Path, header: models_pb2.UploadModelHeader, chunk_bytes: int,
+                   progress: Progress | None, failure: UploadFailure) -> Iterator[models_pb2.UploadModelRequest]:
+    """Header, the file's bytes in chunks, then the commit with the file's sha256."""
+    try:
+        total = path.stat().st_size
+        yield models_pb2.UploadModelRequest(header=header)
+        digest = hashlib.sha256()
+        sent = 0
+        with open(path, "rb") as f:
+            while chunk := f.read(max(1, chunk_bytes)):
+                digest.update(chunk)
+                yield models_pb2.UploadModelRequest(chunk=chunk)
+                sent += len(chunk)
+                if progress is not None:
+                    progress(sent, total)
+        yield models_pb2.UploadModelRequest(commit=datasets_pb2.UploadCommit(sha256=digest.hexdigest()))
+    except Exception as e:
+        failure.error = e

@@ -1,0 +1,74 @@
+"""numpy <-> relreward.v1.Tensor, with at most one copy each way.
+
+Encoding: ``np.ascontiguousarray(x, dtype='<f4').tobytes()`` copies the array once into the
+message (no copy happens for the conversion when ``x`` is already C-contiguous little-endian
+float32). Decoding: ``np.frombuffer(t.data, ...)`` is a view of the message's bytes, so the
+arrays the client returns are read-only; call ``.copy()`` on one to modify it.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from relreward._proto import tensor_pb2
+
+# numpy dtype (little-endian) for each wire dtype.
+_NUMPY_OF = {
+    tensor_pb2.DTYPE_FLOAT32: np.dtype("<f4"),
+    tensor_pb2.DTYPE_FLOAT64: np.dtype("<f8"),
+    tensor_pb2.DTYPE_INT32: np.dtype("<i4"),
+    tensor_pb2.DTYPE_INT64: np.dtype("<i8"),
+    tensor_pb2.DTYPE_UINT8: np.dtype("u1"),
+    tensor_pb2.DTYPE_BOOL: np.dtype("?"),
+}
+_WIRE_OF = {(v.kind, v.itemsize): k for k, v in _NUMPY_OF.items()}
+
+
+def wire_dtype(dtype: Any) -> int:
+    """The wire ``Dtype`` of a numpy dtype (either byte order); ValueError when none fits."""
+    d = np.dtype(dtype)
+    try:
+        return _WIRE_OF[(d.kind, d.itemsize)]
+    except KeyError:
+        raise ValueError(f"dtype {d} has no wire type (float32, float64, int32, int64, uint8, bool)") from None
+
+
+def numpy_dtype(wire: int) -> np.dtype:
+    """The little-endian numpy dtype of a wire ``Dtype``."""
+    try:
+        return _NUMPY_OF[wire]
+    except KeyError:
+        raise ValueError(f"unknown wire dtype {wire}") from None
+
+
+def as_f32(x: Any) -> np.ndarray:
+    """``x`` as a C-contiguous little-endian float32 array (no copy when it already is one)."""
+    return np.ascontiguousarray(x, dtype="<f4")
+
+
+def encode(x: Any, dtype: Any = None) -> tensor_pb2.Tensor:
+    """A Tensor holding ``x`` (float32 unless ``dtype`` or ``x``'s own float64 says otherwise).
+
+    Float inputs other than float64 become float32; float64 stays float64 only when ``dtype``
+    asks for it. One copy: the array's bytes into the message.
+    """
+    if dtype is None:
+        arr = as_f32(x)
+    else:
+        arr = np.ascontiguousarray(x, dtype=numpy_dtype(wire_dtype(dtype)))
+    return tensor_pb2.Tensor(shape=arr.shape, dtype=wire_dtype(arr.dtype), data=arr.tobytes())
+
+
+def decode(t: tensor_pb2.Tensor) -> np.ndarray:
+    """A read-only numpy view of a Tensor's bytes, shaped ``t.shape``.
+
+    Raises ValueError when the byte count does not match the shape.
+    """
+    dtype = numpy_dtype(t.dtype)
+    shape = tuple(int(d) for d in t.shape)
+    arr = np.frombuffer(t.data, dtype=dtype)
+    if arr.size != int(np.prod(shape, dtype=np.int64)):
+        raise ValueError(f"tensor of shape {list(shape)} carries {arr.size} values")
+    return arr.reshape(shape)

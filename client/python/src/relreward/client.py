@@ -1,0 +1,455 @@
+"""The synchronous client: :class:`Client` and :class:`GradientStream`."""
+
+from __future__ import annotations
+
+import pathlib
+import queue
+import threading
+import time
+from typing import Any, Callable, Iterator, Mapping, Sequence, TypeVar
+
+import grpc
+import numpy as np
+
+from relreward import _common as c
+from relreward._proto import (datasets_pb2, datasets_pb2_grpc, jobs_pb2, jobs_pb2_grpc, models_pb2,
+                              models_pb2_grpc, reward_pb2, reward_pb2_grpc, tensor_pb2)
+from relreward.datasets import source_of
+from relreward.errors import RelrewardError, Unavailable, error_for, from_rpc_error, is_retryable
+from relreward.specs import job_spec, manifest as manifest_of
+
+T = TypeVar("T")
+_KINDS = {None: 0, "diffusion": models_pb2.MODEL_KIND_DIFFUSION, "reward": models_pb2.MODEL_KIND_REWARD,
+          "discriminator": models_pb2.MODEL_KIND_DISCRIMINATOR}
+_STATES = {None: 0, **{n.removeprefix("JOB_STATE_").lower(): v for n, v in jobs_pb2.JobState.items() if v}}
+
+
+class Client:
+    """One connection to a relreward server, with typed access to every relreward.v1 service.
+
+    ``endpoint``: ``host:port`` or ``http://host:port`` (plaintext), ``https://host:port``
+    (TLS; verified against the system's roots unless ``tls`` gives a CA). ``token``: sent as
+    ``authorization: Bearer <token>`` with every call (servers with access control). ``tls``:
+    ``True`` or a :class:`relreward.TLS` (CA, client certificate for mutual TLS, server name).
+
+    Reads and pure computations (get/list, ``score``, ``gradient``, ``health``) are retried for
+    up to 5 s (backoff 50 ms doubling to 1 s) when they fail on the connection (UNAVAILABLE, or
+    a transport failure), as the Rust client does; writes (uploads, deletes, submit, cancel) and
+    streams are never retried behind the caller's back. ``watch_job`` resumes after a dropped
+    connection on its own. Failures raise :class:`relreward.RelrewardError` subclasses.
+
+    Use as a context manager, or call :meth:`close`.
+    """
+
+    def __init__(self, endpoint: str = "127.0.0.1:50051", token: str | None = None, tls: c.TLS | bool | None = None,
+                 *, timeout: float | None = None) -> None:
+        target, credentials, options = c.channel_args(endpoint, tls)
+        self.endpoint = endpoint
+        self.timeout = timeout
+        self._metadata = c.metadata_of(token)
+        self._channel = (grpc.insecure_channel(target, options=options) if credentials is None
+                         else grpc.secure_channel(target, credentials, options=options))
+        self._datasets = datasets_pb2_grpc.DatasetServiceStub(self._channel)
+        self._models = models_pb2_grpc.ModelServiceStub(self._channel)
+        self._jobs = jobs_pb2_grpc.JobServiceStub(self._channel)
+        self._rewards = reward_pb2_grpc.RewardServiceStub(self._channel)
+        self._health = self._channel.unary_unary("/grpc.health.v1.Health/Check",
+                                                 request_serializer=lambda _: b"",
+                                                 response_deserializer=lambda b: b)
+
+    # ----------------------------------------------------------------------------------------
+    # plumbing
+
+    @property
+    def channel(self) -> grpc.Channel:
+        """The underlying grpcio channel (for raw stubs; calls on it carry no token)."""
+        return self._channel
+
+    def close(self) -> None:
+        """Closes the channel; streams still open on it end."""
+        self._channel.close()
+
+    def __enter__(self) -> "Client":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def _once(self, method: Callable[..., T], request: Any) -> T:
+        try:
+            return method(request, metadata=self._metadata, timeout=self.timeout)
+        except grpc.RpcError as e:
+            raise from_rpc_error(e) from None
+
+    def _idempotent(self, method: Callable[..., T], request: Any) -> T:
+        started = time.monotonic()
+        attempt = 0
+        while True:
+            try:
+                return method(request, metadata=self._metadata, timeout=self.timeout)
+            except grpc.RpcError as e:
+                if not is_retryable(e):
+                    raise from_rpc_error(e) from None
+                delay = c.backoff_delay(attempt, c.IDEMPOTENT_INITIAL_S, c.IDEMPOTENT_MAX_S,
+                                        c.IDEMPOTENT_BUDGET_S - (time.monotonic() - started))
+                if delay is None:
+                    raise from_rpc_error(e) from None
+                attempt += 1
+                time.sleep(delay)
+
+    def health(self) -> str:
+        """The server's overall serving status from grpc.health.v1: "SERVING", "NOT_SERVING",
+        "UNKNOWN" or "SERVICE_UNKNOWN"."""
+        raw = self._idempotent(self._health, None)
+        status = raw[1] if len(raw) >= 2 and raw[0] == 0x08 else 0
+        return {0: "UNKNOWN", 1: "SERVING", 2: "NOT_SERVING", 3: "SERVICE_UNKNOWN"}.get(status, "UNKNOWN")
+
+    # ----------------------------------------------------------------------------------------
+    # datasets
+
+    def upload_dataset(self, name: str, data: Any, *, kind: str | None = None, key: str | None = None,
+                       description: str = "", chunk_bytes: int = c.DEFAULT_CHUNK_BYTES,
+                       progress: c.Progress | bool | None = None) -> datasets_pb2.Dataset:
+        """Uploads a dataset and returns it once the server verified and published it.
+
+        ``data``: a D4RL-style dict of numpy arrays (``observations`` ``[N, obs_dim]``,
+        ``actions`` ``[N, act_dim]``, optional ``terminals``/``timeouts``/``episode_starts``
+        ``[N]``; Minari's ``terminations``/``truncations`` accepted), a numpy array ``[N, ...]``
+        (a samples dataset), or a path to an ``.npz``, ``.npy`` or HDF5 file (``.h5``/``.hdf5``
+        with D4RL keys; needs h5py). Keys that are not part of a dataset (``rewards``,
+        ``infos/...``) are left out. See :mod:`relreward.datasets` (and
+        :func:`relreward.datasets.from_minari_episodes` for Minari episodes).
+
+        Arrays are streamed in row chunks of about ``chunk_bytes`` bytes; the commit carries the
+        sha256 of the payload, which the server checks before the dataset becomes visible.
+        ``progress``: ``callback(sent_bytes, total_bytes)`` after each chunk, or ``True`` for a
+        tqdm bar when tqdm is installed. Never retried (a write).
+        """
+        source, closer = source_of(data, kind, key)
+        try:
+            callback, bar = c.progress_callback(progress, source.total_bytes(), name)
+            failure = c.UploadFailure()
+            messages = c.dataset_messages(name, source, description, chunk_bytes, callback, failure)
+            try:
+                return self._datasets.UploadDataset(messages, metadata=self._metadata, timeout=self.timeout)
+            except grpc.RpcError as e:
+                if failure.error is not None:
+                    raise failure.error from None
+                raise from_rpc_error(e) from None
+            finally:
+                if bar is not None:
+                    bar.close()
+        finally:
+            if closer is not None:
+                closer.close()
+
+    def get_dataset(self, name: str) -> datasets_pb2.Dataset:
+        """The dataset with its per-coordinate statistics (FULL view)."""
+        return self._idempotent(self._datasets.GetDataset,
+                                datasets_pb2.GetDatasetRequest(name=name, view=datasets_pb2.DATASET_VIEW_FULL))
+
+    def list_datasets(self) -> list[datasets_pb2.Dataset]:
+        """Every dataset (BASIC view), ordered by name, following pagination."""
+        return self._all_pages(lambda page: self._idempotent(
+            self._datasets.ListDatasets, datasets_pb2.ListDatasetsRequest(page=page, view=datasets_pb2.DATASET_VIEW_BASIC)),
+            "datasets")
+
+    def delete_dataset(self, name: str) -> None:
+        """Deletes a dataset (never retried)."""
+        self._once(self._datasets.DeleteDataset, datasets_pb2.DeleteDatasetRequest(name=name))
+
+    def _all_pages(self, call: Callable[[tensor_pb2.PageRequest], Any], field: str) -> list:
+        out: list = []
+        token = ""
+        while True:
+            resp = call(tensor_pb2.PageRequest(page_token=token))
+            out.extend(getattr(resp, field))
+            token = resp.next_page_token
+            if not token:
+                return out
+
+    # ----------------------------------------------------------------------------------------
+    # models
+
+    def upload_model(self, path: str | pathlib.Path, name: str, manifest: Mapping[str, Any] | models_pb2.DiffusionManifest,
+                     *, description: str = "", chunk_bytes: int = c.DEFAULT_CHUNK_BYTES,
+                     progress: c.Progress | bool | None = None) -> models_pb2.Model:
+        """Registers a TorchScript diffusion module (``forward(x, t)``) with its manifest (a
+        ``DiffusionManifest`` or a dict in the CLI's manifest form, see
+        :func:`relreward.specs.manifest`). The file is streamed in chunks with its sha256; the
+        server validates the module against the manifest. Needs a server with
+        ``models.allow_torchscript_upload`` and an ``admin`` token where tokens are on."""
+        path = pathlib.Path(path)
+        header = models_pb2.UploadModelHeader(name=name, manifest=manifest_of(manifest), description=description)
+        callback, bar = c.progress_callback(progress, path.stat().st_size, name)
+        failure = c.UploadFailure()
+        try:
+            return self._models.UploadModel(c.model_messages(path, header, chunk_bytes, callback, failure),
+                                            metadata=self._metadata, timeout=self.timeout)
+        except grpc.RpcError as e:
+            if failure.error is not None:
+                raise failure.error from None
+            raise from_rpc_error(e) from None
+        finally:
+            if bar is not None:
+                bar.close()
+
+    def get_model(self, name: str) -> models_pb2.Model:
+        """The model: kind, manifest (diffusion) or reward info (input shape, T, normalizer)."""
+        return self._idempotent(self._models.GetModel, models_pb2.GetModelRequest(name=name))
+
+    def list_models(self, kind: str | None = None) -> list[models_pb2.Model]:
+        """Every model, or those of ``kind`` ("diffusion", "reward", "discriminator"), by name."""
+        k = _KINDS[kind]
+        return self._all_pages(lambda page: self._idempotent(
+            self._models.ListModels, models_pb2.ListModelsRequest(page=page, kind=k)), "models")
+
+    def delete_model(self, name: str) -> None:
+        """Deletes a model (FAILED_PRECONDITION while a job uses it; never retried)."""
+        self._once(self._models.DeleteModel, models_pb2.DeleteModelRequest(name=name))
+
+    # ----------------------------------------------------------------------------------------
+    # jobs
+
+    def submit_job(self, spec: Any, job_id: str | None = None) -> jobs_pb2.Job:
+        """Queues a training job: a :class:`relreward.DiffusionJob`, :class:`relreward.RewardJob`,
+        :class:`relreward.DiscriminatorJob`, a ``JobSpec`` message, or a dict in the JobSpec's
+        JSON form. With ``job_id``, resubmitting the same spec returns the existing job (a
+        different spec under that id is AlreadyExists). Never retried."""
+        return self._once(self._jobs.SubmitJob, jobs_pb2.SubmitJobRequest(spec=job_spec(spec), job_id=job_id or ""))
+
+    def get_job(self, job_id: str) -> jobs_pb2.Job:
+        """The job: state, step / total_steps, latest loss, error, last_seq."""
+        return self._idempotent(self._jobs.GetJob, jobs_pb2.GetJobRequest(id=job_id))
+
+    def list_jobs(self, state: str | None = None) -> list[jobs_pb2.Job]:
+        """Every job, or those in ``state`` ("pending", "running", "succeeded", ...), newest first."""
+        s = _STATES[state.lower() if state else None]
+        return self._all_pages(lambda page: self._idempotent(
+            self._jobs.ListJobs, jobs_pb2.ListJobsRequest(page=page, state=s)), "jobs")
+
+    def cancel_job(self, job_id: str) -> jobs_pb2.Job:
+        """Stops the job at its next step (FailedPrecondition once it finished). Never retried."""
+        return self._once(self._jobs.CancelJob, jobs_pb2.CancelJobRequest(id=job_id))
+
+    def watch_job(self, job_id: str, from_seq: int = 0, *, reconnect_budget: float = c.WATCH_BUDGET_S
+                  ) -> Iterator[c.JobEvent]:
+        """The job's events from ``from_seq`` (0 or 1: the first), then live ones (progress
+        events carry the loss as training goes) until a terminal state, after which the
+        iterator ends.
+
+        A dropped connection (server restart, network) is resumed from the last event seen
+        plus one, so every event is yielded exactly once, in order; reconnects back off from
+        250 ms to 5 s and give up (raising the last error) after ``reconnect_budget`` seconds
+        without an event. Breaking out of the loop cancels the stream.
+        """
+        cursor = max(from_seq, 1)
+        attempt = 0
+        down_since: float | None = None
+        while True:
+            stream = None
+            try:
+                stream = self._jobs.WatchJob(jobs_pb2.WatchJobRequest(id=job_id, from_seq=cursor),
+                                             metadata=self._metadata)
+                for raw in stream:
+                    down_since, attempt = None, 0
+                    if raw.seq < cursor:
+                        continue  # a replay of an event already yielded
+                    cursor = raw.seq + 1
+                    event = c.JobEvent.from_proto(raw)
+                    yield event
+                    if event.terminal:
+                        return
+                job = self.get_job(job_id)
+                if c.is_terminal(job.state):
+                    return
+                failure: RelrewardError = Unavailable("the event stream ended before the job finished")
+            except grpc.RpcError as e:
+                failure = from_rpc_error(e)
+            finally:
+                if stream is not None:
+                    stream.cancel()
+            if not is_retryable(failure):
+                raise failure
+            now = time.monotonic()
+            down_since = down_since if down_since is not None else now
+            delay = c.backoff_delay(attempt, c.WATCH_INITIAL_S, c.WATCH_MAX_S, reconnect_budget - (now - down_since))
+            if delay is None:
+                raise error_for(failure.code, f"{failure.message} (gave up reconnecting after {now - down_since:.0f} s;"
+                                              f" events from {cursor} on were not seen)")
+            attempt += 1
+            time.sleep(delay)
+
+    def wait_job(self, job_id: str, on_event: Callable[[c.JobEvent], None] | None = None) -> jobs_pb2.Job:
+        """Follows the job (:meth:`watch_job`) until it finishes and returns it; ``on_event``
+        sees every event. Does not raise for a FAILED or CANCELLED job: check ``job.state``."""
+        for event in self.watch_job(job_id):
+            if on_event is not None:
+                on_event(event)
+        return self.get_job(job_id)
+
+    # ----------------------------------------------------------------------------------------
+    # rewards
+
+    def score(self, model: str, x: Any, t: int | Sequence[int] | np.ndarray | None = 0, *, units: str = "raw",
+              per_window: bool = False, per_step: bool = False) -> c.ScoreResult:
+        """rho(x, t) per item.
+
+        ``x``: ``[B, H, D]`` trajectories (rows ``[action | observation]``) or ``[B, *shape]``
+        samples, any float array (sent as float32); ``t``: diffusion step, one for all or one
+        per item (``[B]``), in ``[0, T)``; ``units``: "raw" (the dataset's units) or
+        "normalized". Returns float32 ``rewards`` ``[B]``, and ``per_window`` ``[B, H / h]`` /
+        ``per_step`` ``[B, H]`` when asked for (windowed rewards). Retried on connection failures.
+        """
+        return c.score_result(self._idempotent(self._rewards.Score,
+                                               c.score_request(model, x, t, units, per_window, per_step)))
+
+    def gradient(self, model: str, x: Any, t: int | Sequence[int] | np.ndarray | None, *, omega: float | None = None,
+                 units: str = "raw", gradient_units: str | None = None,
+                 scale_by_posterior_variance_of: str | None = None) -> c.GradientResult:
+        """grad_x rho(x_t, t) and rho for a batch.
+
+        ``x`` ``[B, H, D]`` or ``[B, *shape]`` (float32 on the wire: a C-contiguous float32
+        array is copied once, into the message); ``t`` one step or ``[B]``; ``omega``: multiplies
+        the gradient (unset: 1); ``units``: of ``x``; ``gradient_units``: of the gradient
+        (default: the same as ``units``; "raw" goes through the normalizer's chain rule, so
+        finite differences of :meth:`score` match); ``scale_by_posterior_variance_of``: a
+        diffusion model whose posterior variance at t multiplies the gradient (Diffuser's
+        ``scale_grad_by_std``). Returns ``GradientResult(gradient [like x], rewards [B])``,
+        float32 read-only views (``grad, rho = client.gradient(...)`` unpacks). Retried on
+        connection failures.
+        """
+        req = c.gradient_request(model, x, t, omega, units, gradient_units or units, scale_by_posterior_variance_of)
+        return c.gradient_result(self._idempotent(self._rewards.Gradient, req))
+
+    def gradient_stream(self, model: str, *, omega: float | None = None, units: str = "raw",
+                        gradient_units: str | None = None, scale_by_posterior_variance_of: str | None = None
+                        ) -> "GradientStream":
+        """Opens one ``GradientStream`` for ``model`` (a planner episode): use it as a context
+        manager and call ``stream.gradient(x_t, t)`` at every denoising step, or ``submit`` several
+        and collect them (pipelining). The keyword arguments are the defaults of every request
+        (each call may override them); see :meth:`gradient`."""
+        return GradientStream(self._rewards.GradientStream, self._metadata, model, omega, units,
+                              gradient_units or units, scale_by_posterior_variance_of)
+
+    def sample_iter(self, model: str, *, reward_model: str | None = None, omega: float = 0.0, n: int = 1,
+                    seed: int | None = None, n_guide_steps: int | None = None, t_stopgrad: int | None = None,
+                    scale_grad_by_std: bool = False, conditions: Mapping[int, Any] | Sequence[tuple[int, Any]] | None = None,
+                    units: str = "raw", batch_size: int = 0) -> Iterator[c.Sample]:
+        """DDPM samples from diffusion model ``model`` as each finishes (any order; see
+        ``Sample.index``), guided by ``reward_model`` with scale ``omega`` (0: unguided, rewards
+        still reported). ``conditions``: ``{horizon index: state [obs_dim]}`` inpainted after
+        every step, in ``units``; ``n_guide_steps`` gradient steps per denoising step; no
+        guidance below ``t_stopgrad``; ``seed`` makes it reproducible. Not retried."""
+        req = c.sample_request(model, reward_model, omega, n, seed, n_guide_steps, t_stopgrad, scale_grad_by_std,
+                               conditions, units, batch_size)
+        stream = self._rewards.Sample(req, metadata=self._metadata, timeout=self.timeout)
+        try:
+            for r in stream:
+                yield c.sample_of(r)
+        except grpc.RpcError as e:
+            raise from_rpc_error(e) from None
+        finally:
+            stream.cancel()
+
+    def sample(self, model: str, **kwargs: Any) -> c.SampleBatch:
+        """All samples of :meth:`sample_iter` stacked in index order: ``x`` and
+        ``x_normalized`` ``[n, H, D]`` float32, ``rewards`` ``[n]`` (None without a reward model)."""
+        return c.stack_samples(list(self.sample_iter(model, **kwargs)))
+
+
+_END = object()
+
+
+class PendingGradient:
+    """A request sent on a :class:`GradientStream`; :meth:`result` waits for its answer."""
+
+    __slots__ = ("_stream", "request_id")
+
+    def __init__(self, stream: "GradientStream", request_id: int) -> None:
+        self._stream = stream
+        self.request_id = request_id
+
+    def result(self) -> c.GradientResult:
+        """The answer (``GradientResult``), or the request's own error raised as a
+        RelrewardError (the stream goes on)."""
+        return self._stream._result(self.request_id)
+
+
+class GradientStream:
+    """One open ``GradientStream`` call: requests go out in order, answers are matched by
+    ``request_id`` (they may come back in any order).
+
+    ``gradient(x_t, t)`` sends one request and waits for its answer; ``submit`` sends without
+    waiting (several in flight: pipelining) and returns a :class:`PendingGradient`. A failed
+    request raises its own error from ``result()`` and the stream continues; a failure of the
+    whole call (server gone, malformed frame) raises from every pending and later call. Thread
+    safe. Close it (or leave the ``with`` block) to end the request side.
+    """
+
+    def __init__(self, method: Any, metadata: Any, model: str, omega: float | None, units: str,
+                 gradient_units: str, scale_by_posterior_variance_of: str | None) -> None:
+        self.model = model
+        self._defaults = (omega, units, gradient_units, scale_by_posterior_variance_of)
+        self._requests: queue.SimpleQueue = queue.SimpleQueue()
+        self._responses = method(iter(self._requests.get, _END), metadata=metadata)
+        self._done: dict[int, reward_pb2.GradientResponse] = {}
+        self._next_id = 0
+        self._lock = threading.Lock()
+        self._failed: RelrewardError | None = None
+        self._closed = False
+
+    def __enter__(self) -> "GradientStream":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def submit(self, x: Any, t: int | Sequence[int] | np.ndarray | None, *, model: str | None = None,
+               omega: float | None = None, units: str | None = None, gradient_units: str | None = None,
+               scale_by_posterior_variance_of: str | None = None) -> PendingGradient:
+        """Sends grad_x rho(x, t) for ``x`` ``[B, H, D]`` at step(s) ``t`` without waiting; the
+        keyword arguments override the stream's defaults for this request."""
+        if self._failed is not None:
+            raise self._failed
+        if self._closed:
+            raise ValueError("the gradient stream is closed")
+        d_omega, d_units, d_gunits, d_scale = self._defaults
+        with self._lock:
+            self._next_id += 1
+            rid = self._next_id
+        req = c.gradient_request(model or self.model, x, t, d_omega if omega is None else omega, units or d_units,
+                                 gradient_units or d_gunits, scale_by_posterior_variance_of or d_scale, rid)
+        self._requests.put(req)
+        return PendingGradient(self, rid)
+
+    def gradient(self, x: Any, t: int | Sequence[int] | np.ndarray | None, **kwargs: Any) -> c.GradientResult:
+        """Sends one request and returns its ``GradientResult(gradient, rewards)`` (float32
+        read-only views; ``gradient`` shaped like ``x``, ``rewards`` ``[B]``)."""
+        return self.submit(x, t, **kwargs).result()
+
+    def _result(self, rid: int) -> c.GradientResult:
+        with self._lock:
+            while rid not in self._done:
+                if self._failed is not None:
+                    raise self._failed
+                try:
+                    r = next(self._responses)
+                except StopIteration:
+                    self._failed = Unavailable("the gradient stream ended before answering every request")
+                    raise self._failed from None
+                except grpc.RpcError as e:
+                    self._failed = from_rpc_error(e)
+                    raise self._failed from None
+                self._done[r.request_id] = r
+            r = self._done.pop(rid)
+        if r.HasField("error"):
+            raise error_for(r.error.code, r.error.message)
+        return c.gradient_result(r)
+
+    def close(self) -> None:
+        """Ends the request side; answers still owed are dropped and the call ends."""
+        if not self._closed:
+            self._closed = True
+            self._requests.put(_END)
+            self._responses.cancel()

@@ -1,0 +1,242 @@
+"""Typed training job specs: :class:`DiffusionJob`, :class:`RewardJob`, :class:`DiscriminatorJob`.
+
+Each builds a ``relreward.v1.JobSpec`` (:meth:`to_proto`); fields left ``None`` take the
+server's defaults (see jobs.proto). ``Client.submit_job`` also accepts a plain dict in the
+JobSpec's protobuf JSON form, e.g. ``{"output_model": "m", "diffusion": {"dataset": "d"}}``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Mapping, Sequence
+
+from google.protobuf import json_format
+
+from relreward._proto import jobs_pb2, models_pb2
+
+
+@dataclass
+class Optimization:
+    """Shared optimisation settings (all optional)."""
+
+    steps: int | None = None
+    batch_size: int | None = None
+    learning_rate: float | None = None
+    grad_clip: float | None = None
+    ema_decay: float | None = None
+    ema_every: int | None = None
+    ema_start: int | None = None
+    checkpoint_every: int | None = None
+    eval_every: int | None = None
+    log_every: int | None = None
+
+    def to_proto(self) -> jobs_pb2.Optimization:
+        return jobs_pb2.Optimization(**{k: v for k, v in self.__dict__.items() if v is not None})
+
+
+def _schedule(kind: str | Mapping[str, Any] | None) -> models_pb2.Schedule | None:
+    """``"linear"``, ``"cosine"``, ``"diffuser_cosine"`` or ``{"kind": ..., "s": .., "betas": [..]}``."""
+    if kind is None:
+        return None
+    spec = {"kind": kind} if isinstance(kind, str) else dict(kind)
+    k = spec.pop("kind")
+    if k == "linear":
+        return models_pb2.Schedule(linear=models_pb2.Schedule.Linear())
+    if k in ("cosine", "diffuser_cosine"):
+        return models_pb2.Schedule(**{k: models_pb2.Schedule.Cosine(s=float(spec.get("s", 0.0)))})
+    if k == "betas":
+        return models_pb2.Schedule(betas=models_pb2.Schedule.ExplicitBetas(betas=list(spec["betas"])))
+    raise ValueError(f"schedule kind {k!r}: expected linear, cosine, diffuser_cosine or betas")
+
+
+_PARAM = {None: 0, "epsilon": models_pb2.PARAMETRIZATION_EPSILON, "x0": models_pb2.PARAMETRIZATION_X0}
+
+
+def _param(p: str | None) -> int:
+    try:
+        return _PARAM[p]
+    except KeyError:
+        raise ValueError(f"parametrization {p!r}: expected 'x0' or 'epsilon'") from None
+
+
+@dataclass
+class DiffusionJob:
+    """Train a native diffusion model on dataset ``dataset``, registered as ``output_model``.
+
+    ``architecture``: ``("temporal_unet", {"dim": 32, "dim_mults": [1, 2, 4, 8]})`` or
+    ``("mlp", {"hidden": [256, 256]})``; ``horizon`` is the sub-trajectory length H in rows.
+    """
+
+    output_model: str
+    dataset: str
+    seed: int | None = None
+    optimization: Optimization | None = None
+    parametrization: str | None = None
+    schedule: str | Mapping[str, Any] | None = None
+    n_timesteps: int | None = None
+    horizon: int | None = None
+    architecture: tuple[str, Mapping[str, Any]] | None = None
+    action_weight: float | None = None
+    clip_denoised: bool | None = None
+    normalizer_datasets: Sequence[str] = ()
+
+    def to_proto(self) -> jobs_pb2.JobSpec:
+        d = jobs_pb2.TrainDiffusion(dataset=self.dataset, parametrization=_param(self.parametrization),
+                                    normalizer_datasets=list(self.normalizer_datasets))
+        for name in ("n_timesteps", "horizon", "action_weight", "clip_denoised"):
+            if getattr(self, name) is not None:
+                setattr(d, name, getattr(self, name))
+        if (s := _schedule(self.schedule)) is not None:
+            d.schedule.CopyFrom(s)
+        if self.architecture is not None:
+            kind, args = self.architecture
+            if kind == "temporal_unet":
+                d.temporal_unet.CopyFrom(jobs_pb2.TemporalUnet(**args))
+            elif kind == "mlp":
+                d.mlp.CopyFrom(jobs_pb2.Mlp(**args))
+            else:
+                raise ValueError(f"architecture {kind!r}: expected temporal_unet or mlp")
+        spec = _base(self.output_model, self.seed, self.optimization)
+        spec.diffusion.CopyFrom(d)
+        return spec
+
+
+def _base(output_model: str, seed: int | None, optimization: Optimization | None) -> jobs_pb2.JobSpec:
+    spec = jobs_pb2.JobSpec(output_model=output_model)
+    if seed is not None:
+        spec.seed = seed
+    if optimization is not None:
+        spec.optimization.CopyFrom(optimization.to_proto())
+    return spec
+
+
+def _reward_arch(arch: tuple[str, Mapping[str, Any]] | None) -> jobs_pb2.RewardArchitecture | None:
+    """``("windowed_mlp", {"window": 4, "hidden": [128, 64, 32]})``, ``("value_function",
+    {"widths": [..]})``, ``("conv_encoder", {"widths": [..]})`` or ``("mlp", {"hidden": [..]})``."""
+    if arch is None:
+        return None
+    kind, args = arch
+    ra = jobs_pb2.RewardArchitecture
+    inner = {"windowed_mlp": ra.WindowedMlp, "value_function": ra.ValueFunction, "conv_encoder": ra.ConvEncoder,
+             "mlp": jobs_pb2.Mlp}.get(kind)
+    if inner is None:
+        raise ValueError(f"reward architecture {kind!r}: expected windowed_mlp, value_function, conv_encoder or mlp")
+    return ra(**{kind: inner(**args)})
+
+
+@dataclass
+class RewardJob:
+    """Extract a relative reward between diffusion models ``base_model`` and ``expert_model``.
+
+    Algorithm 1 with ``datasets`` (x_t from the forward process on their rows), or Algorithm 2
+    with ``num_chains`` (``datasets`` empty). ``target``: "mean" or "score"; ``eval_point``:
+    "x_t" or "mu_base".
+    """
+
+    output_model: str
+    base_model: str
+    expert_model: str
+    datasets: Sequence[str] = ()
+    num_chains: int | None = None
+    architecture: tuple[str, Mapping[str, Any]] | None = None
+    target: str | None = None
+    eval_point: str | None = None
+    rho_l2: float | None = None
+    seed: int | None = None
+    optimization: Optimization | None = None
+
+    def to_proto(self) -> jobs_pb2.JobSpec:
+        r = jobs_pb2.TrainReward(base_model=self.base_model, expert_model=self.expert_model)
+        if (a := _reward_arch(self.architecture)) is not None:
+            r.architecture.CopyFrom(a)
+        if self.target is not None:
+            r.target = {"mean": jobs_pb2.REWARD_TARGET_MEAN, "score": jobs_pb2.REWARD_TARGET_SCORE}[self.target]
+        if self.eval_point is not None:
+            r.eval_point = {"x_t": jobs_pb2.EVAL_POINT_X_T, "mu_base": jobs_pb2.EVAL_POINT_MU_BASE}[self.eval_point]
+        if self.datasets:
+            r.with_dataset.datasets.extend(self.datasets)
+        else:
+            r.models_only.CopyFrom(jobs_pb2.TrainReward.ModelsOnly())
+            if self.num_chains is not None:
+                r.models_only.num_chains = self.num_chains
+        if self.rho_l2 is not None:
+            r.rho_l2 = self.rho_l2
+        spec = _base(self.output_model, self.seed, self.optimization)
+        spec.reward.CopyFrom(r)
+        return spec
+
+
+@dataclass
+class DiscriminatorJob:
+    """The paper's baseline: a base-vs-expert classifier sharing ``diffusion_model``'s schedule
+    and normalizer."""
+
+    output_model: str
+    base_dataset: str
+    expert_dataset: str
+    diffusion_model: str
+    architecture: tuple[str, Mapping[str, Any]] | None = None
+    seed: int | None = None
+    optimization: Optimization | None = None
+
+    def to_proto(self) -> jobs_pb2.JobSpec:
+        d = jobs_pb2.TrainDiscriminator(base_dataset=self.base_dataset, expert_dataset=self.expert_dataset,
+                                        diffusion_model=self.diffusion_model)
+        if (a := _reward_arch(self.architecture)) is not None:
+            d.architecture.CopyFrom(a)
+        spec = _base(self.output_model, self.seed, self.optimization)
+        spec.discriminator.CopyFrom(d)
+        return spec
+
+
+JobLike = "DiffusionJob | RewardJob | DiscriminatorJob | jobs_pb2.JobSpec | Mapping[str, Any]"
+
+
+def job_spec(spec: Any) -> jobs_pb2.JobSpec:
+    """A JobSpec from a typed spec, a JobSpec message, or a dict in its protobuf JSON form."""
+    if isinstance(spec, jobs_pb2.JobSpec):
+        return spec
+    if hasattr(spec, "to_proto"):
+        return spec.to_proto()
+    if isinstance(spec, Mapping):
+        return json_format.ParseDict(dict(spec), jobs_pb2.JobSpec())
+    raise TypeError(f"not a job spec: {type(spec).__name__}")
+
+
+def manifest(m: Any) -> models_pb2.DiffusionManifest:
+    """A DiffusionManifest from a message or a dict in the CLI's manifest form::
+
+        {"parametrization": "x0", "n_timesteps": 20, "clip_denoised": True,
+         "schedule": {"kind": "diffuser_cosine"},
+         "space": {"kind": "trajectory", "horizon": 32, "action_dim": 2, "obs_dim": 4},
+         "normalizer": {"kind": "limits", "min": [...], "max": [...]}}
+    """
+    if isinstance(m, models_pb2.DiffusionManifest):
+        return m
+    m = dict(m)
+    out = models_pb2.DiffusionManifest(parametrization=_param(m.get("parametrization")),
+                                       n_timesteps=int(m.get("n_timesteps", 0)),
+                                       clip_denoised=bool(m.get("clip_denoised", False)))
+    if (s := _schedule(m.get("schedule"))) is not None:
+        out.schedule.CopyFrom(s)
+    space = dict(m.get("space") or {})
+    kind = space.pop("kind", None)
+    if kind == "trajectory":
+        out.trajectory.CopyFrom(models_pb2.DiffusionManifest.Trajectory(**space))
+    elif kind == "sample":
+        out.sample.CopyFrom(models_pb2.DiffusionManifest.Sample(shape=list(space["shape"])))
+    elif kind is not None:
+        raise ValueError(f"space kind {kind!r}: expected trajectory or sample")
+    norm = dict(m.get("normalizer") or {})
+    nk = norm.pop("kind", None)
+    if nk == "limits":
+        out.normalizer.limits.min.extend(norm["min"])
+        out.normalizer.limits.max.extend(norm["max"])
+    elif nk == "gaussian":
+        out.normalizer.gaussian.mean.extend(norm["mean"])
+        out.normalizer.gaussian.std.extend(norm["std"])
+    elif nk == "identity":
+        out.normalizer.identity.SetInParent()
+    elif nk is not None:
+        raise ValueError(f"normalizer kind {nk!r}: expected limits, gaussian or identity")
+    return out
