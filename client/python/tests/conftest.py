@@ -39,14 +39,15 @@ architecture = { kind = "temporal_unet", dim = 8, dim_mults = [1, 2] }
 class Server:
     """A running relreward-server; ``addr`` is host:port, ``cli(...)`` runs the CLI against it."""
 
-    def __init__(self, data_dir: pathlib.Path, env: dict[str, str] | None = None, args: list[str] | None = None):
+    def __init__(self, data_dir: pathlib.Path, env: dict[str, str] | None = None, args: list[str] | None = None,
+                 listen: str = "127.0.0.1:0"):
         assert SERVER_BIN.exists(), f"{SERVER_BIN} not found: build it (make test) or set RELREWARD_SERVER_BIN"
         self.data_dir = data_dir
         self.log_path = data_dir.parent / f"{data_dir.name}-server.log"
         full_env = dict(os.environ, RELREWARD__ENGINE__INTRA_OP_THREADS="1", RELREWARD__METRICS__LISTEN="",
                         RELREWARD__SERVER__SHUTDOWN_DRAIN_SECS="0", **(env or {}))
         self._log = open(self.log_path, "ab")
-        self.proc = subprocess.Popen([str(SERVER_BIN), *(args or []), "--listen", "127.0.0.1:0", "--data-dir",
+        self.proc = subprocess.Popen([str(SERVER_BIN), *(args or []), "--listen", listen, "--data-dir",
                                       str(data_dir)], stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
                                      stderr=self._log, env=full_env)
         line = self._first_line(60)
@@ -92,7 +93,8 @@ class Server:
 
 @pytest.fixture(scope="session")
 def server(tmp_path_factory: pytest.TempPathFactory):
-    s = Server(tmp_path_factory.mktemp("server") / "data")
+    # TorchScript upload is off by default (a TorchScript file is a program); on for the tests.
+    s = Server(tmp_path_factory.mktemp("server") / "data", env={"RELREWARD__MODELS__ALLOW_TORCHSCRIPT_UPLOAD": "true"})
     yield s
     s.stop()
 
