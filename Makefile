@@ -10,6 +10,11 @@ PYTHON ?= python3
 VENV := .venv
 REQUIREMENTS := tests/python/requirements.txt
 SETUP_STAMP := $(VENV)/.relreward-setup
+# The relreward Python package (client/python), installed into .venv; reinstalled when its
+# sources or the protos it compiles change.
+PY_CLIENT_STAMP := $(VENV)/.relreward-python-client
+PY_CLIENT_SOURCES := client/python/pyproject.toml client/python/setup.py client/python/MANIFEST.in \
+	$(wildcard client/python/src/relreward/*.py client/python/src/relreward/_proto/__init__.py proto/relreward/v1/*.proto)
 CARGO := cargo
 CARGO_PROFILE := --release
 BIN := target/release
@@ -30,8 +35,9 @@ help:
 	@echo "make lint   rustfmt check and clippy"
 	@echo "make clean  remove build outputs (keeps .venv and data/)"
 
-## setup: the Python venv carrying libtorch (PyTorch 2.13.0) and the test scripts' packages.
-setup: $(SETUP_STAMP)
+## setup: the Python venv carrying libtorch (PyTorch 2.13.0), the test scripts' packages and
+## the relreward Python package (client/python; its stubs are compiled from proto/ as it builds).
+setup: $(SETUP_STAMP) $(PY_CLIENT_STAMP)
 
 $(SETUP_STAMP): $(REQUIREMENTS)
 	@command -v $(CARGO) >/dev/null || { echo "cargo not found: install the Rust toolchain (rustup)"; exit 1; }
@@ -41,6 +47,11 @@ $(SETUP_STAMP): $(REQUIREMENTS)
 	ln -sfn "$$($(VENV)/bin/python -c 'import os, torch; print(os.path.dirname(torch.__file__))')" $(VENV)/torch-root
 	@touch $@
 
+$(PY_CLIENT_STAMP): $(SETUP_STAMP) $(PY_CLIENT_SOURCES)
+	$(VENV)/bin/python -m pip install --quiet --disable-pip-version-check --no-build-isolation --no-deps \
+	  --force-reinstall ./client/python
+	@touch $@
+
 build: setup
 	$(CARGO) build $(CARGO_PROFILE) --workspace --bins
 
@@ -48,9 +59,11 @@ run: build
 	$(BIN)/relreward-server $(ARGS)
 
 ## test: every test. The end-to-end crate spawns target/release/relreward-server, built above.
-## Then the container image and manifests are checked (hadolint, kubernetes-validate, yamllint).
+## Then the Python package's tests (client/python/tests, pytest, against the same binaries),
+## then the container image and manifests are checked (hadolint, kubernetes-validate, yamllint).
 test: build
 	$(CARGO) test $(CARGO_PROFILE) --workspace --no-fail-fast
+	$(VENV)/bin/python -m pytest client/python/tests -q
 	deploy/validate.sh
 
 ## test-cluster: the shared backend across processes (tests/cluster/run.sh): a real PostgreSQL
