@@ -9,7 +9,9 @@ A B A B over REPS rounds of N calls each:
 - unary Gradient at B = 1 and B = 64: the raw stub (request built from the same numpy array:
   `Tensor(data=x.tobytes())`, answer read with `np.frombuffer`) vs `relreward.Client.gradient`;
 - GradientStream, one request in flight: the raw stub fed from a queue vs
-  `Client.gradient_stream(...).gradient`.
+  `Client.gradient_stream(...).gradient`;
+
+raw and client calls alternating call by call (so drift and other load hit both alike).
 
 Prints the markdown body of BENCHMARKS.md's `python-client` section; `--splice` writes it there
 (tests/bench/splice.py). Binaries: $RELREWARD_SERVER_BIN, $RELREWARD_CLI_BIN (default
@@ -130,21 +132,29 @@ def run(addr: str, model: str, n: int, reps: int) -> list[tuple[str, str, list[f
 
     stream = client.gradient_stream(model)
 
-    variants = [("gradient B=1", "raw grpcio", raw_gradient(xs[1])), ("gradient B=1", "relreward", client_gradient(xs[1])),
-                ("gradient B=64", "raw grpcio", raw_gradient(xs[64])),
-                ("gradient B=64", "relreward", client_gradient(xs[64])),
-                ("gradient_stream B=1", "raw grpcio", raw_stream_call),
-                ("gradient_stream B=1", "relreward", lambda: stream.gradient(xs[1], 5))]
-    for _, _, call in variants:
-        timed(call, 100)  # warm-up
+    pairs = [("gradient B=1", raw_gradient(xs[1]), client_gradient(xs[1])),
+             ("gradient B=64", raw_gradient(xs[64]), client_gradient(xs[64])),
+             ("gradient_stream B=1", raw_stream_call, lambda: stream.gradient(xs[1], 5))]
+    for _, raw_call, client_call in pairs:
+        timed(raw_call, 100)  # warm-up
+        timed(client_call, 100)
+    # Per call, raw and client alternate (which goes first alternates too), so drift and other
+    # load on the machine hit both alike.
     for _ in range(reps):
-        for config, who, call in variants:
-            samples.setdefault((config, who), []).extend(timed(call, n))
+        for config, raw_call, client_call in pairs:
+            raw_s = samples.setdefault((config, "raw grpcio"), [])
+            client_s = samples.setdefault((config, "relreward"), [])
+            for i in range(n):
+                order = ((raw_call, raw_s), (client_call, client_s))
+                for call, out in (order if i % 2 == 0 else order[::-1]):
+                    t0 = time.perf_counter()
+                    call()
+                    out.append(time.perf_counter() - t0)
     q.put(end)
     raw_stream.cancel()
     stream.close()
     client.close()
-    return [(config, who, samples[(config, who)]) for config, who, _ in variants]
+    return [(config, who, samples[(config, who)]) for config, _, _ in pairs for who in ("raw grpcio", "relreward")]
 
 
 def report(rows, args, wall: float) -> str:
@@ -157,8 +167,9 @@ def report(rows, args, wall: float) -> str:
         "Per-call latency of `relreward.Client` (client/python) against the raw grpcio stub on the same channel and "
         "the same numpy input (the raw path builds `Tensor(data=x.tobytes())` and reads the answer with "
         "`np.frombuffer`, as the client does), maze-shaped reward (windowed MLP h = 4, hidden 128, 64, 32, items "
-        "[64, 6], one training step), t = 5, raw units, one call in flight, loopback. Variants alternate over "
-        f"{args.reps} rounds of {args.calls} calls each (after 100 warm-up calls); p50 / p99 over all of them. "
+        "[64, 6], one training step), t = 5, raw units, one call in flight, loopback. Raw and client calls "
+        f"alternate call by call, {args.reps} rounds of {args.calls} calls each per call kind (after 100 warm-up "
+        "calls); p50 / p99 over all of them. "
         "Overhead = relreward p50 / raw p50 - 1.",
         "",
         f"Machine: {cpu}, {os.cpu_count()} CPUs (`nproc`), Python {platform.python_version()}, grpcio "

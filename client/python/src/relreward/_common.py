@@ -114,7 +114,7 @@ def times(t: int | Sequence[int] | np.ndarray | None) -> list[int]:
 # Results
 
 
-@dataclass(frozen=True)
+@dataclass
 class ScoreResult:
     """rho per item, float32 ``[B]``; per window ``[B, H / h]`` and per step ``[B, H]`` when asked
     for (else None). Read-only views of the response."""
@@ -124,7 +124,7 @@ class ScoreResult:
     per_step: np.ndarray | None = None
 
 
-@dataclass(frozen=True)
+@dataclass
 class GradientResult:
     """grad_x rho, float32, same shape as x (times omega and the posterior variance when asked),
     in the requested gradient units; and rho per item, float32 ``[B]``. Read-only views."""
@@ -232,11 +232,17 @@ def score_result(r: reward_pb2.ScoreResponse) -> ScoreResult:
                        _tensor.decode(r.per_step) if r.HasField("per_step") else None)
 
 
+_GradientRequest = reward_pb2.GradientRequest
+
+
 def gradient_request(model: str, x: Any, t: Any, omega: float | None, input_units: str, gradient_units: str,
                      scale_by_posterior_variance_of: str | None, request_id: int = 0) -> reward_pb2.GradientRequest:
-    req = reward_pb2.GradientRequest(request_id=request_id, model=model, x=_tensor.encode(x), t=times(t),
-                                     input_units=units(input_units), gradient_units=units(gradient_units),
-                                     scale_by_posterior_variance_of=scale_by_posterior_variance_of or "")
+    # The hot path of a planner: keyword arguments only where set (each costs a field write).
+    req = _GradientRequest(request_id=request_id, model=model, x=_tensor.encode(x),
+                           t=[int(t)] if isinstance(t, (int, np.integer)) else times(t),
+                           input_units=units(input_units), gradient_units=units(gradient_units))
+    if scale_by_posterior_variance_of:
+        req.scale_by_posterior_variance_of = scale_by_posterior_variance_of
     if omega is not None:
         req.omega = omega
     return req

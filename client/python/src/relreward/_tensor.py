@@ -8,6 +8,7 @@ arrays the client returns are read-only; call ``.copy()`` on one to modify it.
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
@@ -43,9 +44,14 @@ def numpy_dtype(wire: int) -> np.dtype:
         raise ValueError(f"unknown wire dtype {wire}") from None
 
 
+_F32 = np.dtype("<f4")
+_FLOAT32 = tensor_pb2.DTYPE_FLOAT32
+_Tensor = tensor_pb2.Tensor
+
+
 def as_f32(x: Any) -> np.ndarray:
     """``x`` as a C-contiguous little-endian float32 array (no copy when it already is one)."""
-    return np.ascontiguousarray(x, dtype="<f4")
+    return np.ascontiguousarray(x, dtype=_F32)
 
 
 def encode(x: Any, dtype: Any = None) -> tensor_pb2.Tensor:
@@ -55,10 +61,10 @@ def encode(x: Any, dtype: Any = None) -> tensor_pb2.Tensor:
     asks for it. One copy: the array's bytes into the message.
     """
     if dtype is None:
-        arr = as_f32(x)
-    else:
-        arr = np.ascontiguousarray(x, dtype=numpy_dtype(wire_dtype(dtype)))
-    return tensor_pb2.Tensor(shape=arr.shape, dtype=wire_dtype(arr.dtype), data=arr.tobytes())
+        arr = np.ascontiguousarray(x, dtype=_F32)
+        return _Tensor(shape=arr.shape, dtype=_FLOAT32, data=arr.tobytes())
+    arr = np.ascontiguousarray(x, dtype=numpy_dtype(wire_dtype(dtype)))
+    return _Tensor(shape=arr.shape, dtype=wire_dtype(arr.dtype), data=arr.tobytes())
 
 
 def decode(t: tensor_pb2.Tensor) -> np.ndarray:
@@ -66,9 +72,9 @@ def decode(t: tensor_pb2.Tensor) -> np.ndarray:
 
     Raises ValueError when the byte count does not match the shape.
     """
-    dtype = numpy_dtype(t.dtype)
-    shape = tuple(int(d) for d in t.shape)
+    dtype = _F32 if t.dtype == _FLOAT32 else numpy_dtype(t.dtype)
+    shape = tuple(t.shape)
     arr = np.frombuffer(t.data, dtype=dtype)
-    if arr.size != int(np.prod(shape, dtype=np.int64)):
+    if arr.size != math.prod(shape):
         raise ValueError(f"tensor of shape {list(shape)} carries {arr.size} values")
     return arr.reshape(shape)
