@@ -111,3 +111,25 @@ def test_local_validation_and_server_errors(client):
     assert "py-dup" in e.value.message and isinstance(e.value, relreward.RelrewardError)
     with pytest.raises(relreward.NotFound):
         client.delete_dataset("py-dup")
+
+
+class Flaky:
+    """An array-like whose second row chunk cannot be read (a file that goes away mid-upload)."""
+
+    def __init__(self, a: np.ndarray) -> None:
+        self.a, self.shape, self.dtype, self.reads = a, a.shape, a.dtype, 0
+
+    def __getitem__(self, index):
+        self.reads += 1
+        if self.reads == 2:
+            raise OSError("disk went away")
+        return self.a[index]
+
+
+def test_a_read_failure_mid_upload_is_reported_and_nothing_is_stored(client):
+    data = tiny_trajectories(seed=8)
+    data["observations"] = Flaky(data["observations"])
+    with pytest.raises(OSError, match="disk went away"):
+        client.upload_dataset("py-flaky", data, chunk_bytes=64)
+    with pytest.raises(relreward.NotFound):
+        client.get_dataset("py-flaky")

@@ -123,17 +123,23 @@ class AsyncClient:
     # models
     async def upload_model(self, path: str | pathlib.Path, name: str,
                            manifest: Mapping[str, Any] | models_pb2.DiffusionManifest, *, description: str = "",
-                           chunk_bytes: int = c.DEFAULT_CHUNK_BYTES) -> models_pb2.Model:
+                           chunk_bytes: int = c.DEFAULT_CHUNK_BYTES,
+                           progress: c.Progress | bool | None = None) -> models_pb2.Model:
+        """See :meth:`relreward.Client.upload_model`."""
         path = pathlib.Path(path)
         header = models_pb2.UploadModelHeader(name=name, manifest=manifest_of(manifest), description=description)
+        callback, bar = c.progress_callback(progress, path.stat().st_size, name)
         failure = c.UploadFailure()
         try:
-            return await self._models.UploadModel(c.model_messages(path, header, chunk_bytes, None, failure),
+            return await self._models.UploadModel(c.model_messages(path, header, chunk_bytes, callback, failure),
                                                   metadata=self._metadata, timeout=self.timeout)
         except grpc.RpcError as e:
             if failure.error is not None:
                 raise failure.error from None
             raise from_rpc_error(e) from None
+        finally:
+            if bar is not None:
+                bar.close()
 
     async def get_model(self, name: str) -> models_pb2.Model:
         return await self._idempotent(self._models.GetModel, models_pb2.GetModelRequest(name=name))
