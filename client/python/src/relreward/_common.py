@@ -26,7 +26,7 @@ DEFAULT_CHUNK_BYTES = 1 << 20
 IDEMPOTENT_INITIAL_S, IDEMPOTENT_MAX_S, IDEMPOTENT_BUDGET_S = 0.05, 1.0, 5.0
 WATCH_INITIAL_S, WATCH_MAX_S, WATCH_BUDGET_S = 0.25, 5.0, 60.0
 
-_UNITS = {"raw": reward_pb2.UNITS_RAW, "normalized": reward_pb2.UNITS_NORMALIZED}
+_UNITS: dict[str, reward_pb2.Units] = {"raw": reward_pb2.UNITS_RAW, "normalized": reward_pb2.UNITS_NORMALIZED}
 _TERMINAL = {jobs_pb2.JOB_STATE_SUCCEEDED, jobs_pb2.JOB_STATE_FAILED, jobs_pb2.JOB_STATE_CANCELLED}
 
 
@@ -94,7 +94,7 @@ def metadata_of(token: str | None) -> tuple[tuple[str, str], ...] | None:
     return (("authorization", f"Bearer {token}"),)
 
 
-def units(u: str) -> int:
+def units(u: str) -> reward_pb2.Units:
     try:
         return _UNITS[u]
     except KeyError:

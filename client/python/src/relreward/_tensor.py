@@ -9,14 +9,14 @@ arrays the client returns are read-only; call ``.copy()`` on one to modify it.
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
 from relreward._proto import tensor_pb2
 
 # numpy dtype (little-endian) for each wire dtype.
-_NUMPY_OF = {
+_NUMPY_OF: dict[int, np.dtype] = {
     tensor_pb2.DTYPE_FLOAT32: np.dtype("<f4"),
     tensor_pb2.DTYPE_FLOAT64: np.dtype("<f8"),
     tensor_pb2.DTYPE_INT32: np.dtype("<i4"),
@@ -24,10 +24,12 @@ _NUMPY_OF = {
     tensor_pb2.DTYPE_UINT8: np.dtype("u1"),
     tensor_pb2.DTYPE_BOOL: np.dtype("?"),
 }
-_WIRE_OF = {(v.kind, v.itemsize): k for k, v in _NUMPY_OF.items()}
+_WIRE_OF: dict[tuple[str, int], tensor_pb2.Dtype] = {
+    (v.kind, v.itemsize): cast("tensor_pb2.Dtype", k) for k, v in _NUMPY_OF.items()
+}
 
 
-def wire_dtype(dtype: Any) -> int:
+def wire_dtype(dtype: Any) -> tensor_pb2.Dtype:
     """The wire ``Dtype`` of a numpy dtype (either byte order); ValueError when none fits."""
     d = np.dtype(dtype)
     try:

@@ -19,9 +19,10 @@ from relreward.errors import RelrewardError, Unavailable, error_for, from_rpc_er
 from relreward.specs import job_spec, manifest as manifest_of
 
 T = TypeVar("T")
-_KINDS = {None: 0, "diffusion": models_pb2.MODEL_KIND_DIFFUSION, "reward": models_pb2.MODEL_KIND_REWARD,
+_KINDS: dict[str | None, models_pb2.ModelKind] = {None: models_pb2.MODEL_KIND_UNSPECIFIED, "diffusion": models_pb2.MODEL_KIND_DIFFUSION, "reward": models_pb2.MODEL_KIND_REWARD,
           "discriminator": models_pb2.MODEL_KIND_DISCRIMINATOR}
-_STATES = {None: 0, **{n.removeprefix("JOB_STATE_").lower(): v for n, v in jobs_pb2.JobState.items() if v}}
+_STATES: dict[str | None, Any] = {None: 0, **{n.removeprefix("JOB_STATE_").lower(): v
+                                                for n, v in jobs_pb2.JobState.items() if v}}
 
 
 class Client:

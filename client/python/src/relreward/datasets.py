@@ -42,7 +42,7 @@ class UploadSource:
     of the input that are not sent. Arrays may be numpy arrays or anything with ``shape``,
     ``dtype`` and row slicing (an ``h5py.Dataset``)."""
 
-    kind: int
+    kind: datasets_pb2.DatasetKind
     arrays: list[tuple[str, Any]]
     ignored: list[str] = field(default_factory=list)
 

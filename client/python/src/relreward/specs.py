@@ -45,14 +45,17 @@ def _schedule(kind: str | Mapping[str, Any] | None) -> models_pb2.Schedule | Non
     if k in ("cosine", "diffuser_cosine"):
         return models_pb2.Schedule(**{k: models_pb2.Schedule.Cosine(s=float(spec.get("s", 0.0)))})
     if k == "betas":
-        return models_pb2.Schedule(betas=models_pb2.Schedule.ExplicitBetas(betas=list(spec["betas"])))
+        betas: Any = spec["betas"]
+        return models_pb2.Schedule(betas=models_pb2.Schedule.ExplicitBetas(betas=[float(b) for b in betas]))
     raise ValueError(f"schedule kind {k!r}: expected linear, cosine, diffuser_cosine or betas")
 
 
-_PARAM = {None: 0, "epsilon": models_pb2.PARAMETRIZATION_EPSILON, "x0": models_pb2.PARAMETRIZATION_X0}
+_PARAM: dict[str | None, models_pb2.Parametrization] = {
+    None: models_pb2.PARAMETRIZATION_UNSPECIFIED, "epsilon": models_pb2.PARAMETRIZATION_EPSILON,
+    "x0": models_pb2.PARAMETRIZATION_X0}
 
 
-def _param(p: str | None) -> int:
+def _param(p: str | None) -> models_pb2.Parametrization:
     try:
         return _PARAM[p]
     except KeyError:
