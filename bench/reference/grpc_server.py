@@ -1,8 +1,8 @@
 #!/usr/bin/env python3
 """A Python gRPC server for relreward.v1 RewardService.Gradient and GradientStream, written the
 way a researcher would wrap the paper's PyTorch code: grpcio's thread-pool server, stubs
-generated at start from relreward's own .proto files, the reward network from the PyTorch
-reference (tests/python/reward_nets_reference.py, which loads relreward's safetensors weights
+from relreward's own .proto files (the relreward package's, or generated at start), the reward
+network from the PyTorch reference (tests/python/reward_nets_reference.py, which loads relreward's safetensors weights
 strictly), and one forward/backward pass per request. It is the baseline of the serving
 benchmark (tests/bench/serving.sh) and is cross-checked against relreward by
 tests/tests/reference_server.rs, so both compute the same numbers on the same weights.
@@ -58,7 +58,18 @@ MIN_RANGE = 1e-12
 
 
 def load_stubs(proto_dir: pathlib.Path, out: pathlib.Path):
-    """Generates the relreward.v1 Python stubs into `out` and imports them."""
+    """The relreward.v1 Python stubs: the `relreward` package's (client/python, which `make
+    setup` installs, built from the same proto/), else generated into `out` and imported.
+
+    Stubs generated at run time are imported as `relreward.v1`, which an installed `relreward`
+    package shadows (a regular package wins over the generated namespace directory), hence the
+    package first."""
+    try:
+        from relreward._proto import reward_pb2, reward_pb2_grpc, tensor_pb2
+
+        return reward_pb2, reward_pb2_grpc, tensor_pb2
+    except ImportError:
+        pass
     from grpc_tools import protoc
 
     files = sorted(str(p.relative_to(proto_dir)) for p in (proto_dir / "relreward" / "v1").glob("*.proto"))
