@@ -3,9 +3,10 @@
 way a researcher would wrap the paper's PyTorch code: grpcio's thread-pool server, stubs
 from relreward's own .proto files (the relreward package's, or generated at start), the reward
 network from the PyTorch reference (tests/python/reward_nets_reference.py, which loads
-relreward's safetensors weights strictly), and one forward/backward pass per request. It is the baseline of the serving
-benchmark (tests/bench/serving.sh) and is cross-checked against relreward by
-tests/tests/reference_server.rs, so both compute the same numbers on the same weights.
+relreward's safetensors weights strictly), and one forward/backward pass per request. It is
+the baseline of the serving benchmark (tests/bench/serving.sh) and is cross-checked against
+relreward by tests/tests/reference_server.rs, so both compute the same numbers on the same
+weights.
 
     .venv/bin/python bench/reference/grpc_server.py --data-dir DATA --model maze-reward
     .venv/bin/python bench/reference/grpc_server.py --weights W.safetensors --manifest M.json --model NAME
