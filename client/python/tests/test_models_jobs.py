@@ -158,3 +158,27 @@ def test_reads_are_retried_until_the_server_comes_writes_are_not(tmp_path):
             time.sleep(0.1)
             for s in box:
                 s.stop()
+
+
+def test_async_upload_submit_and_watch(server, tiny):
+    import asyncio
+
+    async def main():
+        async with relreward.AsyncClient(server.addr) as ac:
+            ds = await ac.upload_dataset("py-async", tiny_trajectories(seed=9), chunk_bytes=200)
+            job = await ac.submit_job(relreward.DiffusionJob(
+                output_model="py-async-m", dataset=ds.name, horizon=8, n_timesteps=10, seed=1,
+                architecture=("temporal_unet", {"dim": 8, "dim_mults": [1, 2]}),
+                optimization=relreward.Optimization(steps=8, batch_size=8, log_every=4)))
+            events = [e async for e in ac.watch_job(job.id)]
+            return ds, events, await ac.list_jobs()
+
+    ds, events, jobs = asyncio.run(main())
+    assert ds.num_rows == 112 and ds.episodes.count == 5
+    assert [e.seq for e in events] == list(range(1, len(events) + 1)) and events[-1].state == "SUCCEEDED"
+    assert any(e.kind == "progress" and e.loss > 0 for e in events)
+
+
+def test_progress_true_uses_tqdm_when_installed(client):
+    ds = client.upload_dataset("py-progress", np.zeros((8, 3), np.float32), progress=True)
+    assert ds.num_rows == 8
