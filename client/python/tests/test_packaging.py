@@ -42,7 +42,7 @@ def test_wheel_holds_generated_private_stubs(dists):
     names = zipfile.ZipFile(wheel).namelist()
     for module in ("datasets", "jobs", "models", "reward", "tensor"):
         assert f"relreward/_proto/{module}_pb2.py" in names and f"relreward/_proto/{module}_pb2_grpc.py" in names
-    assert "relreward/py.typed" in names
+    assert "relreward/py.typed" in names and "relreward/_proto/reward_pb2.pyi" in names
     assert not any(n.startswith(("relreward/v1", "inference")) or "inference" in n for n in names)
     text = zipfile.ZipFile(wheel).read("relreward/_proto/reward_pb2_grpc.py").decode()
     assert "from relreward._proto import reward_pb2" in text and "from relreward.v1" not in text
