@@ -182,3 +182,15 @@ def test_async_upload_submit_and_watch(server, tiny):
 def test_progress_true_uses_tqdm_when_installed(client):
     ds = client.upload_dataset("py-progress", np.zeros((8, 3), np.float32), progress=True)
     assert ds.num_rows == 8
+
+
+def test_discriminator_job(client, tiny):
+    client.upload_dataset("py-disc-expert", tiny_trajectories(seed=11))
+    job = client.submit_job(relreward.DiscriminatorJob(
+        output_model="py-disc", base_dataset=tiny.dataset, expert_dataset="py-disc-expert", diffusion_model=tiny.base,
+        architecture=("windowed_mlp", {"window": 4, "hidden": [8]}), seed=1,
+        optimization=relreward.Optimization(steps=4, batch_size=8)))
+    assert client.wait_job(job.id).state == relreward.pb.jobs.JOB_STATE_SUCCEEDED
+    assert client.get_model("py-disc").kind == relreward.pb.models.MODEL_KIND_DISCRIMINATOR
+    x = np.zeros((2, tiny.horizon, tiny.transition_dim), np.float32)
+    assert client.score("py-disc", x).rewards.shape == (2,)
