@@ -7,7 +7,7 @@
 #   FUZZ_SECS=300 tests/fuzz.sh npz_file   # chosen targets, longer
 #   FUZZ_TARGETS="tensor_decode npy_header npz_file" tests/fuzz.sh   # client only (no libtorch)
 #
-# Targets (fuzz/fuzz_targets/): tensor_decode, npy_header, npz_file (relreward-client only) and
+# Targets (fuzz/fuzz_targets/): tensor_decode, npy_header, npz_file (relreward-proto, -client and -toolkit only) and
 # server_npy_read, manifest_parse, job_spec (link relreward-server, so libtorch: found through
 # LIBTORCH, by default the project's .venv/torch-root as in .cargo/config.toml).
 #
