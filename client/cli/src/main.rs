@@ -400,7 +400,8 @@ mod tests {
         ]) else {
             panic!("train reward")
         };
-        use commands::train::{AlgorithmArg, ArchKind, EvalPoint, Target};
+        use commands::train::config::{ArchKind, EvalPoint, Target};
+        use commands::train::flags::AlgorithmArg;
         assert_eq!((args.base.as_deref(), args.expert.as_deref()), (Some("b"), Some("e")));
         assert_eq!(args.datasets, ["d1", "d2"]);
         assert_eq!((args.algorithm, args.num_chains), (Some(AlgorithmArg::ModelsOnly), Some(512)));

@@ -219,6 +219,7 @@ mod tests {
 
     use futures::stream;
     use pb::job_event::Event;
+    use tonic::Code;
 
     use super::*;
 

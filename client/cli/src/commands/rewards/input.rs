@@ -11,9 +11,12 @@ use relreward_client::{Client, UploadSource, pb, tensor};
 use relreward_toolkit::npz::{self, NpzSource};
 use serde_json::{Value, json};
 
-use super::MAX_REQUEST_BYTES;
 use crate::commands::UsageError;
 use crate::commands::output::eprint_line;
+
+/// Largest payload of one Score/Gradient request: half the server's default request limit
+/// (16 MiB), leaving room for framing and for servers configured lower.
+pub const MAX_REQUEST_BYTES: u64 = 8 << 20;
 
 /// Units of inputs and gradients.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]

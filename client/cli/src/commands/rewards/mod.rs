@@ -11,7 +11,7 @@
 //!   and windows start every `--stride` rows.
 //!
 //! Items go to the server in requests of `--batch` (two in flight), lowered when needed so that
-//! one request stays under [`MAX_REQUEST_BYTES`]. Results are written with `--out` as an `.npz`
+//! one request stays under [`input::MAX_REQUEST_BYTES`]. Results are written with `--out` as an `.npz`
 //! ([`relreward_toolkit::npz_write`]) and summarised as text or, with `--json`, one document.
 
 pub mod grad;
@@ -23,12 +23,6 @@ pub mod score;
 pub use grad::{GradArgs, grad};
 pub use input::{InputArgs, UnitsArg};
 pub(crate) use input::{Items, batches, read_items, request_batch};
-pub(crate) use results::{floats, item_bar, request_error, summarize};
+pub(crate) use results::{IN_FLIGHT, floats, item_bar, request_error, summarize};
 pub use sample::{SampleArgs, sample};
 pub use score::{ScoreArgs, score};
-
-/// Largest payload of one Score/Gradient request: half the server's default request limit
-/// (16 MiB), leaving room for framing and for servers configured lower.
-pub const MAX_REQUEST_BYTES: u64 = 8 << 20;
-/// Requests in flight at once: one computing while the next travels.
-pub(crate) const IN_FLIGHT: usize = 2;

@@ -12,10 +12,12 @@ use relreward_client::{ClientError, pb, tensor};
 use relreward_toolkit::npz_write::NpzWriter;
 use serde_json::{Value, json};
 
-use super::IN_FLIGHT;
 use super::input::{InputArgs, Items};
 use crate::commands::output::{bars_visible, check_out_file, fmt_num, key_values};
 use crate::commands::{Ctx, Report};
+
+/// Requests in flight at once: one computing while the next travels.
+pub(crate) const IN_FLIGHT: usize = 2;
 
 /// float32 or float64 values of a response tensor (non-finite values are kept).
 pub(crate) fn floats(t: Option<&pb::Tensor>, field: &str, shape: &[u64]) -> Result<Vec<f32>> {

@@ -66,9 +66,9 @@ mod tests {
 
     use super::super::UsageError;
     use super::super::manifest::parse_text;
-    use super::config::{Algorithm, ArchKind, Architecture, EvalPoint, RewardArchitecture, Target, TrainConfig};
+    use super::config::{ArchKind, EvalPoint, Target, TrainConfig};
     use super::flags::{AlgorithmArg, ArchArgs};
-    use super::spec::{diffusion_spec, discriminator_spec, reward_architecture, reward_spec, usage};
+    use super::spec::{diffusion_spec, discriminator_spec, reward_spec};
     use super::*;
 
     const CONFIG: &str = r#"

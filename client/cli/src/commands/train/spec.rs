@@ -224,7 +224,7 @@ fn flag_or_file<T>(
     }
 }
 
-pub(super) fn usage(message: impl Into<String>) -> anyhow::Error {
+fn usage(message: impl Into<String>) -> anyhow::Error {
     UsageError(message.into()).into()
 }
 
@@ -290,7 +290,7 @@ fn reward_algorithm(file: Option<Algorithm>, args: &TrainRewardArgs) -> Result<p
 /// The network of a reward or discriminator job (`table`: its config table): `--arch`, else the
 /// file's kind, with `--window`, `--hidden` and `--widths` over the file's values (kept only when
 /// the file names the same kind). None when neither names one.
-pub(super) fn reward_architecture(
+fn reward_architecture(
     file: Option<RewardArchitecture>,
     args: &ArchArgs,
     table: &str,
