@@ -1,5 +1,6 @@
-//! The relreward research toolkit: what the `relreward` CLI, the end-to-end tests and the
-//! benchmarks share besides the client itself. No network, no libtorch.
+//! The relreward research toolkit: what the `relreward` CLI and the end-to-end tests (and
+//! benchmarks, as they need it) share besides the client itself. It opens no connection and never links libtorch;
+//! it uses the client library only for [`relreward_client::UploadSource`].
 //!
 //! Module map:
 //! - [`npz`]: reads `.npz`/`.npy` files (D4RL-style trajectories, sample arrays) into an
