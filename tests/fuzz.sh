@@ -7,9 +7,10 @@
 #   FUZZ_SECS=300 tests/fuzz.sh npz_file   # chosen targets, longer
 #   FUZZ_TARGETS="tensor_decode npy_header npz_file" tests/fuzz.sh   # client only (no libtorch)
 #
-# Targets (fuzz/fuzz_targets/): tensor_decode, npy_header, npz_file (relreward-client only) and
-# server_npy_read, manifest_parse, job_spec (link relreward-server, so libtorch: found through
-# LIBTORCH, by default the project's .venv/torch-root as in .cargo/config.toml).
+# Targets (fuzz/fuzz_targets/): tensor_decode, npy_header, npz_file (the proto, client and
+# toolkit crates only) and server_npy_read, manifest_parse, job_spec (link relreward-server, so
+# libtorch: found through LIBTORCH, by default the project's .venv/torch-root as in
+# .cargo/config.toml).
 #
 # Stable Rust: RUSTC_BOOTSTRAP=1 lets it accept the -Z flags cargo-fuzz passes. New corpus
 # entries go to fuzz/target/corpus/<target> (ignored); the committed seeds in

@@ -1,8 +1,10 @@
-//! The checked npy header parser (`client/src/npz.rs` `read_npy_header`) on arbitrary bytes.
+//! The checked npy header parser (`read_npy_header` of `client/toolkit/src/npz.rs`) on
+//! arbitrary bytes.
 #![no_main]
 
 use libfuzzer_sys::fuzz_target;
-use relreward_client::{npz, tensor};
+use relreward_proto::tensor;
+use relreward_toolkit::npz;
 
 fuzz_target!(|data: &[u8]| {
     let mut reader = data;

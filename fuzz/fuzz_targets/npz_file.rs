@@ -1,11 +1,12 @@
-//! The CLI's file readers (`client/src/npz.rs`) on an arbitrary file: sniffing, .npz archive
-//! listing, both dataset readers, and reading every array they accept (streamed and whole).
+//! The toolkit's file readers (`client/toolkit/src/npz.rs`) on an arbitrary file: sniffing,
+//! .npz archive listing, both dataset readers, and reading every array they accept (streamed
+//! and whole).
 #![no_main]
 
 use std::io::Read;
 
 use libfuzzer_sys::fuzz_target;
-use relreward_client::npz;
+use relreward_toolkit::npz;
 use relreward_client::upload::UploadSource;
 
 fuzz_target!(|data: &[u8]| {

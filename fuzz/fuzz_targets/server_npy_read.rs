@@ -33,7 +33,7 @@ fuzz_target!(|data: &[u8]| {
     // The header writer must round-trip through the client's checked parser.
     if shape.iter().all(|&d| d < 1 << 20) && dtype != Dtype::Unspecified {
         let header = npy::header(dtype, &shape);
-        let info = relreward_client::npz::read_npy_header(&mut header.as_slice()).expect("own header parses");
+        let info = relreward_toolkit::npz::read_npy_header(&mut header.as_slice()).expect("own header parses");
         assert_eq!((info.dtype, info.shape), (dtype, shape));
     }
 });

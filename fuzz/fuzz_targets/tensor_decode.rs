@@ -1,11 +1,11 @@
 //! The Tensor wire codec: any bytes a peer sends, decoded as a `relreward.v1.Tensor` and then
-//! through every checked decoder (`client/src/tensor.rs`). Nothing may panic or allocate more
+//! through every checked decoder (`proto/src/tensor.rs`). Nothing may panic or allocate more
 //! than the message carries.
 #![no_main]
 
 use libfuzzer_sys::fuzz_target;
 use prost::Message;
-use relreward_client::tensor;
+use relreward_proto::tensor;
 use relreward_proto::v1::Tensor;
 
 fuzz_target!(|data: &[u8]| {

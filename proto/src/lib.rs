@@ -8,8 +8,15 @@
 //! - [`FILE_DESCRIPTOR_SET`], [`INFERENCE_FILE_DESCRIPTOR_SET`]: the encoded descriptors of
 //!   each package, for server reflection.
 //!
-//! This crate holds the contract and its generated code only; conversions live with their
-//! users (the client's tensor codec, the server's `api` layer).
+//! - [`tensor`]: the codec of `relreward.v1.Tensor` (dtype names and sizes, byte lengths,
+//!   little-endian encode/decode). It is part of the wire contract: the server validates with
+//!   it what the client encodes with it, so it lives here and neither end depends on the other.
+//! - [`error_chain`]: an error with its causes, for messages at both ends.
+//!
+//! Everything else about a message (the server's checks of its fields, the client's helpers)
+//! lives with its users.
+
+pub mod tensor;
 
 /// Package `relreward.v1`.
 pub mod v1 {
@@ -28,3 +35,21 @@ pub const FILE_DESCRIPTOR_SET: &[u8] = tonic::include_file_descriptor_set!("relr
 
 /// Encoded `FileDescriptorSet` of the `inference` package, for `tonic-reflection`.
 pub const INFERENCE_FILE_DESCRIPTOR_SET: &[u8] = tonic::include_file_descriptor_set!("inference_descriptor");
+
+/// An error and its causes, `: `-separated: libraries such as tonic and tokio-postgres keep the
+/// reason ("invalid peer certificate", "connection refused") in the source, not the message.
+/// Both ends use it (the client's connection errors, the server's TLS and PostgreSQL
+/// messages); it lives here, the one crate both depend on, so the server needs no client.
+pub fn error_chain(e: &dyn std::error::Error) -> String {
+    let mut text = e.to_string();
+    let mut source = e.source();
+    while let Some(cause) = source {
+        let more = cause.to_string();
+        if !text.contains(&more) {
+            text.push_str(": ");
+            text.push_str(&more);
+        }
+        source = cause.source();
+    }
+    text
+}

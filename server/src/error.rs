@@ -132,8 +132,8 @@ impl From<rusqlite::Error> for Error {
     }
 }
 
-/// An error with its causes (the client library's, so both ends word them alike).
-pub use relreward_client::error_chain;
+/// An error with its causes (the wire crate's, shared with the client so both ends word them alike).
+pub use relreward_proto::error_chain;
 
 impl From<tokio_postgres::Error> for Error {
     fn from(e: tokio_postgres::Error) -> Self {

@@ -478,7 +478,7 @@ pub fn train_tiny_reward(server: &TestServer, dir: &Path) -> TinyModels {
         if k == 0 { terminals[end - 1] = true } else { timeouts[end - 1] = true }
     }
     let path = dir.join("traj.npz");
-    let mut npz = relreward_client::npz_write::NpzWriter::create(&path).expect("npz");
+    let mut npz = relreward_toolkit::npz_write::NpzWriter::create(&path).expect("npz");
     npz.add_f32("observations", &[n as u64, 2], &obs).expect("obs");
     npz.add_f32("actions", &[n as u64, 2], &act).expect("act");
     npz.add_bool("terminals", &[n as u64], &terminals).expect("terminals");

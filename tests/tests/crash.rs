@@ -308,7 +308,7 @@ async fn corrupt_models_and_datasets_are_reported_never_served() {
     let models = train_tiny_reward(&server, tmp.path());
     let client = server.client().await;
     let x = tmp.path().join("x.npz");
-    let mut npz = relreward_client::npz_write::NpzWriter::create(&x).expect("npz");
+    let mut npz = relreward_toolkit::npz_write::NpzWriter::create(&x).expect("npz");
     let values: Vec<f32> = (0..2 * 8 * 4).map(|i| (i as f32 * 0.3).sin()).collect();
     npz.add_f32("x", &[2, 8, 4], &values).expect("x");
     npz.finish().expect("write npz");

@@ -2,8 +2,8 @@
 //! server (generation, upload, diffusion models, rewards, heatmaps, discrimination, steering),
 //! expert windows score higher than base windows, and the pictures are real PNGs.
 
-use relreward_client::eval::plot::png_size;
 use relreward_tests::TestServer;
+use relreward_toolkit::eval::plot::png_size;
 use serde_json::Value;
 
 #[tokio::test(flavor = "multi_thread")]

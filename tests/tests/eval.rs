@@ -92,7 +92,7 @@ print(w, h)
 fn assert_png(path: &Path) {
     assert!(path.exists(), "{} was not written", path.display());
     let bytes = std::fs::read(path).expect("read png");
-    assert_eq!(relreward_client::eval::plot::png_size(&bytes), Some((900, 700)), "{}", path.display());
+    assert_eq!(relreward_toolkit::eval::plot::png_size(&bytes), Some((900, 700)), "{}", path.display());
     assert_eq!(run_python(CHECK_PNG, &[path.to_str().expect("utf8")]).trim(), "900 700");
 }
 

@@ -173,8 +173,8 @@ impl DatasetService for Datasets {
 /// An array with an invalid dtype or shape counts 0: `DatasetIngest::begin` refuses those.
 fn disk_bytes(header: &pb::UploadHeader) -> u64 {
     header.arrays.iter().fold(0u64, |total, spec| {
-        let payload = relreward_client::tensor::known_dtype(spec.dtype)
-            .and_then(|dtype| relreward_client::tensor::byte_len(&spec.shape, dtype))
+        let payload = relreward_proto::tensor::known_dtype(spec.dtype)
+            .and_then(|dtype| relreward_proto::tensor::byte_len(&spec.shape, dtype))
             .unwrap_or(0);
         total.saturating_add(payload).saturating_add(4096)
     })
@@ -195,7 +195,7 @@ fn to_proto(r: &DatasetRecord, view: pb::DatasetView) -> pb::Dataset {
             .map(|a| pb::ArrayInfo {
                 spec: Some(pb::ArraySpec {
                     name: a.name.clone(),
-                    dtype: relreward_client::tensor::parse_dtype(&a.dtype).unwrap_or(pb::Dtype::Unspecified) as i32,
+                    dtype: relreward_proto::tensor::parse_dtype(&a.dtype).unwrap_or(pb::Dtype::Unspecified) as i32,
                     shape: a.shape.clone(),
                 }),
                 stats: a.stats.as_ref().filter(|_| full).map(|s| pb::ArrayStats {

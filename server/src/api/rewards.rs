@@ -8,7 +8,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 
 use futures::stream::FuturesUnordered;
 use futures::{Stream, StreamExt};
-use relreward_client::tensor;
+use relreward_proto::tensor;
 use relreward_proto::v1::{self as pb, reward_service_server::RewardService};
 use tch::{Kind, Tensor};
 use tokio::sync::{Semaphore, mpsc};

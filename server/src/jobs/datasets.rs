@@ -20,7 +20,7 @@ pub(crate) fn load_rows(store_dir: &Path, ds: &DatasetRecord, horizon: usize) ->
     crate::store::Store::verify_dataset(store_dir, ds)?;
     let read = |name: &str| -> Result<Option<npy::Array>> {
         let Some(a) = array(ds, name) else { return Ok(None) };
-        let dtype = relreward_client::tensor::parse_dtype(&a.dtype)
+        let dtype = relreward_proto::tensor::parse_dtype(&a.dtype)
             .ok_or_else(|| Error::DataLoss(format!("dataset '{}': unknown stored dtype {}", ds.name, a.dtype)))?;
         npy::read(&store_dir.join(&a.file), dtype, &a.shape).map(Some)
     };

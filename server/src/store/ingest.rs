@@ -10,7 +10,7 @@
 use std::fs::File;
 use std::io::{BufWriter, Write};
 
-use relreward_client::tensor::{self, CodecError};
+use relreward_proto::tensor::{self, CodecError};
 use relreward_proto::v1::{self as pb, Dtype};
 use sha2::{Digest, Sha256};
 

@@ -368,7 +368,7 @@ fn verify_payload(dir: &Path, record: &DatasetRecord, what: &str) -> Result<()> 
     let mut hasher = Sha256::new();
     let mut buf = vec![0u8; 1 << 20];
     for array in &record.arrays {
-        let dtype = relreward_client::tensor::parse_dtype(&array.dtype)
+        let dtype = relreward_proto::tensor::parse_dtype(&array.dtype)
             .ok_or_else(|| Error::DataLoss(format!("{what}: unknown stored dtype {}", array.dtype)))?;
         let header_len = npy::header(dtype, &array.shape).len();
         let mut file = std::fs::File::open(dir.join(&array.file)).map_err(|e| match e.kind() {

@@ -73,7 +73,7 @@ pub fn read(path: &std::path::Path, dtype: Dtype, shape: &[u64]) -> crate::error
     use crate::error::Error;
     let bytes = std::fs::read(path).map_err(|e| Error::internal(&format!("reading {}", path.display()), e))?;
     let expected_header = header(dtype, shape);
-    let payload = relreward_client::tensor::byte_len(shape, dtype)
+    let payload = relreward_proto::tensor::byte_len(shape, dtype)
         .map_err(|e| Error::DataLoss(format!("{}: {e}", path.display())))? as usize;
     if bytes.len() != expected_header.len() + payload || bytes[..expected_header.len()] != expected_header[..] {
         return Err(Error::DataLoss(format!(

@@ -1,0 +1,750 @@
+//! `relreward train diffusion|reward|discriminator` (specs built by [`super::train`]) and
+//! `relreward job list|show|cancel|watch` (`job plot` is in [`super::eval`]).
+//!
+//! `job watch` (and `train ... --watch`) shows a progress bar fed by the job's Progress events
+//! (step/total, loss, steps/s and ETA as the server measured them), prints state changes, log
+//! lines and checkpoints above it, and survives reconnects (see [`relreward_client::watch`]).
+//! With `--json` it prints one JSON object per event per line instead (see [`event_json`]).
+
+use std::time::Duration;
+
+use anyhow::{Result, bail};
+use clap::{Subcommand, ValueEnum};
+use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
+use relreward_client::retry::RetryPolicy;
+use relreward_client::watch::WatchNotice;
+use relreward_client::{Client, pb};
+use serde_json::{Map, Value, json};
+
+use super::manifest::{parametrization_name, schedule_json, schedule_text};
+use super::output::{
+    bars_visible, eprint_line, fmt_short, human_duration, key_values, or_dash, rfc3339, rfc3339_millis, state_name,
+    table, time_or_dash, write_stdout,
+};
+use super::train::{
+    TrainArgs, TrainDiffusionArgs, TrainDiscriminatorArgs, TrainRewardArgs, diffusion_spec_from_args,
+    discriminator_spec_from_args, reward_spec_from_args,
+};
+use super::{Ctx, Report};
+
+#[derive(Debug, Subcommand)]
+pub enum TrainCommand {
+    /// Train a native diffusion model on a dataset (DDPM loss).
+    Diffusion(TrainDiffusionArgs),
+    /// Extract a relative reward rho from a base and an expert diffusion model (gradient
+    /// alignment; Algorithm 1 on datasets, or Algorithm 2 from the models alone).
+    Reward(TrainRewardArgs),
+    /// Train the discriminator baseline: base vs expert dataset, binary cross-entropy.
+    Discriminator(TrainDiscriminatorArgs),
+}
+
+#[derive(Debug, Subcommand)]
+pub enum JobCommand {
+    /// List jobs, newest first.
+    List {
+        /// Only jobs in this state.
+        #[arg(long, value_enum)]
+        state: Option<JobStateArg>,
+    },
+    /// Show a job: state, progress, loss, error, timestamps and spec.
+    Show { id: String },
+    /// Cancel a job (it stops at its next step).
+    Cancel { id: String },
+    /// Follow a job's progress until it finishes (exit 1 unless it succeeds).
+    Watch {
+        id: String,
+        /// First event to show (default: from the first).
+        #[arg(long, value_name = "N", default_value_t = 0)]
+        from_seq: u64,
+    },
+    /// Draw a job's loss curve (and held-out loss) from its events as a PNG; optionally a
+    /// histogram of a reward over the windows of datasets (see `super::eval`).
+    Plot(super::eval::JobPlotArgs),
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum JobStateArg {
+    Pending,
+    Running,
+    Succeeded,
+    Failed,
+    Cancelled,
+}
+
+impl JobStateArg {
+    fn to_proto(self) -> pb::JobState {
+        match self {
+            Self::Pending => pb::JobState::Pending,
+            Self::Running => pb::JobState::Running,
+            Self::Succeeded => pb::JobState::Succeeded,
+            Self::Failed => pb::JobState::Failed,
+            Self::Cancelled => pb::JobState::Cancelled,
+        }
+    }
+}
+
+pub async fn run_train(ctx: &Ctx, command: TrainCommand) -> Result<Report> {
+    let (spec, job) = match &command {
+        TrainCommand::Diffusion(args) => (diffusion_spec_from_args(args)?, &args.job),
+        TrainCommand::Reward(args) => (reward_spec_from_args(args)?, &args.job),
+        TrainCommand::Discriminator(args) => (discriminator_spec_from_args(args)?, &args.job),
+    };
+    submit(ctx, spec, job).await
+}
+
+pub async fn run(ctx: &Ctx, command: JobCommand) -> Result<Report> {
+    match command {
+        JobCommand::List { state } => list(ctx, state).await,
+        JobCommand::Show { id } => show(ctx, &id).await,
+        JobCommand::Cancel { id } => cancel(ctx, &id).await,
+        JobCommand::Watch { id, from_seq } => {
+            let client = ctx.connect().await?;
+            watch(ctx, &client, &id, from_seq).await
+        }
+        JobCommand::Plot(args) => super::eval::job_plot(ctx, args).await,
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// Commands
+
+/// Submits `spec` (under `--job-id`, if given) and, with `--watch`, follows the job.
+async fn submit(ctx: &Ctx, spec: pb::JobSpec, args: &TrainArgs) -> Result<Report> {
+    let client = ctx.connect().await?;
+    let job = client.submit_job(spec, args.job_id.as_deref()).await?;
+    if !args.watch {
+        let text = format!(
+            "submitted job {} ({})\nfollow it with: relreward job watch {}\n",
+            job.id,
+            state_label(job.state()),
+            job.id
+        );
+        return Ok(Report::ok(text, job_json(&job)));
+    }
+    let note = format!("submitted job {} ({})", job.id, state_label(job.state()));
+    if ctx.json {
+        eprint_line(&note);
+    } else {
+        print_line(&format!("{note}\n"));
+    }
+    watch(ctx, &client, &job.id, 0).await
+}
+
+async fn list(ctx: &Ctx, state: Option<JobStateArg>) -> Result<Report> {
+    let state = state.map_or(pb::JobState::Unspecified, JobStateArg::to_proto);
+    let jobs = ctx.connect().await?.list_jobs(state).await?;
+    Ok(Report::ok(format_job_table(&jobs), Value::Array(jobs.iter().map(job_json).collect())))
+}
+
+async fn show(ctx: &Ctx, id: &str) -> Result<Report> {
+    let job = ctx.connect().await?.get_job(id).await?;
+    Ok(Report::ok(format_job(&job), job_json(&job)))
+}
+
+async fn cancel(ctx: &Ctx, id: &str) -> Result<Report> {
+    let job = ctx.connect().await?.cancel_job(id).await?;
+    let text = if job.state() == pb::JobState::Cancelled {
+        format!("cancelled job {id}\n")
+    } else {
+        format!(
+            "asked job {id} to stop; it is {} (watch it with: relreward job watch {id})\n",
+            state_label(job.state())
+        )
+    };
+    Ok(Report::ok(text, job_json(&job)))
+}
+
+/// Follows job `id` from event `from_seq` until it finishes: exit status 0 if it succeeded, an
+/// error with its message (exit status 1) if it failed or was cancelled.
+async fn watch(ctx: &Ctx, client: &Client, id: &str, from_seq: u64) -> Result<Report> {
+    let mut view = WatchView::new(ctx.json);
+    let outcome = client.follow_job(id, from_seq, RetryPolicy::default(), |notice| view.notice(notice)).await;
+    view.finish();
+    let outcome = outcome?;
+    let state = state_label(outcome.state);
+    if outcome.state != pb::JobState::Succeeded {
+        if outcome.message.is_empty() {
+            bail!("job {id} {state}");
+        }
+        bail!("job {id} {state}: {}", outcome.message);
+    }
+    Ok(Report::streamed(format!("job {id} {state}\n")))
+}
+
+// ---------------------------------------------------------------------------------------------
+// The watch display
+
+/// Renders watch notices: JSON lines, or text lines above a progress bar.
+struct WatchView {
+    json: bool,
+    bar: ProgressBar,
+    /// Whether a Progress event arrived (until then the bar is a spinner).
+    progressed: bool,
+}
+
+impl WatchView {
+    fn new(json: bool) -> Self {
+        let target = if bars_visible(json) { ProgressDrawTarget::stderr() } else { ProgressDrawTarget::hidden() };
+        let style =
+            ProgressStyle::with_template("{spinner} {msg}").unwrap_or_else(|_| ProgressStyle::default_spinner());
+        let bar = ProgressBar::with_draw_target(Some(0), target).with_style(style);
+        bar.set_message("waiting for progress");
+        Self { json, bar, progressed: false }
+    }
+
+    fn notice(&mut self, notice: WatchNotice<'_>) {
+        match notice {
+            WatchNotice::Event(event) if self.json => {
+                let mut line = event_json(event).to_string();
+                line.push('\n');
+                print_line(&line);
+            }
+            WatchNotice::Event(event) => self.show_event(event),
+            WatchNotice::Reconnecting { error, from_seq, delay, attempt } => {
+                let line = format!(
+                    "connection lost ({}: {}); reconnecting in {} (attempt {attempt}, from event {from_seq})",
+                    relreward_client::client::code_name(error.code()),
+                    error.message(),
+                    short_delay(delay)
+                );
+                self.bar.suspend(|| eprint_line(&line));
+            }
+            WatchNotice::Reconnected { from_seq } => {
+                let line = format!("reconnected; resuming from event {from_seq}");
+                self.bar.suspend(|| eprint_line(&line));
+            }
+        }
+    }
+
+    fn show_event(&mut self, event: &pb::JobEvent) {
+        use pb::job_event::Event;
+        let time = event.time.as_ref().map_or_else(|| "-".to_owned(), rfc3339);
+        let line = match &event.event {
+            Some(Event::Progress(p)) => {
+                if !self.progressed {
+                    self.progressed = true;
+                    let style = ProgressStyle::with_template("{spinner} [{wide_bar}] {pos}/{len} {msg}")
+                        .map(|s| s.progress_chars("=> "))
+                        .unwrap_or_else(|_| ProgressStyle::default_bar());
+                    self.bar.set_style(style);
+                }
+                self.bar.set_length(p.total_steps);
+                self.bar.set_position(p.step);
+                self.bar.set_message(progress_message(p));
+                if !self.bar.is_hidden() {
+                    return;
+                }
+                // No bar (not a terminal): one line per progress event, as the server logs them.
+                format!("{time}  step {}/{}  {}", p.step, p.total_steps, progress_message(p))
+            }
+            Some(Event::State(s)) if s.message.is_empty() => format!("{time}  {}", state_label(s.state())),
+            Some(Event::State(s)) => format!("{time}  {}: {}", state_label(s.state()), s.message),
+            Some(Event::Checkpoint(c)) => format!("{time}  checkpoint at step {}", c.step),
+            Some(Event::Log(l)) => format!("{time}  {}", l.message),
+            None => return,
+        };
+        self.bar.suspend(|| print_line(&format!("{line}\n")));
+    }
+
+    fn finish(&self) {
+        self.bar.finish_and_clear();
+    }
+}
+
+/// `loss 0.01234  eval 0.02000  41.3 steps/s  ETA 1m13s`.
+fn progress_message(p: &pb::job_event::Progress) -> String {
+    let mut parts = vec![format!("loss {}", fmt_short(p.loss))];
+    if let Some(eval) = p.eval_loss {
+        parts.push(format!("eval {}", fmt_short(eval)));
+    }
+    if p.steps_per_second > 0.0 && p.steps_per_second.is_finite() {
+        parts.push(format!("{:.1} steps/s", p.steps_per_second));
+    }
+    parts.push(format!("ETA {}", human_duration(p.eta_seconds)));
+    parts.join("  ")
+}
+
+/// `250 ms`, `1.5 s`.
+fn short_delay(d: Duration) -> String {
+    if d < Duration::from_secs(1) { format!("{} ms", d.as_millis()) } else { format!("{:.1} s", d.as_secs_f64()) }
+}
+
+/// Writes to stdout; a closed pipe is not an error (the watch goes on to set the exit status).
+fn print_line(text: &str) {
+    let _ = write_stdout(text);
+}
+
+// ---------------------------------------------------------------------------------------------
+// Output: JSON
+
+/// `SUCCEEDED`, as the proto spells it, for text.
+fn state_label(state: pb::JobState) -> String {
+    state_name(state).to_ascii_uppercase()
+}
+
+/// A job as JSON:
+///
+/// ```json
+/// {"id": "..", "state": "pending" | "running" | "succeeded" | "failed" | "cancelled",
+///  "step": N, "total_steps": N, "loss": X | null, "error": "..",
+///  "created_at": "RFC3339" | null, "started_at": .. | null, "finished_at": .. | null,
+///  "last_seq": N, "spec": {see spec_json} | null}
+/// ```
+pub fn job_json(j: &pb::Job) -> Value {
+    json!({
+        "id": j.id,
+        "state": state_name(j.state()),
+        "step": j.step,
+        "total_steps": j.total_steps,
+        "loss": j.loss,
+        "error": j.error,
+        "created_at": j.created_at.as_ref().map(rfc3339),
+        "started_at": j.started_at.as_ref().map(rfc3339),
+        "finished_at": j.finished_at.as_ref().map(rfc3339),
+        "last_seq": j.last_seq,
+        "spec": j.spec.as_ref().map(spec_json),
+    })
+}
+
+/// A job spec with the fields of the train config file: `output_model`, `seed` (null: server
+/// default), `kind` ("diffusion" | "reward" | "discriminator" | null), `optimization` (every
+/// field, null when unset), and an object under the kind's name with its fields.
+pub fn spec_json(s: &pb::JobSpec) -> Value {
+    use pb::job_spec::Kind;
+    let o = s.optimization.unwrap_or_default();
+    let mut out = Map::new();
+    out.insert("output_model".into(), json!(s.output_model));
+    out.insert("seed".into(), json!(s.seed));
+    out.insert(
+        "optimization".into(),
+        json!({
+            "steps": o.steps,
+            "batch_size": o.batch_size,
+            "learning_rate": o.learning_rate,
+            "grad_clip": o.grad_clip,
+            "ema_decay": o.ema_decay,
+            "ema_every": o.ema_every,
+            "ema_start": o.ema_start,
+            "checkpoint_every": o.checkpoint_every,
+            "eval_every": o.eval_every,
+            "log_every": o.log_every,
+        }),
+    );
+    let (kind, body) = match &s.kind {
+        Some(Kind::Diffusion(d)) => ("diffusion", diffusion_json(d)),
+        Some(Kind::Reward(r)) => ("reward", reward_json(r)),
+        Some(Kind::Discriminator(d)) => ("discriminator", discriminator_json(d)),
+        None => {
+            out.insert("kind".into(), Value::Null);
+            return Value::Object(out);
+        }
+    };
+    out.insert("kind".into(), json!(kind));
+    out.insert(kind.into(), body);
+    Value::Object(out)
+}
+
+fn diffusion_json(d: &pb::TrainDiffusion) -> Value {
+    use pb::train_diffusion::Architecture;
+    json!({
+        "dataset": d.dataset,
+        "parametrization": parametrization_name(d.parametrization()),
+        "schedule": schedule_json(d.schedule.as_ref()),
+        "n_timesteps": d.n_timesteps,
+        "horizon": d.horizon,
+        "architecture": match &d.architecture {
+            Some(Architecture::TemporalUnet(u)) => json!({ "kind": "temporal_unet", "dim": u.dim, "dim_mults": u.dim_mults }),
+            Some(Architecture::Mlp(m)) => json!({ "kind": "mlp", "hidden": m.hidden }),
+            None => Value::Null,
+        },
+        "action_weight": d.action_weight,
+        "clip_denoised": d.clip_denoised,
+    })
+}
+
+fn reward_architecture_json(a: Option<&pb::RewardArchitecture>) -> Value {
+    use pb::reward_architecture::Kind;
+    match a.and_then(|a| a.kind.as_ref()) {
+        Some(Kind::WindowedMlp(w)) => json!({ "kind": "windowed_mlp", "window": w.window, "hidden": w.hidden }),
+        Some(Kind::ValueFunction(v)) => json!({ "kind": "value_function", "widths": v.widths }),
+        Some(Kind::ConvEncoder(c)) => json!({ "kind": "conv_encoder", "widths": c.widths }),
+        Some(Kind::Mlp(m)) => json!({ "kind": "mlp", "hidden": m.hidden }),
+        None => Value::Null,
+    }
+}
+
+fn reward_json(r: &pb::TrainReward) -> Value {
+    use pb::train_reward::Algorithm;
+    json!({
+        "base_model": r.base_model,
+        "expert_model": r.expert_model,
+        "architecture": reward_architecture_json(r.architecture.as_ref()),
+        "target": match r.target() {
+            pb::RewardTarget::Mean => json!("mean"),
+            pb::RewardTarget::Score => json!("score"),
+            pb::RewardTarget::Unspecified => Value::Null,
+        },
+        "eval_point": match r.eval_point() {
+            pb::EvalPoint::XT => json!("x_t"),
+            pb::EvalPoint::MuBase => json!("mu_base"),
+            pb::EvalPoint::Unspecified => Value::Null,
+        },
+        "algorithm": match &r.algorithm {
+            Some(Algorithm::WithDataset(w)) => json!({ "kind": "with_dataset", "datasets": w.datasets }),
+            Some(Algorithm::ModelsOnly(m)) => json!({ "kind": "models_only", "num_chains": m.num_chains }),
+            None => Value::Null,
+        },
+        "rho_l2": r.rho_l2,
+    })
+}
+
+fn discriminator_json(d: &pb::TrainDiscriminator) -> Value {
+    json!({
+        "base_dataset": d.base_dataset,
+        "expert_dataset": d.expert_dataset,
+        "architecture": reward_architecture_json(d.architecture.as_ref()),
+        "diffusion_model": d.diffusion_model,
+    })
+}
+
+/// One event as one line of `job watch --json`: `seq`, `time` (RFC 3339 with milliseconds, or
+/// null), `type`, and the event's fields:
+///
+/// ```json
+/// {"seq": 1, "time": "..", "type": "state", "state": "running", "message": ".."}
+/// {"seq": 2, "time": "..", "type": "progress", "step": N, "total_steps": N, "loss": X,
+///  "grad_norm": X, "learning_rate": X, "steps_per_second": X, "eta_seconds": X,
+///  "eval_loss": X | null}
+/// {"seq": 3, "time": "..", "type": "checkpoint", "step": N}
+/// {"seq": 4, "time": "..", "type": "log", "message": ".."}
+/// ```
+pub fn event_json(e: &pb::JobEvent) -> Value {
+    use pb::job_event::Event;
+    let mut out = Map::new();
+    out.insert("seq".into(), json!(e.seq));
+    out.insert("time".into(), json!(e.time.as_ref().map(rfc3339_millis)));
+    let fields = match &e.event {
+        Some(Event::State(s)) => json!({ "type": "state", "state": state_name(s.state()), "message": s.message }),
+        Some(Event::Progress(p)) => json!({
+            "type": "progress",
+            "step": p.step,
+            "total_steps": p.total_steps,
+            "loss": p.loss,
+            "grad_norm": p.grad_norm,
+            "learning_rate": p.learning_rate,
+            "steps_per_second": p.steps_per_second,
+            "eta_seconds": p.eta_seconds,
+            "eval_loss": p.eval_loss,
+        }),
+        Some(Event::Checkpoint(c)) => json!({ "type": "checkpoint", "step": c.step }),
+        Some(Event::Log(l)) => json!({ "type": "log", "message": l.message }),
+        None => json!({ "type": null }),
+    };
+    if let Value::Object(fields) = fields {
+        out.extend(fields);
+    }
+    Value::Object(out)
+}
+
+// ---------------------------------------------------------------------------------------------
+// Output: text
+
+/// What a spec asks for in one line: `diffusion on maze -> maze-expert; steps 1000, batch 32,
+/// lr 0.0002, horizon 32, T 20, seed 3` (unset values are left out: server defaults).
+fn spec_summary(s: &pb::JobSpec) -> String {
+    use pb::job_spec::Kind;
+    let what = match &s.kind {
+        Some(Kind::Diffusion(d)) => format!("diffusion on {} -> {}", d.dataset, s.output_model),
+        Some(Kind::Reward(r)) => format!("reward from {} vs {} -> {}", r.base_model, r.expert_model, s.output_model),
+        Some(Kind::Discriminator(d)) => {
+            format!("discriminator {} vs {} -> {}", d.base_dataset, d.expert_dataset, s.output_model)
+        }
+        None => format!("? -> {}", s.output_model),
+    };
+    let mut settings = Vec::new();
+    if let Some(o) = &s.optimization {
+        if let Some(v) = o.steps {
+            settings.push(format!("steps {v}"));
+        }
+        if let Some(v) = o.batch_size {
+            settings.push(format!("batch {v}"));
+        }
+        if let Some(v) = o.learning_rate {
+            settings.push(format!("lr {v}"));
+        }
+    }
+    if let Some(Kind::Diffusion(d)) = &s.kind {
+        if let Some(p) = parametrization_name(d.parametrization()) {
+            settings.push(p.to_owned());
+        }
+        if d.schedule.is_some() {
+            settings.push(format!("schedule {}", schedule_text(d.schedule.as_ref())));
+        }
+        if let Some(v) = d.horizon {
+            settings.push(format!("horizon {v}"));
+        }
+        if let Some(v) = d.n_timesteps {
+            settings.push(format!("T {v}"));
+        }
+    }
+    if let Some(v) = s.seed {
+        settings.push(format!("seed {v}"));
+    }
+    if settings.is_empty() { what } else { format!("{what}; {}", settings.join(", ")) }
+}
+
+fn step_text(j: &pb::Job) -> String {
+    if j.total_steps == 0 {
+        return j.step.to_string();
+    }
+    format!("{}/{} ({:.1}%)", j.step, j.total_steps, 100.0 * j.step as f64 / j.total_steps as f64)
+}
+
+fn loss_text(loss: f64) -> String {
+    if loss.is_nan() { "-".to_owned() } else { fmt_short(loss) }
+}
+
+/// `job show`.
+fn format_job(j: &pb::Job) -> String {
+    let fields = [
+        ("id", j.id.clone()),
+        ("state", state_label(j.state())),
+        ("step", step_text(j)),
+        ("loss", loss_text(j.loss)),
+        ("error", or_dash(&j.error)),
+        ("created", time_or_dash(j.created_at.as_ref())),
+        ("started", time_or_dash(j.started_at.as_ref())),
+        ("finished", time_or_dash(j.finished_at.as_ref())),
+        ("events", j.last_seq.to_string()),
+        ("spec", j.spec.as_ref().map_or_else(|| "-".to_owned(), spec_summary)),
+    ];
+    key_values(&fields, 0)
+}
+
+/// `job list`: one job per row.
+fn format_job_table(jobs: &[pb::Job]) -> String {
+    use pb::job_spec::Kind;
+    if jobs.is_empty() {
+        return "no jobs\n".to_owned();
+    }
+    let rows = jobs
+        .iter()
+        .map(|j| {
+            let kind = match j.spec.as_ref().and_then(|s| s.kind.as_ref()) {
+                Some(Kind::Diffusion(_)) => "diffusion",
+                Some(Kind::Reward(_)) => "reward",
+                Some(Kind::Discriminator(_)) => "discriminator",
+                None => "-",
+            };
+            vec![
+                j.id.clone(),
+                state_label(j.state()),
+                kind.to_owned(),
+                j.spec.as_ref().map_or_else(|| "-".to_owned(), |s| or_dash(&s.output_model)),
+                if j.total_steps == 0 { j.step.to_string() } else { format!("{}/{}", j.step, j.total_steps) },
+                loss_text(j.loss),
+                time_or_dash(j.created_at.as_ref()),
+            ]
+        })
+        .collect();
+    table(
+        &["ID", "STATE", "KIND", "OUTPUT", "STEP", "LOSS", "CREATED"],
+        &[false, false, false, false, true, true, false],
+        rows,
+        0,
+    )
+}
+
+#[cfg(test)]
+mod tests {
+    use pb::job_event::{Checkpoint, Event, LogLine, Progress, StateChange};
+
+    use super::*;
+
+    fn ts(seconds: i64) -> Option<prost_types::Timestamp> {
+        Some(prost_types::Timestamp { seconds, nanos: 250_000_000 })
+    }
+
+    fn job() -> pb::Job {
+        pb::Job {
+            id: "j1".into(),
+            spec: Some(pb::JobSpec {
+                output_model: "maze-expert".into(),
+                seed: Some(3),
+                optimization: Some(pb::Optimization {
+                    steps: Some(1000),
+                    batch_size: Some(32),
+                    learning_rate: Some(2e-4),
+                    ..Default::default()
+                }),
+                kind: Some(pb::job_spec::Kind::Diffusion(pb::TrainDiffusion {
+                    dataset: "maze".into(),
+                    parametrization: pb::Parametrization::X0 as i32,
+                    horizon: Some(32),
+                    n_timesteps: Some(20),
+                    architecture: Some(pb::train_diffusion::Architecture::TemporalUnet(pb::TemporalUnet {
+                        dim: Some(32),
+                        dim_mults: vec![1, 2, 4, 8],
+                    })),
+                    ..Default::default()
+                })),
+            }),
+            state: pb::JobState::Running as i32,
+            step: 250,
+            total_steps: 1000,
+            loss: 0.0123,
+            error: String::new(),
+            created_at: ts(1_714_564_800),
+            started_at: ts(1_714_564_801),
+            finished_at: None,
+            last_seq: 27,
+        }
+    }
+
+    #[test]
+    fn job_json_has_the_documented_shape() {
+        let v = job_json(&job());
+        assert_eq!(v["id"], "j1");
+        assert_eq!(v["state"], "running");
+        assert_eq!((v["step"].clone(), v["total_steps"].clone()), (json!(250), json!(1000)));
+        assert_eq!(v["loss"], 0.0123);
+        assert_eq!(v["created_at"], "2024-05-01T12:00:00Z");
+        assert!(v["finished_at"].is_null());
+        assert_eq!(v["last_seq"], 27);
+        let spec = &v["spec"];
+        assert_eq!(spec["output_model"], "maze-expert");
+        assert_eq!(spec["seed"], 3);
+        assert_eq!(spec["kind"], "diffusion");
+        assert_eq!(spec["optimization"]["steps"], 1000);
+        assert!(spec["optimization"]["grad_clip"].is_null());
+        assert_eq!(spec["diffusion"]["dataset"], "maze");
+        assert_eq!(spec["diffusion"]["parametrization"], "x0");
+        assert!(spec["diffusion"]["schedule"].is_null());
+        assert_eq!(
+            spec["diffusion"]["architecture"],
+            json!({"kind": "temporal_unet", "dim": 32, "dim_mults": [1, 2, 4, 8]})
+        );
+        assert_eq!(v.as_object().expect("object").len(), 11);
+
+        let mut fresh = job();
+        fresh.loss = f64::NAN;
+        fresh.spec = None;
+        let v = job_json(&fresh);
+        assert!(v["loss"].is_null() && v["spec"].is_null());
+    }
+
+    #[test]
+    fn reward_and_discriminator_specs_have_json_too() {
+        let spec = pb::JobSpec {
+            output_model: "r".into(),
+            kind: Some(pb::job_spec::Kind::Reward(pb::TrainReward {
+                base_model: "b".into(),
+                expert_model: "e".into(),
+                architecture: Some(pb::RewardArchitecture {
+                    kind: Some(pb::reward_architecture::Kind::WindowedMlp(pb::reward_architecture::WindowedMlp {
+                        window: Some(4),
+                        hidden: vec![128, 64],
+                    })),
+                }),
+                target: pb::RewardTarget::Score as i32,
+                algorithm: Some(pb::train_reward::Algorithm::ModelsOnly(pb::train_reward::ModelsOnly {
+                    num_chains: Some(8),
+                })),
+                ..Default::default()
+            })),
+            ..Default::default()
+        };
+        let v = spec_json(&spec);
+        assert_eq!(v["kind"], "reward");
+        assert_eq!(v["reward"]["architecture"], json!({"kind": "windowed_mlp", "window": 4, "hidden": [128, 64]}));
+        assert_eq!(v["reward"]["target"], "score");
+        assert!(v["reward"]["eval_point"].is_null());
+        assert_eq!(v["reward"]["algorithm"], json!({"kind": "models_only", "num_chains": 8}));
+        let spec = pb::JobSpec {
+            kind: Some(pb::job_spec::Kind::Discriminator(pb::TrainDiscriminator {
+                base_dataset: "a".into(),
+                expert_dataset: "b".into(),
+                ..Default::default()
+            })),
+            ..Default::default()
+        };
+        let v = spec_json(&spec);
+        assert_eq!(
+            (v["kind"].clone(), v["discriminator"]["expert_dataset"].clone()),
+            (json!("discriminator"), json!("b"))
+        );
+        assert!(spec_json(&pb::JobSpec::default())["kind"].is_null());
+    }
+
+    #[test]
+    fn events_are_one_flat_object_each() {
+        let event = |seq, e| pb::JobEvent { seq, time: ts(1_714_564_800), event: Some(e) };
+        let v = event_json(&event(
+            1,
+            Event::State(StateChange { state: pb::JobState::Running as i32, message: "started".into() }),
+        ));
+        assert_eq!(
+            v,
+            json!({"seq": 1, "time": "2024-05-01T12:00:00.250Z", "type": "state", "state": "running", "message": "started"})
+        );
+        let v = event_json(&event(
+            2,
+            Event::Progress(Progress {
+                step: 10,
+                total_steps: 100,
+                loss: 0.5,
+                grad_norm: 1.5,
+                learning_rate: 2e-4,
+                steps_per_second: 20.0,
+                eta_seconds: 4.5,
+                eval_loss: None,
+            }),
+        ));
+        assert_eq!(
+            v,
+            json!({"seq": 2, "time": "2024-05-01T12:00:00.250Z", "type": "progress", "step": 10, "total_steps": 100,
+                   "loss": 0.5, "grad_norm": 1.5, "learning_rate": 2e-4, "steps_per_second": 20.0,
+                   "eta_seconds": 4.5, "eval_loss": null})
+        );
+        let v = event_json(&event(3, Event::Checkpoint(Checkpoint { step: 10 })));
+        assert_eq!((v["type"].clone(), v["step"].clone()), (json!("checkpoint"), json!(10)));
+        let v = event_json(&event(4, Event::Log(LogLine { message: "hello".into() })));
+        assert_eq!((v["type"].clone(), v["message"].clone()), (json!("log"), json!("hello")));
+        // One line each.
+        assert!(!v.to_string().contains('\n'));
+        let v = event_json(&pb::JobEvent { seq: 5, time: None, event: None });
+        assert!(v["time"].is_null() && v["type"].is_null());
+    }
+
+    #[test]
+    fn text_output() {
+        let text = format_job(&job());
+        for needle in [
+            "state     RUNNING",
+            "step      250/1000 (25.0%)",
+            "loss      0.01230",
+            "error     -",
+            "finished  -",
+            "events    27",
+            "diffusion on maze -> maze-expert; steps 1000, batch 32, lr 0.0002, x0, horizon 32, T 20, seed 3",
+        ] {
+            assert!(text.contains(needle), "missing {needle:?} in\n{text}");
+        }
+        let list = format_job_table(&[job()]);
+        assert!(list.starts_with("ID"), "{list}");
+        assert!(list.contains("j1  RUNNING  diffusion  maze-expert  250/1000"), "{list}");
+        assert_eq!(format_job_table(&[]), "no jobs\n");
+        let p = Progress {
+            step: 10,
+            total_steps: 100,
+            loss: 0.5,
+            steps_per_second: 41.3,
+            eta_seconds: 73.0,
+            eval_loss: Some(0.25),
+            ..Default::default()
+        };
+        assert_eq!(progress_message(&p), "loss 0.5000  eval 0.2500  41.3 steps/s  ETA 1m13s");
+        assert_eq!(short_delay(Duration::from_millis(250)), "250 ms");
+        assert_eq!(short_delay(Duration::from_millis(4000)), "4.0 s");
+    }
+}

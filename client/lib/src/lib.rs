@@ -1,0 +1,26 @@
+//! Typed Rust client library for relreward (tonic only: no file formats, no command line).
+//!
+//! Module map (imports point down this list, never up):
+//! - [`client`]: [`Client`], one connection to every service (endpoint, TLS, token), with
+//!   helpers that hide streaming details (chunked, digest-checked dataset and model uploads;
+//!   paging; jobs; scores, gradients, the gradient stream and guided sampling); reads are
+//!   retried over a broken connection.
+//! - [`watch`]: following a job's events across reconnects (resume bookkeeping, the loop).
+//! - [`retry`]: the retry policy, backoff and which failures are worth a retry; used by both
+//!   of the above.
+//! - [`upload`]: [`UploadSource`], where an upload's array bytes come from, and the chunker.
+//! - [`tensor`]: the `relreward.v1.Tensor` codec, re-exported from `relreward-proto` (the
+//!   wire contract lives there, shared with the server).
+//!
+//! File formats, the Maze2D generator and evaluation are in `relreward-toolkit`; the
+//! `relreward` command line is `relreward-cli`. The library never links libtorch.
+
+pub mod client;
+pub mod retry;
+pub mod upload;
+pub mod watch;
+
+pub use client::{Client, ClientError};
+pub use relreward_proto::v1 as pb;
+pub use relreward_proto::{error_chain, tensor};
+pub use upload::{MemorySource, UploadSource};
