@@ -21,7 +21,7 @@ BIN := target/release
 # Arguments for `make run`, e.g. make run ARGS="--listen 127.0.0.1:6000 --data-dir /tmp/rr".
 ARGS ?=
 
-.PHONY: help setup build run test test-cluster lint fmt clean demo bench soak
+.PHONY: help setup build run test test-cluster lint fmt clean demo bench soak steer
 # Arguments for `make demo`, e.g. make demo DEMO_ARGS="--layout medium --goals 4".
 DEMO_ARGS ?=
 
@@ -32,6 +32,7 @@ help:
 	@echo "make demo   the Maze2D pipeline end to end (starts a server if none answers)"
 	@echo "make bench  relreward against the PyTorch references: serving, training, sampling; 1 vs 2 replicas (writes BENCHMARKS.md)"
 	@echo "make soak   the 10-minute load and soak test (tests/soak.sh; make test runs 60 s of it)"
+	@echo "make steer  locomotion steering experiment, ENV=hopper|halfcheetah|walker2d (paper section 5.2)"
 	@echo "make lint   rustfmt check and clippy"
 	@echo "make clean  remove build outputs (keeps .venv and data/)"
 
@@ -96,6 +97,17 @@ bench: build
 ## (default 600) against one loopback server; see docs/reliability.md.
 soak: build
 	tests/soak.sh
+
+## steer: closed-loop steering of a locomotion planner (paper section 5.2) in ENV (hopper,
+## halfcheetah, walker2d) from the committed ARS policy and planners under experiments/locomotion:
+## the data sets by deterministic rollouts, then the reward, the discriminator and every arm
+## (experiments/locomotion/steer.py; STEER_ARGS adds its flags, e.g. --full). Writes steer-out/.
+ENV ?= hopper
+STEER_ARGS ?=
+steer: build
+	$(VENV)/bin/python experiments/locomotion/data.py --env $(ENV) --out steer-out/data
+	$(VENV)/bin/python experiments/locomotion/steer.py --env $(ENV) --data steer-out/data --work steer-out/$(ENV) \
+	  $(STEER_ARGS)
 
 lint: setup
 	$(CARGO) fmt --all -- --check

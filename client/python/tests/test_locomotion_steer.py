@@ -1,0 +1,90 @@
+"""End to end, tiny: the locomotion steering experiment (experiments/locomotion, paper section 5.2).
+
+From the committed Hopper ARS policy: a few short rollouts as data, two tiny planners, upload
+to a real relreward-server (TorchScript uploads on), the reward (Algorithm 1) and the
+discriminator trained for a few steps, every arm run in the external-planner mode (GradientStream)
+and the unsteered/reward arms in the server-side mode (Sample), a sweep, and the report. Checks
+that returns are finite and recorded per arm and mode, the table names every arm and the PNG
+decodes. Sizes are tiny, so nothing here measures steering; the numbers are in docs/results.md.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+
+import numpy as np
+import pytest
+
+from conftest import REPO
+
+sys.path.insert(0, str(REPO / "experiments" / "locomotion"))
+
+
+
+def test_tiny_steering_experiment_runs_both_planner_modes(tmp_path):
+    import common
+    import data
+    import planner as planner_mod
+    import steer
+    from PIL import Image
+
+    d = tmp_path / "data"
+    d.mkdir()
+    for name, set_ in (("expert", data.make_expert("hopper", 2, 0.02, 0, max_steps=40)),
+                       ("medium-replay", data.make_medium_replay("hopper", 4, 0.05, 1, 1 / 3, max_steps=40))):
+        assert len(set_["rewards"]) > 0 and np.isfinite(set_["observations"]).all()
+        np.savez(d / f"hopper-{name}.npz", **set_)
+    base = np.load(d / "hopper-medium-replay.npz")
+    expert = np.load(d / "hopper-expert.npz")
+    rows = np.concatenate([np.concatenate([z["actions"], z["observations"]], 1) for z in (base, expert)])
+    lo, hi = rows.min(0), rows.max(0)
+    hi = np.where(hi - lo < 1e-6, lo + 1e-6, hi)
+    planners = tmp_path / "planners"
+    for name, z in (("medium-replay", base), ("expert", expert)):
+        pl = planner_mod.Planner("hopper", 4, 3, 11, lo, hi, n_timesteps=5, hidden=32, depth=2)
+        losses = pl.train(pl.windows(dict(z)), steps=20, batch=16, log=lambda s: None)
+        assert all(math.isfinite(v) for v in losses)
+        pl.save(planners / f"hopper-{name}", dict(set=name))
+    cfg = steer.Config(env="hopper", data=d, planners=planners, work=tmp_path / "work", episodes=2, sweep_episodes=1,
+                       max_steps=6, n_plans=3, widths=(32,), reward_steps=10, disc_steps=10, batch_size=8,
+                       omegas=(0.1,), t_stopgrads=(1,), server_mode_episodes=1, log=lambda s: None)
+    result = steer.experiment(cfg)
+
+    eps = result["episodes"]
+    for arm in steer.ARMS:
+        got = [e for e in eps if e["arm"] == arm and e["mode"] == "external"]
+        assert [e["seed"] for e in got] == [0, 1], arm
+        assert all(math.isfinite(e["ret"]) and 1 <= e["length"] <= 6 for e in got), got
+    for arm in ("unsteered", "reward"):
+        got = [e for e in eps if e["arm"] == arm and e["mode"] == "server"]
+        assert len(got) == 1 and math.isfinite(got[0]["ret"]), arm
+    # Guided arms waited for the service; the unsteered arm never asked it anything.
+    assert all(e["wait_seconds"] > 0 for e in eps if e["arm"] != "unsteered")
+    assert all(e["wait_seconds"] == 0 for e in eps if e["arm"] == "unsteered" and e["mode"] == "external")
+    assert set(result["sweeps"]) == {"reward", "discriminator"}
+    saved = json.loads((cfg.work / "hopper-results.json").read_text())
+    assert len(saved["episodes"]) == len(eps)
+    assert saved["summary"]["arms"]["reward"]["welch"]["p"] <= 1.0
+    table = (cfg.work / "hopper-table.md").read_text()
+    assert all(f"| {arm} |" in table for arm in steer.ARMS)
+    with Image.open(cfg.work / "hopper-steer.png") as img:
+        img.load()
+        assert img.size == (640, 360)
+    assert common.normalized_score("hopper", 3234.3) == pytest.approx(100.0)
+
+
+def test_welch_and_paired_match_known_values():
+    import common
+
+    # Student t two-sided p-values (t = 2, df = 10: 0.07339; t = 1, df = 3: 0.39100).
+    assert common.t_two_sided_p(2.0, 10) == pytest.approx(0.073388, abs=1e-5)
+    assert common.t_two_sided_p(1.0, 3) == pytest.approx(0.391002, abs=1e-5)
+    a, b = [1.0, 2.0, 3.0, 4.0], [2.0, 4.0, 6.0, 8.0, 10.0]
+    w = common.welch(a, b)
+    # By hand: va = 1.6667/4, vb = 10/5, t = -3.5 / sqrt(2.41667), df = 5.1057 (Welch-Satterthwaite).
+    assert w["t"] == pytest.approx(-3.5 / math.sqrt(2.416667), rel=1e-5)
+    assert w["df"] == pytest.approx(2.416667**2 / ((1.666667 / 4) ** 2 / 3 + 2.0**2 / 4), rel=1e-5)
+    pr = common.paired([3.0, 5.0, 4.0], [1.0, 2.0, 3.0])
+    assert pr["mean"] == pytest.approx(2.0) and pr["wins"] == 3

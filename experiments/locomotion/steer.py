@@ -1,0 +1,404 @@
+"""Closed-loop steering of a Diffuser-style planner with a relative reward (paper section 5.2).
+
+Module map: `Server` (connect to RELREWARD_ENDPOINT, or start target/release/relreward-server
+on a loopback port with TorchScript uploads allowed), `prepare` (upload the data sets and both
+planners, train the relative reward (Algorithm 1, ValueFunction encoder) and the discriminator
+of the same architecture), `Arm` / `decider` (one arm of the experiment: how plans are guided
+and chosen, in the external-planner mode (this process's sampling loop over the base planner,
+grad rho from a GradientStream) or the server-side mode (the `Sample` RPC, guidance and
+inpainting on the server)), `sweep` (omega / t_stopgrad on sweep seeds, never the reported
+ones), `experiment` (all arms on the same seeds, statistics), `report` (markdown table and a PNG
+plot), `main` (CLI; `make steer ENV=hopper` calls it).
+
+Arms (n plans per env step, the first action of the chosen plan executed, then replan):
+  unsteered       no guidance, the first plan
+  reward          guidance by grad rho, the plan with the highest rho
+  discriminator   guidance by the discriminator's logit gradient, the plan it scores highest
+  select-reward   no guidance (omega 0), the plan with the highest rho
+  select-disc     no guidance, the plan the discriminator scores highest
+Seeds: episode k of every arm uses env seed `seed_base + k` and the same planner noise, so
+arms are paired by seed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+
+import relreward
+from common import ENVS, PLANNERS, episodes, normalized_score, paired, welch
+from planner import Planner, act, run_episode
+
+REPO = Path(__file__).resolve().parents[2]
+ARMS = ("unsteered", "reward", "discriminator", "select-reward", "select-disc")
+# The paper's Table 2 (D4RL-normalised return: unsteered / discriminator / reward).
+PAPER = {"halfcheetah": (30.38, 30.41, 31.65), "hopper": (24.67, 25.12, 27.04), "walker2d": (28.20, 27.98, 38.40)}
+
+
+class Server:
+    """A relreward server: the one at `endpoint`, or a fresh loopback one with its own data dir."""
+
+    def __init__(self, endpoint: str | None, data_dir: Path):
+        self.proc, self.data_dir = None, None
+        if endpoint:
+            self.addr = endpoint
+            return
+        binary = Path(os.environ.get("RELREWARD_SERVER_BIN", REPO / "target/release/relreward-server"))
+        if not binary.exists():
+            sys.exit(f"steer.py: {binary} not found: run `make build` or pass --endpoint")
+        self.data_dir = data_dir
+        env = dict(os.environ, RELREWARD__MODELS__ALLOW_TORCHSCRIPT_UPLOAD="true", RELREWARD__METRICS__LISTEN="",
+                   RELREWARD__SERVER__SHUTDOWN_DRAIN_SECS="0")
+        env.setdefault("RELREWARD__ENGINE__INTRA_OP_THREADS", "1")
+        self.log = open(data_dir.parent / "server.log", "ab")
+        self.proc = subprocess.Popen([str(binary), "--listen", "127.0.0.1:0", "--data-dir", str(data_dir)],
+                                     stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=self.log, env=env)
+        line = self.proc.stdout.readline().decode()
+        prefix = "relreward-server listening on "
+        if not line.startswith(prefix):
+            self.stop()
+            sys.exit(f"steer.py: the server did not start (first line {line!r}); see {data_dir.parent}/server.log")
+        self.addr = line[len(prefix):].strip()
+        threading.Thread(target=lambda: [None for _ in self.proc.stdout], daemon=True).start()
+
+    def stop(self) -> None:
+        if self.proc is not None and self.proc.poll() is None:
+            self.proc.terminate()
+            self.proc.wait(30)
+
+
+@dataclass
+class Config:
+    env: str
+    data: Path
+    planners: Path
+    work: Path
+    endpoint: str | None = None
+    episodes: int = 20
+    seed_base: int = 0
+    sweep_seed_base: int = 10_000
+    sweep_episodes: int = 3
+    max_steps: int = 1000
+    n_plans: int = 16
+    widths: tuple = (32, 64, 128)
+    reward_steps: int = 3000
+    disc_steps: int = 3000
+    batch_size: int = 128
+    omegas: tuple = (0.05, 0.2, 0.5)
+    t_stopgrads: tuple = (1, 4)
+    omega: float | None = None
+    t_stopgrad: int | None = None
+    disc_omega: float | None = None
+    disc_t_stopgrad: int | None = None
+    arms: tuple = ARMS
+    server_mode_episodes: int = 3
+    log: object = field(default=print)
+
+
+def prepare(cfg: Config, client: relreward.Client) -> dict:
+    """Uploads data and planners (once per name) and trains the reward and discriminator."""
+    env, names = cfg.env, {}
+    have_ds = {d.name for d in client.list_datasets()}
+    have_m = {m.name for m in client.list_models()}
+    for s in ("medium-replay", "expert"):
+        n = f"{env}-{s}"
+        if n not in have_ds:
+            z = np.load(cfg.data / f"{env}-{s}.npz")
+            client.upload_dataset(n, {k: z[k] for k in ("observations", "actions", "terminals", "timeouts")})
+        pl = cfg.planners / f"{env}-{s}"
+        m = f"{env}-{s}-planner"
+        if m not in have_m:
+            client.upload_model(pl / "denoiser.torchscript.pt", m, json.loads((pl / "manifest.json").read_text()),
+                                description=f"planner trained by experiments/locomotion/planner.py on {n}")
+        names[s] = m
+    names["reward"], names["discriminator"] = f"{env}-reward", f"{env}-discriminator"
+    arch = ("value_function", {"widths": list(cfg.widths)})
+    t0 = time.time()
+    if names["reward"] not in have_m:
+        job = client.submit_job(relreward.RewardJob(
+            names["reward"], names["medium-replay"], names["expert"], datasets=[f"{env}-medium-replay", f"{env}-expert"],
+            architecture=arch, seed=0, optimization=relreward.Optimization(
+                steps=cfg.reward_steps, batch_size=cfg.batch_size, learning_rate=2e-4)))
+        _finish(client, job, "reward", cfg.log)
+    if names["discriminator"] not in have_m:
+        job = client.submit_job(relreward.DiscriminatorJob(
+            names["discriminator"], f"{env}-medium-replay", f"{env}-expert", names["medium-replay"],
+            architecture=arch, seed=0, optimization=relreward.Optimization(
+                steps=cfg.disc_steps, batch_size=cfg.batch_size, learning_rate=2e-4)))
+        _finish(client, job, "discriminator", cfg.log)
+    names["train_seconds"] = time.time() - t0
+    return names
+
+
+def _finish(client: relreward.Client, job, what: str, log) -> None:
+    t0 = time.time()
+    done = client.wait_job(job.id)
+    if done.state != relreward.pb.jobs.JOB_STATE_SUCCEEDED:
+        state = relreward.pb.jobs.JobState.Name(done.state)
+        raise RuntimeError(f"{what} job {job.id} ended {state}: {done}")
+    log(f"{what} trained in {time.time() - t0:.0f}s")
+
+
+class Timer:
+    """Seconds spent waiting for the service (or the in-process reward), per episode."""
+
+    def __init__(self):
+        self.wait = 0.0
+
+    def wrap(self, fn):
+        def timed(*a):
+            t0 = time.perf_counter()
+            try:
+                return fn(*a)
+            finally:
+                self.wait += time.perf_counter() - t0
+        return timed
+
+
+def decider(arm: str, mode: str, planner: Planner, client, names: dict, cfg: Config, omega: float,
+            t_stopgrad: int, timer: Timer, seed: int, grad_source=None):
+    """decide(obs, step) -> action for one arm and mode; grad_source(model) overrides the
+    external planner's gradient function (the in-process PyTorch reward of the benchmark)."""
+    model = {"reward": names["reward"], "select-reward": names["reward"],
+             "discriminator": names["discriminator"], "select-disc": names["discriminator"]}.get(arm)
+    guided = arm in ("reward", "discriminator") and omega != 0.0
+    if mode == "server":
+        def decide(obs, step):
+            t0 = time.perf_counter()
+            b = client.sample(names["medium-replay"], reward_model=model or "", omega=omega if guided else 0.0,
+                              n=cfg.n_plans, seed=seed * 100_003 + step, n_guide_steps=1,
+                              t_stopgrad=t_stopgrad, conditions={0: obs.astype(np.float32)})
+            timer.wait += time.perf_counter() - t0
+            k = int(np.argmax(b.rewards)) if model else 0
+            return np.clip(b.x[k, 0, : planner.act_dim], -1, 1)
+        return decide, None
+    stream = None
+    grad_fn = select_fn = None
+    if model is not None:
+        if grad_source is not None:
+            grad_fn, score_fn = grad_source(model)
+        else:
+            stream = client.gradient_stream(model, units="normalized", gradient_units="normalized")
+
+            def grad_fn(x, t):
+                return np.asarray(stream.gradient(x.astype(np.float32), int(t)).gradient, dtype=np.float64)
+
+            def score_fn(x):
+                return np.asarray(client.score(model, x.astype(np.float32), 0, units="normalized").rewards)
+        select_fn = timer.wrap(score_fn)
+        grad_fn = timer.wrap(grad_fn) if guided else None
+
+    def decide(obs, step):
+        return act(planner, obs, cfg.n_plans, seed * 100_003 + step, grad_fn, omega if guided else 0.0,
+                   t_stopgrad, select_fn)
+    return decide, stream
+
+
+def run_arm(arm: str, mode: str, seeds, planner, client, names, cfg, omega, t_stopgrad, grad_source=None) -> list:
+    env = gym.make(ENVS[cfg.env]["id"], max_episode_steps=cfg.max_steps)
+    out = []
+    for s in seeds:
+        timer = Timer()
+        decide, stream = decider(arm, mode, planner, client, names, cfg, omega, t_stopgrad, timer, s, grad_source)
+        try:
+            ep = run_episode(env, decide, s, cfg.max_steps)
+        finally:
+            if stream is not None:
+                stream.close()
+        ep.update(arm=arm, mode=mode, omega=omega, t_stopgrad=t_stopgrad, wait_seconds=timer.wait,
+                  normalized=float(normalized_score(cfg.env, ep["ret"])))
+        cfg.log(f"  {arm:14s} {mode:8s} seed {s}: return {ep['ret']:.1f} (norm {ep['normalized']:.2f}) "
+                f"{ep['length']} steps {1e3 * ep['seconds'] / ep['length']:.1f} ms/step")
+        out.append(ep)
+    return out
+
+
+def sweep(cfg, planner, client, names, kind: str) -> tuple[float, int, list]:
+    """omega x t_stopgrad by mean return on the sweep seeds (disjoint from the reported ones)."""
+    seeds = range(cfg.sweep_seed_base, cfg.sweep_seed_base + cfg.sweep_episodes)
+    rows = []
+    for om in cfg.omegas:
+        for ts in cfg.t_stopgrads:
+            eps = run_arm(kind, "external", seeds, planner, client, names, cfg, om, ts)
+            rows.append(dict(omega=om, t_stopgrad=ts, mean_normalized=float(np.mean([e["normalized"] for e in eps]))))
+    best = max(rows, key=lambda r: r["mean_normalized"])
+    cfg.log(f"sweep {kind}: best omega {best['omega']} t_stopgrad {best['t_stopgrad']} ({best['mean_normalized']:.2f})")
+    return best["omega"], best["t_stopgrad"], rows
+
+
+def summarize(cfg: Config, episodes: list, data_mean: float) -> dict:
+    ext = [e for e in episodes if e["mode"] == "external"]
+    by = {a: sorted([e for e in ext if e["arm"] == a], key=lambda e: e["seed"]) for a in cfg.arms}
+    base = [e["normalized"] for e in by.get("unsteered", [])]
+    rows = {}
+    for a, eps in by.items():
+        v = np.array([e["normalized"] for e in eps])
+        if not len(v):
+            continue
+        r = dict(n=len(v), mean=float(v.mean()), se=float(v.std(ddof=1) / np.sqrt(len(v))) if len(v) > 1 else float("nan"),
+                 mean_length=float(np.mean([e["length"] for e in eps])),
+                 ms_per_step=float(1e3 * sum(e["seconds"] for e in eps) / sum(e["length"] for e in eps)),
+                 wait_share=float(sum(e["wait_seconds"] for e in eps) / sum(e["seconds"] for e in eps)))
+        if a != "unsteered" and len(base) > 1 and len(v) > 1:
+            r["welch"] = welch(v, base)
+            r["paired"] = paired(v, base)
+        rows[a] = r
+    return dict(arms=rows, data_mean_normalized=data_mean,
+                base_vs_data=rows["unsteered"]["mean"] / data_mean if "unsteered" in rows and data_mean else None)
+
+
+def table(env: str, s: dict) -> str:
+    lines = ["| arm | n | normalised return (mean +- se) | mean length | Welch p vs unsteered | paired diff (wins/n) | ms/step |",
+             "|---|---|---|---|---|---|---|"]
+    for a, r in s["arms"].items():
+        w = r.get("welch")
+        pr = r.get("paired")
+        lines.append(f"| {a} | {r['n']} | {r['mean']:.2f} +- {r['se']:.2f} | {r['mean_length']:.0f} | "
+                     f"{'' if w is None else f'{w['p']:.2g}'} | "
+                     f"{'' if pr is None else f'{pr['mean']:+.2f} +- {pr['se']:.2f} ({pr['wins']}/{pr['n']})'} | "
+                     f"{r['ms_per_step']:.0f} |")
+    p = PAPER.get(env)
+    if p:
+        lines.append(f"\nPaper, Table 2 ({env}): unsteered {p[0]}, discriminator {p[1]}, reward {p[2]}.")
+    lines.append(f"Data (medium-replay) mean normalised return: {s['data_mean_normalized']:.2f}; "
+                 f"unsteered / data = {s['base_vs_data']:.2f}.")
+    return "\n".join(lines) + "\n"
+
+
+def plot(path: Path, env: str, s: dict) -> None:
+    """Bars of mean normalised return per arm with +-1 se, and the data's mean as a line."""
+    from PIL import Image, ImageDraw
+
+    arms = list(s["arms"])
+    W, H, pad = 640, 360, 50
+    img = Image.new("RGB", (W, H), "white")
+    d = ImageDraw.Draw(img)
+    vals = [s["arms"][a]["mean"] for a in arms]
+    ses = [0.0 if np.isnan(s["arms"][a]["se"]) else s["arms"][a]["se"] for a in arms]
+    top = max([v + e for v, e in zip(vals, ses)] + [s["data_mean_normalized"], 1e-6]) * 1.15
+    lo = min([0.0] + [v - e for v, e in zip(vals, ses)])
+    y = lambda v: H - pad - (v - lo) / (top - lo) * (H - 2 * pad)  # noqa: E731
+    d.line([(pad, y(0)), (W - 10, y(0))], fill="black")
+    d.line([(pad, pad), (pad, H - pad)], fill="black")
+    colors = ["#888888", "#d62728", "#1f77b4", "#ff9896", "#aec7e8"]
+    bw = (W - pad - 20) / len(arms)
+    for i, (a, v, e) in enumerate(zip(arms, vals, ses)):
+        x0 = pad + 10 + i * bw
+        d.rectangle([x0, min(y(v), y(0)), x0 + bw * 0.7, max(y(v), y(0))], fill=colors[i % len(colors)])
+        cx = x0 + bw * 0.35
+        d.line([(cx, y(v - e)), (cx, y(v + e))], fill="black", width=2)
+        d.text((x0, H - pad + 5), a, fill="black")
+        d.text((x0, y(v + e) - 12), f"{v:.1f}", fill="black")
+    dm = s["data_mean_normalized"]
+    d.line([(pad, y(dm)), (W - 10, y(dm))], fill="#2ca02c", width=1)
+    d.text((W - 150, y(dm) - 12), f"data mean {dm:.1f}", fill="#2ca02c")
+    d.text((pad, 10), f"{env}: D4RL-normalised return per arm (mean +- se)", fill="black")
+    for k in range(5):
+        v = lo + (top - lo) * k / 4
+        d.text((5, y(v) - 5), f"{v:.0f}", fill="black")
+    img.save(path)
+
+
+def data_mean(cfg: Config) -> float:
+    """Mean normalised return of the base planner's data, its episodes cut at max_steps as the
+    planner's are."""
+    z = dict(np.load(cfg.data / f"{cfg.env}-medium-replay.npz"))
+    rets = [z["rewards"][s:min(e, s + cfg.max_steps)].sum() for s, e in episodes(z)]
+    return float(normalized_score(cfg.env, np.array(rets)).mean())
+
+
+def experiment(cfg: Config) -> dict:
+    cfg.work.mkdir(parents=True, exist_ok=True)
+    data_dir = cfg.work / "server-data"
+    data_dir.mkdir(exist_ok=True)
+    server = Server(cfg.endpoint, data_dir)
+    try:
+        client = relreward.Client(server.addr)
+        t0 = time.time()
+        names = prepare(cfg, client)
+        planner = Planner.load(cfg.planners / f"{cfg.env}-medium-replay")
+        sweeps = {}
+        om, ts = cfg.omega, cfg.t_stopgrad
+        if "reward" in cfg.arms and (om is None or ts is None):
+            om, ts, sweeps["reward"] = sweep(cfg, planner, client, names, "reward")
+        dom, dts = cfg.disc_omega, cfg.disc_t_stopgrad
+        if "discriminator" in cfg.arms and (dom is None or dts is None):
+            dom, dts, sweeps["discriminator"] = sweep(cfg, planner, client, names, "discriminator")
+        seeds = range(cfg.seed_base, cfg.seed_base + cfg.episodes)
+        eps = []
+        for arm in cfg.arms:
+            o, t = {"reward": (om, ts), "discriminator": (dom, dts)}.get(arm, (0.0, 0))
+            cfg.log(f"arm {arm} (omega {o}, t_stopgrad {t})")
+            eps += run_arm(arm, "external", seeds, planner, client, names, cfg, o, t)
+        # The server-side mode: the same arms through the Sample RPC on the first seeds.
+        k = min(cfg.server_mode_episodes, cfg.episodes)
+        for arm in [a for a in ("unsteered", "reward") if a in cfg.arms] if k else []:
+            o, t = {"reward": (om, ts)}.get(arm, (0.0, 0))
+            eps += run_arm(arm, "server", seeds[:k], planner, client, names, cfg, o, t)
+        summary = summarize(cfg, eps, data_mean(cfg))
+        summary["server_mode"] = {
+            a: dict(n=len(v), mean=float(np.mean([e["normalized"] for e in v])),
+                    ms_per_step=float(1e3 * sum(e["seconds"] for e in v) / sum(e["length"] for e in v)))
+            for a in ("unsteered", "reward")
+            if (v := [e for e in eps if e["mode"] == "server" and e["arm"] == a])}
+        result = dict(env=cfg.env, omega=om, t_stopgrad=ts, disc_omega=dom, disc_t_stopgrad=dts, sweeps=sweeps,
+                      names=names, summary=summary, episodes=eps, seconds=time.time() - t0,
+                      config={k: (str(v) if isinstance(v, Path) else v) for k, v in cfg.__dict__.items()
+                              if k != "log"})
+        (cfg.work / f"{cfg.env}-results.json").write_text(json.dumps(result, indent=1, default=float) + "\n")
+        (cfg.work / f"{cfg.env}-table.md").write_text(table(cfg.env, summary))
+        plot(cfg.work / f"{cfg.env}-steer.png", cfg.env, summary)
+        cfg.log(table(cfg.env, summary))
+        return result
+    finally:
+        server.stop()
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--env", required=True, choices=sorted(ENVS))
+    p.add_argument("--data", type=Path, required=True, help="directory of data.py's npz files")
+    p.add_argument("--planners", type=Path, default=PLANNERS)
+    p.add_argument("--work", type=Path, default=None, help="results and server data (default: a temp dir)")
+    p.add_argument("--endpoint", default=os.environ.get("RELREWARD_ENDPOINT"),
+                   help="use this server (TorchScript uploads allowed); default: start one")
+    p.add_argument("--episodes", type=int, default=20)
+    p.add_argument("--seed-base", type=int, default=0)
+    p.add_argument("--sweep-episodes", type=int, default=3)
+    p.add_argument("--max-steps", type=int, default=1000)
+    p.add_argument("--n-plans", type=int, default=16)
+    p.add_argument("--reward-steps", type=int, default=3000)
+    p.add_argument("--disc-steps", type=int, default=3000)
+    p.add_argument("--omega", type=float)
+    p.add_argument("--t-stopgrad", type=int)
+    p.add_argument("--disc-omega", type=float)
+    p.add_argument("--disc-t-stopgrad", type=int)
+    p.add_argument("--server-mode-episodes", type=int, default=3)
+    p.add_argument("--full", action="store_true",
+                   help="the paper's sizes: ValueFunction widths (64, 64, 128, 128), 50k reward and "
+                        "discriminator steps, 512 episodes per arm")
+    a = p.parse_args()
+    cfg = Config(env=a.env, data=a.data, planners=a.planners,
+                 work=a.work or Path(tempfile.mkdtemp(prefix=f"steer-{a.env}-")), endpoint=a.endpoint,
+                 episodes=a.episodes, seed_base=a.seed_base, sweep_episodes=a.sweep_episodes, max_steps=a.max_steps,
+                 n_plans=a.n_plans, reward_steps=a.reward_steps, disc_steps=a.disc_steps, omega=a.omega,
+                 t_stopgrad=a.t_stopgrad, disc_omega=a.disc_omega, disc_t_stopgrad=a.disc_t_stopgrad,
+                 server_mode_episodes=a.server_mode_episodes, log=lambda s: print(s, flush=True))
+    if a.full:
+        cfg.widths, cfg.reward_steps, cfg.disc_steps, cfg.episodes = (64, 64, 128, 128), 50_000, 50_000, 512
+    experiment(cfg)
+
+
+if __name__ == "__main__":
+    main()
