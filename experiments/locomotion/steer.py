@@ -262,11 +262,10 @@ def table(env: str, s: dict) -> str:
     lines = ["| arm | n | normalised return (mean +- se) | mean length | Welch p vs unsteered | paired diff (wins/n) | ms/step |",
              "|---|---|---|---|---|---|---|"]
     for a, r in s["arms"].items():
-        w = r.get("welch")
-        pr = r.get("paired")
-        lines.append(f"| {a} | {r['n']} | {r['mean']:.2f} +- {r['se']:.2f} | {r['mean_length']:.0f} | "
-                     f"{'' if w is None else f'{w['p']:.2g}'} | "
-                     f"{'' if pr is None else f'{pr['mean']:+.2f} +- {pr['se']:.2f} ({pr['wins']}/{pr['n']})'} | "
+        w, pr = r.get("welch"), r.get("paired")
+        wp = "" if w is None else f"{w['p']:.2g}"
+        pd = "" if pr is None else f"{pr['mean']:+.2f} +- {pr['se']:.2f} ({pr['wins']}/{pr['n']})"
+        lines.append(f"| {a} | {r['n']} | {r['mean']:.2f} +- {r['se']:.2f} | {r['mean_length']:.0f} | {wp} | {pd} | "
                      f"{r['ms_per_step']:.0f} |")
     p = PAPER.get(env)
     if p:
