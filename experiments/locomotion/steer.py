@@ -59,6 +59,7 @@ class Server:
             sys.exit(f"steer.py: {binary} not found: run `make build` or pass --endpoint")
         self.data_dir = data_dir
         env = dict(os.environ, RELREWARD__MODELS__ALLOW_TORCHSCRIPT_UPLOAD="true", RELREWARD__METRICS__LISTEN="",
+                   RELREWARD__JOBS__MAX_CONCURRENT="2",
                    RELREWARD__SERVER__SHUTDOWN_DRAIN_SECS="0")
         env.setdefault("RELREWARD__ENGINE__INTRA_OP_THREADS", "1")
         self.log = open(data_dir.parent / "server.log", "ab")
@@ -92,10 +93,10 @@ class Config:
     max_steps: int = 1000
     n_plans: int = 16
     widths: tuple = (32, 64, 128)
-    reward_steps: int = 3000
-    disc_steps: int = 3000
+    reward_steps: int = 1500
+    disc_steps: int = 1500
     batch_size: int = 128
-    omegas: tuple = (0.05, 0.2, 0.5)
+    omegas: tuple = (0.1, 0.3, 1.0)
     t_stopgrads: tuple = (1, 4)
     omega: float | None = None
     t_stopgrad: int | None = None
@@ -125,18 +126,21 @@ def prepare(cfg: Config, client: relreward.Client) -> dict:
     names["reward"], names["discriminator"] = f"{env}-reward", f"{env}-discriminator"
     arch = ("value_function", {"widths": list(cfg.widths)})
     t0 = time.time()
+    # Both jobs are submitted at once (the server runs them side by side when
+    # jobs.max_concurrent allows), then awaited.
+    jobs = []
     if names["reward"] not in have_m:
-        job = client.submit_job(relreward.RewardJob(
+        jobs.append(("reward", client.submit_job(relreward.RewardJob(
             names["reward"], names["medium-replay"], names["expert"], datasets=[f"{env}-medium-replay", f"{env}-expert"],
             architecture=arch, seed=0, optimization=relreward.Optimization(
-                steps=cfg.reward_steps, batch_size=cfg.batch_size, learning_rate=2e-4)))
-        _finish(client, job, "reward", cfg.log)
+                steps=cfg.reward_steps, batch_size=cfg.batch_size, learning_rate=2e-4)))))
     if names["discriminator"] not in have_m:
-        job = client.submit_job(relreward.DiscriminatorJob(
+        jobs.append(("discriminator", client.submit_job(relreward.DiscriminatorJob(
             names["discriminator"], f"{env}-medium-replay", f"{env}-expert", names["medium-replay"],
             architecture=arch, seed=0, optimization=relreward.Optimization(
-                steps=cfg.disc_steps, batch_size=cfg.batch_size, learning_rate=2e-4)))
-        _finish(client, job, "discriminator", cfg.log)
+                steps=cfg.disc_steps, batch_size=cfg.batch_size, learning_rate=2e-4)))))
+    for what, job in jobs:
+        _finish(client, job, what, cfg.log)
     names["train_seconds"] = time.time() - t0
     return names
 
@@ -377,8 +381,8 @@ def main() -> None:
     p.add_argument("--sweep-episodes", type=int, default=3)
     p.add_argument("--max-steps", type=int, default=1000)
     p.add_argument("--n-plans", type=int, default=16)
-    p.add_argument("--reward-steps", type=int, default=3000)
-    p.add_argument("--disc-steps", type=int, default=3000)
+    p.add_argument("--reward-steps", type=int, default=1500)
+    p.add_argument("--disc-steps", type=int, default=1500)
     p.add_argument("--omega", type=float)
     p.add_argument("--t-stopgrad", type=int)
     p.add_argument("--disc-omega", type=float)
