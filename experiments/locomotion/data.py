@@ -25,6 +25,11 @@ from ars import Policy
 from common import ENVS, POLICIES, episodes, normalized_score
 
 
+# (expert, medium-replay) episodes per environment: the sets the committed planners were
+# trained on. HalfCheetah never terminates, so its episodes are all 1000 steps long.
+EPISODES = {"hopper": (50, 400), "halfcheetah": (20, 100), "walker2d": (50, 400)}
+
+
 def rollouts(env_id: str, policies: list[Policy], n_episodes: int, noise: float, seed: int,
              max_steps: int = 1000) -> dict:
     """n_episodes episodes, policy k % len(policies) for episode k, actions + N(0, noise^2)."""
@@ -82,13 +87,15 @@ def main() -> None:
     p.add_argument("--env", required=True, choices=sorted(ENVS))
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--expert-episodes", type=int, default=50)
-    p.add_argument("--replay-episodes", type=int, default=400)
+    p.add_argument("--expert-episodes", type=int, default=None, help="default: EPISODES[env][0]")
+    p.add_argument("--replay-episodes", type=int, default=None, help="default: EPISODES[env][1]")
     p.add_argument("--expert-noise", type=float, default=0.02,
                    help="action noise std of the expert set (Hopper's expert falls at 0.1)")
     p.add_argument("--replay-noise", type=float, default=0.05)
     p.add_argument("--medium-frac", type=float, default=1 / 3)
     a = p.parse_args()
+    a.expert_episodes = a.expert_episodes or EPISODES[a.env][0]
+    a.replay_episodes = a.replay_episodes or EPISODES[a.env][1]
     a.out.mkdir(parents=True, exist_ok=True)
     report = {}
     for name, data in (

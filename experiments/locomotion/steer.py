@@ -35,6 +35,7 @@ from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
+import torch
 
 import relreward
 from common import ENVS, PLANNERS, episodes, normalized_score, paired, welch
@@ -86,10 +87,10 @@ class Config:
     planners: Path
     work: Path
     endpoint: str | None = None
-    episodes: int = 20
+    episodes: int = 10
     seed_base: int = 0
     sweep_seed_base: int = 10_000
-    sweep_episodes: int = 3
+    sweep_episodes: int = 2
     max_steps: int = 1000
     n_plans: int = 16
     widths: tuple = (32, 64, 128)
@@ -97,7 +98,7 @@ class Config:
     disc_steps: int = 1500
     batch_size: int = 128
     omegas: tuple = (0.1, 0.3, 1.0)
-    t_stopgrads: tuple = (1, 4)
+    t_stopgrads: tuple = (2,)
     omega: float | None = None
     t_stopgrad: int | None = None
     disc_omega: float | None = None
@@ -322,6 +323,9 @@ def data_mean(cfg: Config) -> float:
 
 
 def experiment(cfg: Config) -> dict:
+    # One thread: the planner's small matrices gain nothing from more, and on a shared machine
+    # torch's default pool contends with the server for the same cores.
+    torch.set_num_threads(1)
     cfg.work.mkdir(parents=True, exist_ok=True)
     data_dir = cfg.work / "server-data"
     data_dir.mkdir(exist_ok=True)
@@ -376,13 +380,15 @@ def main() -> None:
     p.add_argument("--work", type=Path, default=None, help="results and server data (default: a temp dir)")
     p.add_argument("--endpoint", default=os.environ.get("RELREWARD_ENDPOINT"),
                    help="use this server (TorchScript uploads allowed); default: start one")
-    p.add_argument("--episodes", type=int, default=20)
+    p.add_argument("--episodes", type=int, default=10)
     p.add_argument("--seed-base", type=int, default=0)
-    p.add_argument("--sweep-episodes", type=int, default=3)
+    p.add_argument("--sweep-episodes", type=int, default=2)
     p.add_argument("--max-steps", type=int, default=1000)
     p.add_argument("--n-plans", type=int, default=16)
     p.add_argument("--reward-steps", type=int, default=1500)
     p.add_argument("--disc-steps", type=int, default=1500)
+    p.add_argument("--omegas", default="0.1,0.3,1.0", help="the sweep's omegas")
+    p.add_argument("--t-stopgrads", default="2", help="the sweep's t_stopgrads")
     p.add_argument("--omega", type=float)
     p.add_argument("--t-stopgrad", type=int)
     p.add_argument("--disc-omega", type=float)
@@ -397,7 +403,9 @@ def main() -> None:
                  episodes=a.episodes, seed_base=a.seed_base, sweep_episodes=a.sweep_episodes, max_steps=a.max_steps,
                  n_plans=a.n_plans, reward_steps=a.reward_steps, disc_steps=a.disc_steps, omega=a.omega,
                  t_stopgrad=a.t_stopgrad, disc_omega=a.disc_omega, disc_t_stopgrad=a.disc_t_stopgrad,
-                 server_mode_episodes=a.server_mode_episodes, log=lambda s: print(s, flush=True))
+                 server_mode_episodes=a.server_mode_episodes, log=lambda s: print(s, flush=True),
+                 omegas=tuple(float(v) for v in a.omegas.split(",")),
+                 t_stopgrads=tuple(int(v) for v in a.t_stopgrads.split(",")))
     if a.full:
         cfg.widths, cfg.reward_steps, cfg.disc_steps, cfg.episodes = (64, 64, 128, 128), 50_000, 50_000, 512
     experiment(cfg)
