@@ -216,6 +216,9 @@ def act(p: Planner, obs: np.ndarray, n_plans: int, seed: int, grad_fn=None, omeg
     """One receding-horizon decision: plans from the current observation, the plan chosen by
     select_fn(plans) -> scores (argmax) or the first plan, its first action (raw units)."""
     lo, hi = p.lo[p.act_dim:], p.hi[p.act_dim:]
+    # Clipped to the data's limits: a falling robot leaves them, and an out-of-range inpainted
+    # state only feeds the denoiser inputs it never saw. (The server-side mode does not clip;
+    # both modes gave the same returns in docs/results.md.)
     state = np.clip(2 * (obs - lo) / (hi - lo) - 1, -1, 1)[None, :]
     plans = sample(p, state, n_plans, seed, grad_fn, omega, t_stopgrad)
     k = int(np.argmax(select_fn(plans))) if select_fn is not None else 0

@@ -88,3 +88,51 @@ def test_welch_and_paired_match_known_values():
     assert w["df"] == pytest.approx(2.416667**2 / ((1.666667 / 4) ** 2 / 3 + 2.0**2 / 4), rel=1e-5)
     pr = common.paired([3.0, 5.0, 4.0], [1.0, 2.0, 3.0])
     assert pr["mean"] == pytest.approx(2.0) and pr["wins"] == 3
+
+
+def test_external_sampler_and_server_sample_draw_the_same_plans(tmp_path):
+    """The external planner's loop (planner.sample) and the server's Sample run the same
+    uploaded module with the same schedule, normaliser and inpainting: over many plans from one
+    state, their per-coordinate means agree within sampling error (a wrong schedule, posterior
+    or normaliser on either side moves them apart by far more)."""
+    import planner as planner_mod
+    import relreward
+    import steer
+
+    rng = np.random.default_rng(0)
+    lo, hi = -rng.uniform(1, 3, 14), rng.uniform(1, 3, 14)
+    pl = planner_mod.Planner("hopper", 4, 3, 11, lo, hi, n_timesteps=6, hidden=32, depth=2)
+    # Windows with structure (actions follow the state) so the denoiser learns something.
+    s = rng.uniform(-1, 1, (2048, 4, 11))
+    a = np.tanh(s[..., :3] * 2)
+    win = np.concatenate([a, s], -1).astype(np.float32)
+    pl.train(win, steps=150, batch=64, log=lambda m: None)
+    pl.save(tmp_path / "pl", {})
+    pl = planner_mod.Planner.load(tmp_path / "pl")
+    obs = pl.unnormalize(np.concatenate([np.zeros(3), rng.uniform(-0.5, 0.5, 11)]))[3:]
+    state = 2 * (obs - lo[3:]) / (hi[3:] - lo[3:]) - 1
+    n = 400
+    ext = pl.unnormalize(planner_mod.sample(pl, state[None, :], n, seed=1))
+    data = tmp_path / "server-data"
+    data.mkdir()
+    server = steer.Server(None, data)
+    try:
+        client = relreward.Client(server.addr)
+        client.upload_model(tmp_path / "pl" / "denoiser.torchscript.pt", "pl",
+                            json.loads((tmp_path / "pl" / "manifest.json").read_text()))
+        srv = client.sample("pl", n=n, seed=2, conditions={0: obs.astype(np.float32)}).x
+    finally:
+        server.stop()
+    assert np.allclose(srv[:, 0, 3:], obs, atol=1e-4) and np.allclose(ext[:, 0, 3:], obs, atol=1e-6)
+    free = np.ones((4, 14), bool)
+    free[0, 3:] = False  # the inpainted state: equal on both sides, no spread to compare with
+
+    def z(x):
+        se = np.sqrt(x.var(0) / n + srv.var(0) / n)
+        return (np.abs(x.mean(0) - srv.mean(0)) / se)[free]
+
+    assert z(ext).max() < 5.0, z(ext).max()
+    # The check has teeth: the same loop with a wrong posterior coefficient is told apart.
+    pl.sched.coef1 = pl.sched.coef1[::-1].copy()
+    moved = pl.unnormalize(planner_mod.sample(pl, state[None, :], n, seed=1))
+    assert z(moved).max() > 5.0, z(moved).max()
