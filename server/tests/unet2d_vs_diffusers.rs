@@ -88,7 +88,11 @@ fn unet2d_matches_diffusers_forward_and_training_step() {
             shape: vec![3, 8, 12],
             parametrization: Parametrization::X0,
         },
-        Case { architecture: unet2d(&[8], 1, true, 2), shape: vec![2, 5, 3], parametrization: Parametrization::Epsilon },
+        Case {
+            architecture: unet2d(&[8], 1, true, 2),
+            shape: vec![2, 5, 3],
+            parametrization: Parametrization::Epsilon,
+        },
     ];
     let dir = tempfile::tempdir().expect("tempdir");
     let mut rng = Rng::new(7);

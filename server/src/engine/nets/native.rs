@@ -97,7 +97,13 @@ impl Plan {
                 MlpDenoiser::validate(features, &hidden)?;
                 Self::Mlp { features, hidden }
             }
-            Architecture::Unet2d { block_out_channels, layers_per_block, attention, norm_num_groups, attention_head_dim } => {
+            Architecture::Unet2d {
+                block_out_channels,
+                layers_per_block,
+                attention,
+                norm_num_groups,
+                attention_head_dim,
+            } => {
                 let (Space::Sample { .. }, &[channels, height, width]) = (space, item_shape.as_slice()) else {
                     return Err(Error::invalid(format!(
                         "architecture: unet2d needs a sample space of shape [C, H, W], not {item_shape:?}"

@@ -281,9 +281,8 @@ impl Attention {
         let (b, c, hw) = (size[0], size[1], size[2] * size[3]);
         // [B, HW, C]: one token per position.
         let h = self.group_norm.forward(x)?.f_reshape([b, c, hw])?.f_transpose(1, 2)?;
-        let split = |t: Tensor| -> Result<Tensor> {
-            Ok(t.f_reshape([b, hw, self.heads, self.head_dim])?.f_transpose(1, 2)?)
-        };
+        let split =
+            |t: Tensor| -> Result<Tensor> { Ok(t.f_reshape([b, hw, self.heads, self.head_dim])?.f_transpose(1, 2)?) };
         let q = split(self.to_q.forward(&h)?)?;
         let k = split(self.to_k.forward(&h)?)?;
         let v = split(self.to_v.forward(&h)?)?;
@@ -352,8 +351,7 @@ impl Unet2d {
             ResnetBlock::new(&(&mid / "resnets" / 0), deepest, deepest, temb, groups)?,
             ResnetBlock::new(&(&mid / "resnets" / 1), deepest, deepest, temb, groups)?,
         ];
-        let mid_attention =
-            if config.attention { Some(attention(&mid / "attentions" / 0, deepest)?) } else { None };
+        let mid_attention = if config.attention { Some(attention(&mid / "attentions" / 0, deepest)?) } else { None };
 
         let reversed: Vec<i64> = w.iter().rev().copied().collect();
         let mut ups = Vec::with_capacity(levels);
@@ -399,9 +397,8 @@ impl Unet2d {
     /// freqs = exp(-ln(10000) * arange(half) / half), emb = [cos(t freqs), sin(t freqs)].
     fn time_proj(&self, t: &Tensor) -> Result<Tensor> {
         let half = self.config.block_out_channels[0] / 2;
-        let freqs = Tensor::f_arange(half, (Kind::Float, t.device()))?
-            .f_mul_scalar(-(10000f64).ln() / half as f64)?
-            .f_exp()?;
+        let freqs =
+            Tensor::f_arange(half, (Kind::Float, t.device()))?.f_mul_scalar(-(10000f64).ln() / half as f64)?.f_exp()?;
         let args = t.f_unsqueeze(1)?.f_mul(&freqs.f_unsqueeze(0)?)?;
         Ok(Tensor::f_cat(&[args.f_cos()?, args.f_sin()?], -1)?)
     }
