@@ -37,6 +37,7 @@ def test_digits_experiment_runs_end_to_end(tmp_path):
     assert all(0.0 <= steer[k] <= 1.0 for k in ("base_unguided", "base_guided", "expert"))
     assert 0.5 <= s["samples"]["cap"] <= 1.0
     assert s["classifier_test_accuracy"] > 0.9  # the pixel classifier is real, even here
-    for png in ("hist-real-algorithm2.png", "extremes-algorithm2.png", "samples-unguided-vs-guided.png",
+    assert "algorithm2_t5" in s["real_heldout"]
+    for png in ("hist-real-algorithm2-t0.png", "extremes-algorithm2.png", "samples-unguided-vs-guided.png",
                 "hist-samples-algorithm2.png"):
         assert (out / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", png
