@@ -446,3 +446,68 @@ impl Unet2d {
         self.conv_out.forward(&self.conv_norm_out.forward(&h)?.f_silu()?)
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use tch::Device;
+    use tch::nn::VarStore;
+
+    use super::*;
+
+    fn config(widths: &[i64], attention: bool) -> Unet2dConfig {
+        Unet2dConfig {
+            channels: 1,
+            height: 8,
+            width: 8,
+            block_out_channels: widths.to_vec(),
+            layers_per_block: 2,
+            attention,
+            norm_num_groups: 8,
+            attention_head_dim: 8,
+        }
+    }
+
+    #[test]
+    fn unet2d_planned_parameters_equal_the_built_ones_and_shapes_are_kept() {
+        for (widths, attention) in [(vec![16, 32], true), (vec![8, 16, 16], false), (vec![16], true)] {
+            let c = config(&widths, attention);
+            let vs = VarStore::new(Device::Cpu);
+            let net = Unet2d::new(&vs.root(), &c).expect("builds");
+            let built: i64 = vs.variables().values().map(Tensor::numel).map(|n| n as i64).sum();
+            assert_eq!(u128::from(built as u64), c.params(), "{c:?}");
+            let x = Tensor::randn([3, 1, 8, 8], (Kind::Float, Device::Cpu));
+            let y = net.forward(&x, &Tensor::from_slice(&[0f32, 5.0, 49.0])).expect("forward");
+            assert_eq!(y.size(), x.size());
+        }
+    }
+
+    #[test]
+    fn unet2d_invalid_configurations_name_the_field() {
+        let mut cases: Vec<(Unet2dConfig, &str)> = Vec::new();
+        let base = config(&[16, 32], true);
+        cases.push((Unet2dConfig { block_out_channels: vec![], ..base.clone() }, "architecture.block_out_channels"));
+        cases.push((
+            Unet2dConfig { block_out_channels: vec![16, 0], ..base.clone() },
+            "architecture.block_out_channels",
+        ));
+        cases.push((Unet2dConfig { layers_per_block: 0, ..base.clone() }, "architecture.layers_per_block"));
+        cases.push((Unet2dConfig { norm_num_groups: 5, ..base.clone() }, "architecture.norm_num_groups"));
+        cases.push((Unet2dConfig { norm_num_groups: 0, ..base.clone() }, "architecture.norm_num_groups"));
+        cases.push((Unet2dConfig { attention_head_dim: 5, ..base.clone() }, "architecture.attention_head_dim"));
+        cases.push((Unet2dConfig { height: 7, ..base.clone() }, "space.shape: height 7"));
+        cases.push((Unet2dConfig { width: 0, ..base.clone() }, "space.shape: width 0"));
+        cases.push((Unet2dConfig { channels: 0, ..base.clone() }, "space.shape"));
+        cases.push((
+            Unet2dConfig { block_out_channels: vec![2, 16], norm_num_groups: 2, ..base.clone() },
+            "architecture.block_out_channels: the first width 2",
+        ));
+        for (c, needle) in cases {
+            match c.validate() {
+                Err(Error::InvalidArgument(msg)) => assert!(msg.contains(needle), "{msg} should contain {needle}"),
+                other => panic!("{c:?}: expected InvalidArgument, got {other:?}"),
+            }
+        }
+        // Attention off: the head size is not checked.
+        assert!(Unet2dConfig { attention: false, attention_head_dim: 5, ..base }.validate().is_ok());
+    }
+}
