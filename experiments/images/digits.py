@@ -14,7 +14,7 @@ with its data in a temporary directory, unless --endpoint names one):
 3. Rewards: Algorithm 2 from the two models alone (the job is given no dataset), Algorithm 1
    on both datasets, and the discriminator baseline, all with the same conv encoder.
 4. Separation: `relreward eval discriminate` on held-out real test digits, inside vs outside
-   the subset, by each reward alone at t = 0 (a 1-D logistic regression fit on 80% of them,
+   the subset, by each reward alone at t = 0, 2 and 5 (--t-eval; a 1-D logistic regression fit on 80% of them,
    balanced accuracy on the other 20%); the same for samples of the base vs the expert model,
    beside its cap (a base sample that already lies in the subset cannot be told apart).
 5. Pictures: for batches of held-out digits, the 3 highest- and 3 lowest-reward images;
