@@ -21,7 +21,7 @@ BIN := target/release
 # Arguments for `make run`, e.g. make run ARGS="--listen 127.0.0.1:6000 --data-dir /tmp/rr".
 ARGS ?=
 
-.PHONY: help setup build run test test-cluster lint fmt clean demo bench soak steer
+.PHONY: help setup build run test test-cluster lint fmt clean demo bench soak steer images
 # Arguments for `make demo`, e.g. make demo DEMO_ARGS="--layout medium --goals 4".
 DEMO_ARGS ?=
 
@@ -33,6 +33,7 @@ help:
 	@echo "make bench  relreward against the PyTorch references: serving, training, sampling; 1 vs 2 replicas (writes BENCHMARKS.md)"
 	@echo "make soak   the 10-minute load and soak test (tests/soak.sh; make test runs 60 s of it)"
 	@echo "make steer  locomotion steering experiment, ENV=hopper|halfcheetah|walker2d (paper section 5.2)"
+	@echo "make images the digits experiment: Algorithm 2 on two image DDPMs (experiments/images/digits.py)"
 	@echo "make lint   rustfmt check and clippy"
 	@echo "make clean  remove build outputs (keeps .venv and data/)"
 
@@ -66,6 +67,13 @@ test: build
 	$(CARGO) test $(CARGO_PROFILE) --workspace --no-fail-fast
 	$(VENV)/bin/python -m pytest client/python/tests -q
 	deploy/validate.sh
+
+## images: the paper's section 5.3 on scikit-learn's 8x8 digits (experiments/images/digits.py):
+## two native UNet2D DDPMs, Algorithm 2 from the models only, Algorithm 1, the discriminator,
+## separation, pictures and steering; writes docs/images/digits/. IMAGES_ARGS e.g. "--seed 1".
+IMAGES_ARGS ?=
+images: build
+	$(VENV)/bin/python experiments/images/digits.py $(IMAGES_ARGS)
 
 ## test-cluster: the shared backend across processes (tests/cluster/run.sh): a real PostgreSQL
 ## (Debian package, installed if missing) and s3s-fs (built into .tools/ once), two serving

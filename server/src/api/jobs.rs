@@ -59,6 +59,17 @@ impl Jobs {
                             m.hidden.iter().map(|&h| h as usize).collect()
                         },
                     },
+                    Some(pb::train_diffusion::Architecture::Unet2d(u)) => Architecture::Unet2d {
+                        block_out_channels: if u.block_out_channels.is_empty() {
+                            vec![32, 64]
+                        } else {
+                            u.block_out_channels.iter().map(|&c| c as usize).collect()
+                        },
+                        layers_per_block: u.layers_per_block.unwrap_or(1) as usize,
+                        attention: u.attention.unwrap_or(true),
+                        norm_num_groups: u.norm_num_groups.unwrap_or(8) as usize,
+                        attention_head_dim: u.attention_head_dim.unwrap_or(8) as usize,
+                    },
                     None => match dataset.kind {
                         DatasetKind::Trajectories => {
                             Architecture::TemporalUnet { dim: 32, dim_mults: vec![1, 2, 4, 8] }
@@ -84,6 +95,7 @@ impl Jobs {
                     action_weight: d.action_weight.unwrap_or(1.0),
                     clip_denoised: d.clip_denoised.unwrap_or(true),
                     normalizer_datasets: d.normalizer_datasets,
+                    pooled_normalizer: d.pooled_normalizer.unwrap_or(false),
                 };
                 Ok(JobSpec {
                     output_model: spec.output_model,
@@ -295,10 +307,24 @@ fn spec_to_proto(spec: &JobSpec) -> pb::JobSpec {
                 Architecture::Mlp { hidden } => pb::train_diffusion::Architecture::Mlp(pb::Mlp {
                     hidden: hidden.iter().map(|&h| h as u32).collect(),
                 }),
+                Architecture::Unet2d {
+                    block_out_channels,
+                    layers_per_block,
+                    attention,
+                    norm_num_groups,
+                    attention_head_dim,
+                } => pb::train_diffusion::Architecture::Unet2d(pb::Unet2d {
+                    block_out_channels: block_out_channels.iter().map(|&c| c as u32).collect(),
+                    layers_per_block: Some(*layers_per_block as u32),
+                    attention: Some(*attention),
+                    norm_num_groups: Some(*norm_num_groups as u32),
+                    attention_head_dim: Some(*attention_head_dim as u32),
+                }),
             }),
             action_weight: Some(d.action_weight),
             clip_denoised: Some(d.clip_denoised),
             normalizer_datasets: d.normalizer_datasets.clone(),
+            pooled_normalizer: Some(d.pooled_normalizer),
         }),
         JobKind::Reward(r) => pb::job_spec::Kind::Reward(pb::TrainReward {
             base_model: r.base_model.clone(),

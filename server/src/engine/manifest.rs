@@ -100,6 +100,32 @@ pub enum Architecture {
     TemporalUnet { dim: usize, dim_mults: Vec<usize> },
     /// An MLP over flattened samples with a sinusoidal time embedding.
     Mlp { hidden: Vec<usize> },
+    /// diffusers' `UNet2DModel` over images [C, H, W] (`nets/unet2d.rs`); the defaults are
+    /// diffusers' own, except attention, off unless asked for.
+    Unet2d {
+        block_out_channels: Vec<usize>,
+        #[serde(default = "default_layers_per_block")]
+        layers_per_block: usize,
+        /// Attention at the lowest resolution (last down block, mid block, first up block).
+        #[serde(default)]
+        attention: bool,
+        #[serde(default = "default_norm_num_groups")]
+        norm_num_groups: usize,
+        #[serde(default = "default_attention_head_dim")]
+        attention_head_dim: usize,
+    },
+}
+
+fn default_layers_per_block() -> usize {
+    2
+}
+
+fn default_norm_num_groups() -> usize {
+    32
+}
+
+fn default_attention_head_dim() -> usize {
+    8
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -210,6 +236,15 @@ impl DiffusionManifest {
                         return Err(Error::invalid(format!(
                             "manifest.architecture.hidden: {hidden:?} must be non-empty and positive"
                         )));
+                    }
+                }
+                // The widths, groups and image sizes are checked where the network is planned
+                // (`nets::unet2d::Unet2dConfig::validate`); here only the space's kind.
+                Architecture::Unet2d { .. } => {
+                    if !matches!(&self.space, Space::Sample { shape } if shape.len() == 3) {
+                        return Err(Error::invalid(
+                            "manifest.architecture: unet2d needs a sample space of shape [C, H, W]",
+                        ));
                     }
                 }
             }

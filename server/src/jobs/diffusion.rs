@@ -96,15 +96,16 @@ fn manifest_for(job: &DiffusionJob, ds: &DatasetRecord, pooled: &[DatasetRecord]
             (space, normalizer)
         }
         DatasetKind::Samples => {
-            if !matches!(job.architecture, Architecture::Mlp { .. }) {
+            if !matches!(job.architecture, Architecture::Mlp { .. } | Architecture::Unet2d { .. }) {
                 return Err(Error::invalid(format!(
-                    "spec.diffusion.architecture: sample dataset '{}' needs mlp",
+                    "spec.diffusion.architecture: sample dataset '{}' needs mlp or unet2d",
                     ds.name
                 )));
             }
             let s = stats("samples")?;
             let shape =
                 array(ds, "samples").map(|a| a.shape[1..].iter().map(|&d| d as usize).collect()).unwrap_or_default();
+            let s = if job.pooled_normalizer { pool_elements(&s) } else { s };
             (Space::Sample { shape }, Normalizer::Gaussian { mean: s.mean, std: s.std })
         }
     };
@@ -142,6 +143,23 @@ fn pool(parts: &[(u64, ArrayStats)]) -> ArrayStats {
         out.std[j] = (second - out.mean[j] * out.mean[j]).max(0.0).sqrt();
     }
     out
+}
+
+/// Every coordinate's mean and std replaced by those of all elements together (each coordinate
+/// holds the same number of rows, so the pooled moments are plain averages of the per-coordinate
+/// ones), for `pooled_normalizer`.
+fn pool_elements(s: &ArrayStats) -> ArrayStats {
+    let d = s.mean.len().max(1) as f64;
+    let mean = s.mean.iter().sum::<f64>() / d;
+    let second = s.mean.iter().zip(&s.std).map(|(m, sd)| sd * sd + m * m).sum::<f64>() / d;
+    let std = (second - mean * mean).max(0.0).sqrt();
+    let n = s.mean.len();
+    ArrayStats {
+        min: vec![s.min.iter().copied().fold(f64::INFINITY, f64::min); n],
+        max: vec![s.max.iter().copied().fold(f64::NEG_INFINITY, f64::max); n],
+        mean: vec![mean; n],
+        std: vec![std; n],
+    }
 }
 
 pub fn run(ctx: &mut JobContext, job: &DiffusionJob) -> std::result::Result<String, Stop> {

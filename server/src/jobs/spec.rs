@@ -99,6 +99,9 @@ pub struct DiffusionJob {
     /// More datasets the normalizer is computed over, with `dataset` (see the proto).
     #[serde(default)]
     pub normalizer_datasets: Vec<String>,
+    /// Sample datasets: one mean and std over every element (see the proto).
+    #[serde(default)]
+    pub pooled_normalizer: bool,
 }
 
 impl JobSpec {

@@ -355,10 +355,19 @@ fn diffusion_json(d: &pb::TrainDiffusion) -> Value {
         "architecture": match &d.architecture {
             Some(Architecture::TemporalUnet(u)) => json!({ "kind": "temporal_unet", "dim": u.dim, "dim_mults": u.dim_mults }),
             Some(Architecture::Mlp(m)) => json!({ "kind": "mlp", "hidden": m.hidden }),
+            Some(Architecture::Unet2d(u)) => json!({
+                "kind": "unet2d",
+                "block_out_channels": u.block_out_channels,
+                "layers_per_block": u.layers_per_block,
+                "attention": u.attention,
+                "norm_num_groups": u.norm_num_groups,
+                "attention_head_dim": u.attention_head_dim,
+            }),
             None => Value::Null,
         },
         "action_weight": d.action_weight,
         "clip_denoised": d.clip_denoised,
+        "pooled_normalizer": d.pooled_normalizer,
     })
 }
 

@@ -67,7 +67,9 @@ class DiffusionJob:
     """Train a native diffusion model on dataset ``dataset``, registered as ``output_model``.
 
     ``architecture``: ``("temporal_unet", {"dim": 32, "dim_mults": [1, 2, 4, 8]})`` or
-    ``("mlp", {"hidden": [256, 256]})``; ``horizon`` is the sub-trajectory length H in rows.
+    ``("mlp", {"hidden": [256, 256]})`` or, for images [C, H, W], ``("unet2d",
+    {"block_out_channels": [32, 64], "layers_per_block": 1, "attention": True})`` (diffusers'
+    UNet2DModel); ``horizon`` is the sub-trajectory length H in rows.
     """
 
     output_model: str
@@ -82,10 +84,14 @@ class DiffusionJob:
     action_weight: float | None = None
     clip_denoised: bool | None = None
     normalizer_datasets: Sequence[str] = ()
+    #: Sample datasets: one mean and std over every element (images) instead of per coordinate.
+    pooled_normalizer: bool | None = None
 
     def to_proto(self) -> jobs_pb2.JobSpec:
         d = jobs_pb2.TrainDiffusion(dataset=self.dataset, parametrization=_param(self.parametrization),
                                     normalizer_datasets=list(self.normalizer_datasets))
+        if self.pooled_normalizer is not None:
+            d.pooled_normalizer = self.pooled_normalizer
         for name in ("n_timesteps", "horizon", "action_weight", "clip_denoised"):
             if getattr(self, name) is not None:
                 setattr(d, name, getattr(self, name))
@@ -97,8 +103,10 @@ class DiffusionJob:
                 d.temporal_unet.CopyFrom(jobs_pb2.TemporalUnet(**args))
             elif kind == "mlp":
                 d.mlp.CopyFrom(jobs_pb2.Mlp(**args))
+            elif kind == "unet2d":
+                d.unet2d.CopyFrom(jobs_pb2.Unet2d(**args))
             else:
-                raise ValueError(f"architecture {kind!r}: expected temporal_unet or mlp")
+                raise ValueError(f"architecture {kind!r}: expected temporal_unet, mlp or unet2d")
         spec = _base(self.output_model, self.seed, self.optimization)
         spec.diffusion.CopyFrom(d)
         return spec

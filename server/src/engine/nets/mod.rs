@@ -5,6 +5,8 @@
 //!   ResidualTemporalBlock, Down/Upsample1d, time MLP), shared with the reward networks.
 //! - [`temporal_unet`]: Diffuser's TemporalUnet over trajectories [B, H, D].
 //! - [`mlp`]: an MLP denoiser over samples of any shape.
+//! - [`unet2d`]: diffusers' `UNet2DModel` over images [B, C, H, W], with diffusers' parameter
+//!   names (checked against diffusers itself by `server/tests/unet2d_vs_diffusers.rs`).
 //! - [`reward`]: [`RewardNet`], the relative reward network rho(x, t) (windowed MLP, Diffuser's
 //!   ValueFunction, a strided 2D conv encoder, a flat MLP) with its input gradient, the
 //!   differentiable gradient for the double backward of training, and strict safetensors.
@@ -20,6 +22,7 @@ pub mod mlp;
 pub mod native;
 pub mod reward;
 pub mod temporal_unet;
+pub mod unet2d;
 pub mod weights;
 
 pub use native::NativeDenoiser;

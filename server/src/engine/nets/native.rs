@@ -15,6 +15,7 @@ use tch::{Device, Kind, Tensor};
 
 use super::mlp::MlpDenoiser;
 use super::temporal_unet::TemporalUnet;
+use super::unet2d::{Unet2d, Unet2dConfig};
 use super::weights;
 use crate::engine::denoiser::Denoiser;
 use crate::engine::manifest::{Architecture, Space};
@@ -30,6 +31,7 @@ enum Network {
     // Boxed: the U-Net's level vectors and blocks make it far larger than the MLP.
     TemporalUnet(Box<TemporalUnet>),
     Mlp(MlpDenoiser),
+    Unet2d(Box<Unet2d>),
 }
 
 /// A native denoiser: the network, its variables, and the space it was built for.
@@ -51,6 +53,7 @@ fn to_i64(value: usize, field: &str) -> Result<i64> {
 enum Plan {
     TemporalUnet { horizon: i64, transition_dim: i64, dim: i64, dim_mults: Vec<i64> },
     Mlp { features: i64, hidden: Vec<i64> },
+    Unet2d(Unet2dConfig),
 }
 
 impl Plan {
@@ -94,6 +97,34 @@ impl Plan {
                 MlpDenoiser::validate(features, &hidden)?;
                 Self::Mlp { features, hidden }
             }
+            Architecture::Unet2d {
+                block_out_channels,
+                layers_per_block,
+                attention,
+                norm_num_groups,
+                attention_head_dim,
+            } => {
+                let (Space::Sample { .. }, &[channels, height, width]) = (space, item_shape.as_slice()) else {
+                    return Err(Error::invalid(format!(
+                        "architecture: unet2d needs a sample space of shape [C, H, W], not {item_shape:?}"
+                    )));
+                };
+                let config = Unet2dConfig {
+                    channels,
+                    height,
+                    width,
+                    block_out_channels: block_out_channels
+                        .iter()
+                        .map(|&c| to_i64(c, "architecture.block_out_channels"))
+                        .collect::<Result<Vec<_>>>()?,
+                    layers_per_block: to_i64(*layers_per_block, "architecture.layers_per_block")?,
+                    attention: *attention,
+                    norm_num_groups: to_i64(*norm_num_groups, "architecture.norm_num_groups")?,
+                    attention_head_dim: to_i64(*attention_head_dim, "architecture.attention_head_dim")?,
+                };
+                config.validate()?;
+                Self::Unet2d(config)
+            }
         };
         Ok((plan, item_shape))
     }
@@ -105,6 +136,7 @@ impl Plan {
                 TemporalUnet::params(*transition_dim, *dim, dim_mults)
             }
             Self::Mlp { features, hidden } => MlpDenoiser::params(*features, hidden),
+            Self::Unet2d(config) => config.params(),
         };
         if count > u128::from(MAX_PARAMETERS) {
             return Err(Error::invalid(format!(
@@ -133,6 +165,7 @@ impl NativeDenoiser {
                 Network::TemporalUnet(Box::new(TemporalUnet::new(&root, *horizon, *transition_dim, *dim, dim_mults)?))
             }
             Plan::Mlp { features, hidden } => Network::Mlp(MlpDenoiser::new(&root, *features, hidden)?),
+            Plan::Unet2d(config) => Network::Unet2d(Box::new(Unet2d::new(&root, config)?)),
         };
         let parameter_count = vs
             .variables()
@@ -227,6 +260,7 @@ impl Denoiser for NativeDenoiser {
         match &self.network {
             Network::TemporalUnet(net) => net.forward(x, &t),
             Network::Mlp(net) => net.forward(x, &t),
+            Network::Unet2d(net) => net.forward(x, &t),
         }
     }
 

@@ -47,6 +47,8 @@ pub struct DiffusionConfig {
     pub action_weight: Option<f64>,
     pub clip_denoised: Option<bool>,
     pub normalizer_datasets: Option<Vec<String>>,
+    /// Sample datasets: one mean and std over every element (the proto's `pooled_normalizer`).
+    pub pooled_normalizer: Option<bool>,
 }
 
 /// The denoiser of a diffusion job.
@@ -61,6 +63,15 @@ pub enum Architecture {
     Mlp {
         #[serde(default)]
         hidden: Vec<u32>,
+    },
+    /// diffusers' UNet2DModel over images [C, H, W]; unset fields take the server's defaults.
+    Unet2d {
+        #[serde(default)]
+        block_out_channels: Vec<u32>,
+        layers_per_block: Option<u32>,
+        attention: Option<bool>,
+        norm_num_groups: Option<u32>,
+        attention_head_dim: Option<u32>,
     },
 }
 

@@ -49,6 +49,19 @@ pub fn diffusion_spec(config: TrainConfig, args: &TrainDiffusionArgs) -> Result<
             pb::train_diffusion::Architecture::TemporalUnet(pb::TemporalUnet { dim, dim_mults })
         }
         Architecture::Mlp { hidden } => pb::train_diffusion::Architecture::Mlp(pb::Mlp { hidden }),
+        Architecture::Unet2d {
+            block_out_channels,
+            layers_per_block,
+            attention,
+            norm_num_groups,
+            attention_head_dim,
+        } => pb::train_diffusion::Architecture::Unet2d(pb::Unet2d {
+            block_out_channels,
+            layers_per_block,
+            attention,
+            norm_num_groups,
+            attention_head_dim,
+        }),
     });
     Ok(common.spec(Kind::Diffusion(pb::TrainDiffusion {
         dataset,
@@ -59,6 +72,7 @@ pub fn diffusion_spec(config: TrainConfig, args: &TrainDiffusionArgs) -> Result<
         architecture,
         action_weight: d.action_weight,
         clip_denoised: d.clip_denoised,
+        pooled_normalizer: d.pooled_normalizer,
         normalizer_datasets: if args.normalizer_datasets.is_empty() {
             d.normalizer_datasets.unwrap_or_default()
         } else {
