@@ -57,3 +57,69 @@ with h5py.File("big_endian.hdf5", "w") as f:
     f.create_dataset("observations", data=np.arange(6, dtype=">f4").reshape(3, 2))
     f.create_dataset("actions", data=np.arange(3, dtype=">f8").reshape(3, 1))
     f.create_dataset("episode_starts", data=np.array([0, 2], dtype=np.int64))
+
+# ---- end-to-end fixtures (tests/tests/extract.rs): a point mass in a 3x3-cell room (cells 1..3
+# of a 5x5 grid bordered by walls; cell (r, c) has its centre at position (r, c)).
+# base_d4rl.hdf5: D4RL layout, 20 episodes of 100 steps of a random walk, observations
+# [achieved_goal (2), desired_goal (2), observation (4)] (the Minari flattening order), actions
+# [2], timeouts at each episode's end, a wall_map. expert_minari/: Minari layout, 10 episodes of
+# 100 steps of a PD controller to position (3, 3) with action noise, dict observations.
+rng = np.random.default_rng(0)
+GOAL = np.array([3.0, 3.0])
+
+
+def rollout(policy, steps, goal):
+    pos = rng.uniform(0.7, 3.3, 2)
+    vel = np.zeros(2)
+    obs, act = [], []
+    for _ in range(steps + 1):
+        obs.append(np.concatenate([pos, goal, pos, vel]))
+        a = np.clip(policy(pos, vel), -1, 1)
+        act.append(a)
+        vel = 0.9 * vel + 0.1 * a
+        pos = np.clip(pos + vel, 0.55, 3.45)
+    return np.array(obs, np.float32), np.array(act[:-1], np.float32)
+
+
+def random_walk(pos, vel):
+    return rng.normal(0, 1, 2)
+
+
+def expert(pos, vel):
+    return 2.0 * (GOAL - pos) - 1.0 * vel + rng.normal(0, 0.3, 2)
+
+
+walls = np.ones((5, 5), np.uint8)
+walls[1:4, 1:4] = 0
+obs, act, tout = [], [], []
+for ep in range(20):
+    o, a = rollout(random_walk, 100, rng.uniform(1, 3, 2))
+    obs.append(o[:-1])
+    act.append(a)
+    t = np.zeros(100, bool)
+    t[-1] = True
+    tout.append(t)
+os.makedirs("e2e", exist_ok=True)
+with h5py.File("e2e/base_d4rl.hdf5", "w") as f:
+    f.create_dataset("observations", data=np.concatenate(obs), compression="gzip")
+    f.create_dataset("actions", data=np.concatenate(act), compression="gzip")
+    f.create_dataset("terminals", data=np.zeros(2000, bool))
+    f.create_dataset("timeouts", data=np.concatenate(tout))
+    f.create_dataset("rewards", data=np.zeros(2000, np.float32))
+    f.create_dataset("wall_map", data=walls)
+
+os.makedirs("e2e/expert_minari/data", exist_ok=True)
+with h5py.File("e2e/expert_minari/data/main_data.hdf5", "w") as f:
+    for ep in range(10):
+        o, a = rollout(expert, 100, GOAL)
+        g = f.create_group(f"episode_{ep}")
+        d = g.create_group("observations")
+        d.create_dataset("achieved_goal", data=o[:, 0:2], compression="gzip")
+        d.create_dataset("desired_goal", data=o[:, 2:4], compression="gzip")
+        d.create_dataset("observation", data=o[:, 4:8], compression="gzip")
+        g.create_dataset("actions", data=a, compression="gzip")
+        g.create_dataset("terminations", data=np.zeros(100, bool))
+        tr = np.zeros(100, bool)
+        tr[-1] = True
+        g.create_dataset("truncations", data=tr)
+        g.create_dataset("rewards", data=np.zeros(100))
