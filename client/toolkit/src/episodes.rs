@@ -114,7 +114,8 @@ pub fn explicit_starts(
     let from_starts = starts
         .map(|(shape, values, is_bool, is_integer)| episode_starts_flags(rows, shape, values, is_bool, is_integer))
         .transpose()?;
-    let from_lengths = lengths.map(|(shape, values, is_integer)| flags_from_lengths(rows, shape, values, is_integer)).transpose()?;
+    let from_lengths =
+        lengths.map(|(shape, values, is_integer)| flags_from_lengths(rows, shape, values, is_integer)).transpose()?;
     match (from_starts, from_lengths) {
         (None, None) => Ok(None),
         (Some(s), None) => Ok(Some(s)),

@@ -30,7 +30,8 @@
 
 use std::path::{Path, PathBuf};
 
-use hdf5_reader::{ByteOrder, Dataset, Datatype, Group, Hdf5File};
+use hdf5_reader::group::Group;
+use hdf5_reader::{ByteOrder, Dataset, Datatype, Hdf5File};
 
 use crate::episodes;
 use crate::trajectories::Trajectories;
@@ -125,8 +126,12 @@ fn numbers(ds: &Dataset, key: &str) -> std::result::Result<(Vec<u64>, Vec<f64>, 
     };
     // (bytes per element, byte order, how to read one little-endian element)
     let (size, order, float) = match base {
-        Datatype::FixedPoint { size, signed, byte_order } => (usize::from(size), byte_order, if signed { Some(false) } else { None }),
-        Datatype::FloatingPoint { size, byte_order } if size == 4 || size == 8 => (usize::from(size), byte_order, Some(true)),
+        Datatype::FixedPoint { size, signed, byte_order } => {
+            (usize::from(size), byte_order, if signed { Some(false) } else { None })
+        }
+        Datatype::FloatingPoint { size, byte_order } if size == 4 || size == 8 => {
+            (usize::from(size), byte_order, Some(true))
+        }
         other => return Err(format!("'{key}' has HDF5 type {other:?}; expected integers, floats or bool")),
     };
     if !matches!(size, 1 | 2 | 4 | 8) {
@@ -237,7 +242,19 @@ fn d4rl_from(path: &Path, root: &Group, groups: &[String], datasets: &[String]) 
         }
     }
     t.walls = episodes::pick_walls(&found).map_err(e)?;
-    let used = ["observations", "actions", "terminals", "terminations", "timeouts", "truncations", "episode_starts", "episode_lengths", "walls", "wall_map", "maze_map"];
+    let used = [
+        "observations",
+        "actions",
+        "terminals",
+        "terminations",
+        "timeouts",
+        "truncations",
+        "episode_starts",
+        "episode_lengths",
+        "walls",
+        "wall_map",
+        "maze_map",
+    ];
     t.ignored = datasets
         .iter()
         .filter(|d| !used.contains(&d.as_str()))

@@ -817,7 +817,11 @@ pub fn samples_from_npz_or_npy(path: impl AsRef<Path>, key: Option<&str>) -> Res
             };
             let info = member_info(path, &mut archive, member)?;
             let ignored = members.iter().filter(|m| m.index != member.index).map(|m| m.key.clone()).collect();
-            (Entry { key: member.key.clone(), zip_index: Some(member.index), info, memory: None }, ignored, Some(archive))
+            (
+                Entry { key: member.key.clone(), zip_index: Some(member.index), info, memory: None },
+                ignored,
+                Some(archive),
+            )
         }
     };
     let shown = describe_key(&entry.key, "samples");

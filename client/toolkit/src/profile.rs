@@ -48,7 +48,8 @@ pub fn profile(observations: &[f32], obs_dim: usize, episodes: &[std::ops::Range
     let (mut sum, mut count) = (0.0, 0usize);
     for ep in episodes {
         for t in ep.start..ep.end.saturating_sub(1) {
-            let (a, b) = (&observations[t * obs_dim..(t + 1) * obs_dim], &observations[(t + 1) * obs_dim..(t + 2) * obs_dim]);
+            let (a, b) =
+                (&observations[t * obs_dim..(t + 1) * obs_dim], &observations[(t + 1) * obs_dim..(t + 2) * obs_dim]);
             let d2: f64 = a
                 .iter()
                 .zip(b)
@@ -62,7 +63,8 @@ pub fn profile(observations: &[f32], obs_dim: usize, episodes: &[std::ops::Range
     }
     let mut lengths: Vec<usize> = episodes.iter().map(ExactSizeIterator::len).collect();
     lengths.sort_unstable();
-    let at = |q: f64| lengths.get(((lengths.len().saturating_sub(1)) as f64 * q).round() as usize).copied().unwrap_or(0);
+    let at =
+        |q: f64| lengths.get(((lengths.len().saturating_sub(1)) as f64 * q).round() as usize).copied().unwrap_or(0);
     DataProfile {
         rows,
         episodes: episodes.len(),

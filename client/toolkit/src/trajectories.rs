@@ -62,12 +62,58 @@ impl Trajectories {
         out
     }
 
+    /// Treats terminal states as absorbing (`extract --absorbing N`): each episode that ends
+    /// with a `terminals` row gets `n` more rows holding its last observation with zero action,
+    /// the last of them flagged terminal. Why: in an MDP a terminal state is absorbing (the
+    /// agent stays there forever), but goal-terminated demonstrations stop recording at it, so
+    /// the expert's data holds the goal for one row only and a reward fitted to it learns the
+    /// approach (motion toward the goal) rather than the goal (docs/results.md, issue 19).
+    /// Padding restores the time the expert would spend there.
+    pub fn absorb_terminals(&mut self, n: usize) {
+        if n == 0 || self.terminals.is_empty() {
+            return;
+        }
+        let episodes = self.episodes();
+        let (od, ad) = (self.obs_dim, self.act_dim);
+        let mut out = Trajectories {
+            obs_dim: od,
+            act_dim: ad,
+            walls: self.walls.clone(),
+            ignored: self.ignored.clone(),
+            ..Default::default()
+        };
+        let flag = |v: &Vec<bool>, t: usize| v.get(t).copied().unwrap_or(false);
+        for ep in episodes {
+            for t in ep.clone() {
+                out.observations.extend_from_slice(&self.observations[t * od..(t + 1) * od]);
+                out.actions.extend_from_slice(&self.actions[t * ad..(t + 1) * ad]);
+                out.terminals.push(flag(&self.terminals, t));
+                out.timeouts.push(flag(&self.timeouts, t));
+                out.episode_starts.push(t == ep.start);
+            }
+            let last = ep.end - 1;
+            if flag(&self.terminals, last) {
+                *out.terminals.last_mut().expect("an episode has rows") = false;
+                for k in 0..n {
+                    out.observations.extend_from_slice(&self.observations[last * od..(last + 1) * od]);
+                    out.actions.extend(std::iter::repeat_n(0.0, ad));
+                    out.terminals.push(k + 1 == n);
+                    out.timeouts.push(false);
+                    out.episode_starts.push(false);
+                }
+            }
+        }
+        *self = out;
+    }
+
     /// Reads a trajectories `.npz` whole (through [`crate::npz::trajectories_from_npz`], so
     /// with the same rules) plus its walls.
     pub fn from_npz(path: &Path) -> io::Result<Self> {
         let mut source = crate::npz::trajectories_from_npz(path).map_err(io::Error::other)?;
         let specs = relreward_client::UploadSource::arrays(&source).to_vec();
-        let bad = |name: &str, e: String| io::Error::new(io::ErrorKind::InvalidData, format!("{}: '{name}': {e}", path.display()));
+        let bad = |name: &str, e: String| {
+            io::Error::new(io::ErrorKind::InvalidData, format!("{}: '{name}': {e}", path.display()))
+        };
         let mut t = Trajectories { ignored: source.ignored_keys().to_vec(), ..Default::default() };
         for (i, spec) in specs.iter().enumerate() {
             let tensor = source.read_tensor(i)?;
@@ -149,5 +195,25 @@ mod tests {
             ..Default::default()
         };
         assert_eq!(t.episodes(), vec![0..2, 2..4, 4..7]);
+    }
+
+    #[test]
+    fn terminal_states_become_absorbing() {
+        let mut t = Trajectories {
+            observations: vec![0.0, 1.0, 2.0, 3.0, 4.0],
+            obs_dim: 1,
+            actions: vec![9.0; 5],
+            act_dim: 1,
+            terminals: vec![false, true, false, false, false],
+            timeouts: vec![false, false, false, false, true],
+            ..Default::default()
+        };
+        t.absorb_terminals(3);
+        // Episode 0..2 ends at a terminal: held 3 more rows; episode 2..5 (a timeout) is not.
+        assert_eq!(t.observations, [0.0, 1.0, 1.0, 1.0, 1.0, 2.0, 3.0, 4.0]);
+        assert_eq!(t.actions, [9.0, 9.0, 0.0, 0.0, 0.0, 9.0, 9.0, 9.0]);
+        assert_eq!(t.episodes(), vec![0..5, 5..8]);
+        assert_eq!(t.terminals.iter().filter(|&&b| b).count(), 1);
+        assert!(t.terminals[4]);
     }
 }

@@ -286,12 +286,15 @@ mod tests {
             for theirs in [&other, &gaussian] {
                 let base = nonlinear(1, Parametrization::Epsilon, &shared);
                 let expert = nonlinear(2, p, &shared);
-                let moved = InOtherUnits { inner: nonlinear(2, p, &shared), shared: shared.clone(), other: theirs.clone() };
-                let moved = DiffusionModel::new(manifest(Parametrization::X0, theirs.clone()), Box::new(moved)).expect("m");
+                let moved =
+                    InOtherUnits { inner: nonlinear(2, p, &shared), shared: shared.clone(), other: theirs.clone() };
+                let moved =
+                    DiffusionModel::new(manifest(Parametrization::X0, theirs.clone()), Box::new(moved)).expect("m");
                 check_pair(&base, &moved).expect("different normalizers are aligned, not refused");
                 for target in [Target::Mean, Target::Score] {
                     for point in [EvalPoint::XT, EvalPoint::MuBase] {
-                        let (y_shared, p_shared) = target_and_point(&base, &expert, &x_t, &t, target, point).expect("s");
+                        let (y_shared, p_shared) =
+                            target_and_point(&base, &expert, &x_t, &t, target, point).expect("s");
                         let (y_moved, p_moved) = target_and_point(&base, &moved, &x_t, &t, target, point).expect("m");
                         let diff = f64::try_from((&y_shared - &y_moved).abs().max()).expect("max");
                         let scale = f64::try_from(y_shared.abs().max()).expect("max");
@@ -302,7 +305,8 @@ mod tests {
                 // Without the alignment the moved expert's outputs are in other units: the
                 // naive difference is far from the shared target (the test can fail).
                 let _g = tch::no_grad_guard();
-                let naive = moved.posterior_mean(&x_t, &t, false).expect("m") - base.posterior_mean(&x_t, &t, false).expect("b");
+                let naive = moved.posterior_mean(&x_t, &t, false).expect("m")
+                    - base.posterior_mean(&x_t, &t, false).expect("b");
                 let (y_shared, _) = target_and_point(&base, &expert, &x_t, &t, Target::Mean, EvalPoint::XT).expect("s");
                 let off = f64::try_from((&y_shared - &naive).abs().max()).expect("max");
                 assert!(off > 1e-2, "{p:?}: the units did not matter ({off})");
@@ -315,12 +319,18 @@ mod tests {
         let a = Normalizer::Limits { min: vec![0.0, -2.0], max: vec![4.0, 2.0] };
         let b = Normalizer::Gaussian { mean: vec![1.0, 0.0], std: vec![2.0, 0.5] };
         let base = DiffusionModel::new(
-            DiffusionManifest { space: Space::Trajectory { horizon: 1, action_dim: 1, obs_dim: 1 }, ..manifest(Parametrization::Epsilon, a) },
+            DiffusionManifest {
+                space: Space::Trajectory { horizon: 1, action_dim: 1, obs_dim: 1 },
+                ..manifest(Parametrization::Epsilon, a)
+            },
             Box::new(Nonlinear { w: Tensor::eye(2, (Kind::Float, tch::Device::Cpu)) }),
         )
         .expect("base");
         let expert = DiffusionModel::new(
-            DiffusionManifest { space: Space::Trajectory { horizon: 1, action_dim: 1, obs_dim: 1 }, ..manifest(Parametrization::Epsilon, b) },
+            DiffusionManifest {
+                space: Space::Trajectory { horizon: 1, action_dim: 1, obs_dim: 1 },
+                ..manifest(Parametrization::Epsilon, b)
+            },
             Box::new(Nonlinear { w: Tensor::eye(2, (Kind::Float, tch::Device::Cpu)) }),
         )
         .expect("expert");

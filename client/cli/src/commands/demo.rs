@@ -25,7 +25,7 @@
 //! (TemporalUnet dim 32, dim_mults (1, 4, 8), horizon 256, T = 100, 100k reward steps at batch
 //! 256), which needs a GPU-sized budget; `tiny` only checks that the pipeline runs (tests).
 
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::{Context, Result};

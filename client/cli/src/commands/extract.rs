@@ -163,9 +163,8 @@ impl Sizes {
             bail!(UsageError(format!("--config {}: unknown table '{other}' (sizes go in [extract])", path.display())));
         }
         let table = doc.remove("extract").unwrap_or(toml::Value::Table(toml::Table::new()));
-        let o: SizeOverrides = table
-            .try_into()
-            .map_err(|e| UsageError(format!("--config {}: [extract]: {e}", path.display())))?;
+        let o: SizeOverrides =
+            table.try_into().map_err(|e| UsageError(format!("--config {}: [extract]: {e}", path.display())))?;
         macro_rules! set {
             ($($f:ident),*) => { $( if let Some(v) = o.$f { self.$f = v; } )* };
         }
@@ -231,6 +230,11 @@ pub struct ExtractArgs {
     /// [default: the base file's].
     #[arg(long, value_name = "FILE")]
     pub walls: Option<PathBuf>,
+    /// Treat terminal states as absorbing: each episode ending with a `terminals` row gets N
+    /// more rows holding its last observation (zero action). For goal-terminated
+    /// demonstrations, whose goal state is otherwise recorded once (docs/results.md).
+    #[arg(long, value_name = "N", default_value_t = 0)]
+    pub absorbing: usize,
     /// Seed of training and evaluation.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
@@ -317,14 +321,20 @@ fn file_fingerprint(path: &Path) -> Result<String> {
 
 /// Reads any supported file; HDF5 and Minari inputs are written as `.npz` into `data_dir`.
 /// Returns the `.npz` to use and the data.
-fn canonical(path: &Path, data_dir: &Path, label: &str) -> Result<(PathBuf, Trajectories)> {
-    if relreward_toolkit::hdf5::is_hdf5(path) {
-        let t = relreward_toolkit::hdf5::read_hdf5(path)?;
+/// With `absorbing > 0`, terminal states are padded ([`Trajectories::absorb_terminals`]) and
+/// the result written there too.
+fn canonical(path: &Path, data_dir: &Path, label: &str, absorbing: usize) -> Result<(PathBuf, Trajectories)> {
+    let hdf5 = relreward_toolkit::hdf5::is_hdf5(path);
+    let mut t = if hdf5 { relreward_toolkit::hdf5::read_hdf5(path)? } else { Trajectories::from_npz(path)? };
+    let padded = absorbing > 0 && t.terminals.iter().any(|&b| b);
+    if padded {
+        t.absorb_terminals(absorbing);
+    }
+    if hdf5 || padded {
         let dest = data_dir.join(format!("{label}.npz"));
         t.write_npz(&dest).with_context(|| format!("writing {}", dest.display()))?;
         Ok((dest, t))
     } else {
-        let t = Trajectories::from_npz(path)?;
         Ok((path.to_owned(), t))
     }
 }
@@ -348,16 +358,18 @@ pub async fn run(ctx: &Ctx, args: ExtractArgs) -> Result<Report> {
     stage(ctx, "reading the datasets");
     let (base, _) = {
         let (p, d) = (args.base.clone(), data_dir.clone());
-        tokio::task::spawn_blocking(move || canonical(&p, &d, "base")).await?.context("--base")?
+        tokio::task::spawn_blocking(move || canonical(&p, &d, "base", 0)).await?.context("--base")?
     };
     let mut experts = Vec::new();
     let mut labels = Vec::new();
+    let absorbing = args.absorbing;
     for (k, path) in args.experts.iter().enumerate() {
         let stem = path.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
         let label = format!("e{k}-{}", slug(&stem, 16));
         let (p, d, l) = (path.clone(), data_dir.clone(), label.clone());
-        let (npz, _) =
-            tokio::task::spawn_blocking(move || canonical(&p, &d, &l)).await?.with_context(|| format!("--expert {}", path.display()))?;
+        let (npz, _) = tokio::task::spawn_blocking(move || canonical(&p, &d, &l, absorbing))
+            .await?
+            .with_context(|| format!("--expert {}", path.display()))?;
         experts.push(npz);
         labels.push(label);
     }
@@ -446,7 +458,9 @@ pub async fn pipeline(ctx: &Ctx, inputs: &Inputs, sizing: Sizing) -> Result<Extr
     // ---- upload or reuse
     let prefix = &inputs.prefix;
     let mut datasets = Vec::new();
-    for (path, label) in std::iter::once((&inputs.base, &"base".to_owned())).chain(inputs.experts.iter().zip(&inputs.labels)) {
+    for (path, label) in
+        std::iter::once((&inputs.base, &"base".to_owned())).chain(inputs.experts.iter().zip(&inputs.labels))
+    {
         let p = path.clone();
         let fp = tokio::task::spawn_blocking(move || file_fingerprint(&p)).await??;
         let name = format!("{prefix}-{label}-{fp}");
@@ -551,14 +565,21 @@ pub async fn pipeline(ctx: &Ctx, inputs: &Inputs, sizing: Sizing) -> Result<Extr
                     sizes.reward_steps
                 ),
             );
-            let mut argv = strings(&["reward", "--name", &reward, "--base", &base_model, "--expert", &expert_models[k]]);
+            let mut argv =
+                strings(&["reward", "--name", &reward, "--base", &base_model, "--expert", &expert_models[k]]);
             if inputs.algorithm == AlgorithmArg::WithDataset {
                 argv.extend(strings(&["--dataset", base_ds, "--dataset", &expert_ds[k]]));
             } else {
                 argv.extend(strings(&["--algorithm", "2", "--num-chains", &sizes.num_chains.to_string()]));
             }
             net(&mut argv);
-            argv.extend(strings(&["--seed", &(inputs.seed + 100 + k as u64).to_string(), "--job-id", &reward, "--watch"]));
+            argv.extend(strings(&[
+                "--seed",
+                &(inputs.seed + 100 + k as u64).to_string(),
+                "--job-id",
+                &reward,
+                "--watch",
+            ]));
             train(ctx, &argv).await?;
         }
         rewards.push(reward);
@@ -580,7 +601,13 @@ pub async fn pipeline(ctx: &Ctx, inputs: &Inputs, sizing: Sizing) -> Result<Extr
                     &base_model,
                 ]);
                 net(&mut argv);
-                argv.extend(strings(&["--seed", &(inputs.seed + 200 + k as u64).to_string(), "--job-id", &disc, "--watch"]));
+                argv.extend(strings(&[
+                    "--seed",
+                    &(inputs.seed + 200 + k as u64).to_string(),
+                    "--job-id",
+                    &disc,
+                    "--watch",
+                ]));
                 train(ctx, &argv).await?;
             }
             discriminators.push(disc);
@@ -606,11 +633,10 @@ pub async fn pipeline(ctx: &Ctx, inputs: &Inputs, sizing: Sizing) -> Result<Extr
         row["expert_data"] = json!(path_str(&inputs.experts[k]));
         rows.push(row);
     }
-    Ok(Extracted { base_model, expert_models, rewards, rows, profiles })
-        .map(|mut e| {
-            e.rows.iter_mut().for_each(|r| r["sizes"] = serde_json::to_value(&sizes).unwrap_or(Value::Null));
-            e
-        })
+    Ok(Extracted { base_model, expert_models, rewards, rows, profiles }).map(|mut e| {
+        e.rows.iter_mut().for_each(|r| r["sizes"] = serde_json::to_value(&sizes).unwrap_or(Value::Null));
+        e
+    })
 }
 
 /// Discriminability with histograms, the loss curve and (with walls) the heatmap of one model.
@@ -691,7 +717,8 @@ async fn evaluate(
 /// Writes `report.md` and `report.json` into the run's directory and returns them as the
 /// command's report. `extra` is merged into the JSON (the demo's steering, layout).
 pub fn write_report(inputs: &Inputs, e: &Extracted, elapsed: f64, extra: Value) -> Result<Report> {
-    let with_goal: Vec<&Value> = e.rows.iter().filter(|r| r.get("goal_recovered").is_some_and(Value::is_boolean)).collect();
+    let with_goal: Vec<&Value> =
+        e.rows.iter().filter(|r| r.get("goal_recovered").is_some_and(Value::is_boolean)).collect();
     let recovered = with_goal.iter().filter(|r| r["goal_recovered"] == true).count();
     let accuracies: Vec<f64> = e.rows.iter().filter_map(|r| r["balanced_accuracy"].as_f64()).collect();
     let mean_accuracy = accuracies.iter().sum::<f64>() / accuracies.len().max(1) as f64;
@@ -733,7 +760,9 @@ fn report_markdown(r: &Value) -> String {
     );
     t.push_str("| expert | reward | balanced accuracy | AUC | reward max at | recovered | discriminator accuracy |\n|---|---|---|---|---|---|---|\n");
     for row in r["rewards"].as_array().map(Vec::as_slice).unwrap_or(&[]) {
-        let cell = |v: &Value| v.as_array().map_or("-".to_owned(), |a| a.iter().map(|x| x.to_string()).collect::<Vec<_>>().join(","));
+        let cell = |v: &Value| {
+            v.as_array().map_or("-".to_owned(), |a| a.iter().map(|x| x.to_string()).collect::<Vec<_>>().join(","))
+        };
         t.push_str(&format!(
             "| {} | {} | {} | {} | {} | {} | {} |\n",
             row["label"].as_str().unwrap_or(""),
