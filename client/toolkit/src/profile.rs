@@ -11,10 +11,13 @@
 //! data, as the diffusion model sees it). It is clamped to `[8, 64]` and to the shortest
 //! quarter of the episodes, so that most episodes hold at least one window.
 
-/// The motion (in normalized units, summed over a window's rows) a horizon should span. It is
-/// what the maze generator's umaze base data gives at the demo's H = 16 (about 0.061 per row,
-/// measured by `generator_motion_matches_the_demo_horizon` below), so the rule reproduces the
-/// demo's size on the data that size was tuned on.
+/// The motion (in normalized units, summed over a window's rows) a horizon should span, chosen
+/// so that the rule reproduces the demo's H = 16 on the data that size was tuned on (test
+/// `generator_motion_matches_the_demo_horizon`). Measured (docs/results.md): the generator's
+/// umaze base data moves 0.084 normalized units per row (0.068 cells), MuJoCo PointMaze's
+/// 0.052 (0.031 cells); both round to H = 16 (1 / 0.084 = 11.9 and 1 / 0.052 = 19.3 are
+/// nearest 16 among powers of two), so on these two the rule changes nothing, while data
+/// moving 1.5x slower than PointMaze per row gets H = 32.
 pub const MOTION_PER_WINDOW: f64 = 1.0;
 
 /// Smallest and largest horizon the rule picks.
