@@ -175,7 +175,7 @@ fn rows_of(ds: &Dataset, key: &str) -> std::result::Result<(usize, usize, Vec<f3
     }
     let Some(&n) = shape.first() else { return Err(format!("'{key}' is a scalar; expected [N, dim]")) };
     let n = n as usize;
-    let width = if n == 0 { 0 } else { values.len() / n };
+    let width = values.len().checked_div(n).unwrap_or(0);
     if let Some(bad) = values.iter().position(|v| !v.is_finite()) {
         return Err(format!("'{key}' holds a value that is not finite (element {bad})"));
     }

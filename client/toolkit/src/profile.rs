@@ -103,7 +103,8 @@ mod tests {
     fn displacement_is_measured_in_normalized_units() {
         // x moves 0, 1, 2, 3 over a range of 3 (half range 1.5): 1/1.5 per row; y is constant.
         let obs = [0.0, 5.0, 1.0, 5.0, 2.0, 5.0, 3.0, 5.0];
-        let p = profile(&obs, 2, &[0..4]);
+        let one_episode = std::iter::once(0..4usize).collect::<Vec<_>>();
+        let p = profile(&obs, 2, &one_episode);
         assert!((p.displacement_per_row - 1.0 / 1.5).abs() < 1e-12);
         assert_eq!((p.rows, p.episodes, p.episode_len), (4, 1, [4, 4, 4, 4]));
         // No step crosses an episode boundary.
@@ -131,6 +132,6 @@ mod tests {
         let config = GenerateConfig::new(LayoutName::Umaze.layout(), Mode::Base, 20_000, 0);
         let data = maze::generate(&config).expect("generate");
         let p = profile(&data.observations, 4, &data.episode_ranges());
-        assert_eq!(derive_window(&[p.clone()]).0, 16, "{p:?}");
+        assert_eq!(derive_window(std::slice::from_ref(&p)).0, 16, "{p:?}");
     }
 }

@@ -174,7 +174,7 @@ impl Sizes {
     }
 
     fn check(&self) -> Result<(), String> {
-        if self.horizon == 0 || self.window == 0 || self.horizon % self.window != 0 {
+        if self.horizon == 0 || self.window == 0 || !self.horizon.is_multiple_of(self.window) {
             return Err(format!("window = {} must divide horizon = {}", self.window, self.horizon));
         }
         if self.n_timesteps < 2 || self.diffusion_steps == 0 || self.reward_steps == 0 {
