@@ -65,6 +65,12 @@
 //!   [--full] [--seed S]`: the paper's Maze2D pipeline against the server (data, diffusion
 //!   models, rewards, heatmaps, discriminability, steering), written to DIR with a summary.
 //!
+//! - `relreward extract --base FILE --expert FILE [--expert FILE..] [--out DIR] [--name PREFIX]
+//!   [--size tiny|default|full] [--config FILE.toml] [--algorithm 1|2] [--discriminator]
+//!   [--goal X,Y..] [--walls FILE] [--seed S]`: recordings (.npz, D4RL HDF5, Minari) to rewards
+//!   with their evaluation; sizes derived from the data (`[extract]` in --config overrides).
+//!   `demo` is its maze-generating front end.
+//!
 //! Global options: `--endpoint URL` (env `RELREWARD_ENDPOINT`, default
 //! `http://127.0.0.1:50051`; `https://` for TLS) and `--json`, which prints one JSON document
 //! on stdout per command (`job watch`: one JSON object per event per line). For servers with
@@ -134,6 +140,10 @@ enum Command {
     Maze(commands::maze::MazeCommand),
     /// The paper's Maze2D result end to end: data, models, rewards, heatmaps, summary.
     Demo(commands::demo::DemoArgs),
+    /// From recordings to rewards: upload (or reuse) base and expert data (.npz, D4RL HDF5,
+    /// Minari), train both diffusion models under one normalizer, extract the rewards,
+    /// evaluate them, and write report.md / report.json with pictures.
+    Extract(commands::extract::ExtractArgs),
 }
 
 fn main() -> ExitCode {
@@ -191,6 +201,7 @@ async fn run(cli: Cli) -> Result<Report> {
         Command::Eval(command) => commands::eval::run(&ctx, command).await,
         Command::Maze(command) => commands::maze::run(&ctx, command).await,
         Command::Demo(args) => commands::demo::run(&ctx, args).await,
+        Command::Extract(args) => commands::extract::run(&ctx, args).await,
     }
 }
 

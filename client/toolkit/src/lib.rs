@@ -5,17 +5,27 @@
 //! Module map:
 //! - [`npz`]: reads `.npz`/`.npy` files (D4RL-style trajectories, sample arrays) into an
 //!   [`relreward_client::UploadSource`].
+//! - [`episodes`]: the rules every reader applies to episode boundaries (flags, start indices,
+//!   lengths) and maze walls (`walls` / `wall_map` / `maze_map`).
+//! - [`trajectories`]: a trajectory dataset in memory, as converting readers produce it; to an
+//!   upload or the canonical `.npz`.
+//! - [`hdf5`] (feature `hdf5`): D4RL HDF5 files and Minari datasets (`main_data.hdf5`), dict
+//!   observations flattened by gymnasium's rule.
+//! - [`profile`]: what `extract` measures in the data (episode lengths, motion per row) and
+//!   the rule that turns it into a horizon and a reward window.
 //! - [`npz_write`]: writes `.npz` archives (results of `score`, `grad`, `sample`; generated
 //!   datasets).
 //! - [`maze`]: the built-in Maze2D data generator (D4RL layouts, point mass, waypoint
 //!   controller), written with [`npz_write`].
 //! - [`eval`]: the paper's evaluation over scores (discriminability, reward heatmaps, goal
 //!   recovery) and its PNG pictures.
-//!
-//! Data readers for further formats (HDF5, Minari, D4RL) belong beside [`npz`], producing the
-//! same [`relreward_client::UploadSource`].
 
+pub mod episodes;
 pub mod eval;
+#[cfg(feature = "hdf5")]
+pub mod hdf5;
 pub mod maze;
 pub mod npz;
 pub mod npz_write;
+pub mod profile;
+pub mod trajectories;

@@ -16,7 +16,8 @@
 //!
 //! Entry points:
 //! - [`trajectories_from_npz`]: D4RL / Minari style `observations`, `actions` and episode
-//!   boundary flags.
+//!   boundaries (flags, start indices or lengths: [`crate::episodes`]).
+//! - [`walls_from_npz`]: maze walls from `walls` / `wall_map` / `maze_map` in the file.
 //! - [`samples_from_npz_or_npy`]: one `[N, ...]` float array, sent as `samples`.
 //! - [`detect_kind`]: which of the two a file looks like.
 //! - [`read_npy_header`]: the checked header parser on its own (useful for fuzzing).
@@ -318,9 +319,12 @@ fn check_complete(path: &Path, key: &str, info: &NpyInfo, stored: u64) -> Result
 struct Entry {
     /// Name in the file (differs from the sent name for Minari aliases and samples).
     key: String,
-    /// Archive entry index; `None` for a plain `.npy` file.
+    /// Archive entry index; `None` for a plain `.npy` file or an array made in memory.
     zip_index: Option<usize>,
     info: NpyInfo,
+    /// The bytes of an array converted while reading (episode starts given as indices or
+    /// lengths become per-row flags; see [`crate::episodes`]).
+    memory: Option<Vec<u8>>,
 }
 
 /// Arrays of one `.npz` or `.npy` file, ready to upload (see the module docs).
@@ -435,6 +439,9 @@ impl UploadSource for NpzSource {
         };
         let header_err = |m: String| invalid_data(format!("{path}: array '{key}': {m}"));
         let label = format!("{path}: array '{key}'");
+        if let Some(bytes) = &entry.memory {
+            return Ok(Box::new(bytes.as_slice()));
+        }
         match (&mut self.archive, entry.zip_index) {
             (Some(archive), Some(zip_index)) => {
                 let mut file = archive.by_index(zip_index).map_err(io::Error::from)?;
@@ -575,9 +582,11 @@ fn list_keys(members: &[Member]) -> String {
 /// A D4RL / Minari style trajectory dataset from an `.npz` archive.
 ///
 /// Required: `observations` `[N, obs_dim]` and `actions` `[N, act_dim]`, float32 or float64.
-/// Optional, `[N]` bool or uint8: `terminals` (Minari: `terminations`), `timeouts` (Minari:
-/// `truncations`) and `episode_starts`; Minari names are sent under the D4RL names. Other
-/// arrays are left out and listed by [`NpzSource::ignored_keys`].
+/// Optional, `[N]` bool or uint8: `terminals` (Minari: `terminations`) and `timeouts` (Minari:
+/// `truncations`); Minari names are sent under the D4RL names. Optional episode boundaries:
+/// `episode_starts` (per-row flags or start indices) and/or `episode_lengths`, read by the
+/// rules of [`crate::episodes`] and sent as per-row `episode_starts` flags. Other arrays are
+/// left out and listed by [`NpzSource::ignored_keys`].
 pub fn trajectories_from_npz(path: impl AsRef<Path>) -> Result<NpzSource> {
     let path = path.as_ref();
     if sniff(path)? == FileFormat::Npy {
@@ -607,9 +616,8 @@ pub fn trajectories_from_npz(path: impl AsRef<Path>) -> Result<NpzSource> {
             chosen.push((name, m));
         }
     }
-    if let Some(m) = find("episode_starts") {
-        chosen.push(("episode_starts", m));
-    }
+    let starts_member = find("episode_starts");
+    let lengths_member = find("episode_lengths");
 
     let mut infos = Vec::with_capacity(chosen.len());
     for &(name, member) in &chosen {
@@ -663,8 +671,13 @@ pub fn trajectories_from_npz(path: impl AsRef<Path>) -> Result<NpzSource> {
         }
     }
 
-    let ignored =
-        members.iter().filter(|m| !chosen.iter().any(|(_, c)| c.index == m.index)).map(|m| m.key.clone()).collect();
+    let rows = infos.first().and_then(|i| i.shape.first().copied()).unwrap_or(0);
+    let starts = episode_boundaries(path, &mut archive, rows, starts_member, lengths_member)?;
+    let used = |m: &Member| {
+        chosen.iter().any(|(_, c)| c.index == m.index)
+            || (starts.is_some() && [starts_member, lengths_member].iter().flatten().any(|s| s.index == m.index))
+    };
+    let ignored = members.iter().filter(|m| !used(m)).map(|m| m.key.clone()).collect();
     let mut source = NpzSource {
         path: path.to_owned(),
         kind: DatasetKind::Trajectories,
@@ -674,10 +687,66 @@ pub fn trajectories_from_npz(path: impl AsRef<Path>) -> Result<NpzSource> {
         archive: None,
     };
     for (&(name, member), info) in chosen.iter().zip(infos) {
-        source.push(name, Entry { key: member.key.clone(), zip_index: Some(member.index), info });
+        source.push(name, Entry { key: member.key.clone(), zip_index: Some(member.index), info, memory: None });
+    }
+    if let Some((key, flags)) = starts {
+        let info = NpyInfo { dtype: Dtype::Bool, shape: vec![rows], header_len: 0, data_len: rows };
+        let memory = Some(flags.iter().map(|&f| u8::from(f)).collect());
+        source.push("episode_starts", Entry { key, zip_index: None, info, memory });
     }
     source.archive = Some(archive);
     Ok(source)
+}
+
+/// The file's explicit episode starts (`episode_starts` as flags or indices, `episode_lengths`)
+/// as per-row flags by the rules of [`crate::episodes`], with the key they came from.
+fn episode_boundaries(
+    path: &Path,
+    archive: &mut ZipArchive<BufReader<File>>,
+    rows: u64,
+    starts: Option<&Member>,
+    lengths: Option<&Member>,
+) -> Result<Option<(String, Vec<bool>)>> {
+    if starts.is_none() && lengths.is_none() {
+        return Ok(None);
+    }
+    let rows_usize = usize::try_from(rows).map_err(|_| NpzError::new(path, "too many rows for this machine"))?;
+    // (shape, values, is_bool, is_integer) of one member.
+    let mut load = |member: &Member| -> Result<(Vec<u64>, Vec<f64>, bool, bool)> {
+        let info = member_info(path, archive, member)?;
+        let (shape, values) = read_numbers(path, &member.key)
+            .map_err(|e| NpzError::new(path, format!("array '{}': {e}", member.key)))?
+            .ok_or_else(|| NpzError::new(path, format!("array '{}' vanished while reading", member.key)))?;
+        let is_bool = info.dtype == Dtype::Bool;
+        let is_integer = matches!(info.dtype, Dtype::Int32 | Dtype::Int64 | Dtype::Uint8);
+        Ok((shape, values, is_bool, is_integer))
+    };
+    let s = starts.map(&mut load).transpose()?;
+    let l = lengths.map(&mut load).transpose()?;
+    let flags = crate::episodes::explicit_starts(
+        rows_usize,
+        s.as_ref().map(|(shape, v, b, i)| (shape.as_slice(), v.as_slice(), *b, *i)),
+        l.as_ref().map(|(shape, v, _, i)| (shape.as_slice(), v.as_slice(), *i)),
+    )
+    .map_err(|m| NpzError::new(path, m))?;
+    let key = starts.or(lengths).map(|m| m.key.clone()).unwrap_or_default();
+    Ok(flags.map(|(f, _)| (key, f)))
+}
+
+/// The maze walls a file holds under any of [`crate::episodes::WALL_KEYS`] (rule in
+/// [`crate::episodes`]); `None` when it holds none. A plain `.npy` file is read as the walls.
+pub fn walls_from_npz(path: &Path) -> io::Result<Option<crate::episodes::Walls>> {
+    let invalid = |m: String| io::Error::new(io::ErrorKind::InvalidData, m);
+    let mut found = Vec::new();
+    for key in crate::episodes::WALL_KEYS {
+        if let Some((shape, values)) = read_numbers(path, key)? {
+            found.push((key, shape, values));
+        }
+        if path.extension().is_some_and(|e| e.eq_ignore_ascii_case("npy")) {
+            break;
+        }
+    }
+    crate::episodes::pick_walls(&found).map_err(invalid)
 }
 
 /// `'terminations' (sent as 'terminals')` or just `'observations'`.
@@ -721,7 +790,7 @@ pub fn samples_from_npz_or_npy(path: impl AsRef<Path>, key: Option<&str>) -> Res
             let stem = path.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
             let info = read_npy_header(&mut reader).map_err(|m| NpzError::new(path, format!("array '{stem}': {m}")))?;
             check_complete(path, &stem, &info, stored)?;
-            (Entry { key: stem, zip_index: None, info }, Vec::new(), None)
+            (Entry { key: stem, zip_index: None, info, memory: None }, Vec::new(), None)
         }
         FileFormat::Npz => {
             let (mut archive, members) = open_archive(path)?;
@@ -748,7 +817,11 @@ pub fn samples_from_npz_or_npy(path: impl AsRef<Path>, key: Option<&str>) -> Res
             };
             let info = member_info(path, &mut archive, member)?;
             let ignored = members.iter().filter(|m| m.index != member.index).map(|m| m.key.clone()).collect();
-            (Entry { key: member.key.clone(), zip_index: Some(member.index), info }, ignored, Some(archive))
+            (
+                Entry { key: member.key.clone(), zip_index: Some(member.index), info, memory: None },
+                ignored,
+                Some(archive),
+            )
         }
     };
     let shown = describe_key(&entry.key, "samples");

@@ -210,6 +210,14 @@ impl DiffusionModel {
         Ok(eps.f_div(&s)?.f_neg()?)
     }
 
+    /// The score implied by a clean-data estimate x0 at (x_t, t): -eps / sqrt(1 - abar_t) with
+    /// eps = [`Self::eps_from_x0`] (no net call; [`Self::score`] is this at x0_hat).
+    pub fn score_from_x0(&self, x_t: &Tensor, t: &Tensor, x0: &Tensor) -> Result<Tensor> {
+        let eps = self.eps_from_x0(x_t, t, x0)?;
+        let s = self.coef(Table::SqrtOneMinusAlphasCumprod, t, x_t)?;
+        Ok(eps.f_div(&s)?.f_neg()?)
+    }
+
     /// Posterior variance beta_t (1 - abar_{t-1}) / (1 - abar_t) per batch element, `[B]`.
     pub fn posterior_variance(&self, t: &Tensor) -> Result<Tensor> {
         self.schedule.extract(Table::PosteriorVariance, t, 1)

@@ -15,6 +15,20 @@
 //!
 //! Posterior means are taken without clipping x0_hat: the target is a property of the two
 //! models' networks, and clipping would make it depend on where x0_hat leaves [-1, 1].
+//!
+//! **Models with different normalizers** (each trained on its own dataset, the usual case for
+//! models a user brings) are aligned through raw coordinates ([`Alignment`]): everything is
+//! computed in the base model's normalized units, the expert is called at x_t mapped into its
+//! own units (raw = base.unnormalize(x_t), then expert.normalize(raw), an affine map per
+//! coordinate), and its estimate of the clean data x0_hat, a point of data space, is mapped
+//! back the same way. The expert's mean and score then follow from that x0_hat in the base's
+//! units (mu = coef1 x0_hat + coef2 x_t; s = -eps / sqrt(1 - abar_t) with eps from x0_hat), so
+//! an expert that denoises the same raw trajectories in other coordinates gives exactly the
+//! shared-normalizer target (test `aligned_target_equals_the_shared_normalizer_target`). The
+//! noise an expert was trained with is isotropic in *its* units, so a real expert trained in
+//! other coordinates is a different process and the alignment is the best affine reading of
+//! it, not an identity. rho lives in the base's units (its manifest records the base's
+//! normalizer).
 
 use serde::{Deserialize, Serialize};
 use tch::{Kind, Tensor};
@@ -39,8 +53,9 @@ pub enum EvalPoint {
     MuBase,
 }
 
-/// Checks that two diffusion models can be compared: same item shape, same T and schedule,
-/// same normalizer (their outputs must live in the same coordinates).
+/// Checks that two diffusion models can be compared: same item shape, same T and schedule.
+/// Different normalizers are aligned ([`Alignment`]), except with identity on one side only
+/// where no raw coordinates are known for the other.
 pub fn check_pair(base: &DiffusionModel, expert: &DiffusionModel) -> Result<()> {
     let (b, e) = (&base.manifest, &expert.manifest);
     if b.space.item_shape() != e.space.item_shape() {
@@ -58,12 +73,53 @@ pub fn check_pair(base: &DiffusionModel, expert: &DiffusionModel) -> Result<()> 
             b.n_timesteps, e.n_timesteps
         )));
     }
-    if b.normalizer != e.normalizer {
-        return Err(Error::invalid(
-            "spec.reward: base and expert have different normalizers; their outputs are in different units",
-        ));
-    }
     Ok(())
+}
+
+/// The map between the base model's and the expert's normalized units (module docs); `None`
+/// when they share a normalizer.
+pub struct Alignment {
+    base: Normalizer,
+    expert: Normalizer,
+    /// Dimensions after the batch dimension that a normalizer coordinate spans.
+    item_dims: usize,
+}
+
+impl Alignment {
+    pub fn between(base: &DiffusionModel, expert: &DiffusionModel) -> Option<Self> {
+        let (b, e) = (&base.manifest, &expert.manifest);
+        (b.normalizer != e.normalizer).then(|| Self {
+            base: b.normalizer.clone(),
+            expert: e.normalizer.clone(),
+            item_dims: b.space.normalizer_dims(),
+        })
+    }
+
+    /// Base units -> expert units, through raw coordinates.
+    pub fn to_expert(&self, x: &Tensor) -> Tensor {
+        self.expert.normalize(&self.base.unnormalize(x, self.item_dims), self.item_dims)
+    }
+
+    /// Expert units -> base units, through raw coordinates.
+    pub fn to_base(&self, x: &Tensor) -> Tensor {
+        self.base.normalize(&self.expert.unnormalize(x, self.item_dims), self.item_dims)
+    }
+}
+
+/// The expert's (mean or score) at base-unit x_t, aligned through raw coordinates.
+fn aligned_expert(
+    base: &DiffusionModel,
+    expert: &DiffusionModel,
+    alignment: &Alignment,
+    x_t: &Tensor,
+    t: &Tensor,
+    target: Target,
+) -> Result<Tensor> {
+    let x0 = alignment.to_base(&expert.x0_hat(&alignment.to_expert(x_t), t, false)?);
+    match target {
+        Target::Mean => base.q_posterior_mean(&x0, x_t, t),
+        Target::Score => base.score_from_x0(x_t, t, &x0),
+    }
 }
 
 /// The regression target and the evaluation point for a batch of x_t, under no-grad.
@@ -77,9 +133,11 @@ pub fn target_and_point(
 ) -> Result<(Tensor, Tensor)> {
     let _guard = tch::no_grad_guard();
     let mu_base = base.posterior_mean(x_t, t, false)?;
-    let y = match target {
-        Target::Mean => expert.posterior_mean(x_t, t, false)? - &mu_base,
-        Target::Score => expert.score(x_t, t)? - base.score(x_t, t)?,
+    let y = match (Alignment::between(base, expert), target) {
+        (None, Target::Mean) => expert.posterior_mean(x_t, t, false)? - &mu_base,
+        (None, Target::Score) => expert.score(x_t, t)? - base.score(x_t, t)?,
+        (Some(a), Target::Mean) => aligned_expert(base, expert, &a, x_t, t, target)? - &mu_base,
+        (Some(a), Target::Score) => aligned_expert(base, expert, &a, x_t, t, target)? - base.score(x_t, t)?,
     };
     let point = match eval_point {
         EvalPoint::XT => x_t.shallow_clone(),
@@ -150,4 +208,138 @@ pub enum Objective {
     Alignment { target: Target, eval_point: EvalPoint, models_only: bool },
     /// Binary cross-entropy, expert = 1 vs base = 0 (the paper's baseline).
     Discriminator,
+}
+
+#[cfg(test)]
+mod tests {
+    use tch::{Kind, Tensor};
+
+    use super::*;
+    use crate::engine::denoiser::Denoiser;
+    use crate::engine::manifest::{DiffusionManifest, Parametrization, ScheduleSpec, Space};
+
+    /// A fixed nonlinear network: tanh(x W + 0.05 t) along the last dimension.
+    struct Nonlinear {
+        w: Tensor,
+    }
+
+    impl Denoiser for Nonlinear {
+        fn forward(&self, x: &Tensor, t: &Tensor) -> Result<Tensor> {
+            let tt = t.to_kind(Kind::Float).reshape([-1, 1, 1]) * 0.05;
+            Ok((x.matmul(&self.w) + tt).tanh())
+        }
+
+        fn parameter_count(&self) -> u64 {
+            0
+        }
+    }
+
+    /// The same raw-space denoiser as `inner` (whose normalizer is `shared`), written in the
+    /// units of another normalizer: x0-parametrized, pred(x') = M(x0_hat_inner(M^-1(x'))).
+    struct InOtherUnits {
+        inner: DiffusionModel,
+        shared: Normalizer,
+        other: Normalizer,
+    }
+
+    impl Denoiser for InOtherUnits {
+        fn forward(&self, x: &Tensor, t: &Tensor) -> Result<Tensor> {
+            let x_shared = self.shared.normalize(&self.other.unnormalize(x, 1), 1);
+            let x0 = self.inner.x0_hat(&x_shared, t, false)?;
+            Ok(self.other.normalize(&self.shared.unnormalize(&x0, 1), 1))
+        }
+
+        fn parameter_count(&self) -> u64 {
+            0
+        }
+    }
+
+    const SPACE: Space = Space::Trajectory { horizon: 4, action_dim: 1, obs_dim: 2 };
+
+    fn manifest(parametrization: Parametrization, normalizer: Normalizer) -> DiffusionManifest {
+        DiffusionManifest {
+            parametrization,
+            schedule: ScheduleSpec::Cosine { s: 0.008 },
+            n_timesteps: 20,
+            clip_denoised: false,
+            space: SPACE,
+            normalizer,
+            architecture: None,
+        }
+    }
+
+    fn nonlinear(seed: i64, p: Parametrization, n: &Normalizer) -> DiffusionModel {
+        tch::manual_seed(seed);
+        let w = Tensor::randn([3, 3], (Kind::Float, tch::Device::Cpu)) * 0.5;
+        DiffusionModel::new(manifest(p, n.clone()), Box::new(Nonlinear { w })).expect("model")
+    }
+
+    #[test]
+    fn aligned_target_equals_the_shared_normalizer_target() {
+        let shared = Normalizer::Limits { min: vec![-1.0, 0.0, -3.0], max: vec![1.0, 5.0, 2.0] };
+        let other = Normalizer::Limits { min: vec![-2.0, -1.0, -3.5], max: vec![0.5, 9.0, 4.0] };
+        let gaussian = Normalizer::Gaussian { mean: vec![0.3, 2.0, -1.0], std: vec![0.7, 3.0, 1.5] };
+        tch::manual_seed(7);
+        let x_t = Tensor::randn([16, 4, 3], (Kind::Float, tch::Device::Cpu));
+        let t = Tensor::randint(20, [16], (Kind::Int64, tch::Device::Cpu));
+        for p in [Parametrization::Epsilon, Parametrization::X0] {
+            for theirs in [&other, &gaussian] {
+                let base = nonlinear(1, Parametrization::Epsilon, &shared);
+                let expert = nonlinear(2, p, &shared);
+                let moved =
+                    InOtherUnits { inner: nonlinear(2, p, &shared), shared: shared.clone(), other: theirs.clone() };
+                let moved =
+                    DiffusionModel::new(manifest(Parametrization::X0, theirs.clone()), Box::new(moved)).expect("m");
+                check_pair(&base, &moved).expect("different normalizers are aligned, not refused");
+                for target in [Target::Mean, Target::Score] {
+                    for point in [EvalPoint::XT, EvalPoint::MuBase] {
+                        let (y_shared, p_shared) =
+                            target_and_point(&base, &expert, &x_t, &t, target, point).expect("s");
+                        let (y_moved, p_moved) = target_and_point(&base, &moved, &x_t, &t, target, point).expect("m");
+                        let diff = f64::try_from((&y_shared - &y_moved).abs().max()).expect("max");
+                        let scale = f64::try_from(y_shared.abs().max()).expect("max");
+                        assert!(diff <= 1e-4 * scale.max(1.0), "{p:?} {target:?} {point:?}: {diff} (scale {scale})");
+                        assert!(p_shared.allclose(&p_moved, 1e-6, 1e-6, false));
+                    }
+                }
+                // Without the alignment the moved expert's outputs are in other units: the
+                // naive difference is far from the shared target (the test can fail).
+                let _g = tch::no_grad_guard();
+                let naive = moved.posterior_mean(&x_t, &t, false).expect("m")
+                    - base.posterior_mean(&x_t, &t, false).expect("b");
+                let (y_shared, _) = target_and_point(&base, &expert, &x_t, &t, Target::Mean, EvalPoint::XT).expect("s");
+                let off = f64::try_from((&y_shared - &naive).abs().max()).expect("max");
+                assert!(off > 1e-2, "{p:?}: the units did not matter ({off})");
+            }
+        }
+    }
+
+    #[test]
+    fn alignment_maps_through_raw_coordinates() {
+        let a = Normalizer::Limits { min: vec![0.0, -2.0], max: vec![4.0, 2.0] };
+        let b = Normalizer::Gaussian { mean: vec![1.0, 0.0], std: vec![2.0, 0.5] };
+        let base = DiffusionModel::new(
+            DiffusionManifest {
+                space: Space::Trajectory { horizon: 1, action_dim: 1, obs_dim: 1 },
+                ..manifest(Parametrization::Epsilon, a)
+            },
+            Box::new(Nonlinear { w: Tensor::eye(2, (Kind::Float, tch::Device::Cpu)) }),
+        )
+        .expect("base");
+        let expert = DiffusionModel::new(
+            DiffusionManifest {
+                space: Space::Trajectory { horizon: 1, action_dim: 1, obs_dim: 1 },
+                ..manifest(Parametrization::Epsilon, b)
+            },
+            Box::new(Nonlinear { w: Tensor::eye(2, (Kind::Float, tch::Device::Cpu)) }),
+        )
+        .expect("expert");
+        let al = Alignment::between(&base, &expert).expect("differ");
+        // Base units (1, 0) = raw (4, 0) = expert units ((4 - 1) / 2, 0 / 0.5) = (1.5, 0).
+        let x = Tensor::from_slice(&[1.0f32, 0.0]).reshape([1, 1, 2]);
+        let e = al.to_expert(&x);
+        assert!(e.allclose(&Tensor::from_slice(&[1.5f32, 0.0]).reshape([1, 1, 2]), 1e-6, 1e-6, false), "{e}");
+        assert!(al.to_base(&e).allclose(&x, 1e-6, 1e-6, false));
+        assert!(Alignment::between(&base, &base).is_none());
+    }
 }

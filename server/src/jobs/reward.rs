@@ -71,8 +71,14 @@ pub async fn validate_inputs(store: &Store, job: &RewardJob) -> Result<()> {
             base.schedule, base.n_timesteps, expert.schedule, expert.n_timesteps
         )));
     }
-    if base.normalizer != expert.normalizer {
-        return Err(Error::invalid("spec.reward: base and expert models have different normalizers"));
+    // Different normalizers are aligned through raw coordinates in Algorithm 1
+    // (engine::relative_reward::Alignment). Algorithm 2 steps both models from one shared
+    // chain state in one unit system, which has no such alignment yet.
+    if base.normalizer != expert.normalizer && matches!(job.algorithm, RewardAlgorithm::ModelsOnly { .. }) {
+        return Err(Error::invalid(
+            "spec.reward: base and expert models have different normalizers; Algorithm 2 (models_only) needs one \
+             shared normalizer (Algorithm 1, with_dataset, aligns them through raw coordinates)",
+        ));
     }
     RewardNet::planned_parameter_count(&job.architecture, &base.space.item_shape())
         .map_err(|e| Error::invalid(format!("spec.reward.architecture: {e}")))?;
@@ -291,6 +297,14 @@ pub fn run(ctx: &mut JobContext, job: &RewardJob) -> std::result::Result<String,
     let base = load_model(ctx, &job.base_model)?;
     let expert = load_model(ctx, &job.expert_model)?;
     check_pair(&base, &expert)?;
+    if matches!(job.algorithm, RewardAlgorithm::ModelsOnly { .. })
+        && crate::engine::relative_reward::Alignment::between(&base, &expert).is_some()
+    {
+        return Err(Error::invalid(
+            "spec.reward: base and expert models have different normalizers; Algorithm 2 needs one shared normalizer",
+        )
+        .into());
+    }
     let space = base.manifest.space.clone();
     let normalizer = base.manifest.normalizer.clone();
     let pairs = match &job.algorithm {

@@ -25,7 +25,7 @@ const STATS_ROWS: usize = 20;
 
 #[derive(Debug, Subcommand)]
 pub enum DatasetCommand {
-    /// Upload an .npz archive or .npy file as a new dataset.
+    /// Upload an .npz archive, .npy file, D4RL HDF5 file or Minari dataset as a new dataset.
     Upload(UploadArgs),
     /// List every dataset.
     List,
@@ -42,7 +42,9 @@ pub enum DatasetCommand {
 
 #[derive(Debug, Args)]
 pub struct UploadArgs {
-    /// The .npz archive or .npy file.
+    /// The .npz archive, .npy file, D4RL-layout HDF5 file, or Minari dataset (its
+    /// main_data.hdf5 or its directory). Rules for episodes, dict observations and walls:
+    /// docs/data-formats.md.
     file: PathBuf,
     /// Dataset name: [a-z0-9][a-z0-9._-]{0,63}.
     #[arg(long)]
@@ -80,19 +82,38 @@ pub async fn run(ctx: &Ctx, command: DatasetCommand) -> Result<Report> {
 
 async fn upload(ctx: &Ctx, args: UploadArgs) -> Result<Report> {
     let UploadArgs { file, name, kind, key, description, chunk_bytes } = args;
+    if relreward_toolkit::hdf5::is_hdf5(&file) {
+        if kind == Some(KindArg::Samples) || key.is_some() {
+            bail!("--kind samples / --key: an HDF5 file or Minari dataset uploads as trajectories");
+        }
+        let shown = file.display().to_string();
+        let t = tokio::task::spawn_blocking(move || relreward_toolkit::hdf5::read_hdf5(&file))
+            .await
+            .context("reading the file crashed")??;
+        if !t.ignored.is_empty() {
+            let keys = t.ignored.iter().map(|k| format!("'{k}'")).collect::<Vec<_>>().join(", ");
+            eprint_line(&format!("note: {shown}: not uploading {keys} (not part of a trajectories dataset)"));
+        }
+        let request = DatasetUpload { name, kind: pb::DatasetKind::Trajectories, description, chunk_bytes };
+        return send(ctx, request, t.upload_source()).await;
+    }
     // Reading headers touches the disk (and decompresses entries): keep it off the runtime.
     let source = tokio::task::spawn_blocking(move || open_upload_source(&file, kind, key.as_deref()))
         .await
         .context("reading the file crashed")??;
     print_source_notes(&source);
+    let request = DatasetUpload { name, kind: source.kind(), description, chunk_bytes };
+    send(ctx, request, source).await
+}
 
+/// Sends one upload with a progress bar and reports the stored dataset.
+async fn send<S: relreward_client::UploadSource>(ctx: &Ctx, request: DatasetUpload, source: S) -> Result<Report> {
     let client = ctx.connect().await?;
     let progress = Arc::new(UploadProgress::default());
     let bar = byte_progress_bar(ctx.json);
     let (done_tx, done_rx) = oneshot::channel();
     let ticker = tokio::spawn(drive_progress(bar.clone(), Arc::clone(&progress), done_rx));
     let started = Instant::now();
-    let request = DatasetUpload { name, kind: source.kind(), description, chunk_bytes };
     let result = client.upload_dataset(request, source, Arc::clone(&progress)).await;
     let _ = done_tx.send(());
     let _ = ticker.await;

@@ -12,41 +12,33 @@
 //!   the goal than unguided sampling. Omega is chosen by a small sweep on one seed and reported
 //!   on another, so the reported fraction is not the one it was selected on.
 //!
-//! Every step runs the same code as the corresponding CLI command (they are parsed from argument
-//! lists and dispatched in process), so the demo is also a script of commands a user can run
-//! one by one. Outputs in `--out`: the datasets, heatmaps, loss curves, `summary.md` and
-//! `summary.json`.
+//! The demo is the maze-generating front end of `relreward extract`: it writes the datasets,
+//! then runs the same pipeline ([`super::extract::pipeline`]: upload or reuse, diffusion
+//! models, rewards, evaluation, report) with its fixed sizes, and adds steering. Every step
+//! runs the same code as the corresponding CLI command (parsed from argument lists and
+//! dispatched in process), so it is also a script of commands a user can run one by one.
+//! Outputs in `--out`: the datasets, heatmaps, histograms, loss curves, `report.md` /
+//! `report.json` (the pipeline's) and `summary.md` / `summary.json` (with steering).
 //!
 //! Sizes ([`Size`]): `default` is scaled down to finish in minutes on a 2-core CPU (MLP
 //! denoisers over horizon-16 windows, T = 20, a few thousand steps); `full` uses the paper's
 //! (TemporalUnet dim 32, dim_mults (1, 4, 8), horizon 256, T = 100, 100k reward steps at batch
 //! 256), which needs a GPU-sized budget; `tiny` only checks that the pipeline runs (tests).
 
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::time::Instant;
 
-use anyhow::{Context, Result, bail};
-use clap::{Args, FromArgMatches, Subcommand, ValueEnum};
+use anyhow::{Context, Result};
+use clap::Args;
 use relreward_client::pb;
 use relreward_toolkit::maze::{self, GenerateConfig, Layout, LayoutName, Mode};
 use serde_json::{Value, json};
 use tokio_stream::StreamExt;
 
-use super::datasets::DatasetCommand;
-use super::eval::EvalCommand;
-use super::jobs::{JobCommand, TrainCommand};
+pub use super::extract::Size;
+use super::extract::{Inputs, Sizes, Sizing, path_str, pipeline, stage, write_report};
+use super::train::flags::AlgorithmArg;
 use super::{Ctx, Report, UsageError};
-
-/// How big a run is.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
-pub enum Size {
-    /// Seconds: checks that every step runs (tests); numbers are meaningless.
-    Tiny,
-    /// Minutes on a 2-core CPU: scaled-down data, networks and steps.
-    Default,
-    /// The paper's sizes: hours, meant for a GPU machine.
-    Full,
-}
 
 /// `relreward demo` flags.
 #[derive(Debug, Clone, Args)]
@@ -96,100 +88,56 @@ fn parse_action_noise(s: &str) -> Result<f64, String> {
 /// (docs/results.md measures both).
 const D4RL_ACTION_NOISE: f64 = 0.5;
 
-/// The knobs a size sets.
+/// The knobs a size sets: the pipeline's [`Sizes`] (the maze's own, fixed: the demo's
+/// horizon is the one `extract` derives from this generator's data, see
+/// `relreward_toolkit::profile`) and what only the demo does.
 #[derive(Debug, Clone)]
 struct Plan {
     base_transitions: usize,
     expert_transitions: usize,
-    horizon: u32,
-    n_timesteps: u32,
-    /// `[diffusion] architecture = ...` in TOML.
-    diffusion_architecture: &'static str,
-    diffusion_steps: u64,
-    diffusion_batch: u64,
-    reward_steps: u64,
-    reward_batch: u64,
-    reward_lr: f64,
-    /// (window, hidden) of the windowed-MLP reward.
-    reward_net: (u32, &'static str),
+    sizes: Sizes,
     samples: u32,
     omegas: &'static [f64],
-    max_windows: u64,
     action_noise: f64,
 }
 
 impl Plan {
     fn new(size: Size, layout: LayoutName) -> Self {
         let big = matches!(layout, LayoutName::Medium | LayoutName::Large);
+        let mut sizes = Sizes::preset(size);
         match size {
             Size::Tiny => Self {
                 base_transitions: 20_000,
                 expert_transitions: 5_000,
-                horizon: 16,
-                n_timesteps: 10,
-                diffusion_architecture: r#"{ kind = "mlp", hidden = [64, 64] }"#,
-                diffusion_steps: 200,
-                diffusion_batch: 32,
-                reward_steps: 200,
-                reward_batch: 32,
-                reward_lr: 1e-3,
-                reward_net: (4, "32,32"),
+                sizes,
                 samples: 8,
                 omegas: &[0.1],
-                max_windows: 2_000,
                 action_noise: D4RL_ACTION_NOISE,
             },
             Size::Default => Self {
                 base_transitions: if big { 400_000 } else { 200_000 },
                 expert_transitions: if big { 120_000 } else { 60_000 },
-                horizon: 16,
-                n_timesteps: 20,
-                diffusion_architecture: r#"{ kind = "mlp", hidden = [256, 256, 256] }"#,
-                diffusion_steps: 4_000,
-                diffusion_batch: 64,
-                reward_steps: 3_000,
-                reward_batch: 64,
-                reward_lr: 1e-3,
-                reward_net: (4, "128,64,32"),
+                sizes,
                 samples: 128,
                 omegas: &[0.03, 0.1, 0.3, 1.0],
-                max_windows: 50_000,
                 action_noise: D4RL_ACTION_NOISE,
             },
-            Size::Full => Self {
-                base_transitions: 1_000_000,
-                expert_transitions: 250_000,
-                horizon: 256,
-                n_timesteps: 100,
-                diffusion_architecture: r#"{ kind = "temporal_unet", dim = 32, dim_mults = [1, 4, 8] }"#,
-                diffusion_steps: 200_000,
-                diffusion_batch: 32,
-                reward_steps: 100_000,
-                reward_batch: 256,
-                reward_lr: 5e-5,
-                reward_net: if layout == LayoutName::Open { (64, "32") } else { (4, "128,64,32") },
-                samples: 256,
-                omegas: &[0.01, 0.03, 0.1, 0.3, 1.0],
-                max_windows: 200_000,
-                action_noise: D4RL_ACTION_NOISE,
-            },
+            Size::Full => {
+                if layout == LayoutName::Open {
+                    // The paper's open-maze reward: MLP (32,) over windows of 64.
+                    (sizes.window, sizes.reward_hidden) = (64, vec![32]);
+                }
+                Self {
+                    base_transitions: 1_000_000,
+                    expert_transitions: 250_000,
+                    sizes,
+                    samples: 256,
+                    omegas: &[0.01, 0.03, 0.1, 0.3, 1.0],
+                    action_noise: D4RL_ACTION_NOISE,
+                }
+            }
         }
     }
-}
-
-/// Parses `args` as one of the CLI's subcommand families (the same parser as the command line).
-fn parse<T: Subcommand + FromArgMatches>(args: &[String]) -> Result<T> {
-    let command = T::augment_subcommands(clap::Command::new("relreward").no_binary_name(true));
-    let matches = command.try_get_matches_from(args).map_err(|e| anyhow::anyhow!("demo step {args:?}: {e}"))?;
-    Ok(T::from_arg_matches(&matches)?)
-}
-
-fn strings(args: &[&str]) -> Vec<String> {
-    args.iter().map(|s| (*s).to_owned()).collect()
-}
-
-fn path_str(p: &Path) -> String {
-    p.to_string_lossy().into_owned()
 }
 
 /// K goal cells: the layout's D4RL goal first, then each next the free cell farthest from
@@ -220,13 +168,6 @@ pub fn spread_goals(layout: &Layout, first: (usize, usize), k: usize) -> Vec<(us
     chosen
 }
 
-/// Prints a stage line on stderr (not with `--json`).
-fn stage(ctx: &Ctx, step: usize, total: usize, text: &str) {
-    if !ctx.json {
-        eprintln!("==> [{step}/{total}] {text}");
-    }
-}
-
 pub async fn run(ctx: &Ctx, args: DemoArgs) -> Result<Report> {
     let started = Instant::now();
     let name = LayoutName::from_name(&args.layout)
@@ -236,31 +177,21 @@ pub async fn run(ctx: &Ctx, args: DemoArgs) -> Result<Report> {
     if let Some(noise) = args.action_noise {
         plan.action_noise = noise;
     }
-    if let Some(steps) = args.diffusion_steps {
-        plan.diffusion_steps = steps;
-    }
-    if let Some(steps) = args.reward_steps {
-        plan.reward_steps = steps;
-    }
     let layout = name.layout();
     let goals = spread_goals(&layout, name.default_goal(), args.goals as usize);
-    let client = ctx.connect().await?;
-    client.health().await.context("the server is not answering health checks")?;
+    if let Some(steps) = args.diffusion_steps {
+        plan.sizes.diffusion_steps = steps;
+    }
+    if let Some(steps) = args.reward_steps {
+        plan.sizes.reward_steps = steps;
+    }
 
     let out = args.out.clone();
     let data_dir = out.join("data");
     std::fs::create_dir_all(&data_dir).with_context(|| format!("--out: cannot create {}", data_dir.display()))?;
-    // A run id keeps the names of this run apart from earlier runs on the same server.
-    let run = format!(
-        "{:06x}",
-        std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_millis()) & 0xff_ffff
-    );
-    let prefix = format!("demo-{}-{run}", name.as_str());
-    let quiet = Ctx { json: true, ..ctx.clone() };
-    let total = 6;
 
-    // ---- 1. data
-    stage(ctx, 1, total, &format!("generating {} data: base and {} expert datasets", name.as_str(), goals.len()));
+    // ---- 1. data (the demo's own part); everything after it is `extract`'s pipeline.
+    stage(ctx, &format!("generating {} data: base and {} expert datasets", name.as_str(), goals.len()));
     let base_path = data_dir.join("base.npz");
     let mut config = GenerateConfig::new(layout.clone(), Mode::Base, plan.base_transitions, args.seed);
     config.action_noise = plan.action_noise;
@@ -276,175 +207,34 @@ pub async fn run(ctx: &Ctx, args: DemoArgs) -> Result<Report> {
         maze::generate(&config)?.write_npz(&path)?;
         expert_paths.push(path);
     }
+    let inputs = Inputs {
+        base: base_path,
+        experts: expert_paths,
+        labels: goals.iter().map(|g| format!("goal-{}-{}", g.0, g.1)).collect(),
+        // Cell (row, col) has its centre at position (row, col) in the generator's frame.
+        goals: goals.iter().map(|g| Some((g.0 as f64, g.1 as f64))).collect(),
+        walls: None,
+        out: out.clone(),
+        prefix: format!("demo-{}", name.as_str()),
+        algorithm: AlgorithmArg::WithDataset,
+        discriminator: false,
+        seed: args.seed,
+    };
+    let extracted = pipeline(ctx, &inputs, Sizing::Fixed(plan.sizes.clone())).await?;
 
-    // ---- 2. upload
-    stage(ctx, 2, total, "uploading the datasets");
-    let base_ds = format!("{prefix}-base");
-    let expert_ds: Vec<String> = goals.iter().map(|g| format!("{prefix}-expert-{}-{}", g.0, g.1)).collect();
-    for (path, ds) in std::iter::once((&base_path, &base_ds)).chain(expert_paths.iter().zip(&expert_ds)) {
-        let command: DatasetCommand = parse(&strings(&["upload", &path_str(path), "--name", ds]))?;
-        super::datasets::run(&quiet, command).await.with_context(|| format!("uploading {}", path.display()))?;
-    }
-
-    // ---- 3. diffusion models: one base, one expert per goal, one shared normalizer.
-    let config_path = out.join("diffusion.toml");
-    std::fs::write(
-        &config_path,
-        format!(
-            "[diffusion]\nhorizon = {}\nn_timesteps = {}\narchitecture = {}\n",
-            plan.horizon, plan.n_timesteps, plan.diffusion_architecture
-        ),
-    )?;
-    let mut normalizer_flags = Vec::new();
-    for ds in std::iter::once(&base_ds).chain(&expert_ds) {
-        normalizer_flags.extend(["--normalizer-dataset".to_owned(), ds.clone()]);
-    }
-    let base_model = format!("{prefix}-base");
-    let expert_models: Vec<String> = goals.iter().map(|g| format!("{prefix}-expert-{}-{}", g.0, g.1)).collect();
-    let diffusion_jobs: Vec<(&String, &String)> =
-        std::iter::once((&base_model, &base_ds)).chain(expert_models.iter().zip(&expert_ds)).collect();
-    for (i, (model, ds)) in diffusion_jobs.iter().enumerate() {
-        stage(
-            ctx,
-            3,
-            total,
-            &format!(
-                "training diffusion model {} of {}: {model} ({} steps)",
-                i + 1,
-                diffusion_jobs.len(),
-                plan.diffusion_steps
-            ),
-        );
-        let mut argv = strings(&[
-            "diffusion",
-            "--name",
-            model,
-            "--dataset",
-            ds,
-            "--config",
-            &path_str(&config_path),
-            "--steps",
-            &plan.diffusion_steps.to_string(),
-            "--batch-size",
-            &plan.diffusion_batch.to_string(),
-            "--seed",
-            &(args.seed + i as u64).to_string(),
-            "--job-id",
-            model,
-            "--watch",
-        ]);
-        argv.extend(normalizer_flags.iter().cloned());
-        train(ctx, &argv).await?;
-    }
-
-    // ---- 4. rewards
-    let rewards: Vec<String> = goals.iter().map(|g| format!("{prefix}-reward-{}-{}", g.0, g.1)).collect();
-    for (k, reward) in rewards.iter().enumerate() {
-        stage(
-            ctx,
-            4,
-            total,
-            &format!("extracting reward {} of {}: {reward} ({} steps)", k + 1, rewards.len(), plan.reward_steps),
-        );
-        let argv = strings(&[
-            "reward",
-            "--name",
-            reward,
-            "--base",
-            &base_model,
-            "--expert",
-            &expert_models[k],
-            "--dataset",
-            &base_ds,
-            "--dataset",
-            &expert_ds[k],
-            "--arch",
-            "windowed_mlp",
-            "--window",
-            &plan.reward_net.0.to_string(),
-            "--hidden",
-            plan.reward_net.1,
-            "--steps",
-            &plan.reward_steps.to_string(),
-            "--batch-size",
-            &plan.reward_batch.to_string(),
-            "--lr",
-            &plan.reward_lr.to_string(),
-            "--seed",
-            &(args.seed + 100 + k as u64).to_string(),
-            "--job-id",
-            reward,
-            "--watch",
-        ]);
-        train(ctx, &argv).await?;
-    }
-
-    // ---- 5. evaluation
+    // ---- steering (the demo's own part): guided vs unguided sampling from the base model.
+    let client = ctx.connect().await?;
     let mut rows = Vec::new();
     for (k, goal) in goals.iter().enumerate() {
-        stage(
-            ctx,
-            5,
-            total,
-            &format!("evaluating reward {} of {} (goal cell {},{})", k + 1, goals.len(), goal.0, goal.1),
-        );
-        let heatmap_png = out.join(format!("heatmap-{}-{}-{}.png", name.as_str(), goal.0, goal.1));
-        let heat = eval(
-            &quiet,
-            &[
-                "heatmap",
-                "--model",
-                &rewards[k],
-                "--dataset",
-                &path_str(&base_path),
-                "--out",
-                &path_str(&heatmap_png),
-                "--goal",
-                &format!("{},{}", goal.0, goal.1),
-                "--max-windows",
-                &plan.max_windows.to_string(),
-                "--seed",
-                &args.seed.to_string(),
-            ],
-        )
-        .await?;
-        let disc = eval(
-            &quiet,
-            &[
-                "discriminate",
-                "--model",
-                &rewards[k],
-                "--base-data",
-                &path_str(&base_path),
-                "--expert-data",
-                &path_str(&expert_paths[k]),
-                "--max-windows",
-                &plan.max_windows.min(20_000).to_string(),
-                "--seed",
-                &args.seed.to_string(),
-            ],
-        )
-        .await?;
-        let loss_png = out.join(format!("loss-{}.png", rewards[k]));
-        let command: JobCommand = parse(&strings(&["plot", &rewards[k], "--out", &path_str(&loss_png)]))?;
-        super::jobs::run(&quiet, command).await.context("plotting the reward's loss")?;
-        let steering = steer(&client, &base_model, &rewards[k], *goal, &plan, args.seed).await?;
-        rows.push(json!({
-            "goal_cell": [goal.0, goal.1],
-            "reward_model": rewards[k],
-            "heatmap": path_str(&heatmap_png),
-            "loss_plot": path_str(&loss_png),
-            "argmax_cell": heat["argmax"]["cell"],
-            "distance_cells": heat["distance_cells"],
-            "goal_recovered": heat["goal_recovered"],
-            "balanced_accuracy": disc["balanced_accuracy"],
-            "expert_scores_higher": disc["expert_scores_higher"],
-            "steering": steering,
-        }));
+        stage(ctx, &format!("steering with reward {} of {} (goal cell {},{})", k + 1, goals.len(), goal.0, goal.1));
+        let steering = steer(&client, &extracted.base_model, &extracted.rewards[k], *goal, &plan, args.seed).await?;
+        let mut row = extracted.rows[k].clone();
+        row["goal_cell"] = json!([goal.0, goal.1]);
+        row["reward_model"] = row["model"].clone();
+        row["steering"] = steering;
+        rows.push(row);
     }
 
-    // ---- 6. summary
-    stage(ctx, 6, total, "writing the summary");
     let recovered = rows.iter().filter(|r| r["goal_recovered"] == true).count();
     let accuracies: Vec<f64> = rows.iter().filter_map(|r| r["balanced_accuracy"].as_f64()).collect();
     let mean_accuracy = accuracies.iter().sum::<f64>() / accuracies.len().max(1) as f64;
@@ -457,57 +247,23 @@ pub async fn run(ctx: &Ctx, args: DemoArgs) -> Result<Report> {
         "size": format!("{size:?}").to_lowercase(),
         "seed": args.seed,
         "action_noise": plan.action_noise,
-        "diffusion_steps": plan.diffusion_steps,
-        "reward_steps": plan.reward_steps,
+        "diffusion_steps": plan.sizes.diffusion_steps,
+        "reward_steps": plan.sizes.reward_steps,
         "goals": rows,
         "goals_recovered": recovered,
         "goals_total": goals.len(),
         "mean_balanced_accuracy": mean_accuracy,
         "goals_steered": steered,
-        "models": {"base": base_model, "experts": expert_models, "rewards": rewards},
+        "models": {"base": extracted.base_model, "experts": extracted.expert_models, "rewards": extracted.rewards},
         "elapsed_seconds": started.elapsed().as_secs_f64(),
         "out": path_str(&out),
     });
+    // The pipeline's report (report.md / report.json), and the demo's summary with steering.
+    write_report(&inputs, &extracted, started.elapsed().as_secs_f64(), json!({"demo": {"layout": name.as_str()}}))?;
     let table = summary_table(&summary);
     std::fs::write(out.join("summary.md"), &table)?;
     std::fs::write(out.join("summary.json"), serde_json::to_string_pretty(&summary)?)?;
     Ok(Report::ok(table, summary))
-}
-
-/// Submits a training job from CLI arguments (its id is its `--job-id`) and follows it: with a
-/// progress bar, or silently with `--json` (stdout then carries only the summary). An
-/// unsuccessful job stops the demo.
-async fn train(ctx: &Ctx, argv: &[String]) -> Result<()> {
-    let id = argv.iter().skip_while(|a| *a != "--job-id").nth(1).cloned().context("a demo job without --job-id")?;
-    if !ctx.json {
-        let command: TrainCommand = parse(argv)?;
-        let report = super::jobs::run_train(ctx, command).await?;
-        if !report.success {
-            bail!("training job {id} did not succeed:\n{}", report.text);
-        }
-        return Ok(());
-    }
-    let quiet: Vec<String> = argv.iter().filter(|a| *a != "--watch").cloned().collect();
-    let command: TrainCommand = parse(&quiet)?;
-    super::jobs::run_train(ctx, command).await?;
-    let client = ctx.connect().await?;
-    loop {
-        let job = client.jobs().get_job(pb::GetJobRequest { id: id.clone() }).await?.into_inner();
-        match job.state() {
-            pb::JobState::Succeeded => return Ok(()),
-            pb::JobState::Failed | pb::JobState::Cancelled => {
-                bail!("training job {id} ended {:?}: {}", job.state(), job.error)
-            }
-            _ => tokio::time::sleep(std::time::Duration::from_millis(200)).await,
-        }
-    }
-}
-
-/// Runs an `eval` command and returns its JSON document.
-async fn eval(quiet: &Ctx, argv: &[&str]) -> Result<Value> {
-    let command: EvalCommand = parse(&strings(argv))?;
-    let report = super::eval::run(quiet, command).await?;
-    report.json.ok_or_else(|| anyhow::anyhow!("eval {argv:?} returned no JSON"))
 }
 
 /// Final states of `n` samples within one cell (Euclidean, cell units) of `goal`.
@@ -626,16 +382,5 @@ mod tests {
         unique.dedup();
         assert_eq!(unique.len(), 4);
         assert!(goals.iter().all(|&(r, c)| layout.is_free(r as i64, c as i64)));
-    }
-
-    #[test]
-    fn every_step_parses_as_the_cli_would() {
-        let train: TrainCommand =
-            parse(&strings(&["diffusion", "--name", "m", "--dataset", "d", "--watch"])).expect("t");
-        assert!(matches!(train, TrainCommand::Diffusion(_)));
-        let eval: EvalCommand =
-            parse(&strings(&["heatmap", "--model", "r", "--dataset", "d.npz", "--out", "h.png"])).expect("e");
-        assert!(matches!(eval, EvalCommand::Heatmap(_)));
-        assert!(parse::<EvalCommand>(&strings(&["heatmap", "--nope"])).is_err());
     }
 }

@@ -124,7 +124,8 @@ pub struct HeatmapArgs {
     /// Take the goal from this file's `goals` array (e.g. the expert dataset; must be constant).
     #[arg(long, value_name = "FILE.npz")]
     pub goal_from: Option<PathBuf>,
-    /// Maze walls: an .npz holding `walls` [rows, cols] (nonzero: wall), or an .npy
+    /// Maze walls: an .npz holding `walls`, `wall_map` or `maze_map` [rows, cols] (nonzero:
+    /// wall), or an .npy
     /// [default: the dataset's `walls`; without walls the grid covers the data].
     #[arg(long, value_name = "FILE")]
     pub walls: Option<PathBuf>,
@@ -529,19 +530,15 @@ fn read_numbers(path: &Path, key: &str) -> Result<Option<(Vec<u64>, Vec<f64>)>> 
 }
 
 /// The maze walls: `(rows, cols, flags)`.
-type Walls = (usize, usize, Vec<bool>);
+type Walls = relreward_toolkit::episodes::Walls;
 
 fn walls_of(path: &Path, required: bool) -> Result<Option<Walls>> {
-    match read_numbers(path, "walls")? {
-        None if required => bail!("--walls {}: no 'walls' array", path.display()),
-        None => Ok(None),
-        Some((shape, values)) => {
-            let &[rows, cols] = shape.as_slice() else {
-                bail!("{}: 'walls' has shape {shape:?}; expected [rows, cols]", path.display())
-            };
-            Ok(Some((rows as usize, cols as usize, values.iter().map(|&v| v != 0.0).collect())))
-        }
+    // `walls`, `wall_map` or `maze_map` (rule: relreward_toolkit::episodes).
+    let walls = npz::walls_from_npz(path).with_context(|| format!("{}: maze walls", path.display()))?;
+    if walls.is_none() && required {
+        bail!("--walls {}: no 'walls', 'wall_map' or 'maze_map' array", path.display())
     }
+    Ok(walls)
 }
 
 /// The goal of a file's `goals` ([2], [N, >=2]): `Ok(None)` when absent or not constant.

@@ -17,6 +17,7 @@
 pub mod datasets;
 pub mod demo;
 pub mod eval;
+pub mod extract;
 pub mod jobs;
 pub mod manifest;
 pub mod maze;
