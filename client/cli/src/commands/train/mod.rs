@@ -347,6 +347,7 @@ mod tests {
                 eval_point: pb::EvalPoint::MuBase as i32,
                 algorithm: with_dataset(&["maze-a", "maze-b"]),
                 rho_l2: Some(0.01),
+                amortised_targets: None,
             }
         );
         // Algorithm 2 from the file, with its chain count.
