@@ -79,6 +79,11 @@ pub fn resolve_device(setting: &str, cuda_devices: usize) -> Result<Device, Conf
     }
 }
 
+/// `engine.device` resolved against the CUDA devices libtorch sees on this machine.
+pub fn check_device(config: &EngineConfig) -> Result<Device, ConfigError> {
+    resolve_device(&config.device, usize::try_from(tch::Cuda::device_count()).unwrap_or(0))
+}
+
 /// Configures libtorch once at start, before any tensor work: its thread pool, and the device
 /// (`engine.device`, resolved by [`resolve_device`]; a device that is absent stops the start).
 /// Returns the device and reports what the process runs on.
