@@ -186,27 +186,26 @@ impl TargetPool {
             entry.0.push(j as i64);
             entry.1.push(slot as i64);
         }
-        let mut slots_t = vec![0i64; p];
         let mut parts: Vec<(Vec<i64>, Tensor, Tensor, Tensor)> = Vec::new();
         for (gen_, (js, slots)) in by_generation {
             let (t, target, point) = self.compute(gen_, Some(&js), src)?;
-            for (i, &s) in slots.iter().enumerate() {
-                slots_t[s as usize] = t.int64_value(&[i as i64]);
-            }
             parts.push((slots, t, target, point));
         }
         // Assemble in slot order.
-        let item: Vec<i64> = parts[0].2.size()[1..].to_vec();
+        let (_, t0, tg0, _) = &parts[0];
         let mut shape = vec![p as i64];
-        shape.extend(&item);
-        let target = Tensor::zeros(&shape, (Kind::Float, parts[0].2.device()));
-        let point = Tensor::zeros(&shape, (Kind::Float, parts[0].2.device()));
-        for (slots, _, tg, pt) in &parts {
-            let idx = Tensor::from_slice(slots).to_device(target.device());
-            let _ = target.shallow_clone().index_copy_(0, &idx, tg);
-            let _ = point.shallow_clone().index_copy_(0, &idx, pt);
+        shape.extend(&tg0.size()[1..]);
+        let device = tg0.device();
+        let mut t = Tensor::zeros([p as i64], (t0.kind(), device));
+        let mut target = Tensor::zeros(&shape, (Kind::Float, device));
+        let mut point = Tensor::zeros(&shape, (Kind::Float, device));
+        for (slots, tt, tg, pt) in &parts {
+            let idx = Tensor::from_slice(slots).to_device(device);
+            let _ = t.index_copy_(0, &idx, tt);
+            let _ = target.index_copy_(0, &idx, tg);
+            let _ = point.index_copy_(0, &idx, pt);
         }
-        self.t = Tensor::from_slice(&slots_t).to_device(target.device());
+        self.t = t;
         self.target = target;
         self.point = point;
         self.generation = Some(g);
@@ -299,6 +298,63 @@ mod tests {
                     assert_eq!(pl.last_writer(slot, g), *want, "P {p}, f {f}, slot {slot}, generation {g}");
                 }
             }
+        }
+    }
+
+    fn models(mean_e: &[f32]) -> (DiffusionModel, DiffusionModel) {
+        use crate::engine::diffusion::testing::AnalyticGaussian;
+        use crate::engine::manifest::{DiffusionManifest, Parametrization, ScheduleSpec, Space};
+        use crate::engine::normalizer::Normalizer;
+        use crate::engine::schedule::Schedule;
+        let manifest = DiffusionManifest {
+            parametrization: Parametrization::Epsilon,
+            schedule: ScheduleSpec::Cosine { s: 0.008 },
+            n_timesteps: 10,
+            clip_denoised: false,
+            space: Space::Sample { shape: vec![2] },
+            normalizer: Normalizer::Identity,
+            architecture: None,
+        };
+        let s = Schedule::new(&manifest.schedule, 10).expect("schedule");
+        let model = |mean: &[f32]| {
+            DiffusionModel::new(manifest.clone(), Box::new(AnalyticGaussian::new(&s, mean, &[2], false))).expect("model")
+        };
+        (model(&[0.0, 0.0]), model(mean_e))
+    }
+
+    /// A pool filled at generation g (what a resumed job does) holds exactly what a pool that
+    /// went through every refresh since generation 0 holds, and only one pool's worth of items
+    /// went through the models to rebuild it.
+    #[test]
+    fn a_resumed_pool_equals_the_pool_that_never_stopped() {
+        let (base, expert) = models(&[1.0, -2.0]);
+        let rows = Tensor::randn([300, 2], (Kind::Float, tch::Device::Cpu));
+        let data = TrainingData::new(&rows, &crate::engine::normalizer::Normalizer::Identity, 1, None, None, 3)
+            .expect("data");
+        let src = TargetSource { base: &base, expert: &expert, data: &data, target: Target::Mean, eval_point: EvalPoint::XT };
+        for f in [0.3, 1.0, 0.05] {
+            let settings = AmortisedTargets { pool_size: 50, reuse: 2, refresh_fraction: f };
+            // batch 10: an epoch is 10 steps.
+            let mut live = TargetPool::new(settings, 5, 10, 10);
+            for step in 1..=137 {
+                live.ensure(step, &src).expect("ensure");
+            }
+            let mut resumed = TargetPool::new(settings, 5, 10, 10);
+            resumed.ensure(137, &src).expect("fill");
+            assert_eq!(resumed.computed, 50, "f {f}");
+            assert_eq!(live.generation, Some(13));
+            assert_eq!(resumed.generation, live.generation);
+            assert!(resumed.t.equal(&live.t), "f {f}: t differs");
+            for (a, b) in [(&resumed.target, &live.target), (&resumed.point, &live.point)] {
+                let diff = (a - b).abs().max().double_value(&[]);
+                assert!(diff < 1e-6, "f {f}: pools differ by {diff}");
+            }
+            // Mean target for this pair is c_t (m_e - m_b): every row is parallel to (1, -2).
+            let cross = (resumed.target.select(1, 0) * -2.0 - resumed.target.select(1, 1)).abs().max().double_value(&[]);
+            assert!(cross < 1e-5, "targets must be parallel to the mean difference: {cross}");
+            // Batches come from the pool, with the caller's stream.
+            let (t, target, point) = resumed.sample(&mut Rng::new(1));
+            assert_eq!((t.size(), target.size(), point.size()), (vec![10], vec![10, 2], vec![10, 2]));
         }
     }
 
