@@ -321,8 +321,12 @@ async fn amortised_targets_recover_the_analytic_reward_across_a_kill_9() {
         r.amortised_targets,
         Some(pb::AmortisedTargets { pool_size: Some(2048), reuse: Some(4), refresh_fraction: Some(0.25) })
     );
-    let mut stream =
-        client.jobs().watch_job(pb::WatchJobRequest { id: "am".into(), from_seq: 0 }).await.expect("watch").into_inner();
+    let mut stream = client
+        .jobs()
+        .watch_job(pb::WatchJobRequest { id: "am".into(), from_seq: 0 })
+        .await
+        .expect("watch")
+        .into_inner();
     while let Some(e) = stream.next().await {
         // Past several refreshes (an epoch is 2048 * 4 / 256 = 32 steps).
         if let Some(Event::Checkpoint(c)) = e.expect("event").event
@@ -346,8 +350,12 @@ async fn amortised_targets_recover_the_analytic_reward_across_a_kill_9() {
     };
     assert!(logged("amortised targets: pool 2048, reuse 4, refresh fraction 0.25 (512 items every 32 steps)"));
     assert!(logged("resumed at step"));
-    let model =
-        client.models().get_model(pb::GetModelRequest { name: "r-amortised".into() }).await.expect("model").into_inner();
+    let model = client
+        .models()
+        .get_model(pb::GetModelRequest { name: "r-amortised".into() })
+        .await
+        .expect("model")
+        .into_inner();
     check_recovery(&load_reward(&server, &model), pb::RewardTarget::Mean);
 }
 
@@ -359,7 +367,10 @@ async fn amortised_target_settings_are_checked_at_submission() {
     let cases = [
         (pb::AmortisedTargets { pool_size: Some(0), ..Default::default() }, "amortised_targets.pool_size"),
         (pb::AmortisedTargets { reuse: Some(0), ..Default::default() }, "amortised_targets.reuse"),
-        (pb::AmortisedTargets { refresh_fraction: Some(1.5), ..Default::default() }, "amortised_targets.refresh_fraction"),
+        (
+            pb::AmortisedTargets { refresh_fraction: Some(1.5), ..Default::default() },
+            "amortised_targets.refresh_fraction",
+        ),
         (pb::AmortisedTargets { refresh_fraction: Some(f64::NAN), ..Default::default() }, "refresh_fraction"),
     ];
     for (i, (settings, field)) in cases.into_iter().enumerate() {
@@ -382,7 +393,11 @@ async fn amortised_target_settings_are_checked_at_submission() {
         .submit_job(pb::SubmitJobRequest { spec: Some(spec), job_id: String::new() })
         .await
         .expect_err("refused");
-    assert!(status.message().contains("spec.reward.amortised_targets: applies to with_dataset"), "{}", status.message());
+    assert!(
+        status.message().contains("spec.reward.amortised_targets: applies to with_dataset"),
+        "{}",
+        status.message()
+    );
 }
 
 #[tokio::test(flavor = "multi_thread")]

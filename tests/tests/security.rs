@@ -648,8 +648,7 @@ fn an_absent_device_stops_the_start_and_cpu_or_auto_start() {
         ("cuda:99", "engine.device: 'cuda:99' is not available"),
         ("gpu", "engine.device: 'gpu' is not one of cpu, cuda, cuda:N"),
     ] {
-        let (line, status, log) =
-            start_raw(&["--listen", "127.0.0.1:0"], &[("RELREWARD__ENGINE__DEVICE", device)]);
+        let (line, status, log) = start_raw(&["--listen", "127.0.0.1:0"], &[("RELREWARD__ENGINE__DEVICE", device)]);
         assert_eq!((line, status), (None, Some(2)), "{device}: {log}");
         assert!(log.contains(needle), "{device}: {log}");
     }

@@ -401,7 +401,8 @@ impl RewardService for Rewards {
                     .map(|(index, v)| Condition { index: *index, state: Tensor::from_slice(v) })
                     .collect();
                 let per_call = reward.as_deref().map(PerCall);
-                let mut sampler = GuidedSampler::new(&model).on_device(crate::engine::device()).with_conditions(conditions);
+                let mut sampler =
+                    GuidedSampler::new(&model).on_device(crate::engine::device()).with_conditions(conditions);
                 if let Some(r) = &per_call {
                     sampler = sampler.with_guidance(Guidance {
                         reward: r,
@@ -440,7 +441,7 @@ impl RewardService for Rewards {
                                 Vec::<f64>::try_from(
                                     &r.rho(&sampled.x, &t0)?.to_kind(Kind::Double).to_device(tch::Device::Cpu),
                                 )
-                                    .map_err(|e| Error::internal("reading rewards", e))?,
+                                .map_err(|e| Error::internal("reading rewards", e))?,
                             )
                         }
                         None => None,

@@ -317,7 +317,8 @@ mod tests {
         };
         let s = Schedule::new(&manifest.schedule, 10).expect("schedule");
         let model = |mean: &[f32]| {
-            DiffusionModel::new(manifest.clone(), Box::new(AnalyticGaussian::new(&s, mean, &[2], false))).expect("model")
+            DiffusionModel::new(manifest.clone(), Box::new(AnalyticGaussian::new(&s, mean, &[2], false)))
+                .expect("model")
         };
         (model(&[0.0, 0.0]), model(mean_e))
     }
@@ -329,9 +330,10 @@ mod tests {
     fn a_resumed_pool_equals_the_pool_that_never_stopped() {
         let (base, expert) = models(&[1.0, -2.0]);
         let rows = Tensor::randn([300, 2], (Kind::Float, tch::Device::Cpu));
-        let data = TrainingData::new(&rows, &crate::engine::normalizer::Normalizer::Identity, 1, None, None, 3)
-            .expect("data");
-        let src = TargetSource { base: &base, expert: &expert, data: &data, target: Target::Mean, eval_point: EvalPoint::XT };
+        let data =
+            TrainingData::new(&rows, &crate::engine::normalizer::Normalizer::Identity, 1, None, None, 3).expect("data");
+        let src =
+            TargetSource { base: &base, expert: &expert, data: &data, target: Target::Mean, eval_point: EvalPoint::XT };
         for f in [0.3, 1.0, 0.05] {
             let settings = AmortisedTargets { pool_size: 50, reuse: 2, refresh_fraction: f };
             // batch 10: an epoch is 10 steps.
@@ -350,7 +352,8 @@ mod tests {
                 assert!(diff < 1e-6, "f {f}: pools differ by {diff}");
             }
             // Mean target for this pair is c_t (m_e - m_b): every row is parallel to (1, -2).
-            let cross = (resumed.target.select(1, 0) * -2.0 - resumed.target.select(1, 1)).abs().max().double_value(&[]);
+            let cross =
+                (resumed.target.select(1, 0) * -2.0 - resumed.target.select(1, 1)).abs().max().double_value(&[]);
             assert!(cross < 1e-5, "targets must be parallel to the mean difference: {cross}");
             // Batches come from the pool, with the caller's stream.
             let (t, target, point) = resumed.sample(&mut Rng::new(1));

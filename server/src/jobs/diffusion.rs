@@ -2,7 +2,6 @@
 //! loss, with Adam, optional gradient clipping, EMA weights, periodic held-out loss and
 //! checkpoints, registering the EMA model when it succeeds.
 
-
 use super::context::{JobContext, Stop};
 use super::datasets::{array, load_rows};
 use super::spec::DiffusionJob;

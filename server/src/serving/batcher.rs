@@ -249,7 +249,8 @@ fn compute(queue: &ModelQueue, kind: BatchKind, batch: &[Pending]) -> Result<Vec
     let (x_host, device) = (x, crate::engine::device());
     let (x, t) = (x_host.f_to_device(device)?, t.f_to_device(device)?);
     let model = queue.model.lock();
-    let split = |v: Tensor| -> Result<Vec<Tensor>> { Ok(v.f_to_device(tch::Device::Cpu)?.f_split_with_sizes(&sizes, 0)?) };
+    let split =
+        |v: Tensor| -> Result<Vec<Tensor>> { Ok(v.f_to_device(tch::Device::Cpu)?.f_split_with_sizes(&sizes, 0)?) };
     match kind {
         BatchKind::Score { per_window, per_step } => {
             let _no_grad = tch::no_grad_guard();
