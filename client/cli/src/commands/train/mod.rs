@@ -388,6 +388,18 @@ mod tests {
         assert_eq!(r.algorithm, with_dataset(&["d1", "d2", "d3"]), "--dataset replaces the file's list");
         assert_eq!(r.architecture, windowed(Some(4), &[16, 16]), "--hidden keeps the file's window");
 
+        // Amortised targets: off without the flags; any one flag turns them on, the rest left
+        // to the server's defaults; `demo` passes the same flags on.
+        assert_eq!(r.amortised_targets, None);
+        let amortised = super::flags::AmortisedArgs { amortised_reuse: Some(8), ..Default::default() };
+        let args = TrainRewardArgs { amortised: amortised.clone(), ..Default::default() };
+        let spec = reward_spec(config(REWARD_CONFIG), &args).expect("spec");
+        assert_eq!(
+            reward(&spec).amortised_targets,
+            Some(pb::AmortisedTargets { pool_size: None, reuse: Some(8), refresh_fraction: None })
+        );
+        assert_eq!(amortised.to_argv(), ["--amortised-reuse", "8"]);
+
         // --window over the file's windowed_mlp; --arch of another kind drops the file's widths.
         let args = TrainRewardArgs { arch: ArchArgs { window: Some(8), ..Default::default() }, ..Default::default() };
         let spec = reward_spec(config(REWARD_CONFIG), &args).expect("spec");
