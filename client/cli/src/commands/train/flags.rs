@@ -142,8 +142,8 @@ pub struct AmortisedArgs {
 impl AmortisedArgs {
     /// The wire message, or None when no flag was given (the option stays off).
     pub fn to_proto(&self) -> Option<pb::AmortisedTargets> {
-        (self.amortised_pool.is_some() || self.amortised_reuse.is_some() || self.amortised_refresh.is_some()).then(
-            || pb::AmortisedTargets {
+        (self.amortised_pool.is_some() || self.amortised_reuse.is_some() || self.amortised_refresh.is_some()).then_some(
+            pb::AmortisedTargets {
                 pool_size: self.amortised_pool,
                 reuse: self.amortised_reuse,
                 refresh_fraction: self.amortised_refresh,
