@@ -17,6 +17,14 @@ a researcher's loop prints it), Adam and the EMA (decay 0.995 every 10 steps fro
 relreward's defaults). Sampling: three untimed guided steps, then `--repeats` timed runs of
 Diffuser's guided p_sample_loop over `--n` trajectories in one batch.
 
+`--compile` (alg1, ddpm): the same reference under `torch.compile` (inductor, the default
+backend; on the CPU it generates C++/OpenMP kernels). Algorithm 1 compiles the two frozen
+diffusion networks (where the step's time goes); the reward's double backward
+(`autograd.grad(create_graph=True)` then `.backward()`) is not supported by compiled
+autograd, so rho stays eager. DDPM compiles the denoiser (forward and backward through
+AOTAutograd). `compile_seconds` is the wall time of the first step, which triggers the
+compilation (the other warm-up steps then run the compiled code).
+
 Each line also carries the multiply-accumulates of one forward pass of every network (counted
 with hooks on the real modules, see reference.count_macs), the threads used and this
 process's peak RSS.
@@ -78,16 +86,27 @@ def normalize_obs(manifest, obs):
 
 
 def timed_training(step_fn, warmup, steps):
+    """(seconds of the timed steps, seconds of the first step: the compile time under --compile)."""
+    first = None
     for k in range(1, warmup + 1):
+        start = time.perf_counter()
         step_fn(k).item()
+        first = time.perf_counter() - start if first is None else first
     start = time.perf_counter()
     for k in range(warmup + 1, warmup + steps + 1):
         step_fn(k).item()
-    return time.perf_counter() - start
+    return time.perf_counter() - start, first
+
+
+def maybe_compile(module, args):
+    """`module` under torch.compile (inductor) with --compile, else itself."""
+    return torch.compile(module) if args.compile else module
 
 
 def run_alg1(args):
     base, expert = load_diffusion(args.data_dir, args.base), load_diffusion(args.data_dir, args.expert)
+    eager_net = base.net
+    base.net, expert.net = maybe_compile(base.net, args), maybe_compile(expert.net, args)
     shape = item_shape(base.manifest["space"])
     arch = {"kind": "windowed_mlp", "window": args.window, "hidden": [int(h) for h in args.hidden.split(",")]}
     torch.manual_seed(args.seed)
@@ -103,11 +122,12 @@ def run_alg1(args):
         noise = torch.randn_like(x0)
         return alg1_step(base, expert, reward, optimizer, ema, k, x0, t, noise)
 
-    seconds = timed_training(step, args.warmup, args.steps)
+    seconds, first = timed_training(step, args.warmup, args.steps)
     x, t = torch.zeros(args.batch, *shape), torch.zeros(args.batch, dtype=torch.long)
     return {"steps": args.steps, "seconds": seconds, "steps_per_second": args.steps / seconds,
-            "macs": {"diffusion": count_macs(base.net, x, t), "reward": count_macs(reward, x, t)},
-            "parameters": {"diffusion": sum(p.numel() for p in base.net.parameters()),
+            "compiled": args.compile, "compile_seconds": first if args.compile else None,
+            "macs": {"diffusion": count_macs(eager_net, x, t), "reward": count_macs(reward, x, t)},
+            "parameters": {"diffusion": sum(p.numel() for p in eager_net.parameters()),
                            "reward": sum(p.numel() for p in reward.parameters())}}
 
 
@@ -117,7 +137,8 @@ def run_ddpm(args):
     manifest, _ = stored_model(args.data_dir, args.manifest_of)
     torch.manual_seed(args.seed)
     net = build_denoiser(manifest["architecture"], manifest["space"])
-    model = Diffusion(net, manifest)
+    # Diffusion reads the network through .net; the compiled wrapper shares its parameters.
+    model = Diffusion(maybe_compile(net, args), manifest)
     optimizer = torch.optim.Adam(net.parameters(), lr=args.lr)
     ema = Ema(net)
     shape = item_shape(manifest["space"])
@@ -129,9 +150,10 @@ def run_ddpm(args):
         noise = torch.randn_like(x0)
         return ddpm_step(model, optimizer, ema, k, x0, t, noise)
 
-    seconds = timed_training(step, args.warmup, args.steps)
+    seconds, first = timed_training(step, args.warmup, args.steps)
     x, t = torch.zeros(args.batch, *shape), torch.zeros(args.batch, dtype=torch.long)
     return {"steps": args.steps, "seconds": seconds, "steps_per_second": args.steps / seconds,
+            "compiled": args.compile, "compile_seconds": first if args.compile else None,
             "macs": {"diffusion": count_macs(net, x, t)},
             "parameters": {"diffusion": sum(p.numel() for p in net.parameters())}}
 
@@ -184,6 +206,7 @@ def main():
     training.add_argument("--batch", type=int, default=64)
     training.add_argument("--steps", type=int, default=50)
     training.add_argument("--warmup", type=int, default=10)
+    training.add_argument("--compile", action="store_true", help="torch.compile (inductor) the networks; see above")
     alg1 = sub.add_parser("alg1", parents=[common, training])
     alg1.add_argument("--base", required=True)
     alg1.add_argument("--expert", required=True)

@@ -165,9 +165,11 @@ def models_from_data_dir(data_dir: pathlib.Path, names):
     return models
 
 
-def make_servicer(models, reward_pb2, reward_pb2_grpc, tensor_pb2):
-    import grpc
+def make_request_handling(models, reward_pb2, tensor_pb2):
+    """(prepare, compute, tensor): the request checks and the pass both reference servers share.
 
+    prepare(request) -> (model, x normalized [B, *item] float32, t [B] int64, omega or None,
+    raw-unit gradient?) or raises BadRequest; compute(model, x, t) -> (rho [B], grad_x rho)."""
     units_raw = (reward_pb2.UNITS_UNSPECIFIED, reward_pb2.UNITS_RAW)
 
     def decode_x(request):
@@ -189,7 +191,7 @@ def make_servicer(models, reward_pb2, reward_pb2_grpc, tensor_pb2):
         array = np.ascontiguousarray(t.detach().numpy(), dtype="<f4")
         return tensor_pb2.Tensor(shape=list(array.shape), dtype=tensor_pb2.DTYPE_FLOAT32, data=array.tobytes())
 
-    def answer(request):
+    def prepare(request):
         model = models.get(request.model)
         if model is None:
             raise BadRequest("NOT_FOUND", f"model: no reward model '{request.model}'")
@@ -208,14 +210,35 @@ def make_servicer(models, reward_pb2, reward_pb2_grpc, tensor_pb2):
             raise BadRequest("INVALID_ARGUMENT", f"t: values must lie in [0, {model.n_timesteps})")
         if model.scale is not None and request.input_units in units_raw:
             x = (x - model.offset) * model.scale
-        x.requires_grad_(True)
+        omega = request.omega if request.HasField("omega") else None
+        raw_grad = model.scale is not None and request.gradient_units in units_raw
+        return model, x, t, omega, raw_grad
+
+    def compute(model, x, t):
+        x = x.detach().requires_grad_(True)
         rho = model.rho(x, t)
         (grad,) = torch.autograd.grad(rho.sum(), x)
-        if request.HasField("omega"):
-            grad = grad * request.omega
-        if model.scale is not None and request.gradient_units in units_raw:
+        return rho.detach(), grad
+
+    def finish(request, model, rho, grad, omega, raw_grad):
+        if omega is not None:
+            grad = grad * omega
+        if raw_grad:
             grad = grad * model.scale
         return reward_pb2.GradientResponse(request_id=request.request_id, gradient=tensor(grad), rewards=tensor(rho))
+
+    return prepare, compute, finish
+
+
+def make_servicer(models, reward_pb2, reward_pb2_grpc, tensor_pb2):
+    import grpc
+
+    prepare, compute, finish = make_request_handling(models, reward_pb2, tensor_pb2)
+
+    def answer(request):
+        model, x, t, omega, raw_grad = prepare(request)
+        rho, grad = compute(model, x, t)
+        return finish(request, model, rho, grad, omega, raw_grad)
 
     class Servicer(reward_pb2_grpc.RewardServiceServicer):
         def Gradient(self, request, context):

@@ -130,6 +130,7 @@ class Ema:
     def after_step(self, model, step):
         if step % self.every != 0:
             return
+        model = getattr(model, "_orig_mod", model)  # a torch.compile wrapper: its module
         if step < self.start:
             self.model.load_state_dict(model.state_dict())
             return

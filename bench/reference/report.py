@@ -79,8 +79,52 @@ def describe_macs(macs):
     return " + ".join(f"{kind} {v / 1e6:.1f}M" for kind, v in sorted(macs.items())) + f" = {total(macs) / 1e6:.1f}M MACs"
 
 
+def spread_note(values, limit):
+    """min / median / max of one side's runs, and whether max / min exceeds `limit`."""
+    lo, mid, hi = min(values), median(values), max(values)
+    wide = len(values) > 1 and lo > 0 and hi / lo > limit
+    return f"{lo:.2f} / {mid:.2f} / {hi:.2f}", wide
+
+
+def compiled_section(runs, spread):
+    """The torch.compile peer (training.sh, COMPILE=1): its steps/s, compile time and the ratio
+    of relreward to it, with each side's spread; a ratio whose sides spread more than `spread`
+    (max / min) is marked as not meaningful."""
+    out = []
+    w = out.append
+    rows = [(b, label) for b, label in (("alg1", "Algorithm 1 steps/s"), ("ddpm", "DDPM training steps/s"))
+            if (b, "compiled") in runs and (b, "relreward") in runs]
+    if not rows:
+        return out
+    w("")
+    w("Against the PyTorch reference under `torch.compile` (inductor, CPU; `bench.py --compile`: Algorithm 1 "
+      "compiles the two frozen TemporalUnets, the reward's double backward stays eager since compiled autograd "
+      "does not take `create_graph`; DDPM compiles the denoiser's forward and backward), in the same rotation. "
+      "Spread = min / median / max steps/s over the runs; a ratio is marked *not meaningful* when either side's "
+      f"max / min exceeds {spread:g} (a descheduled run on a shared machine).")
+    w("")
+    w("| benchmark | relreward (min / median / max) | eager (min / median / max) | compiled (min / median / max) | "
+      "compile time s (median) | relreward / eager | relreward / compiled |")
+    w("|---|---|---|---|---|---|---|")
+    for b, label in rows:
+        rr = [r["steps_per_second"] for r in runs[(b, "relreward")]]
+        ref = [r["steps_per_second"] for r in runs.get((b, "reference"), [])]
+        comp = [r["steps_per_second"] for r in runs[(b, "compiled")]]
+        ct = median([r["compile_seconds"] for r in runs[(b, "compiled")] if r.get("compile_seconds") is not None])
+        (rr_s, rr_w), (comp_s, comp_w) = spread_note(rr, spread), spread_note(comp, spread)
+        ref_s, ref_w = spread_note(ref, spread) if ref else ("n/a", False)
+
+        def ratio(a, b, wide):
+            return f"{median(a) / median(b):.2f}x" + (" (*not meaningful: spread*)" if wide else "")
+
+        w(f"| {label} | {rr_s} | {ref_s} | {comp_s} | {ct:.1f} | "
+          f"{ratio(rr, ref, rr_w or ref_w) if ref else 'n/a'} | {ratio(rr, comp, rr_w or comp_w)} |")
+    return out
+
+
 def main():
     parser = argparse.ArgumentParser()
+    parser.add_argument("--spread", type=float, default=1.25, help="max / min beyond which a ratio is flagged")
     parser.add_argument("results")
     parser.add_argument("--threads", type=int, required=True)
     parser.add_argument("--sample-n", type=int, required=True)
@@ -89,6 +133,15 @@ def main():
     args = parser.parse_args()
     runs, loads = load(args.results)
     machine, peak_text, peak = cpu_peak(args.threads)
+    if not all((b, side) in runs for b in ("alg1", "ddpm", "sample") for side in ("relreward", "reference")):
+        # A partial run (training.sh ONLY=...): the comparison tables of what ran, no FLOP section.
+        print("## Training against PyTorch (partial run)")
+        print("")
+        print(f"Machine: {machine}; {args.threads} intra-op thread(s); {datetime.date.today().isoformat()}; "
+              f"1-minute load average after each run {min(loads):.1f} to {max(loads):.1f}. Command: `{args.command}`"
+              + (f" ({args.wall_seconds} s)." if args.wall_seconds else "."))
+        print("\n".join(compiled_section(runs, args.spread)))
+        return
     torch_version = runs[("alg1", "reference")][0]["torch"]
 
     alg1_rr = [r["steps_per_second"] for r in runs[("alg1", "relreward")]]
@@ -197,6 +250,7 @@ def main():
     ):
         a, b = gflops(flops, rr), gflops(flops, ref)
         w(f"| {label} | {flops / 1e9:.3f} | {a:.1f} | {100 * a / peak:.0f}% | {b:.1f} | {100 * b / peak:.0f}% |")
+    out.extend(compiled_section(runs, args.spread))
     w("")
     bars = [("Algorithm 1 steps/s", ratio_alg1, 1.0, " (aim 1.3)"), ("DDPM training steps/s", ratio_ddpm, 1.0, ""),
             ("guided sampling time per trajectory", ratio_samp, 1.0, "")]

@@ -235,6 +235,9 @@ pub struct JobsConfig {
 #[derive(Debug, Clone, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct EngineConfig {
+    /// Where tensors live and compute: `cpu`, `cuda`, `cuda:N` or `auto` (resolved once at
+    /// start by `engine::init`; a device that is not there stops the start).
+    pub device: String,
     /// libtorch intra-op threads (0: one per core).
     pub intra_op_threads: usize,
     /// Sampling requests computed at once (each on a blocking thread); more wait their turn.

@@ -94,7 +94,8 @@ pub async fn run(
         "access control"
     );
     let metrics_listener = bind_metrics(&config).await?;
-    engine::init(&config.engine);
+    // Resolves `engine.device` (a device that is not there stops the start here).
+    let device = engine::init(&config.engine)?;
     let store = store::Store::open(&config).await?;
     let role = config.role();
     // On shutdown, jobs stop at their next step (checkpointing first) and resume on the next
@@ -102,7 +103,7 @@ pub async fn run(
     let job_manager =
         jobs::JobManager::start(store.clone(), config.jobs.clone(), role.works(), CancellationToken::new()).await?;
     // Diffusion models, loaded from the store on demand and cached (models.cache_bytes).
-    let registry = engine::registry::ModelRegistry::new(store.clone(), &config.models, tch::Device::Cpu);
+    let registry = engine::registry::ModelRegistry::new(store.clone(), &config.models, device);
     // Inference compute (batched Score/Gradient passes and sampling runs) at once.
     let slots = std::sync::Arc::new(tokio::sync::Semaphore::new(config.engine.inference_workers));
     let metrics = metrics::Metrics::new();

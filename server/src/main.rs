@@ -80,6 +80,11 @@ fn main() -> ExitCode {
         eprintln!("relreward-server: {e}");
         return ExitCode::from(2);
     }
+    // So is a device that is not there (engine.device = cuda on a machine without a GPU).
+    if let Err(e) = relreward_server::engine::check_device(&config.engine) {
+        eprintln!("relreward-server: {e}");
+        return ExitCode::from(2);
+    }
     init_tracing(&config);
     let runtime = match tokio::runtime::Builder::new_multi_thread().enable_all().thread_name("relreward-io").build() {
         Ok(rt) => rt,

@@ -7,6 +7,11 @@
 #   maze: windowed MLP (window 4, hidden 128,64,32) on [H, D] = [64, 6] (Maze2D obs 4 + act 2)
 #   loco: Diffuser's ValueFunction (widths 64,64,128,128) on [32, 14] (locomotion obs 11 + act 3)
 #
+# The strongest Python peer runs beside both in the same rotation (A B C A B C): a dynamic-
+# batching server (bench/reference/grpc_batching_server.py: grpc.aio, one batching queue per
+# model, one pass per batch on a compute thread, the same nets and checks); its table follows
+# the main one (issue 21's bar: 64 streaming clients, at least 3x its throughput, lower p99).
+#
 # Serving, A B A B over REPS repetitions (medians and ratios), per model: unary Gradient with 1
 # client for UNARY_SECS (latency p50 / p99), and GradientStream with 64 closed-loop clients for
 # DURATION seconds (throughput, p99). Then relreward alone: GradientStream with 1 and 8 clients,
@@ -53,7 +58,7 @@ for b in relreward-server relreward relreward-loadgen; do
 done
 [[ -x $PY ]] || { echo "serving.sh: $PY is missing: make setup" >&2; exit 2; }
 tmp=$(mktemp -d)
-server= reference=
+server= reference= batching=
 stop() { # stop PID-VARIABLE
   local pid=${!1}
   if [[ -n $pid ]]; then
@@ -62,7 +67,7 @@ stop() { # stop PID-VARIABLE
     printf -v "$1" ''
   fi
 }
-trap 'stop server; stop reference; rm -rf "$tmp"' EXIT
+trap 'stop server; stop reference; stop batching; rm -rf "$tmp"' EXIT
 started=$(date +%s)
 
 # wait_line FILE PREFIX PID WHAT: waits for the line starting with PREFIX; prints the rest.
@@ -96,6 +101,16 @@ start_reference() {
     "${models[@]}" >"$tmp/reference.out" 2>>"$tmp/reference.log" &
   reference=$!
   ref_endpoint="http://$(wait_line "$tmp/reference.out" 'reference grpc_server listening on ' "$reference" grpc_server.py)"
+}
+
+# start_batching MODEL...: the dynamic-batching Python server over the same data directory.
+start_batching() {
+  local models=()
+  for m in "$@"; do models+=(--model "$m"); done
+  "$PY" bench/reference/grpc_batching_server.py --listen 127.0.0.1:0 --data-dir "$tmp/data" --threads "$THREADS" \
+    "${models[@]}" >"$tmp/batching.out" 2>>"$tmp/batching.log" &
+  batching=$!
+  batch_endpoint="http://$(wait_line "$tmp/batching.out" 'reference grpc_batching_server listening on ' "$batching" grpc_batching_server.py)"
 }
 
 rss_kib() { sed -n 's/^VmRSS:[[:space:]]*\([0-9]*\) kB/\1/p' "/proc/$1/status"; }
@@ -175,14 +190,19 @@ PY
 
 # Both servers fresh: relreward restarted after the training jobs (which loaded diffusion models).
 start_reference maze-reward loco-reward
+start_batching maze-reward loco-reward
 stop server
 start_server
 threads_rr=$(sed -n 's/.*intra_op_threads[=: ]*\([0-9]*\).*/\1/p' "$tmp/log" | tail -1)
 threads_ref=$(sed -n 's/.*torch intra-op threads \([0-9]*\).*/\1/p' "$tmp/reference.log" | tail -1)
 for rep in $(seq "$REPS"); do
   for model in maze-reward loco-reward; do
-    for who in relreward reference; do
-      if [[ $who == relreward ]]; then ep=$endpoint pid=$server; else ep=$ref_endpoint pid=$reference; fi
+    for who in relreward reference batching; do
+      case $who in
+        relreward) ep=$endpoint pid=$server ;;
+        reference) ep=$ref_endpoint pid=$reference ;;
+        batching) ep=$batch_endpoint pid=$batching ;;
+      esac
       load "$who" "unary c=1" "$model" "$ep" "{\"rep\": $rep}" --mode unary --clients 1 --duration "$UNARY_SECS"
       load "$who" "stream c=64" "$model" "$ep" "{\"rep\": $rep}" --mode stream --clients 64 --duration "$DURATION" \
         --rss-pid "$pid"
@@ -191,6 +211,7 @@ for rep in $(seq "$REPS"); do
 done
 peak_rr=$(hwm_kib "$server") peak_ref=$(hwm_kib "$reference")
 stop reference
+stop batching
 
 # relreward alone: fewer streaming clients, and one request per forward.
 for model in maze-reward loco-reward; do
@@ -333,6 +354,30 @@ for model in ("maze-reward", "loco-reward"):
     if single and single[0] > 0:
         lines.append(f"| {models[model].split(':')[0]} | dynamic batching vs max_batch = 1, 64 clients | "
                      f"{fmt(batched / single[0], 2)}x | | | |")
+lines += ["", "relreward against the dynamic-batching Python server (`bench/reference/grpc_batching_server.py`: grpc.aio, "
+          "one batching queue per model taking whatever is queued up to 256 items (relreward's `max_batch`, "
+          "`max_delay_us = 0`), one forward/backward per batch on a compute thread, the same nets, weights and checks "
+          "as the reference), measured in the same rotation. Ratio as above.", "",
+          "| model | configuration | metric | relreward | batching Python | ratio |", "|---|---|---|---|---|---|"]
+for model in ("maze-reward", "loco-reward"):
+    for label, key, name in (("unary c=1", "p50", "p50 ms"), ("stream c=64", "items_per_s", "items/s"),
+                             ("stream c=64", "p99", "p99 ms")):
+        got = {}
+        for who in ("relreward", "batching"):
+            vals = [r["items_per_s"] if key == "items_per_s" else (r.get("latency_ms") or {}).get(key, float("nan"))
+                    for r in pick(who, label, model)]
+            got[who] = (median(vals), vals)
+        a, b = got["relreward"][0], got["batching"][0]
+        ratio = a / b if key == "items_per_s" else b / a
+        summary[(model, label, key, "batching")] = (a, b, ratio)
+        config = "unary Gradient, 1 client" if label == "unary c=1" else "GradientStream, 64 clients"
+        cell = lambda m, vals: f"{fmt(m)} [{', '.join(fmt(v) for v in vals)}]"
+        lines.append(f"| {models[model].split(':')[0]} | {config} | {name} | {cell(*got['relreward'])} | "
+                     f"{cell(*got['batching'])} | {fmt(ratio, 2)}x |")
+btp = summary[("maze-reward", "stream c=64", "items_per_s", "batching")]
+bp99 = summary[("maze-reward", "stream c=64", "p99", "batching")]
+lines += ["", f"Bar (issue 21, maze model): 64 streaming clients, at least 3x the batching Python server's throughput: "
+          f"{fmt(btp[2], 2)}x, {ok(btp[2] >= 3)}; with lower p99 ({fmt(bp99[0])} vs {fmt(bp99[1])} ms): {ok(bp99[0] < bp99[1])}."]
 serving_md = "\n".join(lines) + "\n"
 
 soak = json.load(open(f"{tmp}/soak.json"))

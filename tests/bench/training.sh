@@ -17,6 +17,12 @@
 #    omega 0.1, t_stopgrad 0, start and goal conditioned): `relreward sample` (wall time of the
 #    CLI call, so it includes process start and streaming the samples back) vs bench.py sample.
 #
+# The PyTorch reference also runs under torch.compile (inductor on the CPU; COMPILE=0 skips it)
+# in the same rotation (A B C A B C) for Algorithm 1 and DDPM, reporting its compile time.
+# Spread: every side's runs are reported as min / median / max, and a ratio whose sides spread
+# by more than SPREAD (max / min, default 1.25) is flagged as not meaningful (one descheduled
+# run on a shared machine moves a median of 3 that much).
+#
 # Each benchmark alternates relreward and the reference (A B A B ...) over REPS repetitions and
 # reports medians and the speed ratio relreward / reference (> 1: relreward is faster).
 # relreward's training rate comes from its job's own progress events, between step WARMUP and
@@ -46,6 +52,9 @@ SAMPLE_N=${SAMPLE_N:-64}
 THREADS=${THREADS:-$(nproc)}
 SPLICE=${SPLICE:-1}
 OUT_DIR=${OUT_DIR:-}
+COMPILE=${COMPILE:-1}
+SPREAD=${SPREAD:-1.25}
+ONLY=${ONLY:-alg1 ddpm sample}
 LOG_EVERY=10
 BIN=target/release
 PY=.venv/bin/python
@@ -134,8 +143,12 @@ stop_server
 
 reference() { "$PY" bench/reference/bench.py "$@" --data-dir "$tmp/data" --threads "$THREADS"; }
 
+# wanted BENCHMARK: whether ONLY names it (ONLY="alg1 ddpm" skips sampling, for quick reruns).
+wanted() { [[ " $ONLY " == *" $1 "* ]]; }
+
 # --- 1. Algorithm 1 ------------------------------------------------------------------------------
 alg1_total=$((WARMUP + ALG1_STEPS + LOG_EVERY))
+if wanted alg1; then
 start_server
 for rep in $(seq "$REPS"); do
   rr --json train reward --name "reward-$rep" --base base --expert expert --dataset maze --arch windowed_mlp \
@@ -143,12 +156,18 @@ for rep in $(seq "$REPS"); do
   record alg1 relreward "$rep" "$(job_rate "$tmp/events" "$ALG1_STEPS")"
   record alg1 reference "$rep" "$(reference alg1 --base base --expert expert --dataset "$tmp/maze.npz" \
     --batch 64 --steps "$ALG1_STEPS" --warmup "$WARMUP")"
+  if [[ $COMPILE == 1 ]]; then
+    record alg1 compiled "$rep" "$(reference alg1 --base base --expert expert --dataset "$tmp/maze.npz" \
+      --batch 64 --steps "$ALG1_STEPS" --warmup "$WARMUP" --compile)"
+  fi
 done
 record alg1 relreward-server 0 "{\"peak_rss_mib\": $(server_peak_mib)}"
 stop_server
+fi
 
 # --- 2. DDPM -------------------------------------------------------------------------------------
 ddpm_total=$((WARMUP + DDPM_STEPS + LOG_EVERY))
+if wanted ddpm; then
 start_server
 for rep in $(seq "$REPS"); do
   rr --json train diffusion --name "ddpm-$rep" --dataset maze --config "$tmp/unet.toml" --steps "$ddpm_total" \
@@ -156,14 +175,20 @@ for rep in $(seq "$REPS"); do
   record ddpm relreward "$rep" "$(job_rate "$tmp/events" "$DDPM_STEPS")"
   record ddpm reference "$rep" "$(reference ddpm --manifest-of base --dataset "$tmp/maze.npz" \
     --batch 64 --steps "$DDPM_STEPS" --warmup "$WARMUP")"
+  if [[ $COMPILE == 1 ]]; then
+    record ddpm compiled "$rep" "$(reference ddpm --manifest-of base --dataset "$tmp/maze.npz" \
+      --batch 64 --steps "$DDPM_STEPS" --warmup "$WARMUP" --compile)"
+  fi
 done
 record ddpm relreward-server 0 "{\"peak_rss_mib\": $(server_peak_mib)}"
 stop_server
+fi
 
 # --- 3. Guided sampling --------------------------------------------------------------------------
 # Maze planning: start and goal observations [x, y, vx, vy] (raw units) at the ends.
 conditions=(--condition 0=1.5,1.5,0,10000 --condition 63=6.5,8.5,0,10000)
 guide=(--n-guide-steps 1 --t-stopgrad 0)
+if wanted sample; then
 start_server
 sample() { rr --json sample --base base --reward reward-1 --scale 0.1 "${guide[@]}" "${conditions[@]}" --n "$SAMPLE_N" --seed "$1" >/dev/null; }
 sample 0 # warm-up: loads both models into the server's cache
@@ -178,11 +203,14 @@ print(json.dumps({'n': $SAMPLE_N, 'seconds': s, 'seconds_per_trajectory': s / $S
 done
 record sample relreward-server 0 "{\"peak_rss_mib\": $(server_peak_mib)}"
 stop_server
+fi
 
 # --- report --------------------------------------------------------------------------------------
 command="REPS=$REPS WARMUP=$WARMUP ALG1_STEPS=$ALG1_STEPS DDPM_STEPS=$DDPM_STEPS SAMPLE_N=$SAMPLE_N"
 [[ $THREADS == "$(nproc)" ]] || command+=" THREADS=$THREADS"
-"$PY" bench/reference/report.py "$results" --threads "$THREADS" --sample-n "$SAMPLE_N" \
+[[ $COMPILE == 1 ]] || command+=" COMPILE=$COMPILE"
+[[ $ONLY == "alg1 ddpm sample" ]] || command+=" ONLY='$ONLY'"
+"$PY" bench/reference/report.py "$results" --threads "$THREADS" --sample-n "$SAMPLE_N" --spread "$SPREAD" \
   --command "cargo build --release --workspace --bins && $command tests/bench/training.sh" \
   --wall-seconds $(($(date +%s) - started)) >"$tmp/training.md"
 cat "$tmp/training.md"

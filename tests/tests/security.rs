@@ -639,6 +639,36 @@ async fn mutual_tls_needs_a_client_certificate_from_the_ca() {
     assert_eq!(out.status.code(), Some(2), "--client-cert without --client-key is a usage error: {}", stderr(&out));
 }
 
+/// `engine.device` (issue 21): a CUDA device that libtorch does not see stops the start before
+/// anything is bound or created, naming the key; `cpu` and `auto` start (auto is the CPU here
+/// unless this machine has a GPU and a CUDA libtorch); a value that is no device is refused.
+#[test]
+fn an_absent_device_stops_the_start_and_cpu_or_auto_start() {
+    for (device, needle) in [
+        ("cuda:99", "engine.device: 'cuda:99' is not available"),
+        ("gpu", "engine.device: 'gpu' is not one of cpu, cuda, cuda:N"),
+    ] {
+        let (line, status, log) = start_raw(&["--listen", "127.0.0.1:0"], &[("RELREWARD__ENGINE__DEVICE", device)]);
+        assert_eq!((line, status), (None, Some(2)), "{device}: {log}");
+        assert!(log.contains(needle), "{device}: {log}");
+    }
+    if !tch_sees_a_gpu() {
+        let (line, status, log) = start_raw(&["--listen", "127.0.0.1:0"], &[("RELREWARD__ENGINE__DEVICE", "cuda")]);
+        assert_eq!((line, status), (None, Some(2)), "{log}");
+        assert!(log.contains("engine.device: 'cuda' is not available: libtorch sees 0 CUDA device(s)"), "{log}");
+    }
+    for device in ["cpu", "auto"] {
+        let (line, _, log) = start_raw(&["--listen", "127.0.0.1:0"], &[("RELREWARD__ENGINE__DEVICE", device)]);
+        assert!(line.is_some_and(|l| l.contains("listening on")), "{device}: {log}");
+    }
+}
+
+/// Whether this machine has a GPU at all (nvidia-smi lists one); the refusal of `cuda` is only
+/// certain without one.
+fn tch_sees_a_gpu() -> bool {
+    Command::new("nvidia-smi").arg("-L").output().is_ok_and(|o| o.status.success() && !o.stdout.is_empty())
+}
+
 #[test]
 fn bad_tls_files_stop_the_start() {
     let pki = Pki::new();

@@ -14,6 +14,7 @@ use super::{convert, page_limit, timestamp};
 use crate::engine::manifest::{Architecture, DiffusionManifest, Parametrization, ScheduleSpec, Space};
 use crate::engine::nets::reward::RewardArchitecture;
 use crate::engine::relative_reward::{EvalPoint, Target};
+use crate::engine::target_pool::AmortisedTargets;
 use crate::error::Error;
 use crate::fields::{self, validate_name, validate_names};
 use crate::jobs::JobManager;
@@ -154,6 +155,14 @@ impl Jobs {
                         eval_point,
                         algorithm,
                         rho_l2: r.rho_l2.unwrap_or(0.0),
+                        amortised_targets: r.amortised_targets.map(|a| {
+                            let d = AmortisedTargets::DEFAULT;
+                            AmortisedTargets {
+                                pool_size: a.pool_size.map_or(d.pool_size, |v| v as usize),
+                                reuse: a.reuse.unwrap_or(d.reuse),
+                                refresh_fraction: a.refresh_fraction.unwrap_or(d.refresh_fraction),
+                            }
+                        }),
                     }),
                 })
             }
@@ -351,6 +360,11 @@ fn spec_to_proto(spec: &JobSpec) -> pb::JobSpec {
                 }
             }),
             rho_l2: Some(r.rho_l2),
+            amortised_targets: r.amortised_targets.map(|a| pb::AmortisedTargets {
+                pool_size: Some(a.pool_size as u32),
+                reuse: Some(a.reuse),
+                refresh_fraction: Some(a.refresh_fraction),
+            }),
         }),
         JobKind::Discriminator(d) => pb::job_spec::Kind::Discriminator(pb::TrainDiscriminator {
             base_dataset: d.base_dataset.clone(),

@@ -401,7 +401,8 @@ impl RewardService for Rewards {
                     .map(|(index, v)| Condition { index: *index, state: Tensor::from_slice(v) })
                     .collect();
                 let per_call = reward.as_deref().map(PerCall);
-                let mut sampler = GuidedSampler::new(&model).with_conditions(conditions);
+                let mut sampler =
+                    GuidedSampler::new(&model).on_device(crate::engine::device()).with_conditions(conditions);
                 if let Some(r) = &per_call {
                     sampler = sampler.with_guidance(Guidance {
                         reward: r,
@@ -435,20 +436,24 @@ impl RewardService for Rewards {
                     }
                     let rewards = match &per_call {
                         Some(r) => {
-                            let t0 = Tensor::zeros([b as i64], (Kind::Int64, tch::Device::Cpu));
+                            let t0 = Tensor::zeros([b as i64], (Kind::Int64, sampled.x.device()));
                             Some(
-                                Vec::<f64>::try_from(&r.rho(&sampled.x, &t0)?.to_kind(Kind::Double))
-                                    .map_err(|e| Error::internal("reading rewards", e))?,
+                                Vec::<f64>::try_from(
+                                    &r.rho(&sampled.x, &t0)?.to_kind(Kind::Double).to_device(tch::Device::Cpu),
+                                )
+                                .map_err(|e| Error::internal("reading rewards", e))?,
                             )
                         }
                         None => None,
                     };
-                    let raw = normalizer.unnormalize(&sampled.x, item_dims);
+                    // One copy of the batch to the host (a no-op on the CPU), then per-item views.
+                    let x_host = sampled.x.to_device(tch::Device::Cpu);
+                    let raw = normalizer.unnormalize(&x_host, item_dims);
                     for i in 0..b {
                         let response = pb::SampleResponse {
                             index: (done + i) as u32,
                             x: Some(tensor_f32(&raw.get(i as i64))?),
-                            x_normalized: Some(tensor_f32(&sampled.x.get(i as i64))?),
+                            x_normalized: Some(tensor_f32(&x_host.get(i as i64))?),
                             reward: rewards.as_ref().map(|r| r[i]),
                         };
                         if tx.blocking_send(Ok(response)).is_err() {

@@ -79,8 +79,13 @@ impl TrainingData {
         self.train.len()
     }
 
+    /// The same items with their rows on `device` (batches are gathered there).
+    pub fn to_device(self, device: tch::Device) -> Self {
+        Self { rows: self.rows.to_device(device), ..self }
+    }
+
     fn gather(&self, starts: &[i64]) -> Tensor {
-        let idx = Tensor::from_slice(starts);
+        let idx = Tensor::from_slice(starts).to_device(self.rows.device());
         match self.horizon {
             Some(h) => {
                 let offsets = Tensor::arange(h, (Kind::Int64, self.rows.device()));

@@ -12,6 +12,8 @@
 //! - [`sampling`]: ancestral sampling with inpainting conditions and classifier guidance.
 //! - [`optim`]: Adam and EMA whose state checkpoints can hold.
 //! - [`relative_reward`]: the gradient-alignment objective of Algorithm 1.
+//! - [`target_pool`]: Algorithm 1's amortised targets: a pool of (t, target, point) computed
+//!   in big passes, each reused several times, refreshed a fraction per epoch.
 //! - [`nets`]: native architectures (TemporalUnet, MLP denoiser) with safetensors weights.
 //! - [`torchscript`]: [`torchscript::TorchScriptDenoiser`], an uploaded TorchScript module as a
 //!   denoiser, validated against its manifest by one forward pass.
@@ -33,17 +35,102 @@ pub mod reward_model;
 pub mod rng;
 pub mod sampling;
 pub mod schedule;
+pub mod target_pool;
 pub mod torchscript;
 
-use crate::config::EngineConfig;
+use std::sync::OnceLock;
 
-/// Configures libtorch's thread pool once at start, before any tensor work, and reports what
-/// the process runs on.
-pub fn init(config: &EngineConfig) {
+use tch::Device;
+
+use crate::config::{ConfigError, EngineConfig};
+
+/// The device resolved from `engine.device` at start. Process-wide on purpose, like
+/// libtorch's thread pool that `init` also sets: one server process computes on one device,
+/// and jobs, sampling, serving and registry loads all read it here (unset, as in unit tests
+/// that never call `init`: the CPU).
+static DEVICE: OnceLock<Device> = OnceLock::new();
+
+/// The device every computation of this process runs on (see [`init`]).
+pub fn device() -> Device {
+    DEVICE.get().copied().unwrap_or(Device::Cpu)
+}
+
+/// `engine.device` against the CUDA devices libtorch sees: `cpu`, `cuda` (= `cuda:0`),
+/// `cuda:N`, or `auto` (the first CUDA device if there is one, else the CPU). A CUDA device
+/// that is not there is an error naming the key, never a silent fall back to the CPU.
+pub fn resolve_device(setting: &str, cuda_devices: usize) -> Result<Device, ConfigError> {
+    let invalid = |message: String| ConfigError::Invalid { key: "engine.device", message };
+    let absent = || {
+        invalid(format!(
+            "'{setting}' is not available: libtorch sees {cuda_devices} CUDA device(s){} (use cpu or auto, or run on a machine with the GPU and a CUDA build of libtorch)",
+            if cuda_devices > 0 { format!(", numbered 0 to {}", cuda_devices - 1) } else { String::new() }
+        ))
+    };
+    match setting.trim() {
+        "cpu" => Ok(Device::Cpu),
+        "auto" => Ok(if cuda_devices > 0 { Device::Cuda(0) } else { Device::Cpu }),
+        "cuda" if cuda_devices > 0 => Ok(Device::Cuda(0)),
+        "cuda" => Err(absent()),
+        s => match s.strip_prefix("cuda:").map(str::parse::<usize>) {
+            Some(Ok(n)) if n < cuda_devices => Ok(Device::Cuda(n)),
+            Some(Ok(_)) => Err(absent()),
+            _ => Err(invalid(format!("'{setting}' is not one of cpu, cuda, cuda:N (N a device number) or auto"))),
+        },
+    }
+}
+
+/// `engine.device` resolved against the CUDA devices libtorch sees on this machine.
+pub fn check_device(config: &EngineConfig) -> Result<Device, ConfigError> {
+    resolve_device(&config.device, usize::try_from(tch::Cuda::device_count()).unwrap_or(0))
+}
+
+/// Configures libtorch once at start, before any tensor work: its thread pool, and the device
+/// (`engine.device`, resolved by [`resolve_device`]; a device that is absent stops the start).
+/// Returns the device and reports what the process runs on.
+pub fn init(config: &EngineConfig) -> Result<Device, ConfigError> {
+    let cuda_devices = usize::try_from(tch::Cuda::device_count()).unwrap_or(0);
+    let device = resolve_device(&config.device, cuda_devices)?;
     let threads = match config.intra_op_threads {
         0 => std::thread::available_parallelism().map_or(1, usize::from),
         n => n,
     };
     tch::set_num_threads(i32::try_from(threads).unwrap_or(1));
-    tracing::info!(intra_op_threads = tch::get_num_threads(), cuda = tch::Cuda::is_available(), "libtorch initialised");
+    // A second `init` in one process (tests start several servers) keeps the first device.
+    let device = *DEVICE.get_or_init(|| device);
+    tracing::info!(
+        intra_op_threads = tch::get_num_threads(),
+        cuda_devices,
+        device = ?device,
+        setting = config.device,
+        "libtorch initialised"
+    );
+    Ok(device)
+}
+
+#[cfg(test)]
+mod device_tests {
+    use super::*;
+
+    #[test]
+    fn engine_device_resolves_or_names_the_key() {
+        assert_eq!(resolve_device("cpu", 0).expect("cpu"), Device::Cpu);
+        assert_eq!(resolve_device("auto", 0).expect("auto"), Device::Cpu);
+        assert_eq!(resolve_device("auto", 2).expect("auto"), Device::Cuda(0));
+        assert_eq!(resolve_device("cuda", 1).expect("cuda"), Device::Cuda(0));
+        assert_eq!(resolve_device("cuda:1", 2).expect("cuda:1"), Device::Cuda(1));
+        for (setting, n, needle) in [
+            ("cuda", 0, "'cuda' is not available: libtorch sees 0 CUDA device(s)"),
+            ("cuda:0", 0, "'cuda:0' is not available"),
+            ("cuda:2", 2, "numbered 0 to 1"),
+            ("gpu", 1, "'gpu' is not one of cpu, cuda, cuda:N"),
+            ("cuda:x", 1, "is not one of"),
+            ("", 0, "is not one of"),
+        ] {
+            let e = resolve_device(setting, n).expect_err(setting).to_string();
+            assert!(e.contains("engine.device") && e.contains(needle), "{setting}: {e}");
+        }
+        // This machine's answer for `auto` is whatever libtorch sees; `cpu` never needs CUDA.
+        let here = usize::try_from(tch::Cuda::device_count()).unwrap_or(0);
+        assert_eq!(resolve_device("auto", here).expect("auto").is_cuda(), here > 0);
+    }
 }

@@ -85,8 +85,9 @@ impl Adam {
     pub fn save(&self, params: &[(String, Tensor)], path: &Path) -> Result<()> {
         let mut named: Vec<(String, Tensor)> = Vec::with_capacity(2 * params.len());
         for ((name, _), (m, v)) in params.iter().zip(self.m.iter().zip(&self.v)) {
-            named.push((format!("m.{name}"), m.shallow_clone()));
-            named.push((format!("v.{name}"), v.shallow_clone()));
+            // Saved from the CPU, so a checkpoint is the same file whatever device trained it.
+            named.push((format!("m.{name}"), m.to_device(tch::Device::Cpu)));
+            named.push((format!("v.{name}"), v.to_device(tch::Device::Cpu)));
         }
         Tensor::write_safetensors(&named, path).map_err(|e| Error::internal("writing optimizer state", e))
     }

@@ -2,8 +2,6 @@
 //! loss, with Adam, optional gradient clipping, EMA weights, periodic held-out loss and
 //! checkpoints, registering the EMA model when it succeeds.
 
-use tch::Device;
-
 use super::context::{JobContext, Stop};
 use super::datasets::{array, load_rows};
 use super::spec::DiffusionJob;
@@ -186,9 +184,10 @@ pub fn run(ctx: &mut JobContext, job: &DiffusionJob) -> std::result::Result<Stri
         starts.as_ref().map(|_| job.horizon),
         starts,
         spec.seed,
-    )?;
+    )?
+    .to_device(crate::engine::device());
 
-    let device = Device::Cpu;
+    let device = crate::engine::device();
     let arch = manifest.architecture.clone().ok_or_else(|| Error::internal("diffusion job", "no architecture"))?;
     tch::manual_seed(spec.seed as i64); // initialization only; every later draw uses the loop's Rng
     let denoiser = NativeDenoiser::new(&arch, &manifest.space, device)?;

@@ -19,6 +19,7 @@ use crate::engine::relative_reward::{
 };
 use crate::engine::reward_model::STEP_NORM_FILE;
 use crate::engine::rng::Rng;
+use crate::engine::target_pool::{TargetPool, TargetSource};
 use crate::error::{Error, Result};
 use crate::store::ingest::now_ms;
 use crate::store::{DatasetKind, ModelFormat, ModelKind, ModelRecord, Provenance, Store};
@@ -82,6 +83,9 @@ pub async fn validate_inputs(store: &Store, job: &RewardJob) -> Result<()> {
     }
     RewardNet::planned_parameter_count(&job.architecture, &base.space.item_shape())
         .map_err(|e| Error::invalid(format!("spec.reward.architecture: {e}")))?;
+    if let Some(a) = &job.amortised_targets {
+        a.check_memory(base.space.item_shape().iter().product::<i64>() as usize)?;
+    }
     match &job.algorithm {
         RewardAlgorithm::ModelsOnly { .. } => {}
         RewardAlgorithm::WithDataset { datasets } => {
@@ -172,7 +176,7 @@ struct ChainPairs {
 /// first half of the chains and the expert's in the second half (the paper's Algorithm 2).
 fn chain_pairs(base: &DiffusionModel, expert: &DiffusionModel, k: usize, rng: &mut Rng) -> Result<ChainPairs> {
     let _guard = tch::no_grad_guard();
-    let device = Device::Cpu;
+    let device = crate::engine::device();
     let mut shape = vec![k as i64];
     shape.extend(base.item_shape());
     let mut x = rng.randn(&shape, device);
@@ -225,7 +229,7 @@ fn chain_pairs(base: &DiffusionModel, expert: &DiffusionModel, k: usize, rng: &m
     for i in (1..order.len()).rev() {
         order.swap(i, rng.below(i as u64 + 1) as usize);
     }
-    let order = Tensor::from_slice(&order);
+    let order = Tensor::from_slice(&order).to_device(x.device());
     let train = n - (n / 20).max(1);
     Ok(ChainPairs {
         x: x.index_select(0, &order),
@@ -278,7 +282,8 @@ fn dataset_union(
         all_rows.push(rows);
     }
     let rows = Tensor::cat(&all_rows, 0);
-    TrainingData::new(&rows, normalizer, space.normalizer_dims(), horizon, Some(all_starts), seed)
+    Ok(TrainingData::new(&rows, normalizer, space.normalizer_dims(), horizon, Some(all_starts), seed)?
+        .to_device(crate::engine::device()))
 }
 
 fn load_model(ctx: &JobContext, name: &str) -> Result<DiffusionModel> {
@@ -287,13 +292,13 @@ fn load_model(ctx: &JobContext, name: &str) -> Result<DiffusionModel> {
         .block_on(store.meta.get_model(name))?
         .ok_or_else(|| Error::NotFound(format!("model '{name}' was deleted")))?;
     let dir = ctx.block_on(store.blobs.local_dir(&record.blob_key))?;
-    load_diffusion_copy(&record, &dir, Device::Cpu)
+    load_diffusion_copy(&record, &dir, crate::engine::device())
 }
 
 pub fn run(ctx: &mut JobContext, job: &RewardJob) -> std::result::Result<String, Stop> {
     let spec = ctx.spec.clone();
     let opt = &spec.optimization;
-    let device = Device::Cpu;
+    let device = crate::engine::device();
     let base = load_model(ctx, &job.base_model)?;
     let expert = load_model(ctx, &job.expert_model)?;
     check_pair(&base, &expert)?;
@@ -366,15 +371,46 @@ pub fn run(ctx: &mut JobContext, job: &RewardJob) -> std::result::Result<String,
                 if idx.is_empty() {
                     return Ok(None);
                 }
-                let idx = Tensor::from_slice(&idx);
+                let idx = Tensor::from_slice(&idx).to_device(c.t.device());
                 Ok(Some((c.t.index_select(0, &idx), c.target.index_select(0, &idx), c.x.index_select(0, &idx))))
             }
         }
     };
+    // Amortised targets: a pool filled and refreshed on the step schedule (see
+    // engine/target_pool.rs); `step` mirrors the loop's counter, which starts at the resumed step.
+    let mut pool = match (&job.amortised_targets, &pairs) {
+        (Some(a), Pairs::Dataset(_)) => Some(TargetPool::new(*a, spec.seed, batch, t_max)),
+        _ => None,
+    };
+    if let Some(a) = job.amortised_targets.as_ref().filter(|_| pool.is_some()) {
+        ctx.log(format!(
+            "amortised targets: pool {}, reuse {}, refresh fraction {} ({} items every {} steps)",
+            a.pool_size,
+            a.reuse,
+            a.refresh_fraction,
+            a.refresh_items(),
+            a.steps_per_epoch(batch)
+        ))?;
+    }
+    let mut step = train.step;
     train.run(
         ctx,
         |rng| {
-            let (t, target, point) = draw(rng, false)?.ok_or_else(|| Error::internal("reward job", "empty batch"))?;
+            step += 1;
+            let (t, target, point) = match (&mut pool, &pairs) {
+                (Some(pool), Pairs::Dataset(data)) => {
+                    let src = TargetSource {
+                        base: &base,
+                        expert: &expert,
+                        data,
+                        target: job.target,
+                        eval_point: job.eval_point,
+                    };
+                    pool.ensure(step, &src)?;
+                    pool.sample(rng)
+                }
+                _ => draw(rng, false)?.ok_or_else(|| Error::internal("reward job", "empty batch"))?,
+            };
             alignment_loss(&reward, &point, &t, &target, job.rho_l2)
         },
         || {
@@ -426,7 +462,8 @@ fn register(
     train.use_ema_weights();
     let staging = ctx.staging()?;
     if !step_norm.is_empty() {
-        Tensor::write_safetensors(step_norm, staging.path().join(STEP_NORM_FILE))
+        let step_norm: Vec<(&String, Tensor)> = step_norm.iter().map(|(n, t)| (n, t.to_device(Device::Cpu))).collect();
+        Tensor::write_safetensors(&step_norm, staging.path().join(STEP_NORM_FILE))
             .map_err(|e| Error::internal("writing step normalization", e))?;
     }
     let (sha256, size_bytes) = train.write_final(&staging.path().join("weights.safetensors"))?;
@@ -473,6 +510,7 @@ pub async fn validate_discriminator(store: &Store, job: &DiscriminatorJob) -> Re
             datasets: vec![job.base_dataset.clone(), job.expert_dataset.clone()],
         },
         rho_l2: 0.0,
+        amortised_targets: None,
     };
     validate_inputs(store, &as_reward).await.map_err(|e| match e {
         Error::InvalidArgument(m) => Error::InvalidArgument(m.replace("spec.reward", "spec.discriminator")),
@@ -487,7 +525,7 @@ pub async fn validate_discriminator(store: &Store, job: &DiscriminatorJob) -> Re
 pub fn run_discriminator(ctx: &mut JobContext, job: &DiscriminatorJob) -> std::result::Result<String, Stop> {
     let spec = ctx.spec.clone();
     let opt = &spec.optimization;
-    let device = Device::Cpu;
+    let device = crate::engine::device();
     let model = load_model(ctx, &job.diffusion_model)?;
     let space = model.manifest.space.clone();
     let normalizer = model.manifest.normalizer.clone();

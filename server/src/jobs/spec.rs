@@ -8,6 +8,7 @@ use serde::{Deserialize, Serialize};
 use crate::engine::manifest::{Architecture, Parametrization, ScheduleSpec};
 use crate::engine::nets::reward::RewardArchitecture;
 use crate::engine::relative_reward::{EvalPoint, Target};
+use crate::engine::target_pool::AmortisedTargets;
 use crate::error::{Error, Result};
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -72,6 +73,9 @@ pub struct RewardJob {
     pub algorithm: RewardAlgorithm,
     /// Weight of the rho^2 regularizer (0: off).
     pub rho_l2: f64,
+    /// Algorithm 1's amortised targets (None: off, targets computed for every batch).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub amortised_targets: Option<AmortisedTargets>,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -185,6 +189,14 @@ impl JobSpec {
                         )));
                     }
                     _ => {}
+                }
+                if let Some(a) = &r.amortised_targets {
+                    a.validate()?;
+                    if matches!(r.algorithm, RewardAlgorithm::ModelsOnly { .. }) {
+                        return Err(Error::invalid(
+                            "spec.reward.amortised_targets: applies to with_dataset (Algorithm 1) only; models_only already computes its pairs once",
+                        ));
+                    }
                 }
             }
             JobKind::Discriminator(_) => {}

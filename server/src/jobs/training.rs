@@ -186,6 +186,9 @@ impl TrainLoop {
     }
 }
 
+/// Writes from the CPU, so weights and checkpoints are the same files whatever device trained
+/// them (read back, they load to the CPU and are copied onto the job's device).
 fn write_weights(named: &[(String, Tensor)], path: &Path) -> Result<()> {
-    Tensor::write_safetensors(named, path).map_err(|e| Error::internal("writing weights", e))
+    let named: Vec<(&String, Tensor)> = named.iter().map(|(n, t)| (n, t.to_device(tch::Device::Cpu))).collect();
+    Tensor::write_safetensors(&named, path).map_err(|e| Error::internal("writing weights", e))
 }

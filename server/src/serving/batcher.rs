@@ -243,8 +243,14 @@ fn compute(queue: &ModelQueue, kind: BatchKind, batch: &[Pending]) -> Result<Vec
     let sizes: Vec<i64> = batch.iter().map(|p| p.query.batch()).collect();
     let x = Tensor::f_cat(&batch.iter().map(|p| &p.query.x).collect::<Vec<_>>(), 0)?;
     let t = Tensor::f_cat(&batch.iter().map(|p| &p.query.t).collect::<Vec<_>>(), 0)?;
+    // On a GPU (`engine.device`): one copy of the whole batch there and one of its results
+    // back, never one per query; the per-query factors and the Jacobian are applied on the
+    // host. On the CPU both moves are no-ops.
+    let (x_host, device) = (x, crate::engine::device());
+    let (x, t) = (x_host.f_to_device(device)?, t.f_to_device(device)?);
     let model = queue.model.lock();
-    let split = |v: Tensor| -> Result<Vec<Tensor>> { Ok(v.f_split_with_sizes(&sizes, 0)?) };
+    let split =
+        |v: Tensor| -> Result<Vec<Tensor>> { Ok(v.f_to_device(tch::Device::Cpu)?.f_split_with_sizes(&sizes, 0)?) };
     match kind {
         BatchKind::Score { per_window, per_step } => {
             let _no_grad = tch::no_grad_guard();
@@ -270,7 +276,7 @@ fn compute(queue: &ModelQueue, kind: BatchKind, batch: &[Pending]) -> Result<Vec
             let raw_units = batch.iter().any(|p| p.query.gradient_post.as_ref().is_some_and(|g| g.raw_units));
             let jacobian = raw_units.then(|| {
                 let m = &queue.model.manifest;
-                m.normalizer.jacobian(&x, m.space.normalizer_dims())
+                m.normalizer.jacobian(&x_host, m.space.normalizer_dims())
             });
             let mut answers = Vec::with_capacity(batch.len());
             for ((p, rewards), gradient) in batch.iter().zip(split(rho)?).zip(split(grad)?) {

@@ -72,6 +72,9 @@ pub struct DemoArgs {
     /// Training steps of each relative reward [default: the size's].
     #[arg(long, value_name = "N", value_parser = clap::value_parser!(u64).range(1..))]
     pub reward_steps: Option<u64>,
+    /// Passed on to every `train reward` (Algorithm 1's amortised targets; off unless given).
+    #[command(flatten)]
+    pub amortised: super::train::flags::AmortisedArgs,
 }
 
 fn parse_action_noise(s: &str) -> Result<f64, String> {
@@ -219,6 +222,7 @@ pub async fn run(ctx: &Ctx, args: DemoArgs) -> Result<Report> {
         algorithm: AlgorithmArg::WithDataset,
         discriminator: false,
         seed: args.seed,
+        amortised: args.amortised.to_argv(),
     };
     let extracted = pipeline(ctx, &inputs, Sizing::Fixed(plan.sizes.clone())).await?;
 
@@ -249,6 +253,7 @@ pub async fn run(ctx: &Ctx, args: DemoArgs) -> Result<Report> {
         "action_noise": plan.action_noise,
         "diffusion_steps": plan.sizes.diffusion_steps,
         "reward_steps": plan.sizes.reward_steps,
+        "amortised_targets": args.amortised.to_argv().join(" "),
         "goals": rows,
         "goals_recovered": recovered,
         "goals_total": goals.len(),

@@ -238,6 +238,9 @@ pub struct ExtractArgs {
     /// Seed of training and evaluation.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
+    /// Passed on to every Algorithm 1 `train reward` (amortised targets; off unless given).
+    #[command(flatten)]
+    pub amortised: super::train::flags::AmortisedArgs,
 }
 
 /// What [`pipeline`] runs on: canonical `.npz` files and their labels.
@@ -255,6 +258,8 @@ pub struct Inputs {
     pub algorithm: AlgorithmArg,
     pub discriminator: bool,
     pub seed: u64,
+    /// Amortised-target flags for Algorithm 1's reward jobs (empty: per-step targets).
+    pub amortised: Vec<String>,
 }
 
 /// What [`pipeline`] made: server names and one evaluation row per expert.
@@ -384,6 +389,7 @@ pub async fn run(ctx: &Ctx, args: ExtractArgs) -> Result<Report> {
         algorithm: args.algorithm.unwrap_or(AlgorithmArg::WithDataset),
         discriminator: args.discriminator,
         seed: args.seed,
+        amortised: args.amortised.to_argv(),
     };
     let extracted = pipeline(ctx, &inputs, Sizing::Derive { size: args.size, config: args.config.clone() }).await?;
     let report = write_report(&inputs, &extracted, started.elapsed().as_secs_f64(), json!({}))?;
@@ -551,7 +557,11 @@ pub async fn pipeline(ctx: &Ctx, inputs: &Inputs, sizing: Sizing) -> Result<Extr
     let mut rewards = Vec::new();
     let mut discriminators = Vec::new();
     for (k, label) in inputs.labels.iter().enumerate() {
-        let reward = format!("{prefix}-r{algorithm}-{label}-{fp}");
+        // Amortised targets are a different recipe: a name of their own, so a rerun without
+        // them never reuses an amortised reward (and the reverse).
+        let recipe =
+            if inputs.amortised.is_empty() || inputs.algorithm != AlgorithmArg::WithDataset { "" } else { "a" };
+        let reward = format!("{prefix}-r{algorithm}{recipe}-{label}-{fp}");
         let reward = reward.chars().take(64).collect::<String>();
         if client.get_model(&reward).await.is_ok() {
             stage(ctx, &format!("reusing reward {reward}"));
@@ -569,6 +579,7 @@ pub async fn pipeline(ctx: &Ctx, inputs: &Inputs, sizing: Sizing) -> Result<Extr
                 strings(&["reward", "--name", &reward, "--base", &base_model, "--expert", &expert_models[k]]);
             if inputs.algorithm == AlgorithmArg::WithDataset {
                 argv.extend(strings(&["--dataset", base_ds, "--dataset", &expert_ds[k]]));
+                argv.extend(inputs.amortised.iter().cloned());
             } else {
                 argv.extend(strings(&["--algorithm", "2", "--num-chains", &sizes.num_chains.to_string()]));
             }

@@ -404,6 +404,9 @@ fn reward_json(r: &pb::TrainReward) -> Value {
             None => Value::Null,
         },
         "rho_l2": r.rho_l2,
+        "amortised_targets": r.amortised_targets.as_ref().map(|a| json!({
+            "pool_size": a.pool_size, "reuse": a.reuse, "refresh_fraction": a.refresh_fraction
+        })),
     })
 }
 

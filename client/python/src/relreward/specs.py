@@ -153,6 +153,9 @@ class RewardJob:
     target: str | None = None
     eval_point: str | None = None
     rho_l2: float | None = None
+    #: Algorithm 1's amortised targets: a mapping with any of ``pool_size``, ``reuse``,
+    #: ``refresh_fraction`` (``{}`` for the server's defaults); None leaves the option off.
+    amortised_targets: Mapping[str, Any] | None = None
     seed: int | None = None
     optimization: Optimization | None = None
 
@@ -172,6 +175,8 @@ class RewardJob:
                 r.models_only.num_chains = self.num_chains
         if self.rho_l2 is not None:
             r.rho_l2 = self.rho_l2
+        if self.amortised_targets is not None:
+            r.amortised_targets.CopyFrom(jobs_pb2.AmortisedTargets(**dict(self.amortised_targets)))
         spec = _base(self.output_model, self.seed, self.optimization)
         spec.reward.CopyFrom(r)
         return spec

@@ -85,7 +85,7 @@ pub fn save_atomic(vs: &VarStore, path: &Path) -> Result<()> {
         .into_iter()
         .collect::<BTreeMap<_, _>>()
         .into_iter()
-        .map(|(name, t)| Ok((name, t.f_detach()?.f_contiguous()?)))
+        .map(|(name, t)| Ok((name, t.f_detach()?.f_to_device(tch::Device::Cpu)?.f_contiguous()?)))
         .collect::<Result<Vec<(String, Tensor)>>>()?;
     let tmp = temporary_sibling(path);
     let written = Tensor::write_safetensors(&named, &tmp)

@@ -5,6 +5,7 @@
 use std::path::PathBuf;
 
 use clap::{Args, ValueEnum};
+use relreward_client::pb;
 
 use super::config::{ArchKind, EvalPoint, Target};
 
@@ -118,7 +119,52 @@ pub struct TrainRewardArgs {
     #[arg(long, value_name = "X")]
     pub rho_l2: Option<f64>,
     #[command(flatten)]
+    pub amortised: AmortisedArgs,
+    #[command(flatten)]
     pub job: TrainArgs,
+}
+
+/// Algorithm 1's amortised diffusion targets: any of these flags turns them on, the server
+/// fills in the others (pool 16384, reuse 4, refresh fraction 0.25).
+#[derive(Debug, Clone, Default, Args)]
+pub struct AmortisedArgs {
+    /// Amortised targets: triples (t, target, point) held in the pool.
+    #[arg(long, value_name = "N")]
+    pub amortised_pool: Option<u32>,
+    /// Amortised targets: expected uses of each triple per epoch.
+    #[arg(long, value_name = "R")]
+    pub amortised_reuse: Option<u32>,
+    /// Amortised targets: fraction of the pool refreshed per epoch, in (0, 1].
+    #[arg(long, value_name = "F")]
+    pub amortised_refresh: Option<f64>,
+}
+
+impl AmortisedArgs {
+    /// The wire message, or None when no flag was given (the option stays off).
+    pub fn to_proto(&self) -> Option<pb::AmortisedTargets> {
+        (self.amortised_pool.is_some() || self.amortised_reuse.is_some() || self.amortised_refresh.is_some()).then_some(
+            pb::AmortisedTargets {
+                pool_size: self.amortised_pool,
+                reuse: self.amortised_reuse,
+                refresh_fraction: self.amortised_refresh,
+            },
+        )
+    }
+
+    /// The flags again, for commands that pass them on (`demo`).
+    pub fn to_argv(&self) -> Vec<String> {
+        let mut v = Vec::new();
+        if let Some(n) = self.amortised_pool {
+            v.extend(["--amortised-pool".to_string(), n.to_string()]);
+        }
+        if let Some(r) = self.amortised_reuse {
+            v.extend(["--amortised-reuse".to_string(), r.to_string()]);
+        }
+        if let Some(f) = self.amortised_refresh {
+            v.extend(["--amortised-refresh".to_string(), f.to_string()]);
+        }
+        v
+    }
 }
 
 /// `relreward train discriminator` flags.

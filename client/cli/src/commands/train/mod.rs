@@ -347,6 +347,7 @@ mod tests {
                 eval_point: pb::EvalPoint::MuBase as i32,
                 algorithm: with_dataset(&["maze-a", "maze-b"]),
                 rho_l2: Some(0.01),
+                amortised_targets: None,
             }
         );
         // Algorithm 2 from the file, with its chain count.
@@ -386,6 +387,18 @@ mod tests {
         assert_eq!((r.target(), r.eval_point(), r.rho_l2), (pb::RewardTarget::Mean, pb::EvalPoint::XT, Some(0.0)));
         assert_eq!(r.algorithm, with_dataset(&["d1", "d2", "d3"]), "--dataset replaces the file's list");
         assert_eq!(r.architecture, windowed(Some(4), &[16, 16]), "--hidden keeps the file's window");
+
+        // Amortised targets: off without the flags; any one flag turns them on, the rest left
+        // to the server's defaults; `demo` passes the same flags on.
+        assert_eq!(r.amortised_targets, None);
+        let amortised = super::flags::AmortisedArgs { amortised_reuse: Some(8), ..Default::default() };
+        let args = TrainRewardArgs { amortised: amortised.clone(), ..Default::default() };
+        let spec = reward_spec(config(REWARD_CONFIG), &args).expect("spec");
+        assert_eq!(
+            reward(&spec).amortised_targets,
+            Some(pb::AmortisedTargets { pool_size: None, reuse: Some(8), refresh_fraction: None })
+        );
+        assert_eq!(amortised.to_argv(), ["--amortised-reuse", "8"]);
 
         // --window over the file's windowed_mlp; --arch of another kind drops the file's widths.
         let args = TrainRewardArgs { arch: ArchArgs { window: Some(8), ..Default::default() }, ..Default::default() };

@@ -107,6 +107,7 @@ pub fn reward_spec(config: TrainConfig, args: &TrainRewardArgs) -> Result<pb::Jo
         eval_point: args.eval_point.or(eval_point).map_or(pb::EvalPoint::Unspecified, EvalPoint::to_proto) as i32,
         algorithm: Some(algorithm),
         rho_l2: rho_l2.map(|(x, _)| x),
+        amortised_targets: args.amortised.to_proto(),
     })))
 }
 

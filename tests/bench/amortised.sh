@@ -1,0 +1,201 @@
+#!/usr/bin/env bash
+# Amortised diffusion targets (issue 21) against the per-step recipe of Algorithm 1: what the
+# pool saves in time and what it costs in quality.
+#
+# 1. Gaussian pair (quality vs time): base N(0, I) and expert N(m, I) in 4 dimensions as exact
+#    (analytic) TorchScript eps-models, cosine schedule, T = 20 (tests/python/analytic_gaussian.py,
+#    as server/tests/reward_recovery.rs); rho an MLP (64, 64) trained on the union of 4096
+#    samples of each, batch 256, lr 3e-3, mean target at x_t. For each recipe and each step count
+#    in GAUSS_STEPS, one job; its training time (from its progress events: steps / rate at the
+#    last step, so without start-up) and its quality: the cosine of grad rho with the exact
+#    target m at x_t drawn from the marginals, at every t whose target norm is at least 10% of
+#    the largest (the test's criterion), min over those t (bench/amortised_quality.py). Time to
+#    quality: the training time of the first step count whose min cosine reaches 0.98.
+# 2. The benchmark's maze size (tests/bench/training.sh: horizon 64, D = 6, T = 100, two
+#    TemporalUnets dim 32 (1, 4, 8), windowed MLP reward, batch 64): Algorithm 1 steps/s per-step
+#    vs amortised (MAZE_POOL), STEPS steps each: the whole job's training time (the pool's first
+#    fill and every refresh included), and the steady rate after step 10.
+#    The models are trained one step (their weights do not change the cost), so this part
+#    measures speed only; quality at that size comes from the maze pipeline (docs/results.md).
+#
+# Settings (environment): GAUSS_STEPS ("100 200 400 800 1600"), POOL ("4096 4 0.25": pool size,
+# reuse, refresh fraction for the Gaussian pair; MAZE_POOL ("4096 4 0.25", an epoch of 256
+# steps at batch 64, so refreshes fall inside the run) for the maze part), STEPS (600), THREADS (1), OUT (a directory to keep results.jsonl).
+# Prints one JSON line per job and a markdown summary.
+#
+# Builds nothing: expects target/release/{relreward-server,relreward}. Starts its own server on
+# a loopback port with a temporary data directory.
+set -euo pipefail
+cd "$(dirname "$0")/../.."
+GAUSS_STEPS=${GAUSS_STEPS:-100 200 400 800 1600}
+POOL=${POOL:-4096 4 0.25}
+MAZE_POOL=${MAZE_POOL:-4096 4 0.25}
+STEPS=${STEPS:-600}
+THREADS=${THREADS:-1}
+OUT=${OUT:-}
+BIN=target/release
+PY=.venv/bin/python
+for b in relreward-server relreward; do
+  [[ -x $BIN/$b ]] || { echo "amortised.sh: $BIN/$b is missing: cargo build --release --workspace --bins" >&2; exit 2; }
+done
+tmp=$(mktemp -d)
+server=
+stop_server() {
+  if [[ -n $server ]]; then
+    kill "$server" 2>/dev/null || true
+    wait "$server" 2>/dev/null || true
+    server=
+  fi
+}
+trap 'stop_server; rm -rf "$tmp"' EXIT
+started=$(date +%s)
+results=$tmp/results.jsonl
+: >"$results"
+
+start_server() {
+  : >"$tmp/out"
+  RELREWARD__METRICS__LISTEN= RELREWARD__ENGINE__INTRA_OP_THREADS="$THREADS" \
+    RELREWARD__MODELS__ALLOW_TORCHSCRIPT_UPLOAD=true \
+    "$BIN/relreward-server" --listen 127.0.0.1:0 --data-dir "$tmp/data" >"$tmp/out" 2>>"$tmp/log" &
+  server=$!
+  for _ in $(seq 600); do
+    grep -q "listening on" "$tmp/out" && break
+    kill -0 "$server" 2>/dev/null || break
+    sleep 0.1
+  done
+  grep -q "listening on" "$tmp/out" || { echo "amortised.sh: relreward-server did not start:" >&2; tail -20 "$tmp/log" >&2; exit 1; }
+  export RELREWARD_ENDPOINT="http://$(sed -n 's/.*listening on //p' "$tmp/out" | head -1)"
+}
+rr() { "$BIN/relreward" "$@"; }
+quiet() { "$@" >"$tmp/cmd.log" 2>&1 || { echo "amortised.sh: failed: $*" >&2; cat "$tmp/cmd.log" >&2; exit 1; }; }
+
+# train_seconds EVENTS: {"steps", "seconds"} of a job from its last progress event.
+train_seconds() {
+  "$PY" - "$1" <<'PY'
+import json, sys
+events = [json.loads(l) for l in open(sys.argv[1]) if l.lstrip().startswith("{")]
+last = [e for e in events if e.get("type") == "progress"][-1]
+print(json.dumps({"steps": last["step"], "seconds": last["step"] / last["steps_per_second"]}))
+PY
+}
+
+pool_flags() { # "P R F" -> flags
+  read -r p r f <<<"$1"
+  echo "--amortised-pool $p --amortised-reuse $r --amortised-refresh $f"
+}
+
+# --- 1. Gaussian pair ----------------------------------------------------------------------------
+M=1.0,-0.5,0.75,-1.25
+T=20
+start_server
+for who in base expert; do
+  mean=0,0,0,0
+  [[ $who == expert ]] && mean=$M
+  "$PY" tests/python/analytic_gaussian.py --out "$tmp/$who" --mean "$mean" --schedule cosine --T "$T" >/dev/null
+  quiet rr model upload "$tmp/$who/model.pt" --name "$who" --manifest "$tmp/$who/manifest.json"
+done
+"$PY" - "$tmp" "$M" <<'PY'
+import sys
+import numpy as np
+tmp, m = sys.argv[1], np.array([float(v) for v in sys.argv[2].split(",")], np.float32)
+rng = np.random.default_rng(0)
+np.savez(f"{tmp}/base.npz", samples=rng.standard_normal((4096, 4)).astype(np.float32))
+np.savez(f"{tmp}/expert.npz", samples=(rng.standard_normal((4096, 4)) + m).astype(np.float32))
+PY
+quiet rr dataset upload "$tmp/base.npz" --name base-samples --kind samples
+quiet rr dataset upload "$tmp/expert.npz" --name expert-samples --kind samples
+for steps in $GAUSS_STEPS; do
+  for recipe in per-step amortised; do
+    extra=()
+    [[ $recipe == amortised ]] && read -ra extra <<<"$(pool_flags "$POOL")"
+    name="g-$recipe-$steps"
+    # The test's optimisation (server/tests/reward_recovery.rs): EMA 0.9 over the second half.
+    printf '[optimization]\nema_decay = 0.9\nema_start = %d\neval_every = 100000\ncheckpoint_every = 100000\n' \
+      $((steps / 2)) >"$tmp/opt.toml"
+    rr --json train reward --name "$name" --base base --expert expert --dataset base-samples --dataset expert-samples \
+      --arch mlp --hidden 64,64 --steps "$steps" --batch-size 256 --lr 3e-3 --seed 11 --config "$tmp/opt.toml" \
+      "${extra[@]}" --watch >"$tmp/events"
+    quality=$("$PY" bench/amortised_quality.py --endpoint "$RELREWARD_ENDPOINT" --model "$name" --mean "$M" --T "$T")
+    echo "{\"part\": \"gaussian\", \"recipe\": \"$recipe\", \"pool\": \"$POOL\", \"time\": $(train_seconds "$tmp/events"), \"quality\": $quality}" | tee -a "$results"
+  done
+done
+stop_server
+
+# --- 2. the benchmark's maze size: steps/s -------------------------------------------------------
+start_server
+"$PY" tests/python/make_dataset.py --rows 20000 --seed 1 --out "$tmp/maze.npz" --expected "$tmp/expected.json" >/dev/null
+cat >"$tmp/unet.toml" <<TOML
+[diffusion]
+horizon = 64
+n_timesteps = 100
+architecture = { kind = "temporal_unet", dim = 32, dim_mults = [1, 4, 8] }
+TOML
+quiet rr dataset upload "$tmp/maze.npz" --name maze
+for m in mbase mexpert; do
+  quiet rr train diffusion --name "$m" --dataset maze --config "$tmp/unet.toml" --steps 1 --batch-size 2 --watch
+done
+read -r mp mr mf <<<"$MAZE_POOL"
+epoch=$(( (mp * mr + 63) / 64 ))
+for recipe in per-step amortised; do
+  extra=()
+  [[ $recipe == amortised ]] && read -ra extra <<<"$(pool_flags "$MAZE_POOL")"
+  printf '[optimization]\neval_every = 100000\ncheckpoint_every = 100000\n' >"$tmp/opt.toml"
+  rr --json train reward --name "m-$recipe" --base mbase --expert mexpert --dataset maze --arch windowed_mlp \
+    --window 4 --hidden 128,64,32 --steps "$STEPS" --batch-size 64 --config "$tmp/opt.toml" \
+    "${extra[@]}" --watch >"$tmp/events"
+  # Steps/s between step 10 (after the pool's first fill) and the end; the per-step recipe the
+  # same way. Refreshes every `epoch` steps are inside the window when STEPS > epoch.
+  rate=$("$PY" - "$tmp/events" <<'PY'
+import json, sys
+events = [json.loads(l) for l in open(sys.argv[1]) if l.lstrip().startswith("{")]
+rate = {e["step"]: e["steps_per_second"] for e in events if e.get("type") == "progress"}
+a, b = 10, max(rate)
+seconds = b / rate[b] - a / rate[a]
+print(json.dumps({"from": a, "to": b, "seconds": seconds, "steps_per_second": (b - a) / seconds,
+                  "first_steps_seconds": a / rate[a], "total_steps": b, "total_seconds": b / rate[b]}))
+PY
+)
+  echo "{\"part\": \"maze-speed\", \"recipe\": \"$recipe\", \"pool\": \"$MAZE_POOL\", \"epoch_steps\": $epoch, \"rate\": $rate}" | tee -a "$results"
+done
+stop_server
+
+# --- report --------------------------------------------------------------------------------------
+"$PY" - "$results" "$(($(date +%s) - started))" "GAUSS_STEPS='$GAUSS_STEPS' POOL='$POOL' MAZE_POOL='$MAZE_POOL' STEPS=$STEPS THREADS=$THREADS" <<'PY'
+import json, sys, subprocess, time
+runs = [json.loads(l) for l in open(sys.argv[1])]
+cpu = [l.split(":", 1)[1].strip() for l in subprocess.run(["lscpu"], capture_output=True, text=True).stdout.splitlines()
+       if l.startswith("Model name")][0]
+print(f"Machine: {cpu}, {subprocess.run(['nproc'], capture_output=True, text=True).stdout.strip()} CPUs; "
+      f"{time.strftime('%Y-%m-%d', time.gmtime())}; {sys.argv[2]} s in all. Command: "
+      f"`cargo build --release --workspace --bins && {sys.argv[3]} tests/bench/amortised.sh`.")
+print()
+print("| recipe | steps | training s | min cosine (t with target norm >= 10% of max) | mean cosine |")
+print("|---|---|---|---|---|")
+first = {}
+for r in runs:
+    if r["part"] != "gaussian":
+        continue
+    q, t = r["quality"], r["time"]
+    print(f"| {r['recipe']} | {t['steps']} | {t['seconds']:.2f} | {q['min_cosine']:.4f} | {q['mean_cosine']:.4f} |")
+    if q["min_cosine"] >= 0.98 and r["recipe"] not in first:
+        first[r["recipe"]] = (t["steps"], t["seconds"])
+print()
+for recipe in ("per-step", "amortised"):
+    f = first.get(recipe)
+    print(f"- {recipe}: min cosine >= 0.98 first at " + (f"{f[0]} steps, {f[1]:.2f} s" if f else "no step count tried"))
+if len(first) == 2:
+    print(f"- time to cosine >= 0.98, per-step / amortised: **{first['per-step'][1] / first['amortised'][1]:.2f}x**")
+maze = {r["recipe"]: r for r in runs if r["part"] == "maze-speed"}
+if len(maze) == 2:
+    a, b = maze["per-step"]["rate"], maze["amortised"]["rate"]
+    print()
+    print("| recipe (maze benchmark size) | steps | whole job s (fill and refreshes included) | steps/s, steps 10 to end | first 10 steps s |")
+    print("|---|---|---|---|---|")
+    for k in ("per-step", "amortised"):
+        rr = maze[k]["rate"]
+        print(f"| {k} | {rr['total_steps']} | {rr['total_seconds']:.1f} | {rr['steps_per_second']:.2f} | {rr['first_steps_seconds']:.1f} |")
+    print()
+    print(f"- per-step / amortised training time for the same steps: **{a['total_seconds'] / b['total_seconds']:.2f}x** "
+          f"(pool {maze['amortised']['pool']}, an epoch is {maze['amortised']['epoch_steps']} steps)")
+PY
+if [[ -n $OUT ]]; then mkdir -p "$OUT" && cp "$results" "$OUT/"; fi
