@@ -1,0 +1,69 @@
+#!/usr/bin/env bash
+# Algorithm 1 at the paper's maze size on a GPU: relreward's reward job against the PyTorch
+# reference (bench/reference/gpu_alg1.py) on the same device. For a GPU machine that has
+# PyTorch (and so libtorch with CUDA) but no Rust toolchain: build here, carry the binaries.
+#
+#   here:  mkdir -p .gpu && strip -o .gpu/relreward-server target/release/relreward-server \
+#            && strip -o .gpu/relreward target/release/relreward \
+#            && .venv/bin/python tests/python/make_dataset.py --rows 20000 --seed 1 --out .gpu/maze.npz
+#   there: tests/bench/gpu.sh            (BIN=.gpu, STEPS, WARMUP, PORT overridable)
+#
+# Sizes: TemporalUnet(dim 32, dim_mults (1, 4, 8)) base and expert over [256, 6] windows,
+# T = 256, Diffuser's cosine schedule, x0 (relreward's defaults); reward ValueFunction widths
+# (32, 128, 256); batch 256. relreward's rate comes from its job's progress events between
+# steps WARMUP and WARMUP + STEPS (as tests/bench/training.sh). The server loads that
+# machine's libtorch: the binary links libtorch_cpu and libc10 only, so libtorch_cuda is
+# preloaded to make CUDA visible (docs/deployment.md, "GPU").
+set -euo pipefail
+BIN=${BIN:-.gpu}
+STEPS=${STEPS:-40}
+WARMUP=${WARMUP:-20}
+PORT=${PORT:-50077}
+PY=${PY:-python3}
+TL=$("$PY" -c 'import os, torch; print(os.path.dirname(torch.__file__))')/lib
+tmp=$(mktemp -d)
+export RELREWARD_ENDPOINT=http://127.0.0.1:$PORT
+
+LD_LIBRARY_PATH=$TL LD_PRELOAD=$TL/libtorch_cuda.so RELREWARD__ENGINE__DEVICE=cuda RELREWARD__METRICS__LISTEN= \
+  "$BIN/relreward-server" --listen 127.0.0.1:$PORT --data-dir "$tmp/data" >"$tmp/out" 2>"$tmp/log" &
+server=$!
+trap 'kill $server 2>/dev/null; wait $server 2>/dev/null; rm -rf "$tmp"' EXIT
+for _ in $(seq 100); do grep -q "listening on" "$tmp/out" 2>/dev/null && break; sleep 0.2; done
+grep -m1 "libtorch initialised" "$tmp/log" >&2 || { tail -20 "$tmp/log" >&2; exit 1; }
+
+rr() { "$BIN/relreward" "$@"; }
+cat >"$tmp/unet.toml" <<TOML
+[diffusion]
+horizon = 256
+n_timesteps = 256
+architecture = { kind = "temporal_unet", dim = 32, dim_mults = [1, 4, 8] }
+TOML
+rr dataset upload "$BIN/maze.npz" --name maze >/dev/null
+for m in base expert; do
+  rr train diffusion --name "$m" --dataset maze --config "$tmp/unet.toml" --steps 1 --batch-size 2 --watch >/dev/null
+done
+
+rate() {
+  "$PY" - "$1" "$WARMUP" "$STEPS" <<'PY'
+import json, sys
+events = [json.loads(l) for l in open(sys.argv[1]) if l.lstrip().startswith("{")]
+rate = {e["step"]: e["steps_per_second"] for e in events if e.get("type") == "progress"}
+a, b = int(sys.argv[2]), int(sys.argv[2]) + int(sys.argv[3])
+if a not in rate or b not in rate:
+    sys.exit(f"gpu.sh: progress events lack step {a} or {b}: {sorted(rate)}")
+seconds = b / rate[b] - a / rate[a]
+print(json.dumps({"steps": b - a, "steps_per_s": (b - a) / seconds, "ms_per_step": 1000 * seconds / (b - a)}))
+PY
+}
+total=$((WARMUP + STEPS + 10))
+for variant in per-step amortised; do
+  extra=()
+  [[ $variant == amortised ]] && extra=(--amortised-pool 16384)
+  rr --json train reward --name "r-$variant" --base base --expert expert --dataset maze --arch value_function \
+    --widths 32,128,256 --steps "$total" --batch-size 256 "${extra[@]}" --watch >"$tmp/events-$variant"
+  echo "{\"side\": \"relreward\", \"variant\": \"$variant\", \"result\": $(rate "$tmp/events-$variant")}"
+done
+kill $server; wait $server 2>/dev/null || true
+
+(cd bench/reference && "$PY" gpu_alg1.py --device cuda --steps "$STEPS" --warmup 5) | sed 's/^/{"side": "pytorch-eager", "result": /; s/$/}/'
+(cd bench/reference && "$PY" gpu_alg1.py --device cuda --steps "$STEPS" --warmup 5 --compile) | sed 's/^/{"side": "pytorch-compile", "result": /; s/$/}/'
