@@ -138,6 +138,9 @@ pub fn check_shapes(found: &BTreeMap<String, Vec<u64>>, expected: &BTreeMap<Stri
     m
 }
 
+/// One imported tensor: relreward's name, its shape and its values (float32, C order).
+pub type NamedTensor = (String, Vec<u64>, Vec<f32>);
+
 /// Errors of an import: the file could not be read, or its tensors do not match.
 #[derive(Debug, thiserror::Error)]
 pub enum ImportError {
@@ -155,7 +158,7 @@ pub fn import_npz(
     path: &Path,
     prefix: &str,
     expected: &BTreeMap<String, Vec<u64>>,
-) -> Result<Vec<(String, Vec<u64>, Vec<f32>)>, ImportError> {
+) -> Result<Vec<NamedTensor>, ImportError> {
     let read = |e: &dyn std::fmt::Display| ImportError::Read(format!("{}: {e}", path.display()));
     let keys = crate::npz::npz_keys(path).map_err(|e| read(&e))?;
     if keys.is_empty() {
@@ -192,7 +195,7 @@ pub fn import_npz(
 
 /// Writes float32 tensors as a safetensors file (8-byte little-endian header length, JSON
 /// header, raw little-endian data), the format of native weights (`weights.safetensors`).
-pub fn write_safetensors(path: &Path, tensors: &[(String, Vec<u64>, Vec<f32>)]) -> std::io::Result<()> {
+pub fn write_safetensors(path: &Path, tensors: &[NamedTensor]) -> std::io::Result<()> {
     let mut header = String::from("{");
     let mut offset = 0usize;
     for (i, (name, shape, values)) in tensors.iter().enumerate() {
