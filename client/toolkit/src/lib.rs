@@ -19,7 +19,10 @@
 //!   controller), written with [`npz_write`].
 //! - [`eval`]: the paper's evaluation over scores (discriminability, reward heatmaps, goal
 //!   recovery) and its PNG pictures.
+//! - [`diffuser_import`]: a Diffuser `TemporalUnet` state_dict (exported to `.npz`) checked
+//!   against the architecture and written as native safetensors weights (`model import`).
 
+pub mod diffuser_import;
 pub mod episodes;
 pub mod eval;
 #[cfg(feature = "hdf5")]

@@ -1,11 +1,11 @@
-//! `relreward model upload|list|show|delete`.
+//! `relreward model upload|import|list|show|delete`.
 
 use std::path::PathBuf;
 use std::sync::Arc;
 use std::sync::atomic::Ordering;
 use std::time::Instant;
 
-use anyhow::{Context, Result};
+use anyhow::{Context, Result, bail};
 use clap::{Args, Subcommand, ValueEnum};
 use relreward_client::client::UploadProgress;
 use relreward_client::pb;
@@ -23,6 +23,9 @@ use super::{Ctx, Report};
 pub enum ModelCommand {
     /// Register a TorchScript diffusion model with its manifest.
     Upload(ModelUploadArgs),
+    /// Convert a Diffuser TemporalUnet state_dict (exported to .npz) into native weights
+    /// (safetensors), checking every tensor against the architecture; runs locally.
+    Import(ModelImportArgs),
     /// List models (every kind unless --kind).
     List {
         #[arg(long, value_enum)]
@@ -49,6 +52,30 @@ pub struct ModelUploadArgs {
     description: String,
 }
 
+#[derive(Debug, Args)]
+pub struct ModelImportArgs {
+    /// The state_dict as .npz, one array per tensor name:
+    /// `np.savez(path, **{k: v.cpu().numpy() for k, v in model.state_dict().items()})`.
+    file: PathBuf,
+    /// The model's manifest (TOML or JSON); its trajectory space gives the horizon and the
+    /// transition dim (action_dim + obs_dim).
+    #[arg(long, value_name = "MANIFEST.toml|json")]
+    manifest: PathBuf,
+    /// TemporalUnet `dim` (Diffuser's `model.dim`).
+    #[arg(long)]
+    dim: u64,
+    /// TemporalUnet `dim_mults`, comma separated (Diffuser's `model.dim_mults`).
+    #[arg(long, value_delimiter = ',', required = true)]
+    dim_mults: Vec<u64>,
+    /// Keep only tensors under this prefix and strip it: `model.` for a GaussianDiffusion
+    /// state_dict (Diffuser's checkpoints hold `model` and `ema`, each one of these).
+    #[arg(long, default_value = "")]
+    prefix: String,
+    /// Where to write the native weights (safetensors, relreward's tensor names).
+    #[arg(long, value_name = "WEIGHTS.safetensors")]
+    out: PathBuf,
+}
+
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
 pub enum ModelKindArg {
     Diffusion,
@@ -69,6 +96,7 @@ impl ModelKindArg {
 pub async fn run(ctx: &Ctx, command: ModelCommand) -> Result<Report> {
     match command {
         ModelCommand::Upload(args) => upload(ctx, args).await,
+        ModelCommand::Import(args) => import(args),
         ModelCommand::List { kind } => list(ctx, kind).await,
         ModelCommand::Show { name } => show(ctx, &name).await,
         ModelCommand::Delete { name } => delete(ctx, &name).await,
@@ -102,6 +130,49 @@ async fn upload(ctx: &Ctx, args: ModelUploadArgs) -> Result<Report> {
         eprint_line(&format!("uploaded {} in {secs:.1} s", human_bytes(sent)));
     }
     Ok(Report::ok(format_model(&model), model_json(&model)))
+}
+
+/// The architecture's limits are the engine's (`TemporalUnet::validate`); checked here too so
+/// that a bad flag is named before the file is read.
+fn import(args: ModelImportArgs) -> Result<Report> {
+    use relreward_toolkit::diffuser_import::{import_npz, temporal_unet_shapes, write_safetensors};
+    let ModelImportArgs { file, manifest, dim, dim_mults, prefix, out } = args;
+    let man = manifest::load(&manifest)?;
+    let Some(pb::diffusion_manifest::Space::Trajectory(space)) = man.space else {
+        bail!("{}: space: a TemporalUnet needs a trajectory space", manifest.display());
+    };
+    let transition_dim = u64::from(space.action_dim) + u64::from(space.obs_dim);
+    if dim == 0 || dim % 8 != 0 || dim > 1 << 20 {
+        bail!("--dim: {dim} must be a positive multiple of 8 (GroupNorm with 8 groups), at most 2^20");
+    }
+    if dim_mults.is_empty() || dim_mults.len() > 16 || dim_mults.iter().any(|&m| m == 0 || dim * m > 1 << 20) {
+        bail!("--dim-mults: {dim_mults:?} must hold 1 to 16 positive multipliers, each times --dim at most 2^20");
+    }
+    let factor = 1u64 << (dim_mults.len() - 1);
+    if u64::from(space.horizon) % factor != 0 {
+        bail!(
+            "{}: space.horizon {} must be a multiple of 2^(levels - 1) = {factor} for --dim-mults {dim_mults:?}",
+            manifest.display(),
+            space.horizon
+        );
+    }
+    let expected = temporal_unet_shapes(transition_dim, dim, &dim_mults);
+    let tensors = import_npz(&file, &prefix, &expected)?;
+    write_safetensors(&out, &tensors).with_context(|| format!("{}", out.display()))?;
+    let parameters: usize = tensors.iter().map(|(_, _, v)| v.len()).sum();
+    let text = format!(
+        "imported {} tensors ({parameters} parameters) from {} into {}\narchitecture = {{ kind = \"temporal_unet\", dim = {dim}, dim_mults = {dim_mults:?} }}\n",
+        tensors.len(),
+        file.display(),
+        out.display()
+    );
+    let json = json!({
+        "tensors": tensors.len(),
+        "parameters": parameters,
+        "weights": out.display().to_string(),
+        "architecture": { "kind": "temporal_unet", "dim": dim, "dim_mults": dim_mults },
+    });
+    Ok(Report::ok(text, json))
 }
 
 async fn list(ctx: &Ctx, kind: Option<ModelKindArg>) -> Result<Report> {
