@@ -64,14 +64,8 @@ fn minari_file(dir: &Path) -> Option<PathBuf> {
 /// A D4RL file or a Minari dataset: Minari when the root holds `episode_*` groups and no
 /// `observations`, D4RL otherwise.
 pub fn read_hdf5(path: &Path) -> Result<Trajectories> {
-    let file_path = if path.is_dir() {
-        minari_file(path).ok_or_else(|| err(path, "a directory without data/main_data.hdf5 (not a Minari dataset)"))?
-    } else {
-        path.to_owned()
-    };
-    let file = open(&file_path)?;
-    let root = file.root_group().map_err(|e| err(&file_path, format!("reading the root group: {e}")))?;
-    let (groups, datasets) = root.member_names().map_err(|e| err(&file_path, format!("listing the root: {e}")))?;
+    let file_path = data_file(path)?;
+    let (root, groups, datasets) = read_root(&file_path)?;
     if !datasets.iter().any(|d| d == "observations") && groups.iter().any(|g| g.starts_with("episode_")) {
         minari_from(&file_path, &root, &groups)
     } else {
@@ -81,23 +75,32 @@ pub fn read_hdf5(path: &Path) -> Result<Trajectories> {
 
 /// A D4RL-layout file (module docs).
 pub fn read_d4rl(path: &Path) -> Result<Trajectories> {
-    let file = open(path)?;
-    let root = file.root_group().map_err(|e| err(path, format!("reading the root group: {e}")))?;
-    let (groups, datasets) = root.member_names().map_err(|e| err(path, format!("listing the root: {e}")))?;
+    let (root, groups, datasets) = read_root(path)?;
     d4rl_from(path, &root, &groups, &datasets)
 }
 
 /// A Minari dataset: its `main_data.hdf5` or its directory (module docs).
 pub fn read_minari(path: &Path) -> Result<Trajectories> {
-    let file_path = if path.is_dir() {
-        minari_file(path).ok_or_else(|| err(path, "a directory without data/main_data.hdf5 (not a Minari dataset)"))?
-    } else {
-        path.to_owned()
-    };
-    let file = open(&file_path)?;
-    let root = file.root_group().map_err(|e| err(&file_path, format!("reading the root group: {e}")))?;
-    let (groups, _) = root.member_names().map_err(|e| err(&file_path, format!("listing the root: {e}")))?;
+    let file_path = data_file(path)?;
+    let (root, groups, _) = read_root(&file_path)?;
     minari_from(&file_path, &root, &groups)
+}
+
+/// The HDF5 file a path names: the path itself, or a Minari directory's `main_data.hdf5`.
+fn data_file(path: &Path) -> Result<PathBuf> {
+    if path.is_dir() {
+        minari_file(path).ok_or_else(|| err(path, "a directory without data/main_data.hdf5 (not a Minari dataset)"))
+    } else {
+        Ok(path.to_owned())
+    }
+}
+
+/// Opens a file and lists its root: the root group, its member groups and its datasets.
+fn read_root(path: &Path) -> Result<(Group, Vec<String>, Vec<String>)> {
+    let file = open(path)?;
+    let root = file.root_group().map_err(|e| err(path, format!("reading the root group: {e}")))?;
+    let (groups, datasets) = root.member_names().map_err(|e| err(path, format!("listing the root: {e}")))?;
+    Ok((root, groups, datasets))
 }
 
 fn err(path: &Path, message: impl Into<String>) -> Hdf5Error {
