@@ -45,6 +45,7 @@ fn manifest() -> pb::DiffusionManifest {
             shape: vec![M.len() as u64],
         })),
         normalizer: Some(pb::Normalizer { kind: Some(pb::normalizer::Kind::Identity(pb::normalizer::Identity {})) }),
+        architecture: None,
     }
 }
 
@@ -79,8 +80,12 @@ async fn setup(server: &TestServer) -> Client {
     let tmp = tempfile::tempdir().expect("tmp");
     for (name, mean) in [("base", vec![0.0f32; M.len()]), ("expert", M.to_vec())] {
         let path = export(tmp.path(), name, &mean);
-        let header =
-            pb::UploadModelHeader { name: name.into(), manifest: Some(manifest()), description: String::new() };
+        let header = pb::UploadModelHeader {
+            name: name.into(),
+            manifest: Some(manifest()),
+            description: String::new(),
+            format: 0,
+        };
         client.upload_model(header, &path, Arc::new(UploadProgress::default())).await.expect("upload model");
     }
     upload_samples(&client, "base-samples", &[0.0; 4], 1).await;

@@ -9,7 +9,7 @@ use std::sync::Arc;
 use relreward_client::Client;
 use relreward_client::client::UploadProgress;
 use relreward_client::pb::{self, upload_model_request::Message};
-use relreward_tests::{TestServer, eventually, python, repo_root};
+use relreward_tests::{TestServer, eventually, python, repo_root, stderr};
 use sha2::{Digest, Sha256};
 use tonic::Code;
 
@@ -47,11 +47,12 @@ fn sample_manifest(shape: &[u64]) -> pb::DiffusionManifest {
         clip_denoised: false,
         space: Some(pb::diffusion_manifest::Space::Sample(pb::diffusion_manifest::Sample { shape: shape.to_vec() })),
         normalizer: Some(pb::Normalizer { kind: Some(pb::normalizer::Kind::Identity(pb::normalizer::Identity {})) }),
+        architecture: None,
     }
 }
 
 fn header(name: &str, manifest: Option<pb::DiffusionManifest>) -> pb::UploadModelHeader {
-    pb::UploadModelHeader { name: name.into(), manifest, description: format!("fixture {name}") }
+    pb::UploadModelHeader { name: name.into(), manifest, description: format!("fixture {name}"), format: 0 }
 }
 
 fn msg(m: Message) -> pb::UploadModelRequest {
@@ -392,4 +393,160 @@ async fn uploads_count_against_the_disk_budget() {
     assert!(names(&client).await.is_empty());
     assert!(eventually(5, || server.staging_entries() == 0).await, "the refused upload left staging files");
     assert_eq!(model_blobs(&server), 0);
+}
+
+/// Native weights: a Diffuser TemporalUnet built in PyTorch (`export_diffuser_temporal.py`),
+/// converted and registered in one command by `relreward model import --name` on a server that
+/// refuses TorchScript (native weights are data, never code). GetModel reports the native
+/// format and the architecture; the stored file is the imported one, byte for byte; the model
+/// samples, and is served again after a restart. (That these weights give the PyTorch module's
+/// outputs, loaded the way the registry loads them, is server/tests/diffuser_import.rs.)
+/// Refusals name the field or the tensor, and store nothing.
+#[tokio::test(flavor = "multi_thread")]
+async fn native_weights_register_through_model_import() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let d = dir.path();
+    let out = Command::new(python())
+        .arg(repo_root().join("tests/python/export_diffuser_temporal.py"))
+        .arg(d)
+        .output()
+        .expect("run export_diffuser_temporal.py");
+    assert!(out.status.success(), "export failed: {}", String::from_utf8_lossy(&out.stderr));
+    std::fs::write(
+        d.join("manifest.toml"),
+        "parametrization = \"x0\"\nn_timesteps = 20\nclip_denoised = true\nschedule = { kind = \"diffuser_cosine\" }\n\
+         space = { kind = \"trajectory\", horizon = 8, action_dim = 2, obs_dim = 3 }\n",
+    )
+    .expect("manifest");
+    let path = |name: &str| d.join(name).to_str().expect("utf-8 path").to_owned();
+
+    let mut server = TestServer::start();
+    let client = server.client().await;
+    let import = |server: &TestServer, name: &str, extra: &[&str]| {
+        let mut args = vec!["--json", "model", "import"];
+        let (npz, manifest, weights) = (path("state_dict.npz"), path("manifest.toml"), path("weights.safetensors"));
+        args.extend([npz.as_str(), "--manifest", manifest.as_str(), "--dim", "8", "--dim-mults", "1,2"]);
+        args.extend(["--prefix", "model.", "--out", weights.as_str(), "--name", name]);
+        args.extend(extra);
+        server.cli(&args)
+    };
+    let out = import(&server, "diffuser-native", &["--description", "imported"]);
+    assert!(out.status.success(), "import --name failed:\n{}\n{}", stderr(&out), server.log());
+    let report: serde_json::Value = serde_json::from_slice(&out.stdout).expect("json");
+    assert_eq!(report["model"]["name"], "diffuser-native");
+
+    let model = client.get_model("diffuser-native").await.expect("get");
+    assert_eq!(model.format, pb::ModelFormat::Native as i32);
+    assert_eq!(model.kind, pb::ModelKind::Diffusion as i32);
+    assert_eq!(model.description, "imported");
+    let manifest = model.manifest.expect("manifest");
+    assert_eq!(
+        manifest.architecture,
+        Some(pb::diffusion_manifest::Architecture::TemporalUnet(pb::TemporalUnet {
+            dim: Some(8),
+            dim_mults: vec![1, 2]
+        }))
+    );
+    assert_eq!(model.parameter_count, report["parameters"].as_u64().expect("parameters"));
+    let weights = std::fs::read(d.join("weights.safetensors")).expect("weights");
+    assert_eq!(model.sha256, sha(&weights));
+    let dirs = model_dirs(&server);
+    assert_eq!(std::fs::read(dirs[0].join("weights.safetensors")).expect("stored"), weights);
+
+    let sample = |client: Client| async move {
+        let req = pb::SampleRequest { model: "diffuser-native".into(), n: 2, seed: Some(3), ..Default::default() };
+        let mut stream = client.rewards().sample(req).await.expect("sample").into_inner();
+        let mut items = Vec::new();
+        while let Some(item) = tokio_stream::StreamExt::next(&mut stream).await {
+            let x = item.expect("item").x.expect("x");
+            assert_eq!(x.shape, vec![8, 5]);
+            items.push(relreward_client::tensor::decode_finite_f32(&x).expect("finite"));
+        }
+        assert_eq!(items.len(), 2);
+        items
+    };
+    let before = sample(client.clone()).await;
+    server.restart();
+    let client = server.client().await;
+    assert_eq!(sample(client.clone()).await, before, "the same weights are served after a restart");
+
+    // Refusals. The manifest must name an architecture for native weights, and only then.
+    let header = |name: &str, manifest: pb::DiffusionManifest, format: pb::ModelFormat| pb::UploadModelHeader {
+        name: name.into(),
+        manifest: Some(manifest),
+        description: String::new(),
+        format: format as i32,
+    };
+    let mut bare = manifest.clone();
+    bare.architecture = None;
+    let err = raw_upload(&client, upload_messages(header("n1", bare, pb::ModelFormat::Native), &weights, None))
+        .await
+        .expect_err("no architecture");
+    assert_eq!(err.code(), Code::InvalidArgument);
+    assert!(err.message().starts_with("header.manifest.architecture: missing"), "{}", err.message());
+    let err = raw_upload(
+        &client,
+        upload_messages(header("n2", manifest.clone(), pb::ModelFormat::Torchscript), &weights, None),
+    )
+    .await
+    .expect_err("torchscript with an architecture");
+    assert_eq!(err.code(), Code::FailedPrecondition, "TorchScript stays disabled: {}", err.message());
+    // Weights of another architecture: the strict load names the tensors.
+    let mut wider = manifest.clone();
+    wider.architecture = Some(pb::diffusion_manifest::Architecture::TemporalUnet(pb::TemporalUnet {
+        dim: Some(16),
+        dim_mults: vec![1, 2],
+    }));
+    let err = raw_upload(&client, upload_messages(header("n3", wider, pb::ModelFormat::Native), &weights, None))
+        .await
+        .expect_err("mis-shaped");
+    assert_eq!(err.code(), Code::InvalidArgument);
+    assert!(
+        err.message().starts_with("chunk: the uploaded weights do not fit header.manifest.architecture"),
+        "{}",
+        err.message()
+    );
+    assert!(err.message().contains("has shape"), "{}", err.message());
+    // Bytes that are not safetensors at all.
+    let err = raw_upload(
+        &client,
+        upload_messages(header("n4", manifest.clone(), pb::ModelFormat::Native), b"not weights", None),
+    )
+    .await
+    .expect_err("garbage");
+    assert_eq!(err.code(), Code::InvalidArgument, "{}", err.message());
+    assert!(err.message().starts_with("chunk:"), "{}", err.message());
+    let err = raw_upload(
+        &client,
+        upload_messages(header("n5", manifest, pb::ModelFormat::Native), &weights, None)
+            .into_iter()
+            .map(|mut m| {
+                if let Some(Message::Header(h)) = &mut m.message {
+                    h.format = 7;
+                }
+                m
+            })
+            .collect(),
+    )
+    .await
+    .expect_err("unknown format");
+    assert!(err.message().starts_with("header.format: unknown value 7"), "{}", err.message());
+    assert_eq!(names(&client).await, vec!["diffuser-native".to_owned()], "nothing else was stored");
+    assert_eq!(server.staging_entries(), 0, "no staging left behind");
+    // The CLI names a manifest architecture that disagrees with the flags, before any work.
+    std::fs::write(
+        d.join("manifest.toml"),
+        format!(
+            "{}architecture = {{ kind = \"temporal_unet\", dim = 16, dim_mults = [1, 2] }}\n",
+            std::fs::read_to_string(d.join("manifest.toml")).expect("read")
+        ),
+    )
+    .expect("manifest");
+    let out = import(&server, "n6", &[]);
+    assert!(!out.status.success());
+    assert!(
+        stderr(&out).contains("architecture: temporal_unet (dim 16, dim_mults [1, 2]) disagrees with --dim 8"),
+        "{}",
+        stderr(&out)
+    );
 }

@@ -49,8 +49,10 @@ async fn analytic_gaussian_registered_by_upload_samples_its_distribution() {
             shape: vec![M.len() as u64],
         })),
         normalizer: Some(pb::Normalizer { kind: Some(pb::normalizer::Kind::Identity(pb::normalizer::Identity {})) }),
+        architecture: None,
     };
-    let header = pb::UploadModelHeader { name: "gauss".into(), manifest: Some(manifest), description: String::new() };
+    let header =
+        pb::UploadModelHeader { name: "gauss".into(), manifest: Some(manifest), description: String::new(), format: 0 };
     client
         .upload_model(header, &tmp.path().join("model.pt"), Arc::new(UploadProgress::default()))
         .await

@@ -6,7 +6,7 @@
 use relreward_proto::v1 as pb;
 
 use super::timestamp;
-use crate::engine::manifest::{DiffusionManifest, Parametrization, ScheduleSpec, Space};
+use crate::engine::manifest::{Architecture, DiffusionManifest, Parametrization, ScheduleSpec, Space};
 use crate::engine::nets::reward::RewardArchitecture;
 use crate::engine::normalizer::Normalizer;
 use crate::engine::relative_reward::RewardManifest;
@@ -149,10 +149,74 @@ fn space_to_proto(s: &Space) -> pb::diffusion_manifest::Space {
     }
 }
 
+/// A wire TemporalUnet; unset fields take TrainDiffusion's defaults (dim 32, mults 1, 2, 4, 8).
+pub fn temporal_unet_from_proto(u: pb::TemporalUnet) -> Architecture {
+    Architecture::TemporalUnet {
+        dim: u.dim.unwrap_or(32) as usize,
+        dim_mults: if u.dim_mults.is_empty() { vec![1, 2, 4, 8] } else { to_usizes(&u.dim_mults) },
+    }
+}
+
+/// A wire MLP denoiser; no hidden widths means (256, 256).
+pub fn mlp_from_proto(m: pb::Mlp) -> Architecture {
+    Architecture::Mlp { hidden: if m.hidden.is_empty() { vec![256, 256] } else { to_usizes(&m.hidden) } }
+}
+
+/// A wire UNet2D; unset fields take TrainDiffusion's defaults (widths 32, 64, one layer per
+/// block, attention, 8 groups, head dim 8).
+pub fn unet2d_from_proto(u: pb::Unet2d) -> Architecture {
+    Architecture::Unet2d {
+        block_out_channels: if u.block_out_channels.is_empty() {
+            vec![32, 64]
+        } else {
+            to_usizes(&u.block_out_channels)
+        },
+        layers_per_block: u.layers_per_block.unwrap_or(1) as usize,
+        attention: u.attention.unwrap_or(true),
+        norm_num_groups: u.norm_num_groups.unwrap_or(8) as usize,
+        attention_head_dim: u.attention_head_dim.unwrap_or(8) as usize,
+    }
+}
+
+fn to_usizes(v: &[u32]) -> Vec<usize> {
+    v.iter().map(|&x| x as usize).collect()
+}
+
+fn to_u32s(v: &[usize]) -> Vec<u32> {
+    v.iter().map(|&x| u32::try_from(x).unwrap_or(u32::MAX)).collect()
+}
+
+/// An engine architecture on the wire, every default explicit (as a manifest's oneof; a
+/// TrainDiffusion spec maps the same three messages into its own oneof).
+pub fn architecture_to_proto(a: &Architecture) -> pb::diffusion_manifest::Architecture {
+    use pb::diffusion_manifest::Architecture as Wire;
+    match a {
+        Architecture::TemporalUnet { dim, dim_mults } => Wire::TemporalUnet(pb::TemporalUnet {
+            dim: Some(u32::try_from(*dim).unwrap_or(u32::MAX)),
+            dim_mults: to_u32s(dim_mults),
+        }),
+        Architecture::Mlp { hidden } => Wire::Mlp(pb::Mlp { hidden: to_u32s(hidden) }),
+        Architecture::Unet2d {
+            block_out_channels,
+            layers_per_block,
+            attention,
+            norm_num_groups,
+            attention_head_dim,
+        } => Wire::Unet2d(pb::Unet2d {
+            block_out_channels: to_u32s(block_out_channels),
+            layers_per_block: Some(u32::try_from(*layers_per_block).unwrap_or(u32::MAX)),
+            attention: Some(*attention),
+            norm_num_groups: Some(u32::try_from(*norm_num_groups).unwrap_or(u32::MAX)),
+            attention_head_dim: Some(u32::try_from(*attention_head_dim).unwrap_or(u32::MAX)),
+        }),
+    }
+}
+
 /// A wire manifest as an engine manifest, fully validated: every field present, lengths
-/// consistent with the space and T, and the schedule buildable (every beta in (0, 1), no
-/// underflow). `field` is the manifest's path in the request, e.g. "header.manifest"; every
-/// error names the offending field below it. The manifest has no architecture (TorchScript).
+/// consistent with the space and T, the architecture (native models only; absent for
+/// TorchScript) consistent with the space, and the schedule buildable (every beta in (0, 1),
+/// no underflow). `field` is the manifest's path in the request, e.g. "header.manifest"; every
+/// error names the offending field below it.
 pub fn diffusion_manifest_from_proto(m: Option<pb::DiffusionManifest>, field: &str) -> Result<DiffusionManifest> {
     let m = m.ok_or_else(|| Error::invalid(format!("{field}: missing; a model needs its DiffusionManifest")))?;
     if m.n_timesteps == 0 {
@@ -165,7 +229,11 @@ pub fn diffusion_manifest_from_proto(m: Option<pb::DiffusionManifest>, field: &s
         clip_denoised: m.clip_denoised,
         space: space_from_proto(m.space, &format!("{field}.space"))?,
         normalizer: normalizer_from_proto(m.normalizer, &format!("{field}.normalizer"))?,
-        architecture: None,
+        architecture: m.architecture.map(|a| match a {
+            pb::diffusion_manifest::Architecture::TemporalUnet(u) => temporal_unet_from_proto(u),
+            pb::diffusion_manifest::Architecture::Mlp(m) => mlp_from_proto(m),
+            pb::diffusion_manifest::Architecture::Unet2d(u) => unet2d_from_proto(u),
+        }),
     };
     manifest.validate().map_err(|e| at_field(e, field))?;
     Schedule::new(&manifest.schedule, manifest.n_timesteps).map_err(|e| at_field(e, field))?;
@@ -180,6 +248,7 @@ pub fn diffusion_manifest_to_proto(m: &DiffusionManifest) -> pb::DiffusionManife
         clip_denoised: m.clip_denoised,
         space: Some(space_to_proto(&m.space)),
         normalizer: Some(normalizer_to_proto(&m.normalizer)),
+        architecture: m.architecture.as_ref().map(architecture_to_proto),
     }
 }
 
@@ -283,6 +352,7 @@ mod tests {
             clip_denoised: true,
             space: Some(S::Trajectory(Trajectory { horizon: 8, action_dim: 2, obs_dim: 1 })),
             normalizer: Some(normalizer_to_proto(&Normalizer::Limits { min: vec![0.0; 3], max: vec![1.0; 3] })),
+            architecture: None,
         }
     }
 

@@ -45,32 +45,9 @@ impl Jobs {
                     Error::NotFound(format!("spec.diffusion.dataset: dataset '{}' not found", d.dataset))
                 })?;
                 let architecture = match d.architecture {
-                    Some(pb::train_diffusion::Architecture::TemporalUnet(u)) => Architecture::TemporalUnet {
-                        dim: u.dim.unwrap_or(32) as usize,
-                        dim_mults: if u.dim_mults.is_empty() {
-                            vec![1, 2, 4, 8]
-                        } else {
-                            u.dim_mults.iter().map(|&m| m as usize).collect()
-                        },
-                    },
-                    Some(pb::train_diffusion::Architecture::Mlp(m)) => Architecture::Mlp {
-                        hidden: if m.hidden.is_empty() {
-                            vec![256, 256]
-                        } else {
-                            m.hidden.iter().map(|&h| h as usize).collect()
-                        },
-                    },
-                    Some(pb::train_diffusion::Architecture::Unet2d(u)) => Architecture::Unet2d {
-                        block_out_channels: if u.block_out_channels.is_empty() {
-                            vec![32, 64]
-                        } else {
-                            u.block_out_channels.iter().map(|&c| c as usize).collect()
-                        },
-                        layers_per_block: u.layers_per_block.unwrap_or(1) as usize,
-                        attention: u.attention.unwrap_or(true),
-                        norm_num_groups: u.norm_num_groups.unwrap_or(8) as usize,
-                        attention_head_dim: u.attention_head_dim.unwrap_or(8) as usize,
-                    },
+                    Some(pb::train_diffusion::Architecture::TemporalUnet(u)) => convert::temporal_unet_from_proto(u),
+                    Some(pb::train_diffusion::Architecture::Mlp(m)) => convert::mlp_from_proto(m),
+                    Some(pb::train_diffusion::Architecture::Unet2d(u)) => convert::unet2d_from_proto(u),
                     None => match dataset.kind {
                         DatasetKind::Trajectories => {
                             Architecture::TemporalUnet { dim: 32, dim_mults: vec![1, 2, 4, 8] }
@@ -306,29 +283,12 @@ fn spec_to_proto(spec: &JobSpec) -> pb::JobSpec {
             schedule: Some(convert::schedule_to_proto(&d.schedule)),
             n_timesteps: Some(d.n_timesteps as u32),
             horizon: Some(d.horizon as u32),
-            architecture: Some(match &d.architecture {
-                Architecture::TemporalUnet { dim, dim_mults } => {
-                    pb::train_diffusion::Architecture::TemporalUnet(pb::TemporalUnet {
-                        dim: Some(*dim as u32),
-                        dim_mults: dim_mults.iter().map(|&m| m as u32).collect(),
-                    })
+            architecture: Some(match convert::architecture_to_proto(&d.architecture) {
+                pb::diffusion_manifest::Architecture::TemporalUnet(u) => {
+                    pb::train_diffusion::Architecture::TemporalUnet(u)
                 }
-                Architecture::Mlp { hidden } => pb::train_diffusion::Architecture::Mlp(pb::Mlp {
-                    hidden: hidden.iter().map(|&h| h as u32).collect(),
-                }),
-                Architecture::Unet2d {
-                    block_out_channels,
-                    layers_per_block,
-                    attention,
-                    norm_num_groups,
-                    attention_head_dim,
-                } => pb::train_diffusion::Architecture::Unet2d(pb::Unet2d {
-                    block_out_channels: block_out_channels.iter().map(|&c| c as u32).collect(),
-                    layers_per_block: Some(*layers_per_block as u32),
-                    attention: Some(*attention),
-                    norm_num_groups: Some(*norm_num_groups as u32),
-                    attention_head_dim: Some(*attention_head_dim as u32),
-                }),
+                pb::diffusion_manifest::Architecture::Mlp(m) => pb::train_diffusion::Architecture::Mlp(m),
+                pb::diffusion_manifest::Architecture::Unet2d(u) => pb::train_diffusion::Architecture::Unet2d(u),
             }),
             action_weight: Some(d.action_weight),
             clip_denoised: Some(d.clip_denoised),

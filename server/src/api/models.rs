@@ -1,17 +1,22 @@
-//! `relreward.v1.ModelService`: register TorchScript diffusion models, get, list, delete.
+//! `relreward.v1.ModelService`: register diffusion models (TorchScript modules or native
+//! safetensors weights), get, list, delete.
 //!
-//! Upload protocol (one client stream): a `header` (name, manifest, description), the module
+//! Upload protocol (one client stream): a `header` (name, manifest, description, format), the
 //! file's bytes in `chunk`s, then a `commit` with the file's sha256. The order of checks is
 //! cheapest first, and nothing is visible until the last step:
 //!
-//! 1. `models.allow_torchscript_upload` (off by default: a TorchScript file is a program);
-//! 2. the header: name, no existing model of that name, the manifest converted and validated;
-//! 3. the bytes, streamed into a staging file, hashed, bounded by `models.max_upload_bytes`;
-//! 4. the commit digest;
-//! 5. the module itself: loaded and run once on zeros of the declared shape (on a blocking
-//!    thread), see `engine::torchscript`;
-//! 6. `manifest.json` written next to `module.pt`, the staging directory published and the
-//!    record inserted (`Store::commit_model`).
+//! 1. the header: format (a TorchScript upload also needs `models.allow_torchscript_upload`,
+//!    off by default: a TorchScript file is a program; native weights are data), name, no
+//!    existing model of that name, the manifest converted and validated, its architecture
+//!    present exactly when the format is native;
+//! 2. the bytes, streamed into a staging file, hashed, bounded by `models.max_upload_bytes`;
+//! 3. the commit digest;
+//! 4. the file itself, on a blocking thread: a module loaded and run once on zeros of the
+//!    declared shape (`engine::torchscript`); native weights loaded strictly into the
+//!    architecture (every tensor named, float32, of its shape, nothing extra) and run once the
+//!    same way (`ModelRegistry::validate_native`);
+//! 5. `manifest.json` written next to the file, the staging directory published and the record
+//!    inserted (`Store::commit_model`).
 //!
 //! Any error, or a stream that ends early, drops the `Staging` guard, which removes the files.
 
@@ -30,8 +35,10 @@ use crate::limits::DiskBudget;
 use crate::store::ingest::now_ms;
 use crate::store::{ModelFormat, ModelKind, ModelRecord, Provenance, Store};
 
-/// File names inside an uploaded model's blob.
+/// File names inside an uploaded model's blob (native weights keep the name training jobs give
+/// them, `weights.safetensors`).
 pub const MODULE_FILE: &str = "module.pt";
+pub const WEIGHTS_FILE: &str = "weights.safetensors";
 pub const MANIFEST_FILE: &str = "manifest.json";
 
 /// Longest description accepted, in bytes.
@@ -60,19 +67,29 @@ impl Models {
     }
 
     async fn upload(&self, mut stream: Streaming<pb::UploadModelRequest>) -> Result<pb::Model> {
-        if !self.config.allow_torchscript_upload {
-            return Err(Error::FailedPrecondition(
-                "ModelService.UploadModel is disabled on this server: a TorchScript file is a program that would run \
-                 inside the server, so uploads are refused unless the operator sets models.allow_torchscript_upload = \
-                 true (environment variable RELREWARD__MODELS__ALLOW_TORCHSCRIPT_UPLOAD=true)"
-                    .into(),
-            ));
-        }
         let header = match next_upload(&mut stream, |m: pb::UploadModelRequest| m.message).await? {
             Some(Message::Header(h)) => h,
             Some(_) => return Err(Error::invalid("message 1: the first message of an upload must be a header")),
             None => return Err(Error::invalid("upload stream was empty: expected a header, chunks and a commit")),
         };
+        let format = match fields::known::<pb::ModelFormat>(
+            "header.format",
+            header.format,
+            "MODEL_FORMAT_TORCHSCRIPT (the default) or MODEL_FORMAT_NATIVE",
+        )? {
+            pb::ModelFormat::Unspecified | pb::ModelFormat::Torchscript => ModelFormat::Torchscript,
+            pb::ModelFormat::Native => ModelFormat::Native,
+        };
+        if format == ModelFormat::Torchscript && !self.config.allow_torchscript_upload {
+            return Err(Error::FailedPrecondition(
+                "ModelService.UploadModel of TorchScript is disabled on this server: a TorchScript file is a program \
+                 that would run inside the server, so such uploads are refused unless the operator sets \
+                 models.allow_torchscript_upload = true (environment variable \
+                 RELREWARD__MODELS__ALLOW_TORCHSCRIPT_UPLOAD=true); native safetensors weights of a built-in \
+                 architecture (header.format = MODEL_FORMAT_NATIVE, e.g. from `relreward model import`) are accepted"
+                    .into(),
+            ));
+        }
         validate_name("header.name", &header.name)?;
         if header.description.len() > MAX_DESCRIPTION_BYTES {
             return Err(Error::invalid(format!(
@@ -84,10 +101,27 @@ impl Models {
             return Err(Error::AlreadyExists(format!("header.name: model '{}' already exists", header.name)));
         }
         let manifest = diffusion_manifest_from_proto(header.manifest, "header.manifest")?;
+        let file_name = match (format, &manifest.architecture) {
+            (ModelFormat::Torchscript, None) => MODULE_FILE,
+            (ModelFormat::Native, Some(_)) => WEIGHTS_FILE,
+            (ModelFormat::Torchscript, Some(_)) => {
+                return Err(Error::invalid(
+                    "header.manifest.architecture: set, but header.format is TorchScript, whose module is its own \
+                     architecture; send safetensors weights with header.format = MODEL_FORMAT_NATIVE, or leave the \
+                     architecture unset",
+                ));
+            }
+            (ModelFormat::Native, None) => {
+                return Err(Error::invalid(
+                    "header.manifest.architecture: missing; native weights (header.format = MODEL_FORMAT_NATIVE) \
+                     need the built-in architecture they belong to: temporal_unet, mlp or unet2d",
+                ));
+            }
+        };
 
         let staging = self.store.blobs.staging()?;
-        let module_path = staging.path().join(MODULE_FILE);
-        let mut file = std::fs::File::create(&module_path)?;
+        let file_path = staging.path().join(file_name);
+        let mut file = std::fs::File::create(&file_path)?;
         let mut hasher = Sha256::new();
         let mut size = 0u64;
         let max = self.config.max_upload_bytes;
@@ -101,7 +135,7 @@ impl Models {
                     size = size.saturating_add(bytes.len() as u64);
                     if size > max {
                         return Err(Error::ResourceExhausted(format!(
-                            "chunk: the module exceeds models.max_upload_bytes ({max} bytes)"
+                            "chunk: the file exceeds models.max_upload_bytes ({max} bytes)"
                         )));
                     }
                     if size > reserved {
@@ -129,7 +163,7 @@ impl Models {
         }
         drop(file);
         if size == 0 {
-            return Err(Error::invalid("chunk: no module bytes were uploaded"));
+            return Err(Error::invalid("chunk: no bytes of the file were uploaded"));
         }
         let sha256 = hex::encode(hasher.finalize());
         if !digest.eq_ignore_ascii_case(&sha256) {
@@ -139,7 +173,10 @@ impl Models {
             )));
         }
 
-        let parameter_count = self.registry.validate_torchscript(module_path, manifest.clone()).await?;
+        let parameter_count = match format {
+            ModelFormat::Torchscript => self.registry.validate_torchscript(file_path, manifest.clone()).await?,
+            ModelFormat::Native => self.registry.validate_native(file_path, manifest.clone()).await?,
+        };
         let manifest_json = serde_json::to_value(&manifest).map_err(|e| Error::internal("encoding manifest", e))?;
         let text = serde_json::to_vec_pretty(&manifest_json).map_err(|e| Error::internal("encoding manifest", e))?;
         tokio::task::block_in_place(|| std::fs::write(staging.path().join(MANIFEST_FILE), text))?;
@@ -147,12 +184,12 @@ impl Models {
         let record = ModelRecord {
             name: header.name,
             kind: ModelKind::Diffusion,
-            format: ModelFormat::Torchscript,
+            format,
             manifest: manifest_json,
             parameter_count,
             sha256,
             size_bytes: size,
-            file: MODULE_FILE.into(),
+            file: file_name.into(),
             provenance: Provenance::Uploaded,
             created_at_ms: now_ms(),
             description: header.description,
@@ -165,7 +202,8 @@ impl Models {
             model = record.name,
             bytes = record.size_bytes,
             parameters = parameter_count,
-            "TorchScript model registered"
+            format = ?format,
+            "diffusion model registered"
         );
         model_to_proto(&record)
     }

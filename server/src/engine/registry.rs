@@ -365,6 +365,41 @@ impl ModelRegistry {
     }
 }
 
+impl ModelRegistry {
+    /// Checks uploaded native weights against their manifest before registration (blocking
+    /// work on a worker thread): the strict load names every missing, unexpected or mis-shaped
+    /// tensor; then one forward on zeros `[2, *item]` with `t = [0, T - 1]` must be finite, so
+    /// NaN or infinite weights are refused rather than served. Returns the parameter count.
+    pub async fn validate_native(&self, path: PathBuf, manifest: DiffusionManifest) -> Result<u64> {
+        let device = self.inner.device;
+        tokio::task::spawn_blocking(move || -> Result<u64> {
+            let Some(architecture) = manifest.architecture.as_ref() else {
+                return Err(Error::invalid("header.manifest.architecture: missing; native weights need one"));
+            };
+            let net = NativeDenoiser::load(architecture, &manifest.space, &path, device).map_err(|e| match e {
+                Error::InvalidArgument(m) | Error::DataLoss(m) => {
+                    Error::invalid(format!("chunk: the uploaded weights do not fit header.manifest.architecture: {m}"))
+                }
+                other => other,
+            })?;
+            let last = i64::try_from(manifest.n_timesteps.saturating_sub(1)).unwrap_or(i64::MAX);
+            let mut shape = vec![2i64];
+            shape.extend_from_slice(net.item_shape());
+            let x = tch::Tensor::f_zeros(shape.as_slice(), (tch::Kind::Float, device))?;
+            let t = tch::Tensor::f_from_slice(&[0i64, last])?.f_to_device(device)?;
+            let out = tch::no_grad(|| net.forward(&x, &t))?;
+            if out.f_isfinite()?.f_all()?.f_int64_value(&[])? != 1 {
+                return Err(Error::invalid(format!(
+                    "chunk: the uploaded weights give NaN or infinite outputs on zeros {shape:?} with t = [0, {last}]"
+                )));
+            }
+            Ok(net.parameter_count())
+        })
+        .await
+        .map_err(|e| Error::internal("weights validation task", e))?
+    }
+}
+
 fn kind_name(kind: ModelKind) -> &'static str {
     match kind {
         ModelKind::Diffusion => "diffusion",

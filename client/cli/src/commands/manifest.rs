@@ -10,14 +10,21 @@
 //! # or space = { kind = "sample", shape = [4, 8, 8] }
 //! normalizer = { kind = "limits", min = [..], max = [..] }
 //! # or { kind = "gaussian", mean = [..], std = [..] } or { kind = "identity" } (the default)
+//! # native safetensors weights only (absent for a TorchScript module, its own architecture):
+//! architecture = { kind = "temporal_unet", dim = 32, dim_mults = [1, 4, 8] }
+//! # or { kind = "mlp", hidden = [..] } or { kind = "unet2d", block_out_channels = [..],
+//! #    layers_per_block, attention, norm_num_groups, attention_head_dim }
 //! ```
+//!
+//! One rule decides what an uploaded file is: a manifest with an `architecture` describes
+//! native weights (`MODEL_FORMAT_NATIVE`), one without describes a TorchScript module.
 
 use std::path::Path;
 
 use anyhow::{Context, Result, anyhow, bail};
 use relreward_client::pb;
 use serde::Deserialize;
-use serde::de::{DeserializeOwned, IgnoredAny};
+use serde::de::DeserializeOwned;
 use serde_json::{Value, json};
 
 use super::output::normalizer_json;
@@ -101,6 +108,49 @@ pub enum Normalizer {
     Identity,
 }
 
+/// A built-in architecture (native weights); unset fields take the server's TrainDiffusion
+/// defaults.
+#[derive(Debug, Clone, PartialEq, Eq, Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case", deny_unknown_fields)]
+pub enum Architecture {
+    TemporalUnet {
+        dim: Option<u32>,
+        #[serde(default)]
+        dim_mults: Vec<u32>,
+    },
+    Mlp {
+        #[serde(default)]
+        hidden: Vec<u32>,
+    },
+    Unet2d {
+        #[serde(default)]
+        block_out_channels: Vec<u32>,
+        layers_per_block: Option<u32>,
+        attention: Option<bool>,
+        norm_num_groups: Option<u32>,
+        attention_head_dim: Option<u32>,
+    },
+}
+
+impl Architecture {
+    pub fn to_proto(&self) -> pb::diffusion_manifest::Architecture {
+        use pb::diffusion_manifest::Architecture as Wire;
+        match self.clone() {
+            Self::TemporalUnet { dim, dim_mults } => Wire::TemporalUnet(pb::TemporalUnet { dim, dim_mults }),
+            Self::Mlp { hidden } => Wire::Mlp(pb::Mlp { hidden }),
+            Self::Unet2d { block_out_channels, layers_per_block, attention, norm_num_groups, attention_head_dim } => {
+                Wire::Unet2d(pb::Unet2d {
+                    block_out_channels,
+                    layers_per_block,
+                    attention,
+                    norm_num_groups,
+                    attention_head_dim,
+                })
+            }
+        }
+    }
+}
+
 /// The manifest file, field for field the server's `DiffusionManifest`.
 #[derive(Debug, Clone, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -113,21 +163,15 @@ pub struct ManifestFile {
     pub space: Space,
     #[serde(default)]
     pub normalizer: Normalizer,
-    /// Native models only: accepted so that the error can say why it does not belong here.
+    /// Native weights only (see the module's rule).
     #[serde(default)]
-    architecture: Option<IgnoredAny>,
+    pub architecture: Option<Architecture>,
 }
 
 impl ManifestFile {
     /// The proto manifest, after the checks that name the offending field.
     pub fn to_proto(&self) -> Result<pb::DiffusionManifest> {
         use pb::diffusion_manifest::{Sample, Space as PbSpace, Trajectory};
-        if self.architecture.is_some() {
-            bail!(
-                "manifest.architecture: only natively trained models have one; an uploaded TorchScript module \
-                 is its own architecture (remove the key)"
-            );
-        }
         let t = self.n_timesteps;
         if t == 0 || t > MAX_TIMESTEPS {
             bail!("manifest.n_timesteps: {t} is outside 1..={MAX_TIMESTEPS}");
@@ -167,6 +211,7 @@ impl ManifestFile {
             clip_denoised: self.clip_denoised,
             space: Some(space),
             normalizer: Some(normalizer),
+            architecture: self.architecture.as_ref().map(Architecture::to_proto),
         })
     }
 }
@@ -275,17 +320,52 @@ pub fn schedule_text(s: Option<&pb::Schedule>) -> String {
 ///  "space": {"kind": "trajectory", "horizon": H, "action_dim": A, "obs_dim": O}
 ///         | {"kind": "sample", "shape": [..]} | null,
 ///  "normalizer": {"kind": "limits", "min": [..], "max": [..]}
-///              | {"kind": "gaussian", "mean": [..], "std": [..]} | {"kind": "identity"}}
+///              | {"kind": "gaussian", "mean": [..], "std": [..]} | {"kind": "identity"},
+///  "architecture": {"kind": "temporal_unet", ..} | {"kind": "mlp", ..} | {"kind": "unet2d", ..}}
 /// ```
+/// (`architecture` only for native models).
 pub fn manifest_json(m: &pb::DiffusionManifest) -> Value {
-    json!({
+    let mut json = json!({
         "parametrization": parametrization_name(m.parametrization()),
         "schedule": schedule_json(m.schedule.as_ref()),
         "n_timesteps": m.n_timesteps,
         "clip_denoised": m.clip_denoised,
         "space": space_json(m.space.as_ref()),
         "normalizer": normalizer_json(m.normalizer.as_ref()),
-    })
+    });
+    if let Some(a) = &m.architecture {
+        json["architecture"] = architecture_json(a);
+    }
+    json
+}
+
+fn architecture_json(a: &pb::diffusion_manifest::Architecture) -> Value {
+    use pb::diffusion_manifest::Architecture as Wire;
+    match a {
+        Wire::TemporalUnet(u) => json!({ "kind": "temporal_unet", "dim": u.dim, "dim_mults": u.dim_mults }),
+        Wire::Mlp(m) => json!({ "kind": "mlp", "hidden": m.hidden }),
+        Wire::Unet2d(u) => json!({
+            "kind": "unet2d",
+            "block_out_channels": u.block_out_channels,
+            "layers_per_block": u.layers_per_block,
+            "attention": u.attention,
+            "norm_num_groups": u.norm_num_groups,
+            "attention_head_dim": u.attention_head_dim,
+        }),
+    }
+}
+
+/// An architecture in a few words, `-` for none (a TorchScript module).
+pub fn architecture_text(a: Option<&pb::diffusion_manifest::Architecture>) -> String {
+    use pb::diffusion_manifest::Architecture as Wire;
+    match a {
+        Some(Wire::TemporalUnet(u)) => {
+            format!("temporal_unet (dim {}, dim_mults {:?})", u.dim.unwrap_or(32), u.dim_mults)
+        }
+        Some(Wire::Mlp(m)) => format!("mlp (hidden {:?})", m.hidden),
+        Some(Wire::Unet2d(u)) => format!("unet2d (block_out_channels {:?})", u.block_out_channels),
+        None => "-".to_owned(),
+    }
 }
 
 fn space_json(s: Option<&pb::diffusion_manifest::Space>) -> Value {
@@ -432,8 +512,15 @@ mod tests {
             (TOML.replace("horizon = 32", "horizon = 0"), "manifest.space"),
             (TOML.replace("clip_denoised = true", "clip_denoised = true\nextra = 1"), "unknown field `extra`"),
             (
-                TOML.replace("clip_denoised = true", "clip_denoised = true\narchitecture = { kind = \"mlp\" }"),
-                "manifest.architecture",
+                TOML.replace("clip_denoised = true", "clip_denoised = true\narchitecture = { kind = \"transformer\" }"),
+                "unknown variant `transformer`",
+            ),
+            (
+                TOML.replace(
+                    "clip_denoised = true",
+                    "clip_denoised = true\narchitecture = { kind = \"mlp\", width = 3 }",
+                ),
+                "unknown field `width`",
             ),
             (
                 TOML.replace(
@@ -477,6 +564,19 @@ mod tests {
                 "normalizer": {"kind": "limits", "min": [0.0, 0.0, -1.0], "max": [1.0, 1.0, 1.0]},
             })
         );
+        // A native model's architecture round-trips too.
+        for architecture in [
+            r#"{ kind = "temporal_unet", dim = 16, dim_mults = [1, 2] }"#,
+            r#"{ kind = "mlp", hidden = [64, 64] }"#,
+            r#"{ kind = "unet2d", block_out_channels = [16, 32], layers_per_block = 1, attention = false, norm_num_groups = 8, attention_head_dim = 8 }"#,
+        ] {
+            // (A linear schedule: an omitted cosine s goes out as 0 and comes back as 0.008.)
+            let text = TOML.replace(r#"{ kind = "diffuser_cosine" }"#, r#"{ kind = "linear" }"#);
+            let proto = parse(&format!("{text}\narchitecture = {architecture}")).expect("native manifest");
+            assert!(proto.architecture.is_some());
+            let back: ManifestFile = serde_json::from_value(manifest_json(&proto)).expect("json is a manifest file");
+            assert_eq!(back.to_proto().expect("valid"), proto, "{architecture}");
+        }
         let empty = manifest_json(&pb::DiffusionManifest::default());
         assert!(empty["parametrization"].is_null() && empty["schedule"].is_null() && empty["space"].is_null());
         assert_eq!(empty["normalizer"], json!({"kind": "identity"}));

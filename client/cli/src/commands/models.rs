@@ -12,7 +12,7 @@ use relreward_client::pb;
 use serde_json::{Value, json};
 use tokio::sync::oneshot;
 
-use super::manifest::{self, manifest_json, parametrization_name, schedule_text, space_text};
+use super::manifest::{self, architecture_text, manifest_json, parametrization_name, schedule_text, space_text};
 use super::output::{
     byte_progress_bar, drive_progress, eprint_line, fmt_short, human_bytes, key_values, normalizer_json,
     normalizer_text, or_dash, rfc3339, table, time_or_dash,
@@ -21,7 +21,8 @@ use super::{Ctx, Report};
 
 #[derive(Debug, Subcommand)]
 pub enum ModelCommand {
-    /// Register a TorchScript diffusion model with its manifest.
+    /// Register a diffusion model with its manifest: a TorchScript module, or native safetensors
+    /// weights when the manifest names an `architecture`.
     Upload(ModelUploadArgs),
     /// Convert a Diffuser TemporalUnet state_dict (exported to .npz) into native weights
     /// (safetensors), checking every tensor against the architecture; runs locally.
@@ -39,13 +40,14 @@ pub enum ModelCommand {
 
 #[derive(Debug, Args)]
 pub struct ModelUploadArgs {
-    /// The TorchScript module (.pt), called as forward(x, t).
+    /// The TorchScript module (.pt), called as forward(x, t); or native weights
+    /// (.safetensors) when the manifest names an `architecture`.
     file: PathBuf,
     /// Model name: [a-z0-9][a-z0-9._-]{0,63}.
     #[arg(long)]
     name: String,
     /// The model's manifest, TOML or JSON (parametrization, schedule, n_timesteps, space,
-    /// normalizer, clip_denoised).
+    /// normalizer, clip_denoised; architecture for native weights).
     #[arg(long, value_name = "MANIFEST.toml|json")]
     manifest: PathBuf,
     #[arg(long, default_value = "")]
@@ -58,7 +60,7 @@ pub struct ModelImportArgs {
     /// `np.savez(path, **{k: v.cpu().numpy() for k, v in model.state_dict().items()})`.
     file: PathBuf,
     /// The model's manifest (TOML or JSON); its trajectory space gives the horizon and the
-    /// transition dim (action_dim + obs_dim).
+    /// transition dim (action_dim + obs_dim). An `architecture` in it must agree with the flags.
     #[arg(long, value_name = "MANIFEST.toml|json")]
     manifest: PathBuf,
     /// TemporalUnet `dim` (Diffuser's `model.dim`).
@@ -74,6 +76,13 @@ pub struct ModelImportArgs {
     /// Where to write the native weights (safetensors, relreward's tensor names).
     #[arg(long, value_name = "WEIGHTS.safetensors")]
     out: PathBuf,
+    /// Also register the weights on the server under this name (a native upload: accepted
+    /// without models.allow_torchscript_upload); without it the command runs offline.
+    #[arg(long)]
+    name: Option<String>,
+    /// The registered model's description (with --name).
+    #[arg(long, default_value = "", requires = "name")]
+    description: String,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
@@ -96,7 +105,7 @@ impl ModelKindArg {
 pub async fn run(ctx: &Ctx, command: ModelCommand) -> Result<Report> {
     match command {
         ModelCommand::Upload(args) => upload(ctx, args).await,
-        ModelCommand::Import(args) => import(args),
+        ModelCommand::Import(args) => import(ctx, args).await,
         ModelCommand::List { kind } => list(ctx, kind).await,
         ModelCommand::Show { name } => show(ctx, &name).await,
         ModelCommand::Delete { name } => delete(ctx, &name).await,
@@ -109,8 +118,31 @@ pub async fn run(ctx: &Ctx, command: ModelCommand) -> Result<Report> {
 async fn upload(ctx: &Ctx, args: ModelUploadArgs) -> Result<Report> {
     let ModelUploadArgs { file, name, manifest, description } = args;
     // A bad manifest is reported before anything is sent.
-    let manifest = manifest::load(&manifest)?;
-    let size = std::fs::metadata(&file).with_context(|| format!("{}", file.display()))?.len();
+    let man = manifest::load(&manifest)?;
+    let is_safetensors = file.extension().is_some_and(|e| e.eq_ignore_ascii_case("safetensors"));
+    if is_safetensors && man.architecture.is_none() {
+        bail!(
+            "{}: architecture: missing; {} is safetensors weights, which need the built-in architecture they \
+             belong to (e.g. architecture = {{ kind = \"temporal_unet\", dim = 32, dim_mults = [1, 4, 8] }})",
+            manifest.display(),
+            file.display()
+        );
+    }
+    let model = send_model(ctx, &file, name, man, description).await?;
+    Ok(Report::ok(format_model(&model), model_json(&model)))
+}
+
+/// Streams a model file with its manifest, with a progress bar; the format follows the
+/// manifest (native weights when it names an architecture, see `manifest`).
+async fn send_model(
+    ctx: &Ctx,
+    file: &std::path::Path,
+    name: String,
+    manifest: pb::DiffusionManifest,
+    description: String,
+) -> Result<pb::Model> {
+    let format = if manifest.architecture.is_some() { pb::ModelFormat::Native } else { pb::ModelFormat::Torchscript };
+    let size = std::fs::metadata(file).with_context(|| format!("{}", file.display()))?.len();
     let client = ctx.connect().await?;
     let progress = Arc::new(UploadProgress::default());
     progress.total_bytes.store(size, Ordering::Relaxed);
@@ -118,8 +150,8 @@ async fn upload(ctx: &Ctx, args: ModelUploadArgs) -> Result<Report> {
     let (done_tx, done_rx) = oneshot::channel();
     let ticker = tokio::spawn(drive_progress(bar.clone(), Arc::clone(&progress), done_rx));
     let started = Instant::now();
-    let header = pb::UploadModelHeader { name, manifest: Some(manifest), description };
-    let result = client.upload_model(header, &file, Arc::clone(&progress)).await;
+    let header = pb::UploadModelHeader { name, manifest: Some(manifest), description, format: format as i32 };
+    let result = client.upload_model(header, file, Arc::clone(&progress)).await;
     let _ = done_tx.send(());
     let _ = ticker.await;
     bar.finish_and_clear();
@@ -129,15 +161,15 @@ async fn upload(ctx: &Ctx, args: ModelUploadArgs) -> Result<Report> {
         let sent = progress.sent_bytes.load(Ordering::Relaxed);
         eprint_line(&format!("uploaded {} in {secs:.1} s", human_bytes(sent)));
     }
-    Ok(Report::ok(format_model(&model), model_json(&model)))
+    Ok(model)
 }
 
 /// The architecture's limits are the engine's (`TemporalUnet::validate`); checked here too so
 /// that a bad flag is named before the file is read.
-fn import(args: ModelImportArgs) -> Result<Report> {
+async fn import(ctx: &Ctx, args: ModelImportArgs) -> Result<Report> {
     use relreward_toolkit::diffuser_import::{import_npz, temporal_unet_shapes, write_safetensors};
-    let ModelImportArgs { file, manifest, dim, dim_mults, prefix, out } = args;
-    let man = manifest::load(&manifest)?;
+    let ModelImportArgs { file, manifest, dim, dim_mults, prefix, out, name, description } = args;
+    let mut man = manifest::load(&manifest)?;
     let Some(pb::diffusion_manifest::Space::Trajectory(space)) = man.space else {
         bail!("{}: space: a TemporalUnet needs a trajectory space", manifest.display());
     };
@@ -156,22 +188,42 @@ fn import(args: ModelImportArgs) -> Result<Report> {
             space.horizon
         );
     }
+    // The flags are the architecture; one already in the manifest must say the same.
+    let architecture = pb::diffusion_manifest::Architecture::TemporalUnet(pb::TemporalUnet {
+        dim: Some(dim as u32),
+        dim_mults: dim_mults.iter().map(|&m| m as u32).collect(),
+    });
+    if let Some(given) = &man.architecture
+        && *given != architecture
+    {
+        bail!(
+            "{}: architecture: {} disagrees with --dim {dim} --dim-mults {dim_mults:?}; remove it or make them agree",
+            manifest.display(),
+            architecture_text(Some(given))
+        );
+    }
+    man.architecture = Some(architecture);
     let expected = temporal_unet_shapes(transition_dim, dim, &dim_mults);
     let tensors = import_npz(&file, &prefix, &expected)?;
     write_safetensors(&out, &tensors).with_context(|| format!("{}", out.display()))?;
     let parameters: usize = tensors.iter().map(|(_, _, v)| v.len()).sum();
-    let text = format!(
+    let mut text = format!(
         "imported {} tensors ({parameters} parameters) from {} into {}\narchitecture = {{ kind = \"temporal_unet\", dim = {dim}, dim_mults = {dim_mults:?} }}\n",
         tensors.len(),
         file.display(),
         out.display()
     );
-    let json = json!({
+    let mut json = json!({
         "tensors": tensors.len(),
         "parameters": parameters,
         "weights": out.display().to_string(),
         "architecture": { "kind": "temporal_unet", "dim": dim, "dim_mults": dim_mults },
     });
+    if let Some(name) = name {
+        let model = send_model(ctx, &out, name, man, description).await?;
+        text.push_str(&format!("registered as model '{}' (native)\n", model.name));
+        json["model"] = model_json(&model);
+    }
     Ok(Report::ok(text, json))
 }
 
@@ -310,6 +362,7 @@ fn format_model(m: &pb::Model) -> String {
             ("clip_denoised", man.clip_denoised.to_string()),
             ("space", space_text(man.space.as_ref())),
             ("normalizer", normalizer_text(man.normalizer.as_ref())),
+            ("architecture", architecture_text(man.architecture.as_ref())),
         ];
         out.push_str(&key_values(&fields, 2));
     }
@@ -367,6 +420,7 @@ mod tests {
                 clip_denoised: false,
                 space: Some(Space::Trajectory(Trajectory { horizon: 8, action_dim: 2, obs_dim: 4 })),
                 normalizer: None,
+                architecture: None,
             }),
             reward: None,
             parameter_count: 1234,

@@ -339,6 +339,13 @@ def dataset_messages(name: str, source: UploadSource, description: str, chunk_by
         failure.error = e
 
 
+def upload_header(name: str, manifest: models_pb2.DiffusionManifest, description: str) -> models_pb2.UploadModelHeader:
+    """The upload's header; one rule gives its format: native safetensors weights when the
+    manifest names an architecture, a TorchScript module otherwise."""
+    fmt = models_pb2.MODEL_FORMAT_NATIVE if manifest.WhichOneof("architecture") else models_pb2.MODEL_FORMAT_TORCHSCRIPT
+    return models_pb2.UploadModelHeader(name=name, manifest=manifest, description=description, format=fmt)
+
+
 def model_messages(path: pathlib.Path, header: models_pb2.UploadModelHeader, chunk_bytes: int,
                    progress: Progress | None, failure: UploadFailure) -> Iterator[models_pb2.UploadModelRequest]:
     """Header, the file's bytes in chunks, then the commit with the file's sha256."""

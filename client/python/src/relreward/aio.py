@@ -127,7 +127,7 @@ class AsyncClient:
                            progress: c.Progress | bool | None = None) -> models_pb2.Model:
         """See :meth:`relreward.Client.upload_model`."""
         path = pathlib.Path(path)
-        header = models_pb2.UploadModelHeader(name=name, manifest=manifest_of(manifest), description=description)
+        header = c.upload_header(name, manifest_of(manifest), description)
         callback, bar = c.progress_callback(progress, path.stat().st_size, name)
         failure = c.UploadFailure()
         try:

@@ -175,13 +175,15 @@ class Client:
     def upload_model(self, path: str | pathlib.Path, name: str, manifest: Mapping[str, Any] | models_pb2.DiffusionManifest,
                      *, description: str = "", chunk_bytes: int = c.DEFAULT_CHUNK_BYTES,
                      progress: c.Progress | bool | None = None) -> models_pb2.Model:
-        """Registers a TorchScript diffusion module (``forward(x, t)``) with its manifest (a
-        ``DiffusionManifest`` or a dict in the CLI's manifest form, see
-        :func:`relreward.specs.manifest`). The file is streamed in chunks with its sha256; the
-        server validates the module against the manifest. Needs a server with
-        ``models.allow_torchscript_upload`` and an ``admin`` token where tokens are on."""
+        """Registers a diffusion model with its manifest (a ``DiffusionManifest`` or a dict in
+        the CLI's manifest form, see :func:`relreward.specs.manifest`): a TorchScript module
+        (``forward(x, t)``; needs a server with ``models.allow_torchscript_upload``), or native
+        safetensors weights when the manifest names an ``architecture`` (e.g. written by
+        ``relreward model import``; always accepted, loaded strictly). The file is streamed in
+        chunks with its sha256; the server validates it against the manifest. Needs an
+        ``admin`` token where tokens are on."""
         path = pathlib.Path(path)
-        header = models_pb2.UploadModelHeader(name=name, manifest=manifest_of(manifest), description=description)
+        header = c.upload_header(name, manifest_of(manifest), description)
         callback, bar = c.progress_callback(progress, path.stat().st_size, name)
         failure = c.UploadFailure()
         try:

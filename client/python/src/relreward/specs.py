@@ -99,17 +99,20 @@ class DiffusionJob:
             d.schedule.CopyFrom(s)
         if self.architecture is not None:
             kind, args = self.architecture
-            if kind == "temporal_unet":
-                d.temporal_unet.CopyFrom(jobs_pb2.TemporalUnet(**args))
-            elif kind == "mlp":
-                d.mlp.CopyFrom(jobs_pb2.Mlp(**args))
-            elif kind == "unet2d":
-                d.unet2d.CopyFrom(jobs_pb2.Unet2d(**args))
-            else:
-                raise ValueError(f"architecture {kind!r}: expected temporal_unet, mlp or unet2d")
+            getattr(d, kind).CopyFrom(_denoiser_architecture(kind, args))
         spec = _base(self.output_model, self.seed, self.optimization)
         spec.diffusion.CopyFrom(d)
         return spec
+
+
+def _denoiser_architecture(kind: str, args: Mapping[str, Any]) -> Any:
+    """A built-in denoiser architecture message: ``temporal_unet`` ({"dim", "dim_mults"}),
+    ``mlp`` ({"hidden"}) or ``unet2d`` ({"block_out_channels", ...}); its field name is ``kind``
+    in both TrainDiffusion and DiffusionManifest."""
+    message = {"temporal_unet": models_pb2.TemporalUnet, "mlp": models_pb2.Mlp, "unet2d": models_pb2.Unet2d}.get(kind)
+    if message is None:
+        raise ValueError(f"architecture {kind!r}: expected temporal_unet, mlp or unet2d")
+    return message(**args)
 
 
 def _base(output_model: str, seed: int | None, optimization: Optimization | None) -> jobs_pb2.JobSpec:
@@ -129,7 +132,7 @@ def _reward_arch(arch: tuple[str, Mapping[str, Any]] | None) -> jobs_pb2.RewardA
     kind, args = arch
     ra = jobs_pb2.RewardArchitecture
     inner = {"windowed_mlp": ra.WindowedMlp, "value_function": ra.ValueFunction, "conv_encoder": ra.ConvEncoder,
-             "mlp": jobs_pb2.Mlp}.get(kind)
+             "mlp": models_pb2.Mlp}.get(kind)
     if inner is None:
         raise ValueError(f"reward architecture {kind!r}: expected windowed_mlp, value_function, conv_encoder or mlp")
     return ra(**{kind: inner(**args)})
@@ -225,7 +228,11 @@ def manifest(m: Any) -> models_pb2.DiffusionManifest:
         {"parametrization": "x0", "n_timesteps": 20, "clip_denoised": True,
          "schedule": {"kind": "diffuser_cosine"},
          "space": {"kind": "trajectory", "horizon": 32, "action_dim": 2, "obs_dim": 4},
-         "normalizer": {"kind": "limits", "min": [...], "max": [...]}}
+         "normalizer": {"kind": "limits", "min": [...], "max": [...]},
+         "architecture": {"kind": "temporal_unet", "dim": 32, "dim_mults": [1, 4, 8]}}
+
+    ``architecture`` (temporal_unet, mlp or unet2d) only for native safetensors weights: a
+    manifest with one describes native weights, one without a TorchScript module.
     """
     if isinstance(m, models_pb2.DiffusionManifest):
         return m
@@ -255,4 +262,9 @@ def manifest(m: Any) -> models_pb2.DiffusionManifest:
         out.normalizer.identity.SetInParent()
     elif nk is not None:
         raise ValueError(f"normalizer kind {nk!r}: expected limits, gaussian or identity")
+    if m.get("architecture") is not None:
+        arch = dict(m["architecture"])
+        kind = str(arch.pop("kind", None))
+        message = _denoiser_architecture(kind, arch)  # names an unknown kind
+        getattr(out, kind).CopyFrom(message)
     return out
