@@ -286,19 +286,20 @@ fn compute(queue: &ModelQueue, kind: BatchKind, batch: &[Pending]) -> Result<Vec
             // batches with a raw-unit gradient (planners ask in normalized units).
             let raw_units = batch.iter().any(|p| p.query.gradient_post.as_ref().is_some_and(|g| g.raw_units));
             let jacobian = if raw_units { Some(item_jacobian(queue, &x_host)?) } else { None };
+            // Floats per item (an item shape has no zero dimension).
+            let per_item = (queue.model.item_shape.iter().product::<i64>() as usize).max(1);
             let mut answers = Vec::with_capacity(batch.len());
             for ((p, rewards), mut gradient) in
                 batch.iter().zip(split_host(&rho, &sizes)?).zip(split_host(&grad, &sizes)?)
             {
                 if let Some(post) = &p.query.gradient_post {
-                    let per_item = gradient.values.len() / p.query.t.len().max(1);
                     if let Some(factor) = &post.factor {
-                        for (row, f) in gradient.values.chunks_mut(per_item.max(1)).zip(factor) {
+                        for (row, f) in gradient.values.chunks_mut(per_item).zip(factor) {
                             row.iter_mut().for_each(|g| *g *= f);
                         }
                     }
                     if let (Some(j), true) = (&jacobian, post.raw_units) {
-                        for row in gradient.values.chunks_mut(per_item.max(1)) {
+                        for row in gradient.values.chunks_mut(per_item) {
                             row.iter_mut().zip(j).for_each(|(g, j)| *g *= j);
                         }
                     }

@@ -368,6 +368,40 @@ async fn bad_queries_name_their_field_and_cost_nothing() {
     assert_eq!(metric(&f.metrics.render(), "relreward_serving_batch_items_count{model=\"rho\"}"), 0.0);
 }
 
+/// One merged batch of gradient queries with different units and omegas: each caller's rows get
+/// its own factors (applied on the host after the shared pass), checked against the reference
+/// net's normalized gradient times omega and, for raw units, the normalizer's Jacobian.
+#[tokio::test(flavor = "multi_thread")]
+async fn mixed_units_and_omegas_in_one_batch_get_their_own_factors() {
+    let f = fixture(|c| c.max_delay_us = 1_000_000).await;
+    let cases = [(Units::Raw, 0.5), (Units::Normalized, 1.0), (Units::Raw, 1.0), (Units::Normalized, -2.0)];
+    let mut tasks = Vec::new();
+    for (k, &(units, omega)) in cases.iter().enumerate() {
+        let serving = f.serving.clone();
+        let x = raw_items(2, 7 + k as u64);
+        let t = vec![k as i64, 9 - k as i64];
+        tasks.push(tokio::spawn(async move {
+            let mut q = gradient(x.clone(), 2, t.clone(), Units::Raw, units);
+            q.op = Op::Gradient { units, omega, variance_of: None };
+            (x, t, serving.query("rho", q).await)
+        }));
+    }
+    for ((units, omega), task) in cases.into_iter().zip(tasks) {
+        let (x, t, answer) = task.await.expect("task");
+        let raw = Tensor::from_slice(&x).reshape([2, H, D]);
+        let (_, grad) =
+            f.reference.grad(&manifest().normalizer.normalize(&raw, 1), &Tensor::from_slice(&t)).expect("ref");
+        let mut want = grad * omega;
+        if units == Units::Raw {
+            want = want * manifest().normalizer.jacobian(&raw, 1);
+        }
+        let got = answer.expect("answer").gradient.expect("gradient").to_tensor().expect("tensor");
+        assert!(got.allclose(&want.to_kind(Kind::Float), 1e-5, 1e-6, false), "{units:?}, omega {omega}");
+    }
+    let text = f.metrics.render();
+    assert_eq!(metric(&text, "relreward_serving_batch_items_count{model=\"rho\"}"), 1.0, "one merged pass: {text}");
+}
+
 /// Per-window and per-step values of a windowed reward, batched like the rest.
 #[tokio::test(flavor = "multi_thread")]
 async fn per_window_and_per_step_values_come_back_per_item() {
