@@ -16,14 +16,15 @@
 #    vs amortised (MAZE_POOL), STEPS steps each: the whole job's training time (the pool's first
 #    fill and every refresh included), and the steady rate after step 10.
 #    The models are trained one step (their weights do not change the cost), so this part
-#    measures speed only; quality comes from part 3.
+#    measures speed only; quality on the maze pipeline comes from part 3 (at the demo's size).
 # 3. The maze default pipeline (quality and time to a reward): `relreward demo` (default size,
 #    LAYOUT, seed MAZE_SEED) with per-step targets, then the same command with DEMO_POOL's
 #    amortised flags against the same server, so the second run reuses the first's diffusion
 #    models (the same names and weights) and only the rewards (named apart), their evaluation
 #    and steering are redone. Reported per goal: goal recovery and balanced accuracy of each
 #    recipe (summary.json); time to a reward: each reward job's training time from its events
-#    (steps / rate at the last step), summed over the goals.
+#    (steps / rate at the last step), summed over the goals. About 20 minutes on a loaded
+#    2-core machine (the per-step demo trains five diffusion models first).
 #
 # Settings (environment): GAUSS_STEPS ("100 200 400 800 1600"), POOL ("4096 4 0.25": pool size,
 # reuse, refresh fraction for the Gaussian pair; MAZE_POOL ("4096 4 0.25", an epoch of 256
