@@ -393,7 +393,7 @@ async fn mixed_units_and_omegas_in_one_batch_get_their_own_factors() {
             f.reference.grad(&manifest().normalizer.normalize(&raw, 1), &Tensor::from_slice(&t)).expect("ref");
         let mut want = grad * omega;
         if units == Units::Raw {
-            want = want * manifest().normalizer.jacobian(&raw, 1);
+            want *= manifest().normalizer.jacobian(&raw, 1);
         }
         let got = answer.expect("answer").gradient.expect("gradient").to_tensor().expect("tensor");
         assert!(got.allclose(&want.to_kind(Kind::Float), 1e-5, 1e-6, false), "{units:?}, omega {omega}");
