@@ -16,11 +16,21 @@
 #    vs amortised (MAZE_POOL), STEPS steps each: the whole job's training time (the pool's first
 #    fill and every refresh included), and the steady rate after step 10.
 #    The models are trained one step (their weights do not change the cost), so this part
-#    measures speed only; quality at that size comes from the maze pipeline (docs/results.md).
+#    measures speed only; quality on the maze pipeline comes from part 3 (at the demo's size).
+# 3. The maze default pipeline (quality and time to a reward): `relreward demo` (default size,
+#    LAYOUT, seed MAZE_SEED) with per-step targets, then the same command with DEMO_POOL's
+#    amortised flags against the same server, so the second run reuses the first's diffusion
+#    models (the same names and weights) and only the rewards (named apart), their evaluation
+#    and steering are redone. Reported per goal: goal recovery and balanced accuracy of each
+#    recipe (summary.json); time to a reward: each reward job's training time from its events
+#    (steps / rate at the last step), summed over the goals. About 20 minutes on a loaded
+#    2-core machine (the per-step demo trains five diffusion models first).
 #
 # Settings (environment): GAUSS_STEPS ("100 200 400 800 1600"), POOL ("4096 4 0.25": pool size,
 # reuse, refresh fraction for the Gaussian pair; MAZE_POOL ("4096 4 0.25", an epoch of 256
 # steps at batch 64, so refreshes fall inside the run) for the maze part), STEPS (600), THREADS (1), OUT (a directory to keep results.jsonl).
+# PARTS ("gaussian maze-speed maze-quality": which parts run), LAYOUT (umaze), MAZE_SEED (0),
+# DEMO_POOL ("16384 4 0.25", the server's defaults), BIN (target/release).
 # Prints one JSON line per job and a markdown summary.
 #
 # Builds nothing: expects target/release/{relreward-server,relreward}. Starts its own server on
@@ -33,7 +43,11 @@ MAZE_POOL=${MAZE_POOL:-4096 4 0.25}
 STEPS=${STEPS:-600}
 THREADS=${THREADS:-1}
 OUT=${OUT:-}
-BIN=target/release
+PARTS=${PARTS:-gaussian maze-speed maze-quality}
+LAYOUT=${LAYOUT:-umaze}
+MAZE_SEED=${MAZE_SEED:-0}
+DEMO_POOL=${DEMO_POOL:-16384 4 0.25}
+BIN=${BIN:-target/release}
 PY=.venv/bin/python
 for b in relreward-server relreward; do
   [[ -x $BIN/$b ]] || { echo "amortised.sh: $BIN/$b is missing: cargo build --release --workspace --bins" >&2; exit 2; }
@@ -84,7 +98,10 @@ pool_flags() { # "P R F" -> flags
   echo "--amortised-pool $p --amortised-reuse $r --amortised-refresh $f"
 }
 
+want() { [[ " $PARTS " == *" $1 "* ]]; }
+
 # --- 1. Gaussian pair ----------------------------------------------------------------------------
+if want gaussian; then
 M=1.0,-0.5,0.75,-1.25
 T=20
 start_server
@@ -120,8 +137,10 @@ for steps in $GAUSS_STEPS; do
   done
 done
 stop_server
+fi
 
 # --- 2. the benchmark's maze size: steps/s -------------------------------------------------------
+if want maze-speed; then
 start_server
 "$PY" tests/python/make_dataset.py --rows 20000 --seed 1 --out "$tmp/maze.npz" --expected "$tmp/expected.json" >/dev/null
 cat >"$tmp/unet.toml" <<TOML
@@ -158,9 +177,30 @@ PY
   echo "{\"part\": \"maze-speed\", \"recipe\": \"$recipe\", \"pool\": \"$MAZE_POOL\", \"epoch_steps\": $epoch, \"rate\": $rate}" | tee -a "$results"
 done
 stop_server
+fi
+
+# --- 3. the maze default pipeline: quality and time to a reward ------------------------------------
+if want maze-quality; then
+start_server
+for recipe in per-step amortised; do
+  extra=()
+  [[ $recipe == amortised ]] && read -ra extra <<<"$(pool_flags "$DEMO_POOL")"
+  t0=$(date +%s.%N)
+  quiet rr demo --layout "$LAYOUT" --seed "$MAZE_SEED" --out "$tmp/demo-$recipe" "${extra[@]}"
+  wall=$(echo "$(date +%s.%N) - $t0" | bc)
+  jobs_json="["
+  for reward in $("$PY" -c 'import json,sys; print(" ".join(json.load(open(sys.argv[1]))["models"]["rewards"]))' "$tmp/demo-$recipe/summary.json"); do
+    rr --json job watch "$reward" >"$tmp/events"
+    jobs_json+="$(train_seconds "$tmp/events"),"
+  done
+  jobs_json="${jobs_json%,}]"
+  echo "{\"part\": \"maze-quality\", \"recipe\": \"$recipe\", \"pool\": \"$DEMO_POOL\", \"layout\": \"$LAYOUT\", \"seed\": $MAZE_SEED, \"demo_seconds\": $wall, \"reward_jobs\": $jobs_json, \"summary\": $("$PY" -c 'import json,sys; print(json.dumps(json.load(open(sys.argv[1]))))' "$tmp/demo-$recipe/summary.json")}" | tee -a "$results"
+done
+stop_server
+fi
 
 # --- report --------------------------------------------------------------------------------------
-"$PY" - "$results" "$(($(date +%s) - started))" "GAUSS_STEPS='$GAUSS_STEPS' POOL='$POOL' MAZE_POOL='$MAZE_POOL' STEPS=$STEPS THREADS=$THREADS" <<'PY'
+"$PY" - "$results" "$(($(date +%s) - started))" "GAUSS_STEPS='$GAUSS_STEPS' POOL='$POOL' MAZE_POOL='$MAZE_POOL' STEPS=$STEPS THREADS=$THREADS PARTS='$PARTS' LAYOUT=$LAYOUT MAZE_SEED=$MAZE_SEED DEMO_POOL='$DEMO_POOL'" <<'PY'
 import json, sys, subprocess, time
 runs = [json.loads(l) for l in open(sys.argv[1])]
 cpu = [l.split(":", 1)[1].strip() for l in subprocess.run(["lscpu"], capture_output=True, text=True).stdout.splitlines()
@@ -169,9 +209,10 @@ print(f"Machine: {cpu}, {subprocess.run(['nproc'], capture_output=True, text=Tru
       f"{time.strftime('%Y-%m-%d', time.gmtime())}; {sys.argv[2]} s in all. Command: "
       f"`cargo build --release --workspace --bins && {sys.argv[3]} tests/bench/amortised.sh`.")
 print()
-print("| recipe | steps | training s | min cosine (t with target norm >= 10% of max) | mean cosine |")
-print("|---|---|---|---|---|")
 first = {}
+if any(r["part"] == "gaussian" for r in runs):
+    print("| recipe | steps | training s | min cosine (t with target norm >= 10% of max) | mean cosine |")
+    print("|---|---|---|---|---|")
 for r in runs:
     if r["part"] != "gaussian":
         continue
@@ -180,7 +221,7 @@ for r in runs:
     if q["min_cosine"] >= 0.98 and r["recipe"] not in first:
         first[r["recipe"]] = (t["steps"], t["seconds"])
 print()
-for recipe in ("per-step", "amortised"):
+for recipe in ("per-step", "amortised") if any(r["part"] == "gaussian" for r in runs) else ():
     f = first.get(recipe)
     print(f"- {recipe}: min cosine >= 0.98 first at " + (f"{f[0]} steps, {f[1]:.2f} s" if f else "no step count tried"))
 if len(first) == 2:
@@ -197,5 +238,27 @@ if len(maze) == 2:
     print()
     print(f"- per-step / amortised training time for the same steps: **{a['total_seconds'] / b['total_seconds']:.2f}x** "
           f"(pool {maze['amortised']['pool']}, an epoch is {maze['amortised']['epoch_steps']} steps)")
+demo = {r["recipe"]: r for r in runs if r["part"] == "maze-quality"}
+if len(demo) == 2:
+    p, a = demo["per-step"], demo["amortised"]
+    print()
+    print(f"Maze default pipeline: `relreward demo --layout {p['layout']} --seed {p['seed']}`, per-step vs "
+          f"amortised (pool, reuse, refresh {a['pool']}; the same diffusion models)")
+    print()
+    print("| goal cell | recovered per-step / amortised | balanced accuracy per-step / amortised | reward training s per-step / amortised |")
+    print("|---|---|---|---|")
+    for gp, ga, jp, ja in zip(p["summary"]["goals"], a["summary"]["goals"], p["reward_jobs"], a["reward_jobs"]):
+        cell = ",".join(str(c) for c in gp["goal_cell"])
+        yn = lambda g: "yes" if g["goal_recovered"] else "no"
+        print(f"| {cell} | {yn(gp)} / {yn(ga)} | {gp['balanced_accuracy']:.3f} / {ga['balanced_accuracy']:.3f} | "
+              f"{jp['seconds']:.1f} / {ja['seconds']:.1f} |")
+    sp, sa = (sum(j["seconds"] for j in r["reward_jobs"]) for r in (p, a))
+    print()
+    print(f"- goals recovered: per-step {p['summary']['goals_recovered']}, amortised {a['summary']['goals_recovered']} "
+          f"of {p['summary']['goals_total']}; mean balanced accuracy: per-step "
+          f"{100 * p['summary']['mean_balanced_accuracy']:.1f}%, amortised {100 * a['summary']['mean_balanced_accuracy']:.1f}%")
+    print(f"- reward training time, all goals: per-step {sp:.1f} s, amortised {sa:.1f} s: **{sp / sa:.2f}x**")
+    print(f"- whole demo wall time: per-step {p['demo_seconds']:.0f} s (diffusion models trained), "
+          f"amortised {a['demo_seconds']:.0f} s (diffusion models reused)")
 PY
 if [[ -n $OUT ]]; then mkdir -p "$OUT" && cp "$results" "$OUT/"; fi

@@ -53,13 +53,13 @@ use relreward_proto::inference::{
     model_infer_request::InferInputTensor, model_infer_response::InferOutputTensor,
     model_metadata_response::TensorMetadata, repository_index_response::ModelIndex,
 };
-use tch::{Kind, Tensor};
+
 use tonic::{Request, Response, Status};
 use tracing::Instrument;
 
 use crate::error::{Error, Result, brief, quote};
 use crate::metrics::{CountNs, ModelStats};
-use crate::serving::{self, Op, Query, Serving, Units};
+use crate::serving::{self, HostTensor, Op, Query, Serving, Units};
 use crate::store::ModelKind;
 
 /// The one version every model has.
@@ -286,12 +286,14 @@ fn parse_outputs(req: &pb::ModelInferRequest) -> Result<Vec<Output>> {
 }
 
 /// A float tensor of the answer as an FP32 output: its shape and little-endian bytes.
-fn fp32_output(name: &str, t: &Tensor) -> Result<(InferOutputTensor, Bytes)> {
-    let flat = t.to_kind(Kind::Float).contiguous().view(-1);
-    let values = Vec::<f32>::try_from(&flat).map_err(|e| Error::internal("reading an inference output", e))?;
-    let bytes: Vec<u8> = values.iter().flat_map(|v| v.to_le_bytes()).collect();
-    let meta =
-        InferOutputTensor { name: name.to_owned(), datatype: FP32.to_owned(), shape: t.size(), ..Default::default() };
+fn fp32_output(name: &str, t: &HostTensor) -> Result<(InferOutputTensor, Bytes)> {
+    let bytes: Vec<u8> = t.values.iter().flat_map(|v| v.to_le_bytes()).collect();
+    let meta = InferOutputTensor {
+        name: name.to_owned(),
+        datatype: FP32.to_owned(),
+        shape: t.shape.clone(),
+        ..Default::default()
+    };
     Ok((meta, Bytes::from(bytes)))
 }
 

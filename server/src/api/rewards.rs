@@ -20,7 +20,7 @@ use crate::engine::rng::Rng;
 use crate::engine::sampling::{Condition, Guidance, GuidedSampler, RewardFn};
 use crate::error::{Error, Result, brief};
 use crate::fields::{self, validate_name};
-use crate::serving::{self, Answer, Op, Query, Serving, Units};
+use crate::serving::{self, Answer, HostTensor, Op, Query, Serving, Units};
 
 /// Most samples per request and per denoised batch.
 const MAX_SAMPLES: u32 = 10_000;
@@ -99,20 +99,20 @@ async fn answer_gradient(
 ) -> Result<pb::GradientResponse> {
     let query = gradient_query(req, deadline)?;
     let answer = serving.query(&req.model, query).await?;
-    let gradient = answer.gradient.as_ref().map(tensor_f32).transpose()?;
+    let gradient = answer.gradient.as_ref().map(host_f32).transpose()?;
     Ok(pb::GradientResponse {
         request_id: req.request_id,
         gradient,
-        rewards: Some(tensor_f32(&answer.rewards)?),
+        rewards: Some(host_f32(&answer.rewards)?),
         error: None,
     })
 }
 
 fn score_response(answer: &Answer) -> Result<pb::ScoreResponse> {
     Ok(pb::ScoreResponse {
-        rewards: Some(tensor_f32(&answer.rewards)?),
-        per_window: answer.per_window.as_ref().map(tensor_f32).transpose()?,
-        per_step: answer.per_step.as_ref().map(tensor_f32).transpose()?,
+        rewards: Some(host_f32(&answer.rewards)?),
+        per_window: answer.per_window.as_ref().map(host_f32).transpose()?,
+        per_step: answer.per_step.as_ref().map(host_f32).transpose()?,
     })
 }
 
@@ -215,6 +215,17 @@ fn tensor_f32(t: &Tensor) -> Result<pb::Tensor> {
     let numel = flat.numel();
     let mut data = vec![0u8; numel * 4];
     flat.f_copy_data_u8(&mut data, numel).map_err(|e| Error::internal("reading a result tensor", e))?;
+    tensor::from_raw(&shape, pb::Dtype::Float32, data).map_err(|e| Error::internal("encoding a result tensor", e))
+}
+
+/// A float32 wire tensor from host values (Score and Gradient answers): one copy into the
+/// wire's little-endian bytes, no libtorch call.
+fn host_f32(h: &HostTensor) -> Result<pb::Tensor> {
+    let shape: Vec<u64> = h.shape.iter().map(|&d| d as u64).collect();
+    let mut data = Vec::with_capacity(h.values.len() * 4);
+    for v in &h.values {
+        data.extend_from_slice(&v.to_le_bytes());
+    }
     tensor::from_raw(&shape, pb::Dtype::Float32, data).map_err(|e| Error::internal("encoding a result tensor", e))
 }
 

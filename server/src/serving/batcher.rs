@@ -22,7 +22,7 @@ use std::time::{Duration, Instant};
 use tch::Tensor;
 use tokio::sync::oneshot;
 
-use super::{Answer, Inner, Prepared};
+use super::{Answer, HostTensor, Inner, Prepared};
 use crate::engine::registry::SharedReward;
 use crate::error::{Error, Result};
 
@@ -238,25 +238,36 @@ fn drop_expired(inner: &Inner, model: &str, batch: Vec<Pending>, now: Instant) -
     batch.into_iter().filter_map(|p| keep(inner, model, p, now)).collect()
 }
 
-/// One forward (and backward) pass over the concatenated batch, split back per query.
+/// One forward (and backward) pass over the concatenated batch, split back per query. The
+/// queries' floats are joined into one tensor and each result is copied to the host once;
+/// everything per query (splitting, omega and variance factors, the Jacobian) is plain
+/// arithmetic on those host values, so the per-query cost is a few copies of its own rows.
 fn compute(queue: &ModelQueue, kind: BatchKind, batch: &[Pending]) -> Result<Vec<Answer>> {
     let sizes: Vec<i64> = batch.iter().map(|p| p.query.batch()).collect();
-    let x = Tensor::f_cat(&batch.iter().map(|p| &p.query.x).collect::<Vec<_>>(), 0)?;
-    let t = Tensor::f_cat(&batch.iter().map(|p| &p.query.t).collect::<Vec<_>>(), 0)?;
-    // On a GPU (`engine.device`): one copy of the whole batch there and one of its results
-    // back, never one per query; the per-query factors and the Jacobian are applied on the
-    // host. On the CPU both moves are no-ops.
-    let (x_host, device) = (x, crate::engine::device());
+    let n: i64 = sizes.iter().sum();
+    let mut shape = vec![n];
+    shape.extend(&queue.model.item_shape);
+    let mut xs = Vec::with_capacity(batch.iter().map(|p| p.query.x.len()).sum());
+    let mut ts = Vec::with_capacity(n as usize);
+    for p in batch {
+        xs.extend_from_slice(&p.query.x);
+        ts.extend_from_slice(&p.query.t);
+    }
+    let x_host = Tensor::f_from_slice(&xs)?.f_reshape(&shape)?;
+    let t = Tensor::f_from_slice(&ts)?;
+    // On a GPU (`engine.device`): one copy of the whole batch there and one of each result
+    // back, never one per query. On the CPU both moves are no-ops.
+    let device = crate::engine::device();
     let (x, t) = (x_host.f_to_device(device)?, t.f_to_device(device)?);
     let model = queue.model.lock();
-    let split =
-        |v: Tensor| -> Result<Vec<Tensor>> { Ok(v.f_to_device(tch::Device::Cpu)?.f_split_with_sizes(&sizes, 0)?) };
     match kind {
         BatchKind::Score { per_window, per_step } => {
             let _no_grad = tch::no_grad_guard();
-            let rewards = split(model.rho(&x, &t)?)?;
-            let mut windows = if per_window { Some(split(model.per_window(&x, &t)?)?.into_iter()) } else { None };
-            let mut steps = if per_step { Some(split(model.per_step(&x, &t)?)?.into_iter()) } else { None };
+            let rewards = split_host(&model.rho(&x, &t)?, &sizes)?;
+            let mut windows =
+                if per_window { Some(split_host(&model.per_window(&x, &t)?, &sizes)?.into_iter()) } else { None };
+            let mut steps =
+                if per_step { Some(split_host(&model.per_step(&x, &t)?, &sizes)?.into_iter()) } else { None };
             Ok(rewards
                 .into_iter()
                 .map(|rewards| Answer {
@@ -271,35 +282,65 @@ fn compute(queue: &ModelQueue, kind: BatchKind, batch: &[Pending]) -> Result<Vec
             let (rho, grad) = model.grad(&x, &t)?;
             drop(model);
             let _no_grad = tch::no_grad_guard();
-            // The normalizer's Jacobian only for batches with a raw-unit gradient (planners ask
-            // in normalized units; building it costs tensor allocations per batch).
+            // The normalizer's Jacobian (one item's worth of per-element factors) only for
+            // batches with a raw-unit gradient (planners ask in normalized units).
             let raw_units = batch.iter().any(|p| p.query.gradient_post.as_ref().is_some_and(|g| g.raw_units));
-            let jacobian = raw_units.then(|| {
-                let m = &queue.model.manifest;
-                m.normalizer.jacobian(&x_host, m.space.normalizer_dims())
-            });
+            let jacobian = if raw_units { Some(item_jacobian(queue, &x_host)?) } else { None };
+            // Floats per item (an item shape has no zero dimension).
+            let per_item = (queue.model.item_shape.iter().product::<i64>() as usize).max(1);
             let mut answers = Vec::with_capacity(batch.len());
-            for ((p, rewards), gradient) in batch.iter().zip(split(rho)?).zip(split(grad)?) {
-                let gradient = match &p.query.gradient_post {
-                    None => gradient,
-                    Some(post) => {
-                        let g = match &post.factor {
-                            None => gradient,
-                            Some(factor) => {
-                                let mut shape = vec![-1i64];
-                                shape.extend(std::iter::repeat_n(1, gradient.dim() - 1));
-                                gradient.f_mul(&factor.f_view(shape.as_slice())?)?
-                            }
-                        };
-                        match (&jacobian, post.raw_units) {
-                            (Some(j), true) => g.f_mul(j)?,
-                            _ => g,
+            for ((p, rewards), mut gradient) in
+                batch.iter().zip(split_host(&rho, &sizes)?).zip(split_host(&grad, &sizes)?)
+            {
+                if let Some(post) = &p.query.gradient_post {
+                    if let Some(factor) = &post.factor {
+                        for (row, f) in gradient.values.chunks_mut(per_item).zip(factor) {
+                            row.iter_mut().for_each(|g| *g *= f);
                         }
                     }
-                };
+                    if let (Some(j), true) = (&jacobian, post.raw_units) {
+                        for row in gradient.values.chunks_mut(per_item) {
+                            row.iter_mut().zip(j).for_each(|(g, j)| *g *= j);
+                        }
+                    }
+                }
                 answers.push(Answer { rewards, gradient: Some(gradient), per_window: None, per_step: None });
             }
             Ok(answers)
         }
     }
+}
+
+/// d(normalized x) / d(raw x) for each element of one item (the normalizer is affine, so the
+/// same for every item), as host values in the item's row-major order.
+fn item_jacobian(queue: &ModelQueue, x_host: &Tensor) -> Result<Vec<f32>> {
+    let m = &queue.model.manifest;
+    let one = x_host.f_narrow(0, 0, 1)?;
+    let j = one.f_ones_like()?.f_mul(&m.normalizer.jacobian(&one, m.space.normalizer_dims()))?;
+    let numel = j.numel();
+    let mut values = vec![0f32; numel];
+    j.f_to_kind(tch::Kind::Float)?.f_contiguous()?.f_copy_data(&mut values, numel)?;
+    Ok(values)
+}
+
+/// `v` (`[N, ...]`) copied to the host once and split into the queries' rows.
+fn split_host(v: &Tensor, sizes: &[i64]) -> Result<Vec<HostTensor>> {
+    let v = v.f_to_device(tch::Device::Cpu)?.f_to_kind(tch::Kind::Float)?.f_contiguous()?;
+    let shape = v.size();
+    let numel = v.numel();
+    let mut all = vec![0f32; numel];
+    v.f_copy_data(&mut all, numel)?;
+    let per_item = shape[1..].iter().product::<i64>() as usize;
+    let mut at = 0;
+    let mut out = Vec::with_capacity(sizes.len());
+    for &b in sizes {
+        let len = b as usize * per_item;
+        let values =
+            all.get(at..at + len).ok_or_else(|| Error::internal("serving batch", "a result shorter than its batch"))?;
+        let mut s = vec![b];
+        s.extend(&shape[1..]);
+        out.push(HostTensor { shape: s, values: values.to_vec() });
+        at += len;
+    }
+    Ok(out)
 }

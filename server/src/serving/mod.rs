@@ -13,6 +13,14 @@
 //! - Compute is bounded by the inference slots (`engine.inference_workers`) shared with guided
 //!   sampling; training jobs run on their own threads and never take a slot.
 //!
+//! - Per-request work stays off libtorch: a query carries plain floats from the wire to the
+//!   serving thread, which builds one tensor per batch, copies each result to the host once
+//!   per batch and hands every caller its rows as a [`HostTensor`] (omega, variance and the
+//!   Jacobian applied there as row factors). A profile at 64 streaming clients (BENCHMARKS.md,
+//!   issue 21) found a fifth of the server's CPU in per-request tensor calls on the tokio
+//!   threads (creating, range-checking, finiteness-checking and copying one small tensor at
+//!   a time), more than the gRPC framing.
+//!
 //! Units: rho is a function of normalized inputs. Raw inputs are normalized first; a gradient
 //! in raw units is the normalized gradient times the normalizer's Jacobian (it is affine), so
 //! finite differences of Score in raw units match Gradient in raw units.
@@ -73,23 +81,38 @@ pub struct Query {
     pub deadline: Option<Instant>,
 }
 
-/// The answer to one query; tensors on the CPU, float32, batch first.
+/// The answer to one query: float32 values on the host, batch first.
 #[derive(Debug)]
 pub struct Answer {
-    pub rewards: Tensor,
-    pub gradient: Option<Tensor>,
-    pub per_window: Option<Tensor>,
-    pub per_step: Option<Tensor>,
+    pub rewards: HostTensor,
+    pub gradient: Option<HostTensor>,
+    pub per_window: Option<HostTensor>,
+    pub per_step: Option<HostTensor>,
+}
+
+/// A float32 result as plain values (row-major `shape`): what a caller's task encodes for the
+/// wire without a libtorch call.
+#[derive(Debug, Clone, PartialEq)]
+pub struct HostTensor {
+    pub shape: Vec<i64>,
+    pub values: Vec<f32>,
+}
+
+impl HostTensor {
+    /// The values as a CPU tensor (tests and callers that compute further).
+    pub fn to_tensor(&self) -> Result<Tensor> {
+        Ok(Tensor::f_from_slice(&self.values)?.f_reshape(&self.shape)?)
+    }
 }
 
 /// A validated query, ready for the batcher.
 #[derive(Debug)]
 pub struct Prepared {
     model: SharedReward,
-    /// `[B, *item_shape]`, float32, in normalized units.
-    x: Tensor,
-    /// `[B]` int64.
-    t: Tensor,
+    /// `[B, *item_shape]` row-major, float32, in normalized units.
+    x: Vec<f32>,
+    /// `[B]`.
+    t: Vec<i64>,
     kind: BatchKind,
     /// Per-item gradient factor `[B]` (omega times posterior variance), with the Jacobian to
     /// apply for raw-unit gradients.
@@ -99,15 +122,15 @@ pub struct Prepared {
 
 #[derive(Debug)]
 struct GradientPost {
-    /// `[B]` float32; `None` when every factor is exactly 1 (omega unset or 1, no variance
-    /// scaling: the planner's common case), which saves a multiply per query.
-    factor: Option<Tensor>,
+    /// `[B]`; `None` when every factor is exactly 1 (omega unset or 1, no variance scaling:
+    /// the planner's common case), which saves a multiply per query.
+    factor: Option<Vec<f32>>,
     raw_units: bool,
 }
 
 impl Prepared {
     pub fn batch(&self) -> i64 {
-        self.t.size()[0]
+        self.t.len() as i64
     }
 }
 
@@ -167,8 +190,9 @@ impl Serving {
         self.inner.registry.get_reward(name).await
     }
 
-    /// Validates `query` against `model` and converts it to normalized float32 tensors. Costs
-    /// no model compute; every error names the field (`x`, `t`, `per_step`, ...).
+    /// Validates `query` against `model` and converts it to normalized float32 values. Costs
+    /// no model compute (and, for normalized inputs, no libtorch call); every error names the
+    /// field (`x`, `t`, `per_step`, ...).
     pub async fn prepare(&self, model: SharedReward, query: Query) -> Result<Prepared> {
         let item = &model.item_shape;
         let n_items = check_shape(&query.shape, item, self.inner.config.max_request_items)?;
@@ -207,26 +231,32 @@ impl Serving {
                         *f *= variance[ti as usize];
                     }
                 }
-                let factor = (!factor.iter().all(|&f| f == 1.0))
-                    .then(|| Tensor::from_slice(&factor.iter().map(|&f| f as f32).collect::<Vec<_>>()));
+                let factor =
+                    (!factor.iter().all(|&f| f == 1.0)).then(|| factor.iter().map(|&f| f as f32).collect::<Vec<_>>());
                 Some(GradientPost { factor, raw_units: *units == Units::Raw })
             }
         };
-        let mut shape = vec![n_items as i64];
-        shape.extend(item);
-        let x = Tensor::from_slice(&query.values).f_reshape(&shape)?;
+        let identity = model.manifest.normalizer == crate::engine::normalizer::Normalizer::Identity;
         let x = match query.input_units {
-            Units::Normalized => x,
+            Units::Normalized => query.values,
+            Units::Raw if identity => query.values,
             Units::Raw => {
-                tch::no_grad(|| model.manifest.normalizer.normalize(&x, model.manifest.space.normalizer_dims()))
+                let mut shape = vec![n_items as i64];
+                shape.extend(item);
+                let x = Tensor::f_from_slice(&query.values)?.f_reshape(&shape)?;
+                let x =
+                    tch::no_grad(|| model.manifest.normalizer.normalize(&x, model.manifest.space.normalizer_dims()));
+                let mut values = vec![0f32; query.values.len()];
+                x.f_contiguous()?.f_copy_data(&mut values, query.values.len())?;
+                values
             }
         };
         // Only a normalizer fitted to data says what range is meaningful; with identity, the
         // results' own finiteness is the check.
-        if model.manifest.normalizer != crate::engine::normalizer::Normalizer::Identity {
+        if !identity {
             check_normalized_range(&x, query.input_units)?;
         }
-        Ok(Prepared { model, x, t: Tensor::from_slice(&t), kind, gradient_post, deadline: query.deadline })
+        Ok(Prepared { model, x, t, kind, gradient_post, deadline: query.deadline })
     }
 
     /// Queues `prepared` with its model's batcher and waits for the answer. Dropping the
@@ -299,14 +329,11 @@ fn check_steps(field: &str, name: &str, table: &VarianceTable, big_t: i64) -> Re
 
 /// Refuses normalized inputs beyond [`MAX_NORMALIZED_X`], naming the first such element and
 /// the units it was given in.
-fn check_normalized_range(x: &Tensor, units: Units) -> Result<()> {
-    let _no_grad = tch::no_grad_guard();
-    let beyond = x.f_abs()?.f_gt(MAX_NORMALIZED_X)?;
-    if !bool::try_from(beyond.f_any()?).map_err(|e| Error::internal("checking x", e))? {
+fn check_normalized_range(x: &[f32], units: Units) -> Result<()> {
+    let Some(first) = x.iter().position(|v| f64::from(v.abs()) > MAX_NORMALIZED_X) else {
         return Ok(());
-    }
-    let first = beyond.f_flatten(0, -1)?.f_to_kind(tch::Kind::Uint8)?.f_argmax(0, false)?.int64_value(&[]);
-    let value = x.f_flatten(0, -1)?.f_double_value(&[first])?;
+    };
+    let value = x[first];
     let given = match units {
         Units::Raw => "after normalizing the raw input",
         Units::Normalized => "as given (input_units normalized)",
@@ -321,15 +348,12 @@ fn check_normalized_range(x: &Tensor, units: Units) -> Result<()> {
 /// An answer must never carry Inf or NaN: inputs inside the accepted ranges that still
 /// overflow the model are refused rather than answered.
 fn check_finite(answer: &Answer) -> Result<()> {
-    let _no_grad = tch::no_grad_guard();
     let parts = [("rewards", Some(&answer.rewards)), ("gradient", answer.gradient.as_ref())];
     let parts =
         parts.into_iter().chain([("per_window", answer.per_window.as_ref()), ("per_step", answer.per_step.as_ref())]);
-    for (what, tensor) in parts {
-        let Some(tensor) = tensor else { continue };
-        let finite =
-            bool::try_from(tensor.f_isfinite()?.f_all()?).map_err(|e| Error::internal("checking results", e))?;
-        if !finite {
+    for (what, host) in parts {
+        let Some(host) = host else { continue };
+        if !host.values.iter().all(|v| v.is_finite()) {
             return Err(Error::invalid(format!(
                 "x: the model's {what} for these inputs is not finite (the inputs or omega are too large for it); \
                  nothing was returned"

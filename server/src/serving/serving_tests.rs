@@ -147,7 +147,7 @@ async fn gradient_matches_finite_differences_of_score_in_both_units() {
     for (units, x0, eps) in [(Units::Raw, &raw, 1e-2f32), (Units::Normalized, &normalized, 2e-3f32)] {
         let t = vec![3i64, 7];
         let answer = f.serving.query("rho", gradient(x0.clone(), 2, t.clone(), units, units)).await.expect("grad");
-        let g = to_vec(answer.gradient.as_ref().expect("gradient"));
+        let g = answer.gradient.as_ref().expect("gradient").values.clone();
         // Raw coordinate 2 spans 40 units: scale its step so every coordinate moves alike.
         let scale = |i: usize| if units == Units::Raw { [1.0f32, 0.25, 10.0][i % D as usize] } else { 1.0 };
         let mut worst = 0f32;
@@ -156,8 +156,8 @@ async fn gradient_matches_finite_differences_of_score_in_both_units() {
             let (mut plus, mut minus) = (x0.clone(), x0.clone());
             plus[i] += h;
             minus[i] -= h;
-            let up = to_vec(&f.serving.query("rho", score(plus, 2, t.clone(), units)).await.expect("score").rewards);
-            let down = to_vec(&f.serving.query("rho", score(minus, 2, t.clone(), units)).await.expect("score").rewards);
+            let up = f.serving.query("rho", score(plus, 2, t.clone(), units)).await.expect("score").rewards.values;
+            let down = f.serving.query("rho", score(minus, 2, t.clone(), units)).await.expect("score").rewards.values;
             let item = i / (H * D) as usize;
             let fd = (up[item] - down[item]) / (2.0 * h);
             let err = (fd - g[i]).abs() / (1e-3 + g[i].abs());
@@ -171,7 +171,7 @@ async fn gradient_matches_finite_differences_of_score_in_both_units() {
     let one = raw_items(1, 2);
     let g_raw = f.serving.query("rho", gradient(one.clone(), 1, t.clone(), Units::Raw, Units::Raw)).await.expect("g");
     let g_norm = f.serving.query("rho", gradient(one, 1, t, Units::Raw, Units::Normalized)).await.expect("g");
-    let (g_raw, g_norm) = (to_vec(&g_raw.gradient.expect("g")), to_vec(&g_norm.gradient.expect("g")));
+    let (g_raw, g_norm) = (g_raw.gradient.expect("g").values, g_norm.gradient.expect("g").values);
     for i in 0..g_raw.len() {
         let jac = [0.5f32, 2.0, 0.05][i % D as usize];
         assert!((g_raw[i] - g_norm[i] * jac).abs() <= 1e-6 * (1.0 + g_raw[i].abs()), "coordinate {i}");
@@ -189,7 +189,8 @@ async fn omega_and_posterior_variance_scale_the_gradient_per_item() {
     q.op = Op::Gradient { units: Units::Raw, omega: 0.3, variance_of: Some("base".into()) };
     let scaled = f.serving.query("rho", q).await.expect("scaled");
     let schedule = Schedule::new(&crate::engine::manifest::ScheduleSpec::Cosine { s: 0.008 }, T).expect("schedule");
-    let (plain, scaled) = (plain.gradient.expect("g"), scaled.gradient.expect("g"));
+    let tensor = |a: Answer| a.gradient.expect("g").to_tensor().expect("tensor");
+    let (plain, scaled) = (tensor(plain), tensor(scaled));
     for (b, &ti) in t.iter().enumerate() {
         let factor = 0.3 * schedule.get(Table::PosteriorLogVarianceClipped, ti as usize).expect("t").exp();
         let want = plain.get(b as i64) * factor;
@@ -232,8 +233,10 @@ async fn concurrent_queries_are_merged_and_each_caller_gets_its_own_rows() {
         let xn = manifest().normalizer.normalize(&Tensor::from_slice(&x).reshape([b, H, D]), 1);
         let tt = Tensor::from_slice(&t);
         let (want_rho, want_grad) = f.reference.grad(&xn, &tt).expect("reference");
-        assert!(answer.rewards.allclose(&want_rho, 1e-5, 1e-6, false), "caller {k}: rewards are not its own");
+        let rewards = answer.rewards.to_tensor().expect("tensor");
+        assert!(rewards.allclose(&want_rho, 1e-5, 1e-6, false), "caller {k}: rewards are not its own");
         if let Some(g) = &answer.gradient {
+            let g = g.to_tensor().expect("tensor");
             assert!(g.allclose(&want_grad, 1e-5, 1e-6, false), "caller {k}: gradient rows are not its own");
         }
     }
@@ -323,6 +326,30 @@ async fn bad_queries_name_their_field_and_cost_nothing() {
             "x: element 3 is not finite",
         ),
         (Query { values: raw_items(1, 1)[1..].to_vec(), ..good() }, "do not fill the shape"),
+        // The range check, on the query's own floats: as given, and after normalizing.
+        (
+            Query {
+                values: {
+                    let mut v = raw_items(1, 1);
+                    v[5] = -2e4;
+                    v
+                },
+                input_units: Units::Normalized,
+                ..good()
+            },
+            "x: element 5 is -2e4 in the model's normalized units (as given",
+        ),
+        (
+            Query {
+                values: {
+                    let mut v = raw_items(1, 1);
+                    v[3] = 1e9;
+                    v
+                },
+                ..good()
+            },
+            "x: element 3 is 5e8 in the model's normalized units (after normalizing the raw input)",
+        ),
     ];
     for (q, want) in cases {
         match f.serving.query("rho", q).await {
@@ -341,6 +368,40 @@ async fn bad_queries_name_their_field_and_cost_nothing() {
     assert_eq!(metric(&f.metrics.render(), "relreward_serving_batch_items_count{model=\"rho\"}"), 0.0);
 }
 
+/// One merged batch of gradient queries with different units and omegas: each caller's rows get
+/// its own factors (applied on the host after the shared pass), checked against the reference
+/// net's normalized gradient times omega and, for raw units, the normalizer's Jacobian.
+#[tokio::test(flavor = "multi_thread")]
+async fn mixed_units_and_omegas_in_one_batch_get_their_own_factors() {
+    let f = fixture(|c| c.max_delay_us = 1_000_000).await;
+    let cases = [(Units::Raw, 0.5), (Units::Normalized, 1.0), (Units::Raw, 1.0), (Units::Normalized, -2.0)];
+    let mut tasks = Vec::new();
+    for (k, &(units, omega)) in cases.iter().enumerate() {
+        let serving = f.serving.clone();
+        let x = raw_items(2, 7 + k as u64);
+        let t = vec![k as i64, 9 - k as i64];
+        tasks.push(tokio::spawn(async move {
+            let mut q = gradient(x.clone(), 2, t.clone(), Units::Raw, units);
+            q.op = Op::Gradient { units, omega, variance_of: None };
+            (x, t, serving.query("rho", q).await)
+        }));
+    }
+    for ((units, omega), task) in cases.into_iter().zip(tasks) {
+        let (x, t, answer) = task.await.expect("task");
+        let raw = Tensor::from_slice(&x).reshape([2, H, D]);
+        let (_, grad) =
+            f.reference.grad(&manifest().normalizer.normalize(&raw, 1), &Tensor::from_slice(&t)).expect("ref");
+        let mut want = grad * omega;
+        if units == Units::Raw {
+            want *= manifest().normalizer.jacobian(&raw, 1);
+        }
+        let got = answer.expect("answer").gradient.expect("gradient").to_tensor().expect("tensor");
+        assert!(got.allclose(&want.to_kind(Kind::Float), 1e-5, 1e-6, false), "{units:?}, omega {omega}");
+    }
+    let text = f.metrics.render();
+    assert_eq!(metric(&text, "relreward_serving_batch_items_count{model=\"rho\"}"), 1.0, "one merged pass: {text}");
+}
+
 /// Per-window and per-step values of a windowed reward, batched like the rest.
 #[tokio::test(flavor = "multi_thread")]
 async fn per_window_and_per_step_values_come_back_per_item() {
@@ -348,10 +409,13 @@ async fn per_window_and_per_step_values_come_back_per_item() {
     let mut q = score(raw_items(2, 5), 2, vec![1, 2], Units::Raw);
     q.op = Op::Score { per_window: true, per_step: true };
     let a = f.serving.query("rho", q).await.expect("score");
-    assert_eq!(a.per_window.as_ref().expect("windows").size(), [2, H / 4]);
-    assert_eq!(a.per_step.as_ref().expect("steps").size(), [2, H]);
-    let mean = a.per_window.expect("windows").mean_dim(1, false, Kind::Float);
-    assert!(mean.allclose(&a.rewards, 1e-5, 1e-6, false), "rho is the mean of the windows");
+    assert_eq!(a.per_window.as_ref().expect("windows").shape, [2, H / 4]);
+    assert_eq!(a.per_step.as_ref().expect("steps").shape, [2, H]);
+    let mean = a.per_window.expect("windows").to_tensor().expect("tensor").mean_dim(1, false, Kind::Float);
+    assert!(
+        mean.allclose(&a.rewards.to_tensor().expect("tensor"), 1e-5, 1e-6, false),
+        "rho is the mean of the windows"
+    );
 }
 
 /// The value of one sample line of the text exposition (0 when absent).
