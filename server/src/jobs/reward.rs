@@ -613,7 +613,7 @@ mod tests {
     /// per-element mean, so standardised targets keep the direction of x^expert - x^base.
     #[test]
     fn step_stats_share_one_scale_over_the_elements() {
-        let _seed = tch::manual_seed(7);
+        tch::manual_seed(7);
         let n = 20_000;
         let scales = [1e-3, 0.5, 1.0, 2.0, 0.0, 3.0];
         let offsets = [-1.0, 0.0, 2.0, 0.5, -0.3, 4.0];
