@@ -270,7 +270,7 @@ def experiment(client, endpoint, cfg, args, subset, tmp, x_train, x_test, y_trai
     batch = 64
     extremes_grid(shuffled, np.asarray(rewards), batch, min(6, len(shuffled) // batch or 1), 3,
                   out / "extremes-algorithm2.png",
-                  f"Algorithm 2 reward at t = {SCORE_T}, subset {subset}: top-3 | bottom-3 per batch of {batch} "
+                  f"Algorithm 2 reward at t = {SCORE_T}, subset {subset}:\ntop-3 | bottom-3 per batch of {batch} "
                   "held-out digits")
 
     # A small classifier on the real training digits, for the samples.
