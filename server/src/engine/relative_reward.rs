@@ -191,9 +191,11 @@ pub struct RewardManifest {
     pub expert_model: String,
     pub datasets: Vec<String>,
     pub objective: Objective,
-    /// Algorithm 2 only: rho's input at time t is the state standardised per element with the
+    /// Algorithm 2 only: rho's input at time t is the state standardised elementwise with the
     /// `input_mean[t]` and `input_std[t]` tables stored beside the weights
     /// (`step_norm.safetensors`), and its gradient targets were divided by `target_std[t]`.
+    /// New rewards' scale tables hold one value per step, broadcast over the item (see
+    /// `jobs/reward.rs`, `step_stats`); rewards stored with per-element scales load unchanged.
     #[serde(default)]
     pub step_normalization: bool,
     pub final_loss: f64,

@@ -199,16 +199,17 @@ fn chain_pairs(base: &DiffusionModel, expert: &DiffusionModel, k: usize, rng: &m
         } else {
             (mu_b, mu_e)
         };
-        in_stats.push(element_stats(&x));
-        out_stats.push(element_stats(&Tensor::cat(&[&x_b, &x_e], 0)));
+        in_stats.push(step_stats(&x));
+        out_stats.push(step_stats(&Tensor::cat(&[&x_b, &x_e], 0)));
         xs.push(x.shallow_clone());
         ts.push(t);
         targets.push(&x_e - &x_b);
         x = Tensor::cat(&[x_b.narrow(0, 0, half), x_e.narrow(0, half, k as i64 - half)], 0);
     }
-    // Standardise per step and per element (the authors' treatment of Stable Diffusion
-    // latents): inputs with their own step's statistics, targets by the scale of the states
-    // they point between. Time index t = T-1-i for the i-th recorded step.
+    // Standardise per step (the authors' treatment of Stable Diffusion latents): inputs with
+    // their own step's statistics, targets by the scale of the states they point between.
+    // Time index t = T-1-i for the i-th recorded step. The scales are one number per step (see
+    // [`step_stats`]), so that within a step grad_x rho stays parallel to x^expert - x^base.
     let mut norm_x = Vec::with_capacity(xs.len());
     let mut norm_target = Vec::with_capacity(xs.len());
     for (i, (x, target)) in xs.iter().zip(&targets).enumerate() {
@@ -244,11 +245,23 @@ fn chain_pairs(base: &DiffusionModel, expert: &DiffusionModel, k: usize, rng: &m
     })
 }
 
-/// Per-element mean and standard deviation over the batch dimension (std floored at 1e-6 so
-/// a constant element standardises to 0 instead of dividing by zero).
-fn element_stats(x: &Tensor) -> (Tensor, Tensor) {
+/// A step's standardisation: the per-element mean over the batch, and one standard deviation
+/// pooled over the batch and every element (deviations from that mean), broadcast to the item
+/// shape; floored at 1e-6 so that a constant step standardises to 0 instead of dividing by zero.
+///
+/// Why one scale per step and not one per element: rho is fitted in standardised coordinates
+/// z = (x - mean) / std to target / target_std, so in the state's own coordinates
+/// grad_x rho = (x^expert - x^base) / (std * target_std). Per-element scales would reweight the
+/// target element by element: on images, the background pixels that every model keeps nearly
+/// constant have scales near 0 (the noise of the last steps, the spread of the denoised mean),
+/// and their tiny, meaningless disagreements then outweighed the digit strokes by orders of
+/// magnitude (Algorithm 2 on scikit-learn's digits: docs/results.md). One scale per step only
+/// rescales the target per t, as the models' own noise levels do. The per-element mean is a
+/// translation and leaves gradients unchanged.
+fn step_stats(x: &Tensor) -> (Tensor, Tensor) {
     let mean = x.mean_dim(0, false, Kind::Float);
-    let std = x.std_dim(0, false, false).clamp_min(1e-6);
+    let std = (x - &mean).square().mean(Kind::Float).sqrt().clamp_min(1e-6);
+    let std = std.expand(mean.size(), false).contiguous();
     (mean, std)
 }
 
@@ -589,4 +602,37 @@ pub fn run_discriminator(ctx: &mut JobContext, job: &DiscriminatorJob) -> std::r
     let description =
         format!("discriminator of '{}' vs '{}' ({})", job.expert_dataset, job.base_dataset, net.describe());
     register(ctx, &train, &net, manifest, ModelKind::Discriminator, description, &[])
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Elements with spreads from 1e-3 to 3 (an image's near-constant background beside its
+    /// strokes) share one scale per step: the pooled root-mean-square deviation from the
+    /// per-element mean, so standardised targets keep the direction of x^expert - x^base.
+    #[test]
+    fn step_stats_share_one_scale_over_the_elements() {
+        tch::manual_seed(7);
+        let n = 20_000;
+        let scales = [1e-3, 0.5, 1.0, 2.0, 0.0, 3.0];
+        let offsets = [-1.0, 0.0, 2.0, 0.5, -0.3, 4.0];
+        let s = Tensor::from_slice(&scales).reshape([1, 2, 3]);
+        let o = Tensor::from_slice(&offsets).reshape([1, 2, 3]);
+        let x = (Tensor::randn([n, 2, 3], (Kind::Double, Device::Cpu)) * s + o).to_kind(Kind::Float);
+        let (mean, std) = step_stats(&x);
+        assert_eq!((mean.size(), std.size()), (vec![2, 3], vec![2, 3]));
+        let std: Vec<f64> = Vec::try_from(std.flatten(0, -1).to_kind(Kind::Double)).expect("std");
+        assert!(std.iter().all(|s| *s == std[0]), "one scale for every element: {std:?}");
+        // sqrt(mean of scale^2) = sqrt(14.251 / 6), up to sampling error (~0.5%).
+        let want = (scales.iter().map(|s| s * s).sum::<f64>() / 6.0).sqrt();
+        assert!((std[0] - want).abs() < 0.01 * want, "pooled std {} vs {want}", std[0]);
+        let mean: Vec<f64> = Vec::try_from(mean.flatten(0, -1).to_kind(Kind::Double)).expect("mean");
+        for (m, o) in mean.iter().zip(offsets) {
+            assert!((m - o).abs() < 0.05, "per-element mean {m} vs {o}");
+        }
+        // A constant step standardises to 0 rather than dividing by zero.
+        let (_, std) = step_stats(&Tensor::ones([8, 2, 3], (Kind::Float, Device::Cpu)));
+        assert_eq!(std.min().double_value(&[]), 1e-6_f32 as f64);
+    }
 }
