@@ -31,7 +31,8 @@ pub struct DataProfile {
     /// Episode lengths: shortest, 25th percentile, median, longest.
     pub episode_len: [usize; 4],
     /// Mean over consecutive rows inside an episode of the Euclidean norm of the observation
-    /// change, each coordinate divided by half its range (the limits normalizer's scale).
+    /// change, each coordinate divided by half its range (the limits normalizer's scale); rows
+    /// identical to the one before (held absorbing states) are left out.
     pub displacement_per_row: f64,
 }
 
@@ -60,8 +61,12 @@ pub fn profile(observations: &[f32], obs_dim: usize, episodes: &[std::ops::Range
                 .filter(|(_, h)| **h > 0.0)
                 .map(|((x, y), h)| ((f64::from(*y) - f64::from(*x)) / h).powi(2))
                 .sum();
-            sum += d2.sqrt();
-            count += 1;
+            // A row that repeats the one before records no motion and no time scale (absorbing
+            // padding, `extract --absorbing`; a paused recorder): not counted.
+            if d2 > 0.0 {
+                sum += d2.sqrt();
+                count += 1;
+            }
         }
     }
     let mut lengths: Vec<usize> = episodes.iter().map(ExactSizeIterator::len).collect();
@@ -109,6 +114,10 @@ mod tests {
         assert_eq!((p.rows, p.episodes, p.episode_len), (4, 1, [4, 4, 4, 4]));
         // No step crosses an episode boundary.
         let p = profile(&obs, 2, &[0..2, 2..4]);
+        assert!((p.displacement_per_row - 1.0 / 1.5).abs() < 1e-12);
+        // A held (repeated) last row adds no motion and no row to the mean.
+        let held = [0.0, 5.0, 1.0, 5.0, 2.0, 5.0, 3.0, 5.0, 3.0, 5.0, 3.0, 5.0];
+        let p = profile(&held, 2, &[0..6]);
         assert!((p.displacement_per_row - 1.0 / 1.5).abs() < 1e-12);
     }
 

@@ -235,6 +235,11 @@ pub struct ExtractArgs {
     /// demonstrations, whose goal state is otherwise recorded once (docs/results.md).
     #[arg(long, value_name = "N", default_value_t = 0)]
     pub absorbing: usize,
+    /// Which observation columns the held (absorbing) rows set to zero, as an agent at rest:
+    /// `auto` (the columns that predict another column's per-row change, i.e. velocities;
+    /// docs/data-formats.md), `none`, or a list I,J,... (0-based). Only with --absorbing.
+    #[arg(long, value_name = "auto|none|I,J,...", default_value = "auto")]
+    pub velocity_columns: String,
     /// Seed of training and evaluation.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
@@ -326,14 +331,34 @@ fn file_fingerprint(path: &Path) -> Result<String> {
 
 /// Reads any supported file; HDF5 and Minari inputs are written as `.npz` into `data_dir`.
 /// Returns the `.npz` to use and the data.
-/// With `absorbing > 0`, terminal states are padded ([`Trajectories::absorb_terminals`]) and
-/// the result written there too.
-fn canonical(path: &Path, data_dir: &Path, label: &str, absorbing: usize) -> Result<(PathBuf, Trajectories)> {
+/// With `absorbing > 0`, terminal states are padded ([`Trajectories::absorb_terminals`], the
+/// `at_rest` columns zeroed, found by [`Trajectories::velocity_columns`] when `None`) and the
+/// result written there too.
+fn canonical(
+    path: &Path,
+    data_dir: &Path,
+    label: &str,
+    absorbing: usize,
+    at_rest: Option<&[usize]>,
+) -> Result<(PathBuf, Trajectories)> {
     let hdf5 = relreward_toolkit::hdf5::is_hdf5(path);
     let mut t = if hdf5 { relreward_toolkit::hdf5::read_hdf5(path)? } else { Trajectories::from_npz(path)? };
     let padded = absorbing > 0 && t.terminals.iter().any(|&b| b);
     if padded {
-        t.absorb_terminals(absorbing);
+        let columns = match at_rest {
+            Some(c) => {
+                if let Some(&bad) = c.iter().find(|&&j| j >= t.obs_dim) {
+                    bail!(UsageError(format!(
+                        "--velocity-columns: column {bad} is out of range; observations have {} columns",
+                        t.obs_dim
+                    )));
+                }
+                c.to_vec()
+            }
+            None => t.velocity_columns(),
+        };
+        eprintln!("{label}: terminal states held {absorbing} rows at rest in observation columns {columns:?}");
+        t.absorb_terminals(absorbing, &columns);
     }
     if hdf5 || padded {
         let dest = data_dir.join(format!("{label}.npz"));
@@ -363,16 +388,18 @@ pub async fn run(ctx: &Ctx, args: ExtractArgs) -> Result<Report> {
     stage(ctx, "reading the datasets");
     let (base, _) = {
         let (p, d) = (args.base.clone(), data_dir.clone());
-        tokio::task::spawn_blocking(move || canonical(&p, &d, "base", 0)).await?.context("--base")?
+        tokio::task::spawn_blocking(move || canonical(&p, &d, "base", 0, None)).await?.context("--base")?
     };
     let mut experts = Vec::new();
     let mut labels = Vec::new();
     let absorbing = args.absorbing;
+    let at_rest = parse_columns(&args.velocity_columns)?;
     for (k, path) in args.experts.iter().enumerate() {
         let stem = path.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
         let label = format!("e{k}-{}", slug(&stem, 16));
         let (p, d, l) = (path.clone(), data_dir.clone(), label.clone());
-        let (npz, _) = tokio::task::spawn_blocking(move || canonical(&p, &d, &l, absorbing))
+        let r = at_rest.clone();
+        let (npz, _) = tokio::task::spawn_blocking(move || canonical(&p, &d, &l, absorbing, r.as_deref()))
             .await?
             .with_context(|| format!("--expert {}", path.display()))?;
         experts.push(npz);
@@ -394,6 +421,26 @@ pub async fn run(ctx: &Ctx, args: ExtractArgs) -> Result<Report> {
     let extracted = pipeline(ctx, &inputs, Sizing::Derive { size: args.size, config: args.config.clone() }).await?;
     let report = write_report(&inputs, &extracted, started.elapsed().as_secs_f64(), json!({}))?;
     Ok(report)
+}
+
+/// `--velocity-columns`: `None` for `auto` (the rule), else the explicit list (`none`: empty).
+fn parse_columns(text: &str) -> Result<Option<Vec<usize>>> {
+    match text.trim() {
+        "auto" => Ok(None),
+        "none" | "" => Ok(Some(Vec::new())),
+        list => list
+            .split(',')
+            .map(|c| {
+                c.trim().parse::<usize>().map_err(|_| {
+                    UsageError(format!(
+                        "--velocity-columns '{text}': expected auto, none or column numbers I,J,... (0-based)"
+                    ))
+                    .into()
+                })
+            })
+            .collect::<Result<Vec<_>>>()
+            .map(Some),
+    }
 }
 
 fn parse_point(text: &str) -> Result<(f64, f64)> {
