@@ -143,4 +143,29 @@ mod tests {
         let p = profile(&data.observations, 4, &data.episode_ranges());
         assert_eq!(derive_window(std::slice::from_ref(&p)).0, 16, "{p:?}");
     }
+
+    #[test]
+    fn matched_physics_moves_as_far_per_row_as_mujoco_pointmaze() {
+        // MuJoCo PointMaze umaze base data (experiments/pointmaze/generate.py, docs/results.md)
+        // moves 0.052 normalized units per row; the generator's default 0.084.
+        let mut config = GenerateConfig::new(LayoutName::Umaze.layout(), Mode::Base, 20_000, 0);
+        config.physics = maze::Physics::MUJOCO;
+        let data = maze::generate(&config).expect("generate");
+        let p = profile(&data.observations, 4, &data.episode_ranges());
+        assert!((0.04..0.065).contains(&p.displacement_per_row), "{p:?}");
+        // The velocity rule finds [vx, vy] in both physics' data.
+        for physics in [maze::Physics::MUJOCO, maze::Physics::RELREWARD] {
+            config.physics = physics;
+            let data = maze::generate(&config).expect("generate");
+            let t = crate::trajectories::Trajectories {
+                observations: data.observations.clone(),
+                obs_dim: 4,
+                actions: data.actions.clone(),
+                act_dim: 2,
+                timeouts: data.timeouts.clone(),
+                ..Default::default()
+            };
+            assert_eq!(t.velocity_columns(), vec![2, 3], "{physics:?}");
+        }
+    }
 }
