@@ -768,6 +768,27 @@ async fn evaluate(
         row["argmax_cell"] = heat["argmax"]["cell"].clone();
         row["distance_cells"] = heat["distance_cells"].clone();
         row["goal_recovered"] = heat["goal_recovered"].clone();
+        // The same maze scored at rest (`eval heatmap --probe at-rest`): the reward of staying
+        // at each position. Reported beside the paper's heatmap, never instead of it; data
+        // whose states are more than a position and its velocities cannot be probed (null).
+        let rest_png = out.join(format!("heatmap-at-rest-{model}.png"));
+        let at = argv.iter().position(|a| a == "--out").map_or(0, |i| i + 1);
+        argv[at] = path_str(&rest_png);
+        argv.extend(strings(&["--probe", "at-rest"]));
+        let command: EvalCommand = parse(&argv)?;
+        match super::eval::run(quiet, command).await {
+            Ok(report) => {
+                let heat = report.json.context("heatmap returned no JSON")?;
+                row["heatmap_at_rest"] = json!(path_str(&rest_png));
+                row["argmax_cell_at_rest"] = heat["argmax"]["cell"].clone();
+                row["distance_cells_at_rest"] = heat["distance_cells"].clone();
+                row["goal_recovered_at_rest"] = heat["goal_recovered"].clone();
+            }
+            Err(e) if e.downcast_ref::<UsageError>().is_some() => {
+                row["at_rest_refused"] = json!(e.to_string());
+            }
+            Err(e) => return Err(e),
+        }
     }
     Ok(row)
 }
@@ -778,6 +799,9 @@ pub fn write_report(inputs: &Inputs, e: &Extracted, elapsed: f64, extra: Value) 
     let with_goal: Vec<&Value> =
         e.rows.iter().filter(|r| r.get("goal_recovered").is_some_and(Value::is_boolean)).collect();
     let recovered = with_goal.iter().filter(|r| r["goal_recovered"] == true).count();
+    let at_rest: Vec<&Value> =
+        e.rows.iter().filter(|r| r.get("goal_recovered_at_rest").is_some_and(Value::is_boolean)).collect();
+    let recovered_at_rest = at_rest.iter().filter(|r| r["goal_recovered_at_rest"] == true).count();
     let accuracies: Vec<f64> = e.rows.iter().filter_map(|r| r["balanced_accuracy"].as_f64()).collect();
     let mean_accuracy = accuracies.iter().sum::<f64>() / accuracies.len().max(1) as f64;
     let mut report = json!({
@@ -793,6 +817,8 @@ pub fn write_report(inputs: &Inputs, e: &Extracted, elapsed: f64, extra: Value) 
         "rewards": e.rows,
         "goals_recovered": recovered,
         "goals_evaluated": with_goal.len(),
+        "goals_recovered_at_rest": recovered_at_rest,
+        "goals_evaluated_at_rest": at_rest.len(),
         "mean_balanced_accuracy": mean_accuracy,
         "elapsed_seconds": elapsed,
         "out": path_str(&inputs.out),
@@ -816,31 +842,36 @@ fn report_markdown(r: &Value) -> String {
         r["elapsed_seconds"].as_f64().unwrap_or(0.0),
         r["sizes"]
     );
-    t.push_str("| expert | reward | balanced accuracy | AUC | reward max at | recovered | discriminator accuracy |\n|---|---|---|---|---|---|---|\n");
+    t.push_str("| expert | reward | balanced accuracy | AUC | reward max at | recovered | max at rest | recovered at rest | discriminator accuracy |\n|---|---|---|---|---|---|---|---|---|\n");
     for row in r["rewards"].as_array().map(Vec::as_slice).unwrap_or(&[]) {
         let cell = |v: &Value| {
             v.as_array().map_or("-".to_owned(), |a| a.iter().map(|x| x.to_string()).collect::<Vec<_>>().join(","))
         };
+        let yes_no = |v: Option<&Value>| match v {
+            Some(Value::Bool(true)) => "yes",
+            Some(Value::Bool(false)) => "no",
+            _ => "-",
+        };
         t.push_str(&format!(
-            "| {} | {} | {} | {} | {} | {} | {} |\n",
+            "| {} | {} | {} | {} | {} | {} | {} | {} | {} |\n",
             row["label"].as_str().unwrap_or(""),
             row["model"].as_str().unwrap_or(""),
             num(&row["balanced_accuracy"]),
             num(&row["auc"]),
             cell(&row["argmax_cell"]),
-            match row.get("goal_recovered") {
-                Some(Value::Bool(true)) => "yes",
-                Some(Value::Bool(false)) => "no",
-                _ => "-",
-            },
+            yes_no(row.get("goal_recovered")),
+            cell(&row["argmax_cell_at_rest"]),
+            yes_no(row.get("goal_recovered_at_rest")),
             num(&row["discriminator"]["balanced_accuracy"]),
         ));
     }
     t.push_str(&format!(
-        "\nmean balanced accuracy {}; goals recovered {} of {} evaluated\n\nPictures: `hist-*.png` (reward histograms, base vs expert), `loss-*.png` (loss curves), `heatmap-*.png` (maze reward heatmaps).\n",
+        "\nmean balanced accuracy {}; goals recovered {} of {} evaluated (the paper's heatmap: base sub-trajectories); at rest {} of {}\n\nPictures: `hist-*.png` (reward histograms, base vs expert), `loss-*.png` (loss curves), `heatmap-*.png` (maze reward heatmaps over base sub-trajectories), `heatmap-at-rest-*.png` (the reward of a window held still at each position).\n",
         num(&r["mean_balanced_accuracy"]),
         r["goals_recovered"],
-        r["goals_evaluated"]
+        r["goals_evaluated"],
+        r["goals_recovered_at_rest"],
+        r["goals_evaluated_at_rest"]
     ));
     t
 }
