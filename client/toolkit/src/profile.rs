@@ -117,7 +117,7 @@ mod tests {
         assert!((p.displacement_per_row - 1.0 / 1.5).abs() < 1e-12);
         // A held (repeated) last row adds no motion and no row to the mean.
         let held = [0.0, 5.0, 1.0, 5.0, 2.0, 5.0, 3.0, 5.0, 3.0, 5.0, 3.0, 5.0];
-        let p = profile(&held, 2, &[0..6]);
+        let p = profile(&held, 2, std::slice::from_ref(&(0..6)));
         assert!((p.displacement_per_row - 1.0 / 1.5).abs() < 1e-12);
     }
 

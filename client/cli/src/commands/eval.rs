@@ -1023,6 +1023,30 @@ mod tests {
     use super::*;
 
     #[test]
+    fn at_rest_items_hold_each_reachable_bin_still() {
+        // 3 x 3 cells, only the centre free; rows [a0, a1, x, y, vx, vy]; 2 bins per cell.
+        let mut wall = vec![true; 9];
+        wall[4] = false;
+        let walls = (3, 3, wall);
+        let grid = Grid::of_maze(3, 3, 2);
+        let items = at_rest_items(&grid, &walls, (2, 3), 2, 6, 4, &[2, 3]).expect("items");
+        // The centre cell's 4 bins (centres at 1 +- 0.25), each 0.25 from the faces > RADIUS.
+        assert_eq!(items.len(), 4);
+        assert_eq!(items.item_shape(), vec![4, 6]);
+        for k in 0..4 {
+            let rows = item_rows(&items, k);
+            let first = &rows[..6];
+            assert!((first[2] - 1.0).abs() == 0.25 && (first[3] - 1.0).abs() == 0.25, "{first:?}");
+            assert_eq!([first[0], first[1], first[4], first[5]], [0.0; 4]);
+            assert!(rows.chunks_exact(6).all(|r| r == first), "every row the same state");
+        }
+        // A column that is neither position nor velocity cannot be held: refused, named.
+        let err = at_rest_items(&grid, &walls, (2, 3), 2, 6, 4, &[2]).expect_err("column 3");
+        assert!(err.downcast_ref::<UsageError>().is_some());
+        assert!(err.to_string().contains("observation column 3"), "{err}");
+    }
+
+    #[test]
     fn flag_values_parse() {
         assert_eq!(parse_point("3,4.5"), Ok((3.0, 4.5)));
         assert_eq!(parse_point("-1, 2"), Ok((-1.0, 2.0)));

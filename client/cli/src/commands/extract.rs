@@ -917,6 +917,15 @@ mod tests {
     use super::*;
 
     #[test]
+    fn velocity_columns_flag_parses_and_refuses_naming_itself() {
+        assert_eq!(parse_columns("auto").expect("auto"), None);
+        assert_eq!(parse_columns("none").expect("none"), Some(vec![]));
+        assert_eq!(parse_columns("2, 3").expect("list"), Some(vec![2, 3]));
+        let err = parse_columns("2,x").expect_err("bad");
+        assert!(err.to_string().starts_with("--velocity-columns '2,x'"), "{err}");
+    }
+
+    #[test]
     fn config_overrides_sizes_and_refuses_unknown_keys() {
         let dir = tempfile::tempdir().expect("tmp");
         let path = dir.path().join("c.toml");
