@@ -15,7 +15,9 @@
 //! 5. evaluate: discriminability (held-out balanced accuracy) with both classes' reward
 //!    histograms, the loss curve, and when the maze's walls are known (in the base file, or
 //!    `--walls`) the reward heatmap with goal recovery for goals given by `--goal` or by a
-//!    constant `goals` array in the expert file;
+//!    constant `goals` array in the expert file, twice: over base sub-trajectories (the
+//!    paper's) and at rest (`eval heatmap --probe at-rest`: the reward of staying at each
+//!    position; docs/results.md, issue 19);
 //! 6. write `report.md` and `report.json` beside the pictures in `OUT`.
 //!
 //! `relreward demo` is the maze-generating front end of [`pipeline`]: it writes its datasets
