@@ -53,6 +53,9 @@ async fn a_d4rl_file_and_a_minari_dataset_extract_end_to_end() {
     assert!((0.0..=1.0).contains(&acc), "{acc}");
     assert!(row["goal_recovered"].is_boolean(), "the wall_map in the base file enables the heatmap: {row}");
     assert!(row["discriminator"]["balanced_accuracy"].is_number(), "{row}");
+    // The at-rest heatmap ran beside the paper's, or was refused with its reason (a state
+    // that is more than a position and its velocities cannot be held still).
+    assert!(row["goal_recovered_at_rest"].is_boolean() || row["at_rest_refused"].is_string(), "{row}");
     for key in ["heatmap", "loss_plot", "histogram"] {
         let bytes = std::fs::read(row[key].as_str().expect("path")).expect("picture");
         let (w, h) = png_size(&bytes).expect("a PNG");

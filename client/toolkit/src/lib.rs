@@ -8,7 +8,8 @@
 //! - [`episodes`]: the rules every reader applies to episode boundaries (flags, start indices,
 //!   lengths) and maze walls (`walls` / `wall_map` / `maze_map`).
 //! - [`trajectories`]: a trajectory dataset in memory, as converting readers produce it; to an
-//!   upload or the canonical `.npz`.
+//!   upload or the canonical `.npz`; absorbing terminal states held at rest, and the rule that
+//!   finds the velocity coordinates.
 //! - [`hdf5`] (feature `hdf5`): D4RL HDF5 files and Minari datasets (`main_data.hdf5`), dict
 //!   observations flattened by gymnasium's rule.
 //! - [`profile`]: what `extract` measures in the data (episode lengths, motion per row) and
@@ -16,7 +17,7 @@
 //! - [`npz_write`]: writes `.npz` archives (results of `score`, `grad`, `sample`; generated
 //!   datasets).
 //! - [`maze`]: the built-in Maze2D data generator (D4RL layouts, point mass, waypoint
-//!   controller), written with [`npz_write`].
+//!   controller; its own physics or MuJoCo PointMaze's), written with [`npz_write`].
 //! - [`eval`]: the paper's evaluation over scores (discriminability, reward heatmaps, goal
 //!   recovery) and its PNG pictures.
 //! - [`diffuser_import`]: a Diffuser `TemporalUnet` state_dict (exported to `.npz`) checked

@@ -31,7 +31,8 @@ pub struct DataProfile {
     /// Episode lengths: shortest, 25th percentile, median, longest.
     pub episode_len: [usize; 4],
     /// Mean over consecutive rows inside an episode of the Euclidean norm of the observation
-    /// change, each coordinate divided by half its range (the limits normalizer's scale).
+    /// change, each coordinate divided by half its range (the limits normalizer's scale); rows
+    /// identical to the one before (held absorbing states) are left out.
     pub displacement_per_row: f64,
 }
 
@@ -60,8 +61,12 @@ pub fn profile(observations: &[f32], obs_dim: usize, episodes: &[std::ops::Range
                 .filter(|(_, h)| **h > 0.0)
                 .map(|((x, y), h)| ((f64::from(*y) - f64::from(*x)) / h).powi(2))
                 .sum();
-            sum += d2.sqrt();
-            count += 1;
+            // A row that repeats the one before records no motion and no time scale (absorbing
+            // padding, `extract --absorbing`; a paused recorder): not counted.
+            if d2 > 0.0 {
+                sum += d2.sqrt();
+                count += 1;
+            }
         }
     }
     let mut lengths: Vec<usize> = episodes.iter().map(ExactSizeIterator::len).collect();
@@ -110,6 +115,10 @@ mod tests {
         // No step crosses an episode boundary.
         let p = profile(&obs, 2, &[0..2, 2..4]);
         assert!((p.displacement_per_row - 1.0 / 1.5).abs() < 1e-12);
+        // A held (repeated) last row adds no motion and no row to the mean.
+        let held = [0.0, 5.0, 1.0, 5.0, 2.0, 5.0, 3.0, 5.0, 3.0, 5.0, 3.0, 5.0];
+        let p = profile(&held, 2, std::slice::from_ref(&(0..6)));
+        assert!((p.displacement_per_row - 1.0 / 1.5).abs() < 1e-12);
     }
 
     #[test]
@@ -133,5 +142,30 @@ mod tests {
         let data = maze::generate(&config).expect("generate");
         let p = profile(&data.observations, 4, &data.episode_ranges());
         assert_eq!(derive_window(std::slice::from_ref(&p)).0, 16, "{p:?}");
+    }
+
+    #[test]
+    fn matched_physics_moves_as_far_per_row_as_mujoco_pointmaze() {
+        // MuJoCo PointMaze umaze base data (experiments/pointmaze/generate.py, docs/results.md)
+        // moves 0.052 normalized units per row; the generator's default 0.084.
+        let mut config = GenerateConfig::new(LayoutName::Umaze.layout(), Mode::Base, 20_000, 0);
+        config.physics = maze::Physics::MUJOCO;
+        let data = maze::generate(&config).expect("generate");
+        let p = profile(&data.observations, 4, &data.episode_ranges());
+        assert!((0.04..0.065).contains(&p.displacement_per_row), "{p:?}");
+        // The velocity rule finds [vx, vy] in both physics' data.
+        for physics in [maze::Physics::MUJOCO, maze::Physics::RELREWARD] {
+            config.physics = physics;
+            let data = maze::generate(&config).expect("generate");
+            let t = crate::trajectories::Trajectories {
+                observations: data.observations.clone(),
+                obs_dim: 4,
+                actions: data.actions.clone(),
+                act_dim: 2,
+                timeouts: data.timeouts.clone(),
+                ..Default::default()
+            };
+            assert_eq!(t.velocity_columns(), vec![2, 3], "{physics:?}");
+        }
     }
 }

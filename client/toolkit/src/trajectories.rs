@@ -13,6 +13,12 @@ use relreward_client::upload::MemorySource;
 use crate::episodes::Walls;
 use crate::npz_write::NpzWriter;
 
+/// How closely (Pearson correlation) a column must track another's per-row change to count as
+/// its velocity ([`Trajectories::velocity_columns`]). MuJoCo's PointMaze, relreward's maze
+/// generator and any explicit or semi-implicit Euler integrator give 0.99 or more; 0.9 leaves
+/// room for noise while a position against its own neighbour's change stays far below.
+pub const VELOCITY_CORRELATION: f64 = 0.9;
+
 /// Rows of observations and actions with their episode flags, as D4RL lays them out.
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct Trajectories {
@@ -62,14 +68,73 @@ impl Trajectories {
         out
     }
 
+    /// The observation coordinates that are velocities, by a rule that needs no names: column
+    /// `j` is the velocity of column `i != j` when, over consecutive rows inside episodes, the
+    /// change of `i` (`obs[t + 1][i] - obs[t][i]`) correlates with the mean of `j` over the two
+    /// rows (`(obs[t][j] + obs[t + 1][j]) / 2`, the midpoint rule of integration) at
+    /// [`VELOCITY_CORRELATION`] or more. Why this rule: whatever the simulator, time step or
+    /// units, a position integrates its velocity, so the per-row change of a position is its
+    /// velocity times a constant step; positions, angles and other state do not predict a
+    /// change that way. Columns that never change are left out. Used by `extract --absorbing`
+    /// to put the held state at rest (`--velocity-columns` overrides it).
+    pub fn velocity_columns(&self) -> Vec<usize> {
+        let d = self.obs_dim;
+        // Sums for the correlation of every (change of i, value of j) pair.
+        let (mut n, mut sx, mut sxx) = (0f64, vec![0f64; d], vec![0f64; d]);
+        let (mut sy, mut syy, mut sxy) = (vec![0f64; d], vec![0f64; d], vec![0f64; d * d]);
+        for ep in self.episodes() {
+            for t in ep.start..ep.end.saturating_sub(1) {
+                let (a, b) = (&self.observations[t * d..(t + 1) * d], &self.observations[(t + 1) * d..(t + 2) * d]);
+                n += 1.0;
+                for i in 0..d {
+                    let x = f64::from(b[i]) - f64::from(a[i]);
+                    let y = (f64::from(a[i]) + f64::from(b[i])) / 2.0;
+                    sx[i] += x;
+                    sxx[i] += x * x;
+                    sy[i] += y;
+                    syy[i] += y * y;
+                }
+                for i in 0..d {
+                    let x = f64::from(b[i]) - f64::from(a[i]);
+                    for j in 0..d {
+                        sxy[i * d + j] += x * (f64::from(a[j]) + f64::from(b[j])) / 2.0;
+                    }
+                }
+            }
+        }
+        if n < 3.0 {
+            return Vec::new();
+        }
+        let var = |s: f64, ss: f64| (ss / n - (s / n).powi(2)).max(0.0);
+        let mut out = Vec::new();
+        for j in 0..d {
+            let vy = var(sy[j], syy[j]);
+            let is_velocity = (0..d).filter(|&i| i != j).any(|i| {
+                let vx = var(sx[i], sxx[i]);
+                if vx <= 0.0 || vy <= 0.0 {
+                    return false;
+                }
+                let cov = sxy[i * d + j] / n - (sx[i] / n) * (sy[j] / n);
+                cov / (vx * vy).sqrt() >= VELOCITY_CORRELATION
+            });
+            if is_velocity {
+                out.push(j);
+            }
+        }
+        out
+    }
+
     /// Treats terminal states as absorbing (`extract --absorbing N`): each episode that ends
-    /// with a `terminals` row gets `n` more rows holding its last observation with zero action,
-    /// the last of them flagged terminal. Why: in an MDP a terminal state is absorbing (the
-    /// agent stays there forever), but goal-terminated demonstrations stop recording at it, so
-    /// the expert's data holds the goal for one row only and a reward fitted to it learns the
-    /// approach (motion toward the goal) rather than the goal (docs/results.md, issue 19).
-    /// Padding restores the time the expert would spend there.
-    pub fn absorb_terminals(&mut self, n: usize) {
+    /// with a `terminals` row gets `n` more rows holding its last observation with zero action
+    /// and the coordinates in `at_rest` (velocities, [`Trajectories::velocity_columns`]) set
+    /// to zero, the last of them flagged terminal. Why: in an MDP a terminal state is absorbing
+    /// (the agent stays there forever), but goal-terminated demonstrations stop recording at
+    /// it, so the expert's data holds the goal for one row only and a reward fitted to it
+    /// learns the approach (motion toward the goal) rather than the goal (docs/results.md,
+    /// issue 19). Padding restores the time the expert would spend there; an agent that stays
+    /// somewhere does not move, so its velocities are zero (repeating the arrival row instead
+    /// would hold a point that moves fast without moving, a state no data resembles).
+    pub fn absorb_terminals(&mut self, n: usize, at_rest: &[usize]) {
         if n == 0 || self.terminals.is_empty() {
             return;
         }
@@ -94,8 +159,12 @@ impl Trajectories {
             let last = ep.end - 1;
             if flag(&self.terminals, last) {
                 *out.terminals.last_mut().expect("an episode has rows") = false;
+                let mut held = self.observations[last * od..(last + 1) * od].to_vec();
+                for &j in at_rest.iter().filter(|&&j| j < od) {
+                    held[j] = 0.0;
+                }
                 for k in 0..n {
-                    out.observations.extend_from_slice(&self.observations[last * od..(last + 1) * od]);
+                    out.observations.extend_from_slice(&held);
                     out.actions.extend(std::iter::repeat_n(0.0, ad));
                     out.terminals.push(k + 1 == n);
                     out.timeouts.push(false);
@@ -208,12 +277,71 @@ mod tests {
             timeouts: vec![false, false, false, false, true],
             ..Default::default()
         };
-        t.absorb_terminals(3);
+        t.absorb_terminals(3, &[]);
         // Episode 0..2 ends at a terminal: held 3 more rows; episode 2..5 (a timeout) is not.
         assert_eq!(t.observations, [0.0, 1.0, 1.0, 1.0, 1.0, 2.0, 3.0, 4.0]);
         assert_eq!(t.actions, [9.0, 9.0, 0.0, 0.0, 0.0, 9.0, 9.0, 9.0]);
         assert_eq!(t.episodes(), vec![0..5, 5..8]);
         assert_eq!(t.terminals.iter().filter(|&&b| b).count(), 1);
         assert!(t.terminals[4]);
+    }
+
+    #[test]
+    fn held_terminal_states_are_at_rest_in_the_named_columns() {
+        // [x, v]: the episode arrives at x = 2 moving at v = 5; held, it stays at x = 2, v = 0.
+        let mut t = Trajectories {
+            observations: vec![0.0, 5.0, 2.0, 5.0],
+            obs_dim: 2,
+            actions: vec![1.0; 2],
+            act_dim: 1,
+            terminals: vec![false, true],
+            ..Default::default()
+        };
+        t.absorb_terminals(2, &[1, 7]);
+        assert_eq!(t.observations, [0.0, 5.0, 2.0, 5.0, 2.0, 0.0, 2.0, 0.0]);
+        assert_eq!(t.actions, [1.0, 1.0, 0.0, 0.0]);
+    }
+
+    /// A damped point mass under random pushes, integrated semi-implicitly (as MuJoCo does)
+    /// with an unrelated slowly drifting coordinate: `[x, y, phase, vx, vy]`.
+    fn point_mass(rows: usize, seed: u64) -> Trajectories {
+        let mut rng = crate::maze::Rng::new(seed);
+        let (dt, mut x, mut v, mut phase) = (0.01f64, [0.0f64; 2], [0.0f64; 2], 0.0f64);
+        let mut obs = Vec::new();
+        let mut timeouts = Vec::new();
+        for t in 0..rows {
+            obs.extend([x[0], x[1], phase, v[0], v[1]].map(|c| c as f32));
+            timeouts.push(t % 100 == 99);
+            for k in 0..2 {
+                v[k] += dt * (50.0 * (rng.uniform() - 0.5) - 2.0 * v[k]);
+                x[k] += dt * v[k];
+            }
+            phase += 0.001 * (rng.uniform() - 0.3);
+        }
+        Trajectories {
+            observations: obs,
+            obs_dim: 5,
+            actions: vec![0.0; rows],
+            act_dim: 1,
+            timeouts,
+            ..Default::default()
+        }
+    }
+
+    #[test]
+    fn velocities_are_the_columns_that_predict_a_change() {
+        assert_eq!(point_mass(3000, 1).velocity_columns(), vec![3, 4]);
+        // Columns permuted ([vy, phase, x, vx, y]): found where they are, not by position.
+        let t = point_mass(3000, 2);
+        let mut p = t.clone();
+        for (r, row) in t.observations.chunks_exact(5).enumerate() {
+            p.observations[r * 5..(r + 1) * 5].copy_from_slice(&[row[4], row[2], row[0], row[3], row[1]]);
+        }
+        assert_eq!(p.velocity_columns(), vec![0, 3]);
+        // No velocities (positions alone, a random walk): none found.
+        let mut q = t.clone();
+        q.observations = t.observations.chunks_exact(5).flat_map(|r| [r[0], r[1], r[2]]).collect();
+        q.obs_dim = 3;
+        assert!(q.velocity_columns().is_empty());
     }
 }

@@ -152,6 +152,65 @@ pub struct HeatmapArgs {
     /// trajectories: the first two observation coordinates].
     #[arg(long, value_name = "I,J", value_parser = parse_columns)]
     pub xy_columns: Option<(usize, usize)>,
+    /// What is scored at each position: `base`, the dataset's sub-trajectories passing there
+    /// (the paper's heatmap), or `at-rest`, a window holding the agent still at each bin's
+    /// centre (velocities zero, by the rule of docs/data-formats.md; zero action): the reward
+    /// of staying there, the question a goal answers (trajectory files with walls only).
+    #[arg(long, value_enum, default_value_t = ProbeArg::Base)]
+    pub probe: ProbeArg,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum ProbeArg {
+    Base,
+    AtRest,
+}
+
+/// `--probe at-rest`: one `[horizon, dim]` item per bin of `grid` where the agent can be (its
+/// square of half side [`relreward_toolkit::maze::RADIUS`] in free cells), each row the bin's
+/// centre in columns `cx, cy`, zero in every other column (the action and the velocities).
+/// Refused unless every observation column (from `act` on) is the position or a velocity
+/// (`velocities`, observation indices): a held state must be fully specified.
+fn at_rest_items(
+    grid: &Grid,
+    walls: &(usize, usize, Vec<bool>),
+    (cx, cy): (usize, usize),
+    act: usize,
+    dim: usize,
+    horizon: usize,
+    velocities: &[usize],
+) -> Result<Items> {
+    for c in act..dim {
+        if c != cx && c != cy && !velocities.contains(&(c - act)) {
+            return Err(UsageError(format!(
+                "--probe at-rest: observation column {} is neither the position ({}, {}) nor a velocity {velocities:?}; \
+                 an at-rest state cannot be built (use --probe base)",
+                c - act,
+                cx - act,
+                cy - act
+            ))
+            .into());
+        }
+    }
+    let (rows, cols, wall) = walls;
+    let free = |x: f64, y: f64| {
+        let (i, j) = heatmap::cell_of(x, y);
+        i >= 0 && j >= 0 && (i as usize) < *rows && (j as usize) < *cols && !wall[i as usize * cols + j as usize]
+    };
+    let r = relreward_toolkit::maze::RADIUS;
+    let mut values = Vec::new();
+    for k in 0..grid.len() {
+        let (x, y) = grid.bin_centre(k);
+        if [(-r, -r), (-r, r), (r, -r), (r, r)].iter().all(|(dx, dy)| free(x + dx, y + dy)) {
+            for _ in 0..horizon {
+                let start = values.len();
+                values.resize(start + dim, 0.0f32);
+                values[start + cx] = x as f32;
+                values[start + cy] = y as f32;
+            }
+        }
+    }
+    Ok(Items::Array { key: "at-rest probe".to_owned(), values, item_shape: vec![horizon as u64, dim as u64] })
 }
 
 /// `relreward job plot`.
@@ -630,6 +689,29 @@ async fn heatmap(ctx: &Ctx, args: HeatmapArgs) -> Result<Report> {
         },
     };
 
+    let (items, min_count) = match (args.probe, &walls) {
+        (ProbeArg::Base, _) => (items, args.min_count),
+        (ProbeArg::AtRest, None) => {
+            return Err(
+                UsageError("--probe at-rest: needs the maze's walls (--walls, or walls in --dataset)".into()).into()
+            );
+        }
+        (ProbeArg::AtRest, Some(w)) => {
+            if !is_trajectories {
+                return Err(UsageError("--probe at-rest: --dataset must hold trajectories".into()).into());
+            }
+            let path = dataset.clone();
+            let velocities = tokio::task::spawn_blocking(move || -> Result<Vec<usize>> {
+                Ok(relreward_toolkit::trajectories::Trajectories::from_npz(&path)?.velocity_columns())
+            })
+            .await
+            .context("reading crashed")??;
+            let grid = Grid::of_maze(w.0, w.1, args.bins_per_cell as usize);
+            let act = dim - obs_dim(dataset)?;
+            // Each bin is probed once, by one item (whose windows all land in it).
+            (at_rest_items(&grid, w, (cx, cy), act, dim, horizon as usize, &velocities)?, 1)
+        }
+    };
     let mut rng = Rng::new(s.seed);
     let idx = rng.subset(items.len(), args.max_windows as usize);
     let scored = score_subset(ctx, &client, s, items, &idx, "--dataset", per_window).await?;
@@ -675,7 +757,7 @@ async fn heatmap(ctx: &Ctx, args: HeatmapArgs) -> Result<Report> {
     for (unit, &v) in units.iter().zip(&values) {
         acc.add(points(unit), v);
     }
-    let means = acc.means(args.min_count);
+    let means = acc.means(min_count);
     let covered = means.iter().filter(|v| v.is_some()).count();
     let smoothed = heatmap::smooth(&grid, &means, args.smooth * bins_per_cell as f64);
     let best = heatmap::argmax(&smoothed).map(|(k, v)| (grid.bin_centre(k), v));
@@ -728,7 +810,8 @@ async fn heatmap(ctx: &Ctx, args: HeatmapArgs) -> Result<Report> {
         },
         "bins": grid.len(),
         "bins_covered": covered,
-        "min_count": args.min_count,
+        "min_count": min_count,
+        "probe": if args.probe == ProbeArg::AtRest { "at-rest" } else { "base" },
         "states_outside": acc.outside,
         "smooth_sigma_cells": args.smooth,
         "argmax": argmax_json,
@@ -768,7 +851,7 @@ async fn heatmap(ctx: &Ctx, args: HeatmapArgs) -> Result<Report> {
                 if walls.is_some() { " (walls)" } else { " (covering the data)" },
                 grid.bins_per_cell,
                 grid.len(),
-                args.min_count
+                min_count
             ),
         ),
     ];
@@ -938,6 +1021,30 @@ pub async fn job_plot(ctx: &Ctx, args: JobPlotArgs) -> Result<Report> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn at_rest_items_hold_each_reachable_bin_still() {
+        // 3 x 3 cells, only the centre free; rows [a0, a1, x, y, vx, vy]; 2 bins per cell.
+        let mut wall = vec![true; 9];
+        wall[4] = false;
+        let walls = (3, 3, wall);
+        let grid = Grid::of_maze(3, 3, 2);
+        let items = at_rest_items(&grid, &walls, (2, 3), 2, 6, 4, &[2, 3]).expect("items");
+        // The centre cell's 4 bins (centres at 1 +- 0.25), each 0.25 from the faces > RADIUS.
+        assert_eq!(items.len(), 4);
+        assert_eq!(items.item_shape(), vec![4, 6]);
+        for k in 0..4 {
+            let rows = item_rows(&items, k);
+            let first = &rows[..6];
+            assert!((first[2] - 1.0).abs() == 0.25 && (first[3] - 1.0).abs() == 0.25, "{first:?}");
+            assert_eq!([first[0], first[1], first[4], first[5]], [0.0; 4]);
+            assert!(rows.chunks_exact(6).all(|r| r == first), "every row the same state");
+        }
+        // A column that is neither position nor velocity cannot be held: refused, named.
+        let err = at_rest_items(&grid, &walls, (2, 3), 2, 6, 4, &[2]).expect_err("column 3");
+        assert!(err.downcast_ref::<UsageError>().is_some());
+        assert!(err.to_string().contains("observation column 3"), "{err}");
+    }
 
     #[test]
     fn flag_values_parse() {

@@ -15,7 +15,9 @@
 //! 5. evaluate: discriminability (held-out balanced accuracy) with both classes' reward
 //!    histograms, the loss curve, and when the maze's walls are known (in the base file, or
 //!    `--walls`) the reward heatmap with goal recovery for goals given by `--goal` or by a
-//!    constant `goals` array in the expert file;
+//!    constant `goals` array in the expert file, twice: over base sub-trajectories (the
+//!    paper's) and at rest (`eval heatmap --probe at-rest`: the reward of staying at each
+//!    position; docs/results.md, issue 19);
 //! 6. write `report.md` and `report.json` beside the pictures in `OUT`.
 //!
 //! `relreward demo` is the maze-generating front end of [`pipeline`]: it writes its datasets
@@ -235,6 +237,11 @@ pub struct ExtractArgs {
     /// demonstrations, whose goal state is otherwise recorded once (docs/results.md).
     #[arg(long, value_name = "N", default_value_t = 0)]
     pub absorbing: usize,
+    /// Which observation columns the held (absorbing) rows set to zero, as an agent at rest:
+    /// `auto` (the columns that predict another column's per-row change, i.e. velocities;
+    /// docs/data-formats.md), `none`, or a list I,J,... (0-based). Only with --absorbing.
+    #[arg(long, value_name = "auto|none|I,J,...", default_value = "auto")]
+    pub velocity_columns: String,
     /// Seed of training and evaluation.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
@@ -326,14 +333,34 @@ fn file_fingerprint(path: &Path) -> Result<String> {
 
 /// Reads any supported file; HDF5 and Minari inputs are written as `.npz` into `data_dir`.
 /// Returns the `.npz` to use and the data.
-/// With `absorbing > 0`, terminal states are padded ([`Trajectories::absorb_terminals`]) and
-/// the result written there too.
-fn canonical(path: &Path, data_dir: &Path, label: &str, absorbing: usize) -> Result<(PathBuf, Trajectories)> {
+/// With `absorbing > 0`, terminal states are padded ([`Trajectories::absorb_terminals`], the
+/// `at_rest` columns zeroed, found by [`Trajectories::velocity_columns`] when `None`) and the
+/// result written there too.
+fn canonical(
+    path: &Path,
+    data_dir: &Path,
+    label: &str,
+    absorbing: usize,
+    at_rest: Option<&[usize]>,
+) -> Result<(PathBuf, Trajectories)> {
     let hdf5 = relreward_toolkit::hdf5::is_hdf5(path);
     let mut t = if hdf5 { relreward_toolkit::hdf5::read_hdf5(path)? } else { Trajectories::from_npz(path)? };
     let padded = absorbing > 0 && t.terminals.iter().any(|&b| b);
     if padded {
-        t.absorb_terminals(absorbing);
+        let columns = match at_rest {
+            Some(c) => {
+                if let Some(&bad) = c.iter().find(|&&j| j >= t.obs_dim) {
+                    bail!(UsageError(format!(
+                        "--velocity-columns: column {bad} is out of range; observations have {} columns",
+                        t.obs_dim
+                    )));
+                }
+                c.to_vec()
+            }
+            None => t.velocity_columns(),
+        };
+        eprintln!("{label}: terminal states held {absorbing} rows at rest in observation columns {columns:?}");
+        t.absorb_terminals(absorbing, &columns);
     }
     if hdf5 || padded {
         let dest = data_dir.join(format!("{label}.npz"));
@@ -363,16 +390,18 @@ pub async fn run(ctx: &Ctx, args: ExtractArgs) -> Result<Report> {
     stage(ctx, "reading the datasets");
     let (base, _) = {
         let (p, d) = (args.base.clone(), data_dir.clone());
-        tokio::task::spawn_blocking(move || canonical(&p, &d, "base", 0)).await?.context("--base")?
+        tokio::task::spawn_blocking(move || canonical(&p, &d, "base", 0, None)).await?.context("--base")?
     };
     let mut experts = Vec::new();
     let mut labels = Vec::new();
     let absorbing = args.absorbing;
+    let at_rest = parse_columns(&args.velocity_columns)?;
     for (k, path) in args.experts.iter().enumerate() {
         let stem = path.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
         let label = format!("e{k}-{}", slug(&stem, 16));
         let (p, d, l) = (path.clone(), data_dir.clone(), label.clone());
-        let (npz, _) = tokio::task::spawn_blocking(move || canonical(&p, &d, &l, absorbing))
+        let r = at_rest.clone();
+        let (npz, _) = tokio::task::spawn_blocking(move || canonical(&p, &d, &l, absorbing, r.as_deref()))
             .await?
             .with_context(|| format!("--expert {}", path.display()))?;
         experts.push(npz);
@@ -394,6 +423,26 @@ pub async fn run(ctx: &Ctx, args: ExtractArgs) -> Result<Report> {
     let extracted = pipeline(ctx, &inputs, Sizing::Derive { size: args.size, config: args.config.clone() }).await?;
     let report = write_report(&inputs, &extracted, started.elapsed().as_secs_f64(), json!({}))?;
     Ok(report)
+}
+
+/// `--velocity-columns`: `None` for `auto` (the rule), else the explicit list (`none`: empty).
+fn parse_columns(text: &str) -> Result<Option<Vec<usize>>> {
+    match text.trim() {
+        "auto" => Ok(None),
+        "none" | "" => Ok(Some(Vec::new())),
+        list => list
+            .split(',')
+            .map(|c| {
+                c.trim().parse::<usize>().map_err(|_| {
+                    UsageError(format!(
+                        "--velocity-columns '{text}': expected auto, none or column numbers I,J,... (0-based)"
+                    ))
+                    .into()
+                })
+            })
+            .collect::<Result<Vec<_>>>()
+            .map(Some),
+    }
 }
 
 fn parse_point(text: &str) -> Result<(f64, f64)> {
@@ -721,6 +770,27 @@ async fn evaluate(
         row["argmax_cell"] = heat["argmax"]["cell"].clone();
         row["distance_cells"] = heat["distance_cells"].clone();
         row["goal_recovered"] = heat["goal_recovered"].clone();
+        // The same maze scored at rest (`eval heatmap --probe at-rest`): the reward of staying
+        // at each position. Reported beside the paper's heatmap, never instead of it; data
+        // whose states are more than a position and its velocities cannot be probed (null).
+        let rest_png = out.join(format!("heatmap-at-rest-{model}.png"));
+        let at = argv.iter().position(|a| a == "--out").map_or(0, |i| i + 1);
+        argv[at] = path_str(&rest_png);
+        argv.extend(strings(&["--probe", "at-rest"]));
+        let command: EvalCommand = parse(&argv)?;
+        match super::eval::run(quiet, command).await {
+            Ok(report) => {
+                let heat = report.json.context("heatmap returned no JSON")?;
+                row["heatmap_at_rest"] = json!(path_str(&rest_png));
+                row["argmax_cell_at_rest"] = heat["argmax"]["cell"].clone();
+                row["distance_cells_at_rest"] = heat["distance_cells"].clone();
+                row["goal_recovered_at_rest"] = heat["goal_recovered"].clone();
+            }
+            Err(e) if e.downcast_ref::<UsageError>().is_some() => {
+                row["at_rest_refused"] = json!(e.to_string());
+            }
+            Err(e) => return Err(e),
+        }
     }
     Ok(row)
 }
@@ -731,6 +801,9 @@ pub fn write_report(inputs: &Inputs, e: &Extracted, elapsed: f64, extra: Value) 
     let with_goal: Vec<&Value> =
         e.rows.iter().filter(|r| r.get("goal_recovered").is_some_and(Value::is_boolean)).collect();
     let recovered = with_goal.iter().filter(|r| r["goal_recovered"] == true).count();
+    let at_rest: Vec<&Value> =
+        e.rows.iter().filter(|r| r.get("goal_recovered_at_rest").is_some_and(Value::is_boolean)).collect();
+    let recovered_at_rest = at_rest.iter().filter(|r| r["goal_recovered_at_rest"] == true).count();
     let accuracies: Vec<f64> = e.rows.iter().filter_map(|r| r["balanced_accuracy"].as_f64()).collect();
     let mean_accuracy = accuracies.iter().sum::<f64>() / accuracies.len().max(1) as f64;
     let mut report = json!({
@@ -746,6 +819,8 @@ pub fn write_report(inputs: &Inputs, e: &Extracted, elapsed: f64, extra: Value) 
         "rewards": e.rows,
         "goals_recovered": recovered,
         "goals_evaluated": with_goal.len(),
+        "goals_recovered_at_rest": recovered_at_rest,
+        "goals_evaluated_at_rest": at_rest.len(),
         "mean_balanced_accuracy": mean_accuracy,
         "elapsed_seconds": elapsed,
         "out": path_str(&inputs.out),
@@ -769,31 +844,36 @@ fn report_markdown(r: &Value) -> String {
         r["elapsed_seconds"].as_f64().unwrap_or(0.0),
         r["sizes"]
     );
-    t.push_str("| expert | reward | balanced accuracy | AUC | reward max at | recovered | discriminator accuracy |\n|---|---|---|---|---|---|---|\n");
+    t.push_str("| expert | reward | balanced accuracy | AUC | reward max at | recovered | max at rest | recovered at rest | discriminator accuracy |\n|---|---|---|---|---|---|---|---|---|\n");
     for row in r["rewards"].as_array().map(Vec::as_slice).unwrap_or(&[]) {
         let cell = |v: &Value| {
             v.as_array().map_or("-".to_owned(), |a| a.iter().map(|x| x.to_string()).collect::<Vec<_>>().join(","))
         };
+        let yes_no = |v: Option<&Value>| match v {
+            Some(Value::Bool(true)) => "yes",
+            Some(Value::Bool(false)) => "no",
+            _ => "-",
+        };
         t.push_str(&format!(
-            "| {} | {} | {} | {} | {} | {} | {} |\n",
+            "| {} | {} | {} | {} | {} | {} | {} | {} | {} |\n",
             row["label"].as_str().unwrap_or(""),
             row["model"].as_str().unwrap_or(""),
             num(&row["balanced_accuracy"]),
             num(&row["auc"]),
             cell(&row["argmax_cell"]),
-            match row.get("goal_recovered") {
-                Some(Value::Bool(true)) => "yes",
-                Some(Value::Bool(false)) => "no",
-                _ => "-",
-            },
+            yes_no(row.get("goal_recovered")),
+            cell(&row["argmax_cell_at_rest"]),
+            yes_no(row.get("goal_recovered_at_rest")),
             num(&row["discriminator"]["balanced_accuracy"]),
         ));
     }
     t.push_str(&format!(
-        "\nmean balanced accuracy {}; goals recovered {} of {} evaluated\n\nPictures: `hist-*.png` (reward histograms, base vs expert), `loss-*.png` (loss curves), `heatmap-*.png` (maze reward heatmaps).\n",
+        "\nmean balanced accuracy {}; goals recovered {} of {} evaluated (the paper's heatmap: base sub-trajectories); at rest {} of {}\n\nPictures: `hist-*.png` (reward histograms, base vs expert), `loss-*.png` (loss curves), `heatmap-*.png` (maze reward heatmaps over base sub-trajectories), `heatmap-at-rest-*.png` (the reward of a window held still at each position).\n",
         num(&r["mean_balanced_accuracy"]),
         r["goals_recovered"],
-        r["goals_evaluated"]
+        r["goals_evaluated"],
+        r["goals_recovered_at_rest"],
+        r["goals_evaluated_at_rest"]
     ));
     t
 }
@@ -837,6 +917,15 @@ pub async fn eval(quiet: &Ctx, argv: &[&str]) -> Result<Value> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn velocity_columns_flag_parses_and_refuses_naming_itself() {
+        assert_eq!(parse_columns("auto").expect("auto"), None);
+        assert_eq!(parse_columns("none").expect("none"), Some(vec![]));
+        assert_eq!(parse_columns("2, 3").expect("list"), Some(vec![2, 3]));
+        let err = parse_columns("2,x").expect_err("bad");
+        assert!(err.to_string().starts_with("--velocity-columns '2,x'"), "{err}");
+    }
 
     #[test]
     fn config_overrides_sizes_and_refuses_unknown_keys() {

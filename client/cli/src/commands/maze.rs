@@ -10,7 +10,7 @@ use anyhow::{Context, Result};
 use clap::{Args, Subcommand, ValueEnum};
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 use relreward_toolkit::maze::generate::{check_goal, generate_with_progress};
-use relreward_toolkit::maze::{GenerateConfig, LayoutName, MazeData, MazeError, Mode};
+use relreward_toolkit::maze::{GenerateConfig, LayoutName, MazeData, MazeError, Mode, Physics};
 use serde_json::{Value, json};
 
 use super::output::{bars_visible, check_out_file, fmt_fixed, key_values};
@@ -51,9 +51,20 @@ pub struct GenerateArgs {
     /// Standard deviation of Gaussian noise added to each action component before clipping.
     #[arg(long, value_name = "STD", default_value_t = 0.0, value_parser = parse_noise, allow_negative_numbers = true)]
     pub action_noise: f64,
+    /// The point's dynamics: relreward (two 0.01 s substeps per row, the demo's data) or mujoco
+    /// (one MuJoCo PointMaze step per row, gymnasium-robotics' / D4RL's point matched in free
+    /// space: `relreward_toolkit::maze` docs, "Matched physics").
+    #[arg(long, value_enum, default_value_t = PhysicsArg::Relreward)]
+    pub physics: PhysicsArg,
     /// The .npz file to write (replaced if it exists).
     #[arg(long, value_name = "FILE.npz")]
     pub out: PathBuf,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum PhysicsArg {
+    Relreward,
+    Mujoco,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
@@ -131,6 +142,10 @@ pub fn config_from_args(args: &GenerateArgs) -> Result<GenerateConfig> {
     let mut config = GenerateConfig::new(layout, mode, transitions, args.seed);
     config.goal = args.goal;
     config.action_noise = args.action_noise;
+    config.physics = match args.physics {
+        PhysicsArg::Relreward => Physics::RELREWARD,
+        PhysicsArg::Mujoco => Physics::MUJOCO,
+    };
     Ok(config)
 }
 
@@ -173,15 +188,19 @@ async fn generate(ctx: &Ctx, args: GenerateArgs) -> Result<Report> {
     .await
     .context("generating the dataset crashed")??;
     bar.finish_and_clear();
-    Ok(summary(&data, &args.out, free_cells, seed, action_noise, generate_s, write_s))
+    let physics = args.physics.to_possible_value().map(|v| v.get_name().to_owned()).unwrap_or_default();
+    Ok(summary(&data, &args.out, free_cells, seed, action_noise, &physics, generate_s, write_s))
 }
 
+// One row of the report per argument: bundling them would only rename them.
+#[allow(clippy::too_many_arguments)]
 fn summary(
     data: &MazeData,
     out: &Path,
     free_cells: usize,
     seed: u64,
     action_noise: f64,
+    physics: &str,
     generate_s: f64,
     write_s: f64,
 ) -> Report {
@@ -213,6 +232,7 @@ fn summary(
         ("goals reached", reached_text),
         ("seed", seed.to_string()),
         ("action noise", action_noise.to_string()),
+        ("physics", physics.to_owned()),
         (
             "time",
             format!(
@@ -237,6 +257,7 @@ fn summary(
         "max_episode_steps": data.max_episode_steps,
         "seed": seed,
         "action_noise": action_noise,
+        "physics": physics,
         "generate_seconds": generate_s,
         "write_seconds": write_s,
         "transitions_per_second": if rate.is_finite() { json!(rate) } else { Value::Null },
@@ -268,6 +289,7 @@ mod tests {
             transitions: 10,
             seed: 0,
             action_noise: 0.0,
+            physics: PhysicsArg::Relreward,
             out: PathBuf::from("x.npz"),
         };
         let usage = |a: GenerateArgs| {

@@ -5,7 +5,7 @@
 use std::ops::Range;
 
 use super::controller::dist2;
-use super::{Controller, GOAL_RADIUS, Layout, Planner, PointMass, RADIUS, Rng};
+use super::{Controller, GOAL_RADIUS, Layout, Physics, Planner, PointMass, RADIUS, Rng};
 
 /// Margin between a drawn position's disc and its cell's border.
 const SPAWN_MARGIN: f64 = 1e-6;
@@ -48,12 +48,23 @@ pub struct GenerateConfig {
     /// Standard deviation of Gaussian noise added to each action component before clipping
     /// (0: none; the recorded action is the one applied).
     pub action_noise: f64,
+    /// The point's dynamics: [`Physics::RELREWARD`] (default) or [`Physics::MUJOCO`].
+    pub physics: Physics,
 }
 
 impl GenerateConfig {
     /// `transitions` rows of `mode` data in `layout`, with the layout's goal and cap, no noise.
     pub fn new(layout: Layout, mode: Mode, transitions: usize, seed: u64) -> Self {
-        Self { layout, mode, goal: None, transitions, seed, max_episode_steps: None, action_noise: 0.0 }
+        Self {
+            layout,
+            mode,
+            goal: None,
+            transitions,
+            seed,
+            max_episode_steps: None,
+            action_noise: 0.0,
+            physics: Physics::RELREWARD,
+        }
     }
 
     /// The cap and, in expert mode, the goal cell; or why the configuration cannot be run.
@@ -267,7 +278,7 @@ pub fn generate_with_progress(config: &GenerateConfig, mut progress: impl FnMut(
             }
         }
         data.actions.extend_from_slice(&[a[0] as f32, a[1] as f32]);
-        agent.step(layout, a);
+        agent.step_with(layout, a, &config.physics);
         steps += 1;
 
         if dist2(agent.pos, goal) <= reached_r2 {

@@ -39,6 +39,22 @@
 //! 76 of 300, `medium` 151 of 600, `large` 248 of 800); one substep per step would need all
 //! 150 steps of `open`.
 //!
+//! **Matched physics** ([`Physics::MUJOCO`], `relreward maze generate --physics mujoco`).
+//! gymnasium-robotics' PointMaze (the MuJoCo model D4RL's maze2d uses: `point.xml`, timestep
+//! 0.01, frame skip 1, a sphere of radius 0.1 and density 1000, so mass 4.19, gear 100, joint
+//! damping 1, MuJoCo's Euler integrator, velocities clipped to [-5, 5] before each step) is,
+//! in free space, exactly: `v = clip(v, -5, 5)`, `v = (v + DT * G * a) / (1 + DT * D)` (MuJoCo's
+//! Euler integrates joint damping implicitly), `p += DT * v`, with `G = 100 / 4.19 = 23.87`
+//! and `D = 1 / 4.19 = 0.2387`, one step per row. [`Physics::MUJOCO`] is that, with the wall
+//! collisions below (MuJoCo's contacts are soft: the point sinks up to about 0.03 into a wall
+//! and springs back, where ours stops at the face). The test `tests/maze_vs_mujoco.rs` drives
+//! both with the same actions against a recording of MuJoCo (`tests/data/pointmaze_mujoco.npz`):
+//! free space within 1e-5 per row, a wall contact within 0.035. The default stays
+//! [`Physics::RELREWARD`] (two substeps, explicit damping): the demo's sizes and its measured
+//! results (docs/results.md) were made on it and each layout's cap assumes its speed (one
+//! substep per row would need all 150 steps of `open` for its longest path); it moves about
+//! 2.1 times as far per row as MuJoCo's point (0.068 vs 0.031 cells on umaze base data).
+//!
 //! **Collisions** (every substep). The agent is a disc of radius [`RADIUS`] = 0.1, collided as
 //! its bounding square (which contains the disc, so the disc never touches a wall either). The
 //! position moves along x first: if the square would overlap a wall cell, x is clamped so the
@@ -108,7 +124,7 @@ use std::fmt;
 pub use controller::{Controller, Planner};
 pub use generate::{GenerateConfig, MazeData, MazeError, Mode, generate};
 pub use rng::Rng;
-pub use sim::PointMass;
+pub use sim::{Physics, PointMass};
 
 /// Seconds of simulated time per substep (D4RL's MuJoCo timestep).
 pub const DT: f64 = 0.01;

@@ -3,6 +3,53 @@
 
 use super::{CONTACT_GAP, DAMPING, DT, FORCE_GAIN, FRAME_SKIP, Layout, RADIUS};
 
+/// The dynamics of a step (module docs, "Dynamics" and "Matched physics").
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Physics {
+    /// Substeps of [`DT`] per step (per dataset row), the action held throughout.
+    pub frame_skip: u32,
+    /// Acceleration per unit of action.
+    pub force_gain: f64,
+    /// Linear velocity damping, per second.
+    pub damping: f64,
+    /// Damping integrated implicitly (`v = (v + DT * gain * a) / (1 + DT * damping)`, MuJoCo's
+    /// Euler) rather than explicitly (`v += DT * (gain * a - damping * v)`).
+    pub implicit_damping: bool,
+    /// Each velocity component is clipped to `[-max_speed, max_speed]` before each step
+    /// (infinite: no clip).
+    pub max_speed: f64,
+}
+
+impl Physics {
+    /// relreward's generator, the default: [`FRAME_SKIP`] substeps, [`FORCE_GAIN`], [`DAMPING`].
+    pub const RELREWARD: Physics = Physics {
+        frame_skip: FRAME_SKIP,
+        force_gain: FORCE_GAIN,
+        damping: DAMPING,
+        implicit_damping: false,
+        max_speed: f64::INFINITY,
+    };
+    /// gymnasium-robotics' / D4RL's MuJoCo point: one step per row, gear 100 over the mass of a
+    /// sphere of radius 0.1 and density 1000, joint damping 1 over the same mass, implicit
+    /// damping, velocities clipped to 5.
+    pub const MUJOCO: Physics = Physics {
+        frame_skip: 1,
+        force_gain: 100.0 / MUJOCO_MASS,
+        damping: 1.0 / MUJOCO_MASS,
+        implicit_damping: true,
+        max_speed: 5.0,
+    };
+}
+
+impl Default for Physics {
+    fn default() -> Self {
+        Physics::RELREWARD
+    }
+}
+
+/// Mass of MuJoCo's point: a sphere of radius 0.1 at density 1000 (`4/3 pi r^3 rho`).
+const MUJOCO_MASS: f64 = 4.0 / 3.0 * std::f64::consts::PI * 1e-3 * 1000.0;
+
 /// Position `[x, y]` and velocity `[vx, vy]` of the agent.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct PointMass {
@@ -24,10 +71,19 @@ impl PointMass {
     /// Returns whether a wall stopped the agent.
     #[inline]
     pub fn step(&mut self, layout: &Layout, action: [f64; 2]) -> bool {
+        self.step_with(layout, action, &Physics::RELREWARD)
+    }
+
+    /// One step under `physics` (its velocity clip, then its substeps).
+    #[inline]
+    pub fn step_with(&mut self, layout: &Layout, action: [f64; 2], physics: &Physics) -> bool {
         let action = [action[0].clamp(-1.0, 1.0), action[1].clamp(-1.0, 1.0)];
+        for v in &mut self.vel {
+            *v = v.clamp(-physics.max_speed, physics.max_speed);
+        }
         let mut hit = false;
-        for _ in 0..FRAME_SKIP {
-            hit |= self.substep(layout, action);
+        for _ in 0..physics.frame_skip {
+            hit |= self.substep(layout, action, physics);
         }
         hit
     }
@@ -35,9 +91,13 @@ impl PointMass {
     /// One substep of [`DT`]: semi-implicit Euler, then the move along x and along y, each
     /// stopped at a wall face with its velocity component zeroed.
     #[inline]
-    fn substep(&mut self, layout: &Layout, action: [f64; 2]) -> bool {
+    fn substep(&mut self, layout: &Layout, action: [f64; 2], physics: &Physics) -> bool {
         for (v, a) in self.vel.iter_mut().zip(action) {
-            *v += DT * (FORCE_GAIN * a - DAMPING * *v);
+            *v = if physics.implicit_damping {
+                (*v + DT * physics.force_gain * a) / (1.0 + DT * physics.damping)
+            } else {
+                *v + DT * (physics.force_gain * a - physics.damping * *v)
+            };
         }
         let hit_x = move_axis(layout, &mut self.pos, &mut self.vel, 0);
         let hit_y = move_axis(layout, &mut self.pos, &mut self.vel, 1);
