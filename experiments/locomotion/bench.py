@@ -4,7 +4,8 @@ against the same loop with the reward computed in this process by PyTorch.
 Module map: `torch_reward` (the stored reward rebuilt in PyTorch from a relreward data directory:
 its record in metadata.sqlite3 read-only, its safetensors weights, the architecture of
 tests/python/reward_nets_reference.py), `main` (checks that both gradient sources agree on
-random plans, then runs the reward-steered arm with each on the same seeds and prints JSON).
+random plans, then runs the reward-steered arm with each on the same seeds, one episode at a
+time and all in lockstep (`--batch-episodes`), and prints JSON).
 
 Run after steer.py, on its work directory (a server is started on the same data directory):
 
@@ -55,6 +56,8 @@ def main() -> None:
     p.add_argument("--episodes", type=int, default=3)
     p.add_argument("--max-steps", type=int, default=1000)
     p.add_argument("--seed-base", type=int, default=30_000)
+    p.add_argument("--batch-episodes", default="1,0",
+                   help="lockstep settings to time (steer.py's --batch-episodes; 0: all episodes at once)")
     a = p.parse_args()
     torch.set_num_threads(1)
     res = json.loads((a.work / f"{a.env}-results.json").read_text())
@@ -82,17 +85,19 @@ def main() -> None:
         g_srv = client.gradient(names["reward"], x.astype(np.float32), 5, units="normalized").gradient
         g_pt = torch_source(None)[0](x, 5)
         agree = float(np.abs(g_srv - g_pt).max() / (np.abs(g_pt).max() + 1e-12))
-        cfg = Config(env=a.env, data=Path("."), planners=a.planners, work=a.work, max_steps=a.max_steps,
-                     log=lambda s: print(s, flush=True))
         seeds = range(a.seed_base, a.seed_base + a.episodes)
         out = dict(env=a.env, omega=omega, t_stopgrad=ts, gradient_max_rel_diff=agree)
-        for label, src in (("service", None), ("pytorch", torch_source)):
-            eps = run_arm("reward", "external", seeds, planner, client, names, cfg, omega, ts, grad_source=src)
-            steps = sum(e["length"] for e in eps)
-            out[label] = dict(ms_per_step=1e3 * sum(e["seconds"] for e in eps) / steps,
-                              wait_ms_per_step=1e3 * sum(e["wait_seconds"] for e in eps) / steps,
-                              wait_share=sum(e["wait_seconds"] for e in eps) / sum(e["seconds"] for e in eps),
-                              steps=steps, mean_return=float(np.mean([e["ret"] for e in eps])))
+        for k in (int(v) for v in a.batch_episodes.split(",")):
+            cfg = Config(env=a.env, data=Path("."), planners=a.planners, work=a.work, max_steps=a.max_steps,
+                         batch_episodes=k, log=lambda s: print(s, flush=True))
+            for label, src in (("service", None), ("pytorch", torch_source)):
+                eps = run_arm("reward", "external", seeds, planner, client, names, cfg, omega, ts, grad_source=src)
+                steps = sum(e["length"] for e in eps)
+                out[f"{label} batch_episodes={k}"] = dict(
+                    ms_per_step=1e3 * sum(e["seconds"] for e in eps) / steps,
+                    wait_ms_per_step=1e3 * sum(e["wait_seconds"] for e in eps) / steps,
+                    wait_share=sum(e["wait_seconds"] for e in eps) / sum(e["seconds"] for e in eps),
+                    steps=steps, returns=[round(e["ret"], 3) for e in eps])
         print(json.dumps(out, indent=1))
     finally:
         server.stop()

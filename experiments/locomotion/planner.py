@@ -6,8 +6,10 @@ the same numbers the server uses because the manifest carries the betas explicit
 `Planner` (normaliser + schedule + denoiser: `windows`, `train`, `export` to TorchScript and a
 relreward manifest, `load`), `sample` (the external planner's DDPM loop: inpaint the current
 state, optional guidance `x += omega * grad rho` from any `grad_fn` (a relreward GradientStream,
-or PyTorch in process), x0 prediction, posterior step), `act` (one env step's plan and the
-chosen first action), `run_episode` (receding horizon: plan, act, replan).
+or PyTorch in process), x0 prediction, posterior step), `act` / `act_many` (one env step's plans
+and the chosen first action, for one episode or several in lockstep), `run_episode` /
+`run_episodes` (receding horizon: plan, act, replan; one episode, or several seeds in lockstep
+so that they share each denoising step's gradient round trip).
 
 Why the planner is trained here and uploaded as TorchScript (not by the server's TrainDiffusion):
 the external planner must run the base model's denoiser itself at every denoising step, and
@@ -187,16 +189,30 @@ def _denoise(p: Planner, x: np.ndarray, t: int) -> np.ndarray:
     return p.net(torch.from_numpy(x.astype(np.float32)), tt).numpy().astype(np.float64)
 
 
-def sample(p: Planner, state_norm: np.ndarray, n_plans: int, seed: int, grad_fn=None, omega: float = 0.0,
+def sample(p: Planner, state_norm: np.ndarray, n_plans: int, seed, grad_fn=None, omega: float = 0.0,
            t_stopgrad: int = 0, n_guide_steps: int = 1) -> np.ndarray:
-    """DDPM sampling of n_plans windows per state (state_norm [S, O] normalised; returns
+    """DDPM sampling of n_plans plans per row of state_norm ([S, O] normalised; returns
     [S * n_plans, H, D] normalised), row 0's observation inpainted after every step and guide
     step. grad_fn(x, t) -> grad_x rho in normalised units (Diffuser's n_step_guided_p_sample,
-    scale_grad_by_std off as in the paper's locomotion runs)."""
+    scale_grad_by_std off as in the paper's locomotion runs).
+
+    seed: one int (one generator for the whole batch), or one per row of state_norm (episodes
+    planned in lockstep): then row i's plans draw their noise from generator seed[i] alone, so
+    they are the plans that row would get sampled by itself with that seed."""
     A, s = p.act_dim, p.sched
-    rng = np.random.default_rng(seed)
     cond = np.repeat(state_norm, n_plans, axis=0)
-    x = rng.standard_normal((len(cond), p.horizon, A + p.obs_dim))
+    shape = (p.horizon, A + p.obs_dim)
+    if np.ndim(seed) == 0:
+        rngs, per = [np.random.default_rng(seed)], len(cond)
+    else:
+        if len(seed) != len(state_norm):
+            raise ValueError(f"seed: {len(seed)} seeds for {len(state_norm)} states")
+        rngs, per = [np.random.default_rng(int(v)) for v in seed], n_plans
+
+    def noise() -> np.ndarray:
+        return np.concatenate([r.standard_normal((per, *shape)) for r in rngs])
+
+    x = noise()
     x[:, 0, A:] = cond
     for t in reversed(range(s.T)):
         if grad_fn is not None and omega != 0.0 and t >= t_stopgrad:
@@ -206,23 +222,36 @@ def sample(p: Planner, state_norm: np.ndarray, n_plans: int, seed: int, grad_fn=
         x0 = np.clip(_denoise(p, x, t), -1, 1)
         x = s.coef1[t] * x0 + s.coef2[t] * x
         if t > 0:
-            x = x + np.exp(0.5 * s.log_var[t]) * rng.standard_normal(x.shape)
+            x = x + np.exp(0.5 * s.log_var[t]) * noise()
         x[:, 0, A:] = cond
     return x
 
 
-def act(p: Planner, obs: np.ndarray, n_plans: int, seed: int, grad_fn=None, omega: float = 0.0,
-        t_stopgrad: int = 0, select_fn=None) -> np.ndarray:
-    """One receding-horizon decision: plans from the current observation, the plan chosen by
-    select_fn(plans) -> scores (argmax) or the first plan, its first action (raw units)."""
+def act_many(p: Planner, obs: np.ndarray, n_plans: int, seeds, grad_fn=None, omega: float = 0.0,
+             t_stopgrad: int = 0, select_fn=None) -> np.ndarray:
+    """Receding-horizon decisions for several episodes at once (obs [S, O], one planner seed
+    each): n_plans plans per episode sampled as one batch (one gradient request per denoising
+    step for all of them), in each episode the plan chosen by select_fn(plans) -> scores
+    (argmax within the episode's plans) or its first plan; the chosen first actions [S, A] (raw
+    units)."""
     lo, hi = p.lo[p.act_dim:], p.hi[p.act_dim:]
     # Clipped to the data's limits: a falling robot leaves them, and an out-of-range inpainted
     # state only feeds the denoiser inputs it never saw. (The server-side mode does not clip;
     # both modes gave the same returns in docs/results.md.)
-    state = np.clip(2 * (obs - lo) / (hi - lo) - 1, -1, 1)[None, :]
-    plans = sample(p, state, n_plans, seed, grad_fn, omega, t_stopgrad)
-    k = int(np.argmax(select_fn(plans))) if select_fn is not None else 0
-    return np.clip(p.unnormalize(plans[k, 0])[: p.act_dim], -1, 1)
+    state = np.clip(2 * (np.asarray(obs) - lo) / (hi - lo) - 1, -1, 1)
+    plans = sample(p, state, n_plans, list(seeds), grad_fn, omega, t_stopgrad)
+    plans = plans.reshape(len(state), n_plans, *plans.shape[1:])
+    if select_fn is not None:
+        k = np.argmax(np.asarray(select_fn(plans.reshape(-1, *plans.shape[2:]))).reshape(len(state), n_plans), axis=1)
+    else:
+        k = np.zeros(len(state), dtype=int)
+    return np.clip(p.unnormalize(plans[np.arange(len(state)), k, 0])[:, : p.act_dim], -1, 1)
+
+
+def act(p: Planner, obs: np.ndarray, n_plans: int, seed: int, grad_fn=None, omega: float = 0.0,
+        t_stopgrad: int = 0, select_fn=None) -> np.ndarray:
+    """One episode's decision: `act_many` for a single observation."""
+    return act_many(p, obs[None, :], n_plans, [seed], grad_fn, omega, t_stopgrad, select_fn)[0]
 
 
 def run_episode(env, decide, seed: int, max_steps: int) -> dict:
@@ -235,6 +264,35 @@ def run_episode(env, decide, seed: int, max_steps: int) -> dict:
         if term or trunc:
             break
     return dict(seed=seed, ret=float(total), length=n, seconds=time.time() - t0)
+
+
+def run_episodes(make_env, decide_many, seeds, max_steps: int) -> list[dict]:
+    """Episodes of several env seeds in lockstep: at every step the live episodes' actions come
+    from one decide_many(obs [S, O], seeds [S], step) -> [S, A] call (one batch of plans, so one
+    gradient round trip per denoising step serves all of them), each episode with its own env.
+    Each step's wall time is shared equally among the episodes it served, so the episodes'
+    seconds add up to the arm's wall time."""
+    envs = [make_env() for _ in seeds]
+    obs = [env.reset(seed=int(s))[0] for env, s in zip(envs, seeds)]
+    eps = [dict(seed=int(s), ret=0.0, length=0, seconds=0.0) for s in seeds]
+    live = list(range(len(seeds)))
+    for n in range(1, max_steps + 1):
+        if not live:
+            break
+        t0 = time.time()
+        acts = decide_many(np.stack([obs[i] for i in live]), [eps[i]["seed"] for i in live], n)
+        ended = set()
+        for a, i in zip(acts, live):
+            obs[i], r, term, trunc, _ = envs[i].step(a)
+            eps[i]["ret"] += float(r)
+            eps[i]["length"] = n
+            if term or trunc:
+                ended.add(i)
+        dt = (time.time() - t0) / len(live)
+        for i in live:
+            eps[i]["seconds"] += dt
+        live = [i for i in live if i not in ended]
+    return eps
 
 
 def evaluate(a) -> None:

@@ -17,7 +17,9 @@ Arms (n plans per env step, the first action of the chosen plan executed, then r
   select-reward   no guidance (omega 0), the plan with the highest rho
   select-disc     no guidance, the plan the discriminator scores highest
 Seeds: episode k of every arm uses env seed `seed_base + k` and the same planner noise, so
-arms are paired by seed.
+arms are paired by seed. An arm's episodes run in lockstep (`--batch-episodes`): one batch of
+plans and one gradient request per denoising step for all of them, which cuts the round trips
+that dominate a guided step (BENCHMARKS.md) without changing any plan's noise.
 """
 
 from __future__ import annotations
@@ -39,7 +41,7 @@ import torch
 
 import relreward
 from common import ENVS, PLANNERS, episodes, normalized_score, paired, welch
-from planner import Planner, act, run_episode
+from planner import Planner, act_many, run_episodes
 
 REPO = Path(__file__).resolve().parents[2]
 ARMS = ("unsteered", "reward", "discriminator", "select-reward", "select-disc")
@@ -105,6 +107,8 @@ class Config:
     disc_t_stopgrad: int | None = None
     arms: tuple = ARMS
     server_mode_episodes: int = 1
+    # Episodes of an arm planned together in lockstep (0: all of them; 1: one at a time).
+    batch_episodes: int = 0
     log: object = field(default=print)
 
 
@@ -172,21 +176,26 @@ class Timer:
 
 
 def decider(arm: str, mode: str, planner: Planner, client, names: dict, cfg: Config, omega: float,
-            t_stopgrad: int, timer: Timer, seed: int, grad_source=None):
-    """decide(obs, step) -> action for one arm and mode; grad_source(model) overrides the
-    external planner's gradient function (the in-process PyTorch reward of the benchmark)."""
+            t_stopgrad: int, timer: Timer, grad_source=None):
+    """decide(obs [S, O], seeds [S], step) -> actions [S, A] for one arm and mode, for the S
+    episodes planned together; grad_source(model) overrides the external planner's gradient
+    function (the in-process PyTorch reward of the benchmark)."""
     model = {"reward": names["reward"], "select-reward": names["reward"],
              "discriminator": names["discriminator"], "select-disc": names["discriminator"]}.get(arm)
     guided = arm in ("reward", "discriminator") and omega != 0.0
     if mode == "server":
-        def decide(obs, step):
-            t0 = time.perf_counter()
-            b = client.sample(names["medium-replay"], reward_model=model or "", omega=omega if guided else 0.0,
-                              n=cfg.n_plans, seed=seed * 100_003 + step, n_guide_steps=1,
-                              t_stopgrad=t_stopgrad, conditions={0: obs.astype(np.float32)})
-            timer.wait += time.perf_counter() - t0
-            k = int(np.argmax(b.rewards)) if model else 0
-            return np.clip(b.x[k, 0, : planner.act_dim], -1, 1)
+        # One Sample RPC per episode and step: a request carries one inpainting condition.
+        def decide(obs, seeds, step):
+            out = []
+            for o, seed in zip(obs, seeds):
+                t0 = time.perf_counter()
+                b = client.sample(names["medium-replay"], reward_model=model or "", omega=omega if guided else 0.0,
+                                  n=cfg.n_plans, seed=seed * 100_003 + step, n_guide_steps=1,
+                                  t_stopgrad=t_stopgrad, conditions={0: o.astype(np.float32)})
+                timer.wait += time.perf_counter() - t0
+                k = int(np.argmax(b.rewards)) if model else 0
+                out.append(np.clip(b.x[k, 0, : planner.act_dim], -1, 1))
+            return np.stack(out)
         return decide, None
     stream = None
     grad_fn = select_fn = None
@@ -204,28 +213,38 @@ def decider(arm: str, mode: str, planner: Planner, client, names: dict, cfg: Con
         select_fn = timer.wrap(score_fn)
         grad_fn = timer.wrap(grad_fn) if guided else None
 
-    def decide(obs, step):
-        return act(planner, obs, cfg.n_plans, seed * 100_003 + step, grad_fn, omega if guided else 0.0,
-                   t_stopgrad, select_fn)
+    def decide(obs, seeds, step):
+        return act_many(planner, obs, cfg.n_plans, [s * 100_003 + step for s in seeds], grad_fn,
+                        omega if guided else 0.0, t_stopgrad, select_fn)
     return decide, stream
 
 
 def run_arm(arm: str, mode: str, seeds, planner, client, names, cfg, omega, t_stopgrad, grad_source=None) -> list:
-    env = gym.make(ENVS[cfg.env]["id"], max_episode_steps=cfg.max_steps)
+    """The arm's episodes, `cfg.batch_episodes` seeds at a time in lockstep (0: all at once).
+    Planner noise depends only on (env seed, step), so the batching changes no plan; it only
+    shares each denoising step's gradient round trip among the episodes."""
+    seeds = list(seeds)
+    k = cfg.batch_episodes or len(seeds)
     out = []
-    for s in seeds:
+    for g in range(0, len(seeds), k):
+        group = seeds[g:g + k]
         timer = Timer()
-        decide, stream = decider(arm, mode, planner, client, names, cfg, omega, t_stopgrad, timer, s, grad_source)
+        decide, stream = decider(arm, mode, planner, client, names, cfg, omega, t_stopgrad, timer, grad_source)
         try:
-            ep = run_episode(env, decide, s, cfg.max_steps)
+            eps = run_episodes(lambda: gym.make(ENVS[cfg.env]["id"], max_episode_steps=cfg.max_steps), decide,
+                               group, cfg.max_steps)
         finally:
             if stream is not None:
                 stream.close()
-        ep.update(arm=arm, mode=mode, omega=omega, t_stopgrad=t_stopgrad, wait_seconds=timer.wait,
-                  normalized=float(normalized_score(cfg.env, ep["ret"])))
-        cfg.log(f"  {arm:14s} {mode:8s} seed {s}: return {ep['ret']:.1f} (norm {ep['normalized']:.2f}) "
-                f"{ep['length']} steps {1e3 * ep['seconds'] / ep['length']:.1f} ms/step")
-        out.append(ep)
+        total = sum(e["seconds"] for e in eps)
+        for ep in eps:
+            # The group's waiting shared as its wall time is (run_episodes' equal split per step).
+            ep.update(arm=arm, mode=mode, omega=omega, t_stopgrad=t_stopgrad,
+                      wait_seconds=timer.wait * ep["seconds"] / total if total > 0 else 0.0,
+                      normalized=float(normalized_score(cfg.env, ep["ret"])))
+            cfg.log(f"  {arm:14s} {mode:8s} seed {ep['seed']}: return {ep['ret']:.1f} (norm {ep['normalized']:.2f}) "
+                    f"{ep['length']} steps {1e3 * ep['seconds'] / ep['length']:.1f} ms/step")
+        out += eps
     return out
 
 
@@ -396,6 +415,9 @@ def main() -> None:
     p.add_argument("--disc-t-stopgrad", type=int)
     p.add_argument("--server-mode-episodes", type=int, default=1,
                    help="episodes of the unsteered and reward arms through the Sample RPC")
+    p.add_argument("--batch-episodes", type=int, default=0,
+                   help="episodes of an arm planned in lockstep, sharing each gradient round trip "
+                        "(0: all; 1: one at a time, as before; results are the same)")
     p.add_argument("--full", action="store_true",
                    help="the paper's sizes: ValueFunction widths (64, 64, 128, 128), 50k reward and "
                         "discriminator steps, 512 episodes per arm")
@@ -405,7 +427,7 @@ def main() -> None:
                  episodes=a.episodes, seed_base=a.seed_base, sweep_episodes=a.sweep_episodes, max_steps=a.max_steps,
                  n_plans=a.n_plans, reward_steps=a.reward_steps, disc_steps=a.disc_steps, omega=a.omega,
                  t_stopgrad=a.t_stopgrad, disc_omega=a.disc_omega, disc_t_stopgrad=a.disc_t_stopgrad,
-                 server_mode_episodes=a.server_mode_episodes, log=lambda s: print(s, flush=True),
+                 server_mode_episodes=a.server_mode_episodes, batch_episodes=a.batch_episodes, log=lambda s: print(s, flush=True),
                  omegas=tuple(float(v) for v in a.omegas.split(",")),
                  t_stopgrads=tuple(int(v) for v in a.t_stopgrads.split(",")))
     if a.full:
