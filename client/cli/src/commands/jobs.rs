@@ -16,7 +16,7 @@ use relreward_client::watch::WatchNotice;
 use relreward_client::{Client, pb};
 use serde_json::{Map, Value, json};
 
-use super::manifest::{parametrization_name, schedule_json, schedule_text};
+use super::manifest::{architecture_json, manifest_architecture, parametrization_name, schedule_json, schedule_text};
 use super::output::{
     bars_visible, eprint_line, fmt_short, human_duration, key_values, or_dash, rfc3339, rfc3339_millis, state_name,
     table, time_or_dash, write_stdout,
@@ -345,26 +345,13 @@ pub fn spec_json(s: &pb::JobSpec) -> Value {
 }
 
 fn diffusion_json(d: &pb::TrainDiffusion) -> Value {
-    use pb::train_diffusion::Architecture;
     json!({
         "dataset": d.dataset,
         "parametrization": parametrization_name(d.parametrization()),
         "schedule": schedule_json(d.schedule.as_ref()),
         "n_timesteps": d.n_timesteps,
         "horizon": d.horizon,
-        "architecture": match &d.architecture {
-            Some(Architecture::TemporalUnet(u)) => json!({ "kind": "temporal_unet", "dim": u.dim, "dim_mults": u.dim_mults }),
-            Some(Architecture::Mlp(m)) => json!({ "kind": "mlp", "hidden": m.hidden }),
-            Some(Architecture::Unet2d(u)) => json!({
-                "kind": "unet2d",
-                "block_out_channels": u.block_out_channels,
-                "layers_per_block": u.layers_per_block,
-                "attention": u.attention,
-                "norm_num_groups": u.norm_num_groups,
-                "attention_head_dim": u.attention_head_dim,
-            }),
-            None => Value::Null,
-        },
+        "architecture": d.architecture.as_ref().map_or(Value::Null, |a| architecture_json(&manifest_architecture(a))),
         "action_weight": d.action_weight,
         "clip_denoised": d.clip_denoised,
         "pooled_normalizer": d.pooled_normalizer,

@@ -151,6 +151,31 @@ impl Architecture {
     }
 }
 
+impl Architecture {
+    /// The same three messages in TrainDiffusion's oneof.
+    pub fn to_train_proto(&self) -> pb::train_diffusion::Architecture {
+        use pb::diffusion_manifest::Architecture as M;
+        use pb::train_diffusion::Architecture as T;
+        match self.to_proto() {
+            M::TemporalUnet(u) => T::TemporalUnet(u),
+            M::Mlp(m) => T::Mlp(m),
+            M::Unet2d(u) => T::Unet2d(u),
+        }
+    }
+}
+
+/// A TrainDiffusion architecture as a manifest's (the same three messages), e.g. to print it
+/// with [`architecture_json`].
+pub fn manifest_architecture(a: &pb::train_diffusion::Architecture) -> pb::diffusion_manifest::Architecture {
+    use pb::diffusion_manifest::Architecture as M;
+    use pb::train_diffusion::Architecture as T;
+    match a.clone() {
+        T::TemporalUnet(u) => M::TemporalUnet(u),
+        T::Mlp(m) => M::Mlp(m),
+        T::Unet2d(u) => M::Unet2d(u),
+    }
+}
+
 /// The manifest file, field for field the server's `DiffusionManifest`.
 #[derive(Debug, Clone, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -339,7 +364,8 @@ pub fn manifest_json(m: &pb::DiffusionManifest) -> Value {
     json
 }
 
-fn architecture_json(a: &pb::diffusion_manifest::Architecture) -> Value {
+/// `{"kind": "temporal_unet" | "mlp" | "unet2d", ..fields}`, the file's form.
+pub fn architecture_json(a: &pb::diffusion_manifest::Architecture) -> Value {
     use pb::diffusion_manifest::Architecture as Wire;
     match a {
         Wire::TemporalUnet(u) => json!({ "kind": "temporal_unet", "dim": u.dim, "dim_mults": u.dim_mults }),

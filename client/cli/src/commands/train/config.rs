@@ -6,6 +6,8 @@ use clap::ValueEnum;
 use relreward_client::pb;
 use serde::Deserialize;
 
+// The denoiser of a diffusion job: the same built-in architectures a native manifest names.
+pub use crate::commands::manifest::Architecture;
 use crate::commands::manifest::{Parametrization, Schedule};
 
 #[derive(Debug, Clone, Default, PartialEq, Deserialize)]
@@ -49,30 +51,6 @@ pub struct DiffusionConfig {
     pub normalizer_datasets: Option<Vec<String>>,
     /// Sample datasets: one mean and std over every element (the proto's `pooled_normalizer`).
     pub pooled_normalizer: Option<bool>,
-}
-
-/// The denoiser of a diffusion job.
-#[derive(Debug, Clone, PartialEq, Eq, Deserialize)]
-#[serde(tag = "kind", rename_all = "snake_case", deny_unknown_fields)]
-pub enum Architecture {
-    TemporalUnet {
-        dim: Option<u32>,
-        #[serde(default)]
-        dim_mults: Vec<u32>,
-    },
-    Mlp {
-        #[serde(default)]
-        hidden: Vec<u32>,
-    },
-    /// diffusers' UNet2DModel over images [C, H, W]; unset fields take the server's defaults.
-    Unet2d {
-        #[serde(default)]
-        block_out_channels: Vec<u32>,
-        layers_per_block: Option<u32>,
-        attention: Option<bool>,
-        norm_num_groups: Option<u32>,
-        attention_head_dim: Option<u32>,
-    },
 }
 
 #[derive(Debug, Clone, Default, PartialEq, Deserialize)]

@@ -44,25 +44,7 @@ pub fn diffusion_spec(config: TrainConfig, args: &TrainDiffusionArgs) -> Result<
     let dataset =
         required(&args.dataset, d.dataset, "no dataset to train on", "--dataset NAME", "dataset", "diffusion")?;
     let schedule = d.schedule.map(|s| s.to_proto("diffusion.schedule")).transpose().context("--config")?;
-    let architecture = d.architecture.map(|a| match a {
-        Architecture::TemporalUnet { dim, dim_mults } => {
-            pb::train_diffusion::Architecture::TemporalUnet(pb::TemporalUnet { dim, dim_mults })
-        }
-        Architecture::Mlp { hidden } => pb::train_diffusion::Architecture::Mlp(pb::Mlp { hidden }),
-        Architecture::Unet2d {
-            block_out_channels,
-            layers_per_block,
-            attention,
-            norm_num_groups,
-            attention_head_dim,
-        } => pb::train_diffusion::Architecture::Unet2d(pb::Unet2d {
-            block_out_channels,
-            layers_per_block,
-            attention,
-            norm_num_groups,
-            attention_head_dim,
-        }),
-    });
+    let architecture = d.architecture.as_ref().map(Architecture::to_train_proto);
     Ok(common.spec(Kind::Diffusion(pb::TrainDiffusion {
         dataset,
         parametrization: d.parametrization.map_or(pb::Parametrization::Unspecified, Parametrization::to_proto) as i32,
