@@ -8,19 +8,15 @@
 //!
 //! Needs the project's venv (`make setup`), which the libtorch build needs anyway.
 
-use std::path::PathBuf;
-use std::process::Command;
-
 use relreward_server::engine::denoiser::Denoiser;
 use relreward_server::engine::manifest::{Architecture, Space};
 use relreward_server::engine::nets::NativeDenoiser;
 use tch::{Device, Kind, Tensor};
 
-const TOLERANCE: f64 = 1e-4;
+mod common;
+use common::run_reference;
 
-fn repo_root() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("..")
-}
+const TOLERANCE: f64 = 1e-4;
 
 /// Moves every weight off its initial value so that GroupNorm's affine parameters (ones and
 /// zeros at initialisation) and every bias take part in the comparison.
@@ -90,19 +86,7 @@ fn nets_match_pytorch_in_both_directions() {
             "torch_weights": dir.path().join(format!("torch-weights-{i}.safetensors")),
         }));
     }
-    let jobs_path = dir.path().join("cases.json");
-    std::fs::write(&jobs_path, serde_json::to_vec(&jobs).expect("json")).expect("write cases");
-
-    let python = repo_root().join(".venv/bin/python");
-    let script = repo_root().join("tests/python/nets_reference.py");
-    let out = Command::new(&python)
-        .arg(&script)
-        .arg(&jobs_path)
-        .output()
-        .unwrap_or_else(|e| panic!("cannot run {} (run `make setup`): {e}", python.display()));
-    let log = format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
-    assert!(out.status.success(), "nets_reference.py failed:\n{log}");
-    eprintln!("{log}");
+    run_reference("tests/python/nets_reference.py", &jobs, dir.path());
 
     let max_diff = |a: &Tensor, b: &Tensor| {
         assert_eq!(a.size(), b.size());

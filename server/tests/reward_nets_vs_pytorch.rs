@@ -11,17 +11,14 @@
 //! Needs the project's venv (`make setup`), which the libtorch build needs anyway.
 
 use std::collections::BTreeMap;
-use std::path::PathBuf;
-use std::process::Command;
 
 use relreward_server::engine::nets::{RewardArchitecture, RewardNet};
 use tch::{Device, Kind, Tensor};
 
-const TOLERANCE: f64 = 1e-4;
+mod common;
+use common::run_reference;
 
-fn repo_root() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("..")
-}
+const TOLERANCE: f64 = 1e-4;
 
 /// Moves every weight off its initial value so that GroupNorm's affine parameters and every
 /// bias take part in the comparison, at scales that keep activations of order one (noise of
@@ -128,19 +125,7 @@ fn reward_nets_match_pytorch_including_the_double_backward() {
             "torch_weights": dir.path().join(format!("torch-weights-{i}.safetensors")),
         }));
     }
-    let jobs_path = dir.path().join("cases.json");
-    std::fs::write(&jobs_path, serde_json::to_vec(&jobs).expect("json")).expect("write cases");
-
-    let python = repo_root().join(".venv/bin/python");
-    let script = repo_root().join("tests/python/reward_nets_reference.py");
-    let out = Command::new(&python)
-        .arg(&script)
-        .arg(&jobs_path)
-        .output()
-        .unwrap_or_else(|e| panic!("cannot run {} (run `make setup`): {e}", python.display()));
-    let log = format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
-    assert!(out.status.success(), "reward_nets_reference.py failed:\n{log}");
-    eprintln!("{log}");
+    run_reference("tests/python/reward_nets_reference.py", &jobs, dir.path());
 
     for (i, (case, (x, t, rho, per_window, per_step, grad_x, param_grads, loss))) in
         cases.iter().zip(&expected).enumerate()

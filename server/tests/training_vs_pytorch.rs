@@ -26,7 +26,6 @@
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
-use std::process::Command;
 
 use relreward_server::engine::diffusion::DiffusionModel;
 use relreward_server::engine::manifest::{Architecture, DiffusionManifest, Parametrization, ScheduleSpec, Space};
@@ -40,39 +39,16 @@ use relreward_server::engine::reward_model::RewardModel;
 use relreward_server::engine::rng::Rng;
 use relreward_server::engine::sampling::{Condition, Guidance, GuidedSampler};
 use serde_json::json;
-use tch::nn::VarStore;
 use tch::{Device, Kind, Tensor};
+
+mod common;
+use common::{randomize, run_reference};
 
 const TOLERANCE: f64 = 1e-4;
 const LR: f64 = 1e-3;
 /// EMA settings that average from the first step (the defaults only copy before step 2000).
 const EMA: (f64, u64, u64) = (0.9, 1, 0);
 const STEPS: usize = 2;
-
-fn repo_root() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("..")
-}
-
-/// Draws every weight from the test's own seeded generator (libtorch's global one is shared by
-/// the tests running in parallel, so its draws would change from run to run): N(0, 0.5^2 /
-/// fan_in) for matrices and kernels, 1 + N(0, 0.2^2) for GroupNorm scales, N(0, 0.2^2) for
-/// biases, so that every parameter takes part and activations stay of order one.
-fn randomize(vs: &VarStore, rng: &mut Rng) {
-    let mut vars: Vec<(String, Tensor)> = vs.variables().into_iter().collect();
-    vars.sort_by(|a, b| a.0.cmp(&b.0));
-    tch::no_grad(|| {
-        for (name, mut var) in vars {
-            let size = var.size();
-            let noise = rng.randn(&size, Device::Cpu);
-            let value = match size.as_slice() {
-                [out, ..] if size.len() > 1 => noise * (0.5 / ((var.numel() as i64 / out).max(1) as f64).sqrt()),
-                _ if name.ends_with("weight") => noise * 0.2 + 1.0,
-                _ => noise * 0.2,
-            };
-            var.copy_(&value);
-        }
-    });
-}
 
 fn max_diff(a: &Tensor, b: &Tensor) -> f64 {
     assert_eq!(a.size(), b.size());
@@ -245,22 +221,6 @@ fn check_training(label: &str, ours: &Trained, theirs: &BTreeMap<String, Tensor>
     assert!(noisy * 20 <= total, "{label}: {noisy} of {total} weights have gradients that disagree beyond 1e-3");
 }
 
-fn run_python(cases: &[serde_json::Value], dir: &Path) {
-    let path = dir.join("cases.json");
-    std::fs::write(&path, serde_json::to_vec(cases).expect("json")).expect("write cases");
-    let python = repo_root().join(".venv/bin/python");
-    let script = repo_root().join("bench/reference/crosscheck.py");
-    let out = Command::new(&python)
-        .arg(&script)
-        .arg(&path)
-        .env("OMP_NUM_THREADS", "1")
-        .output()
-        .unwrap_or_else(|e| panic!("cannot run {} (run `make setup`): {e}", python.display()));
-    let log = format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
-    assert!(out.status.success(), "crosscheck.py failed:\n{log}");
-    eprintln!("{log}");
-}
-
 #[test]
 fn algorithm_1_steps_match_pytorch() {
     let dir = tempfile::tempdir().expect("tempdir");
@@ -325,7 +285,7 @@ fn algorithm_1_steps_match_pytorch() {
         }));
         ours.push(trained);
     }
-    run_python(&jobs, dir.path());
+    run_reference("bench/reference/crosscheck.py", &jobs, dir.path());
     for (i, (trained, job)) in ours.iter().zip(&jobs).enumerate() {
         let theirs = read(Path::new(job["output"].as_str().expect("path")));
         check_training(&format!("alg1 case {i} ({})", cases[i].reward), trained, &theirs);
@@ -364,7 +324,7 @@ fn ddpm_steps_match_pytorch() {
         }));
         ours.push(trained);
     }
-    run_python(&jobs, dir.path());
+    run_reference("bench/reference/crosscheck.py", &jobs, dir.path());
     for (i, (trained, job)) in ours.iter().zip(&jobs).enumerate() {
         let theirs = read(Path::new(job["output"].as_str().expect("path")));
         check_training(&format!("ddpm case {i}"), trained, &theirs);
@@ -444,7 +404,8 @@ fn guided_sampling_matches_pytorch_step_by_step() {
     )
     .expect("write inputs");
     let output = dir.path().join("sample-out.safetensors");
-    run_python(
+    run_reference(
+        "bench/reference/crosscheck.py",
         &[json!({
             "kind": "sample", "model": model_spec, "reward": reward_spec, "inputs": inputs,
             "conditions": [[0, start], [horizon - 1, goal]], "omega": omega, "n_guide_steps": n_guide_steps,

@@ -15,8 +15,6 @@
 //! output convolution are sums over the whole batch and image).
 
 use std::collections::BTreeMap;
-use std::path::PathBuf;
-use std::process::Command;
 
 use relreward_server::engine::diffusion::DiffusionModel;
 use relreward_server::engine::manifest::{Architecture, DiffusionManifest, Parametrization, ScheduleSpec, Space};
@@ -27,31 +25,11 @@ use relreward_server::engine::rng::Rng;
 use serde_json::json;
 use tch::{Device, Kind, Tensor};
 
+mod common;
+use common::{randomize, run_reference};
+
 const TOLERANCE: f64 = 1e-4;
 const T: usize = 50;
-
-fn repo_root() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("..")
-}
-
-/// Every weight from the test's own seeded stream: N(0, 0.5^2 / fan_in) for kernels and
-/// matrices, 1 + N(0, 0.2^2) for GroupNorm scales, N(0, 0.2^2) for biases.
-fn randomize(d: &NativeDenoiser, rng: &mut Rng) {
-    let mut vars: Vec<(String, Tensor)> = d.var_store().variables().into_iter().collect();
-    vars.sort_by(|a, b| a.0.cmp(&b.0));
-    tch::no_grad(|| {
-        for (name, mut var) in vars {
-            let size = var.size();
-            let noise = rng.randn(&size, Device::Cpu);
-            let value = match size.as_slice() {
-                [out, ..] if size.len() > 1 => noise * (0.5 / ((var.numel() as i64 / out).max(1) as f64).sqrt()),
-                _ if name.ends_with("weight") => noise * 0.2 + 1.0,
-                _ => noise * 0.2,
-            };
-            var.copy_(&value);
-        }
-    });
-}
 
 fn relative_diff(a: &Tensor, b: &Tensor) -> f64 {
     assert_eq!(a.size(), b.size());
@@ -101,7 +79,7 @@ fn unet2d_matches_diffusers_forward_and_training_step() {
     for (i, case) in cases.iter().enumerate() {
         let space = Space::Sample { shape: case.shape.clone() };
         let d = NativeDenoiser::new(&case.architecture, &space, Device::Cpu).expect("build");
-        randomize(&d, &mut rng);
+        randomize(d.var_store(), &mut rng);
         let weights = dir.path().join(format!("weights-{i}.safetensors"));
         d.save(&weights).expect("save weights");
         let params = named_parameters(d.var_store());
@@ -142,19 +120,14 @@ fn unet2d_matches_diffusers_forward_and_training_step() {
         let grads: BTreeMap<String, Tensor> = params.iter().map(|(n, p)| (n.clone(), p.grad().copy())).collect();
         rust.push((x, t, y, loss.double_value(&[]), grads, space));
 
+        // The architecture's own fields (diffusers' names) with the image's shape.
+        let mut config = serde_json::to_value(&case.architecture).expect("architecture json");
+        config["channels"] = json!(case.shape[0]);
+        config["height"] = json!(case.shape[1]);
+        config["width"] = json!(case.shape[2]);
         jobs.push(json!({
-            "config": {
-                "channels": case.shape[0], "height": case.shape[1], "width": case.shape[2],
-                "block_out_channels": match &case.architecture {
-                    Architecture::Unet2d { block_out_channels, .. } => block_out_channels.clone(),
-                    _ => unreachable!(),
-                },
-                "layers_per_block": match &case.architecture { Architecture::Unet2d { layers_per_block, .. } => *layers_per_block, _ => 0 },
-                "attention": matches!(&case.architecture, Architecture::Unet2d { attention: true, .. }),
-                "norm_num_groups": match &case.architecture { Architecture::Unet2d { norm_num_groups, .. } => *norm_num_groups, _ => 0 },
-                "attention_head_dim": 8,
-            },
-            "parametrization": match case.parametrization { Parametrization::Epsilon => "epsilon", Parametrization::X0 => "x0" },
+            "config": config,
+            "parametrization": case.parametrization,
             "n_timesteps": T,
             "weights": weights,
             "inputs": inputs,
@@ -162,19 +135,7 @@ fn unet2d_matches_diffusers_forward_and_training_step() {
             "torch_weights": dir.path().join(format!("torch-weights-{i}.safetensors")),
         }));
     }
-    let jobs_path = dir.path().join("cases.json");
-    std::fs::write(&jobs_path, serde_json::to_vec(&jobs).expect("json")).expect("write cases");
-
-    let python = repo_root().join(".venv/bin/python");
-    let out = Command::new(&python)
-        .arg(repo_root().join("tests/python/unet2d_reference.py"))
-        .arg(&jobs_path)
-        .current_dir(repo_root().join("tests/python"))
-        .output()
-        .unwrap_or_else(|e| panic!("cannot run {} (run `make setup`): {e}", python.display()));
-    let log = format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
-    assert!(out.status.success(), "unet2d_reference.py failed:\n{log}");
-    eprintln!("{log}");
+    run_reference("tests/python/unet2d_reference.py", &jobs, dir.path());
 
     for (i, (case, (x, t, y, loss, grads, space))) in cases.iter().zip(&rust).enumerate() {
         let outputs: BTreeMap<String, Tensor> =
