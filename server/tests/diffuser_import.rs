@@ -8,6 +8,8 @@
 //! The CLI binary is the one `make build` (`cargo build --release --workspace --bins`) leaves
 //! beside this test's directory, as the end-to-end crate finds its binaries.
 
+mod common;
+
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
@@ -17,11 +19,9 @@ use relreward_server::engine::manifest::{Architecture, Space};
 use relreward_server::engine::nets::native::NativeDenoiser;
 use tch::{Device, Tensor};
 
-const TOLERANCE: f64 = 1e-5;
+use common::repo_root;
 
-fn repo_root() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("..")
-}
+const TOLERANCE: f64 = 1e-5;
 
 /// target/<profile>/deps/<test> -> target/<profile>/relreward
 fn cli_binary() -> PathBuf {
@@ -32,13 +32,7 @@ fn cli_binary() -> PathBuf {
 }
 
 fn python(args: &[&str]) {
-    let python = repo_root().join(".venv/bin/python");
-    let out = Command::new(&python)
-        .args(args)
-        .current_dir(repo_root().join("tests/python"))
-        .output()
-        .unwrap_or_else(|e| panic!("cannot run {} (run `make setup`): {e}", python.display()));
-    assert!(out.status.success(), "{args:?} failed:\n{}", log(&out));
+    common::python(&repo_root().join("tests/python"), args);
 }
 
 fn log(out: &Output) -> String {

@@ -518,7 +518,7 @@ async fn native_weights_register_through_model_import() {
     assert!(err.message().starts_with("chunk:"), "{}", err.message());
     let err = raw_upload(
         &client,
-        upload_messages(header("n5", manifest, pb::ModelFormat::Native), &weights, None)
+        upload_messages(header("n5", manifest.clone(), pb::ModelFormat::Native), &weights, None)
             .into_iter()
             .map(|mut m| {
                 if let Some(Message::Header(h)) = &mut m.message {
@@ -531,6 +531,18 @@ async fn native_weights_register_through_model_import() {
     .await
     .expect_err("unknown format");
     assert!(err.message().starts_with("header.format: unknown value 7"), "{}", err.message());
+    // Weights of the right shapes with a NaN in them (the last float of the data section):
+    // refused by the validation forward, not served.
+    let mut poisoned = weights.clone();
+    let end = poisoned.len();
+    poisoned[end - 4..].copy_from_slice(&f32::NAN.to_le_bytes());
+    let err =
+        raw_upload(&client, upload_messages(header("n6", manifest.clone(), pb::ModelFormat::Native), &poisoned, None))
+            .await
+            .expect_err("NaN weights");
+    assert_eq!(err.code(), Code::InvalidArgument, "{}", err.message());
+    assert!(err.message().starts_with("chunk: the uploaded weights' forward"), "{}", err.message());
+    assert!(err.message().contains("NaN"), "{}", err.message());
     assert_eq!(names(&client).await, vec!["diffuser-native".to_owned()], "nothing else was stored");
     assert_eq!(server.staging_entries(), 0, "no staging left behind");
     // The CLI names a manifest architecture that disagrees with the flags, before any work.

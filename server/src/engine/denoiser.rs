@@ -3,9 +3,9 @@
 //! Implementations: TorchScript modules (`torchscript.rs`) and the native architectures
 //! (`nets/`). The DDPM math in `diffusion.rs` only ever sees this trait.
 
-use tch::Tensor;
+use tch::{Device, Kind, Tensor};
 
-use crate::error::Result;
+use crate::error::{Error, Result};
 
 pub trait Denoiser: Send {
     /// `x`: float32 `[B, *item_shape]` in normalized units; `t`: int64 `[B]` in `0..T`.
@@ -16,4 +16,39 @@ pub trait Denoiser: Send {
 
     /// Number of scalar parameters (for listings).
     fn parameter_count(&self) -> u64;
+}
+
+/// The inputs an upload's validation forward runs on: zeros `[2, *item_shape]` with
+/// `t = [0, T - 1]`, the two ends of the schedule, so that a network that breaks at either end
+/// (NaN weights, a time embedding that overflows) is refused at upload rather than served.
+pub struct ValidationProbe {
+    pub x: Tensor,
+    pub t: Tensor,
+    /// `x`'s shape, for messages.
+    pub shape: Vec<i64>,
+    /// `T - 1`, for messages.
+    pub last: i64,
+}
+
+impl ValidationProbe {
+    pub fn new(item_shape: &[i64], n_timesteps: usize, device: Device) -> Result<Self> {
+        let last = i64::try_from(n_timesteps.saturating_sub(1))
+            .map_err(|_| Error::invalid(format!("manifest.n_timesteps: {n_timesteps} is too large")))?;
+        let mut shape = vec![2i64];
+        shape.extend_from_slice(item_shape);
+        let x = Tensor::f_zeros(shape.as_slice(), (Kind::Float, device))?;
+        let t = Tensor::f_from_slice(&[0i64, last])?.f_to_device(device)?;
+        Ok(Self { x, t, shape, last })
+    }
+
+    /// Refuses an output with a NaN or an infinity, naming `what` ran on the probe.
+    pub fn check_finite(&self, out: &Tensor, what: &str) -> Result<()> {
+        if out.f_isfinite()?.f_all()?.f_int64_value(&[])? == 1 {
+            return Ok(());
+        }
+        Err(Error::invalid(format!(
+            "{what} on zeros {:?} with t = [0, {}] returned NaN or infinite values",
+            self.shape, self.last
+        )))
+    }
 }

@@ -31,7 +31,7 @@ use std::sync::{Arc, Mutex, MutexGuard, PoisonError};
 
 use tch::Device;
 
-use super::denoiser::Denoiser;
+use super::denoiser::{Denoiser, ValidationProbe};
 use super::diffusion::DiffusionModel;
 use super::manifest::DiffusionManifest;
 use super::nets::NativeDenoiser;
@@ -382,17 +382,9 @@ impl ModelRegistry {
                 }
                 other => other,
             })?;
-            let last = i64::try_from(manifest.n_timesteps.saturating_sub(1)).unwrap_or(i64::MAX);
-            let mut shape = vec![2i64];
-            shape.extend_from_slice(net.item_shape());
-            let x = tch::Tensor::f_zeros(shape.as_slice(), (tch::Kind::Float, device))?;
-            let t = tch::Tensor::f_from_slice(&[0i64, last])?.f_to_device(device)?;
-            let out = tch::no_grad(|| net.forward(&x, &t))?;
-            if out.f_isfinite()?.f_all()?.f_int64_value(&[])? != 1 {
-                return Err(Error::invalid(format!(
-                    "chunk: the uploaded weights give NaN or infinite outputs on zeros {shape:?} with t = [0, {last}]"
-                )));
-            }
+            let probe = ValidationProbe::new(net.item_shape(), manifest.n_timesteps, device)?;
+            let out = tch::no_grad(|| net.forward(&probe.x, &probe.t))?;
+            probe.check_finite(&out, "chunk: the uploaded weights' forward")?;
             Ok(net.parameter_count())
         })
         .await

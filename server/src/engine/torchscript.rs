@@ -14,15 +14,12 @@ use std::path::Path;
 
 use tch::{CModule, Device, Kind, TchError, Tensor};
 
-use super::denoiser::Denoiser;
+use super::denoiser::{Denoiser, ValidationProbe};
 use super::manifest::DiffusionManifest;
 use crate::error::{Error, Result};
 
 /// Longest module message passed on to the client.
 const MAX_MESSAGE_CHARS: usize = 600;
-
-/// Batch size of the validation forward pass (two items: t = 0 and t = T - 1).
-const VALIDATION_BATCH: i64 = 2;
 
 pub struct TorchScriptDenoiser {
     module: CModule,
@@ -80,20 +77,16 @@ impl TorchScriptDenoiser {
     }
 
     fn validate(&self, n_timesteps: usize, path: &Path) -> Result<()> {
-        let last = i64::try_from(n_timesteps.saturating_sub(1))
-            .map_err(|_| Error::invalid(format!("manifest.n_timesteps: {n_timesteps} is too large")))?;
-        let mut shape = vec![VALIDATION_BATCH];
-        shape.extend_from_slice(&self.item_shape);
-        let x = Tensor::f_zeros(shape.as_slice(), (Kind::Float, self.device))?;
-        let t = Tensor::f_from_slice(&[0i64, last])?.f_to_device(self.device)?;
-        let out = tch::no_grad(|| self.module.forward_ts(&[&x, &t])).map_err(|e| {
+        let probe = ValidationProbe::new(&self.item_shape, n_timesteps, self.device)?;
+        let (shape, last) = (&probe.shape, probe.last);
+        let out = tch::no_grad(|| self.module.forward_ts(&[&probe.x, &probe.t])).map_err(|e| {
             Error::invalid(format!(
                 "module: forward(x, t) on zeros {shape:?} with t = [0, {last}] raised: {}",
                 module_message(&e, path)
             ))
         })?;
         let (out_shape, out_kind) = (out.size(), out.f_kind()?);
-        if out_shape != shape {
+        if out_shape != *shape {
             return Err(Error::invalid(format!(
                 "module: forward(x, t) returned shape {out_shape:?} for input shape {shape:?}; the manifest's space \
                  declares items of shape {:?}, and a denoiser's output must have its input's shape",
@@ -105,13 +98,7 @@ impl TorchScriptDenoiser {
                 "module: forward(x, t) returned dtype {out_kind:?} for float32 input; expected float32"
             )));
         }
-        let finite = out.f_isfinite()?.f_all()?.f_int64_value(&[])? == 1;
-        if !finite {
-            return Err(Error::invalid(format!(
-                "module: forward(x, t) on zeros {shape:?} with t = [0, {last}] returned NaN or infinite values"
-            )));
-        }
-        Ok(())
+        probe.check_finite(&out, "module: forward(x, t)")
     }
 
     /// Bytes of the module's parameters (buffers are not visible through libtorch's C API; the

@@ -35,21 +35,27 @@ pub fn randomize(vs: &VarStore, rng: &mut Rng) {
 }
 
 /// Writes `cases` to `dir/cases.json` and runs the PyTorch side, `script` (a path from the
-/// repository root), on it with the project's Python and one OpenMP thread; asserts that it
-/// succeeded, and prints its output into the test's log.
+/// repository root), on it; prints its output into the test's log.
 pub fn run_reference(script: &str, cases: &[serde_json::Value], dir: &Path) {
     let path = dir.join("cases.json");
     std::fs::write(&path, serde_json::to_vec(cases).expect("json")).expect("write cases");
-    let python = repo_root().join(".venv/bin/python");
     let script = repo_root().join(script);
+    let cwd = script.parent().expect("script dir");
+    eprintln!("{}", python(cwd, &[script.to_str().expect("utf-8 path"), path.to_str().expect("utf-8 path")]));
+}
+
+/// Runs the project's Python (`.venv`, one OpenMP thread, so that the references compute the
+/// same way on every machine) with `args` in `cwd`; asserts that it succeeded and returns its
+/// output.
+pub fn python(cwd: &Path, args: &[&str]) -> String {
+    let python = repo_root().join(".venv/bin/python");
     let out = Command::new(&python)
-        .arg(&script)
-        .arg(&path)
-        .current_dir(script.parent().expect("script dir"))
+        .args(args)
+        .current_dir(cwd)
         .env("OMP_NUM_THREADS", "1")
         .output()
         .unwrap_or_else(|e| panic!("cannot run {} (run `make setup`): {e}", python.display()));
     let log = format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
-    assert!(out.status.success(), "{} failed:\n{log}", script.display());
-    eprintln!("{log}");
+    assert!(out.status.success(), "python {args:?} failed:\n{log}");
+    log
 }
