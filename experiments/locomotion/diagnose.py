@@ -35,8 +35,10 @@ from planner import GUIDE_AT, Planner, _denoise, act_many, run_episodes, sample
 def load(a):
     base = Planner.load(a.planners / f"{a.env}-medium-replay")
     expert = Planner.load(a.planners / f"{a.env}-expert")
-    res = json.loads((a.work / f"{a.env}-results.json").read_text())
-    rho = torch_reward(a.work / "server-data", res["names"]["reward"])
+    # steer.py's results when it has finished; its reward is stored under this name from the start.
+    path = a.work / f"{a.env}-results.json"
+    res = json.loads(path.read_text()) if path.exists() else dict(omega=1.0, t_stopgrad=0)
+    rho = torch_reward(a.work / "server-data", f"{a.env}-reward")
     return base, expert, rho, res
 
 

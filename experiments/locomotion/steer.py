@@ -14,6 +14,9 @@ Arms (n plans per env step, the first action of the chosen plan executed, then r
   unsteered       no guidance, the first plan
   reward          guidance by grad rho, the plan with the highest rho
   discriminator   guidance by the discriminator's logit gradient, the plan it scores highest
+Guidance enters the external planner's step on the posterior mean by default (`--guide-at
+mean`; planner.sample says why), or on x_t as in Diffuser (`--guide-at x_t`); the server-side
+mode's `Sample` always guides x_t.
   select-reward   no guidance (omega 0), the plan with the highest rho
   select-disc     no guidance, the plan the discriminator scores highest
 Seeds: episode k of every arm uses env seed `seed_base + k` and the same planner noise, so
@@ -99,11 +102,13 @@ class Config:
     reward_steps: int = 1500
     disc_steps: int = 1500
     batch_size: int = 128
-    # The sweep: omega over `omegas` at t_stopgrads[0], then t_stopgrad over `t_stopgrads` at the
-    # best omega (coordinate-wise: 4 + 2 settings per guided arm instead of a 12-point grid).
-    # 3.0 was added because Hopper's sweep chose the top of {0.1, 0.3, 1.0}.
-    omegas: tuple = (0.1, 0.3, 1.0, 3.0)
-    t_stopgrads: tuple = (0, 2, 6)
+    # The sweep: omega over `omegas` at t_stopgrads[0], then the other t_stopgrads at the best
+    # omega (coordinate-wise: 3 + 1 settings per guided arm). With guidance on the mean, omega 1
+    # is the value at which a perfect rho makes the base's step the expert's; 3.0 because
+    # Hopper's earlier sweep chose the top of {0.1, 0.3, 1.0}; t_stopgrad 0 first because the
+    # last step (t = 0) is the one that sets the executed action.
+    omegas: tuple = (0.3, 1.0, 3.0)
+    t_stopgrads: tuple = (0, 2)
     omega: float | None = None
     t_stopgrad: int | None = None
     disc_omega: float | None = None
@@ -423,8 +428,8 @@ def main() -> None:
     p.add_argument("--n-plans", type=int, default=16)
     p.add_argument("--reward-steps", type=int, default=1500)
     p.add_argument("--disc-steps", type=int, default=1500)
-    p.add_argument("--omegas", default="0.1,0.3,1.0,3.0", help="the sweep's omegas (at the first t_stopgrad)")
-    p.add_argument("--t-stopgrads", default="0,2,6",
+    p.add_argument("--omegas", default="0.3,1.0,3.0", help="the sweep's omegas (at the first t_stopgrad)")
+    p.add_argument("--t-stopgrads", default="0,2",
                    help="the sweep's t_stopgrads: the first during the omega sweep, the rest then at the best omega")
     p.add_argument("--omega", type=float)
     p.add_argument("--t-stopgrad", type=int)
