@@ -452,7 +452,8 @@ def main() -> None:
                  episodes=a.episodes, seed_base=a.seed_base, sweep_episodes=a.sweep_episodes, max_steps=a.max_steps,
                  n_plans=a.n_plans, reward_steps=a.reward_steps, disc_steps=a.disc_steps, omega=a.omega,
                  t_stopgrad=a.t_stopgrad, disc_omega=a.disc_omega, disc_t_stopgrad=a.disc_t_stopgrad,
-                 server_mode_episodes=a.server_mode_episodes, guide_at=a.guide_at, batch_episodes=a.batch_episodes, log=lambda s: print(s, flush=True),
+                 server_mode_episodes=a.server_mode_episodes, guide_at=a.guide_at, batch_episodes=a.batch_episodes,
+                 log=lambda s: print(s, flush=True),
                  omegas=tuple(float(v) for v in a.omegas.split(",")),
                  t_stopgrads=tuple(int(v) for v in a.t_stopgrads.split(",")))
     if a.full:
