@@ -164,10 +164,14 @@ def shift(base, expert, rho, win, omegas, t_stopgrad: int, seed: int, guide_at: 
 def oracle(a, base, expert, rho, omega: float) -> dict:
     """Normalised returns of episodes on sweep seeds, every arm choosing its plan by rho except
     the unsteered one: unsteered, select-only, guided by grad rho, guided by the true
-    difference mu_expert - mu_base (a perfect rho), with a.guide_at and a.t_stopgrad."""
+    difference mu_expert - mu_base (a perfect rho), with a.guide_at, a.t_stopgrad and
+    a.guide_t_max."""
     seeds = list(range(a.seed_base, a.seed_base + a.episodes))
-    arms = (("unsteered", None, 0.0), ("select", None, 0.0), ("grad_rho", lambda x, t: grad_rho(rho, x, t), omega),
-            ("true_difference", lambda x, t: mean_diff(base, expert, x, t), omega))
+    def upto(f):  # guidance only at t <= a.guide_t_max (the steps where rho fits best)
+        return lambda x, t: f(x, t) if t <= a.guide_t_max else np.zeros_like(x)
+    arms = (("unsteered", None, 0.0), ("select", None, 0.0),
+            ("grad_rho", upto(lambda x, t: grad_rho(rho, x, t)), omega),
+            ("true_difference", upto(lambda x, t: mean_diff(base, expert, x, t)), omega))
     out = {}
     for label, gfn, om in arms:
         sel = None if label == "unsteered" else (lambda x: rho_value(rho, x, 0))
@@ -190,6 +194,7 @@ def main() -> None:
     p.add_argument("--omega", type=float, help="default: the omega steer.py chose")
     p.add_argument("--t-stopgrad", type=int, default=0, help="for the gap-closing measure")
     p.add_argument("--guide-at", default="mean", choices=GUIDE_AT, help="the oracle episodes' guidance rule")
+    p.add_argument("--guide-t-max", type=int, default=10**6, help="oracle episodes: no guidance above this t")
     p.add_argument("--episodes", type=int, default=0, help="oracle episodes per arm (sweep seeds)")
     p.add_argument("--seed-base", type=int, default=10_000, help="the sweep's seeds, never the reported ones")
     p.add_argument("--max-steps", type=int, default=300)
