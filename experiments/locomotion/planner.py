@@ -5,7 +5,7 @@ the same numbers the server uses because the manifest carries the betas explicit
 `Denoiser` (MLP over a flattened [H, A + O] window plus a time embedding, predicting x0),
 `Planner` (normaliser + schedule + denoiser: `windows`, `train`, `export` to TorchScript and a
 relreward manifest, `load`), `sample` (the external planner's DDPM loop: inpaint the current
-state, optional guidance `x += omega * grad rho` from any `grad_fn` (a relreward GradientStream,
+state, optional guidance by omega * grad rho (on x_t as Diffuser, or on the posterior mean) from any `grad_fn` (a relreward GradientStream,
 or PyTorch in process), x0 prediction, posterior step), `act` / `act_many` (one env step's plans
 and the chosen first action, for one episode or several in lockstep), `run_episode` /
 `run_episodes` (receding horizon: plan, act, replan; one episode, or several seeds in lockstep
@@ -189,12 +189,24 @@ def _denoise(p: Planner, x: np.ndarray, t: int) -> np.ndarray:
     return p.net(torch.from_numpy(x.astype(np.float32)), tt).numpy().astype(np.float64)
 
 
+GUIDE_AT = ("x_t", "mean")
+
+
 def sample(p: Planner, state_norm: np.ndarray, n_plans: int, seed, grad_fn=None, omega: float = 0.0,
-           t_stopgrad: int = 0, n_guide_steps: int = 1) -> np.ndarray:
+           t_stopgrad: int = 0, n_guide_steps: int = 1, guide_at: str = "x_t") -> np.ndarray:
     """DDPM sampling of n_plans plans per row of state_norm ([S, O] normalised; returns
     [S * n_plans, H, D] normalised), row 0's observation inpainted after every step and guide
-    step. grad_fn(x, t) -> grad_x rho in normalised units (Diffuser's n_step_guided_p_sample,
-    scale_grad_by_std off as in the paper's locomotion runs).
+    step. grad_fn(x, t) -> grad_x rho in normalised units, scale_grad_by_std off as in the
+    paper's locomotion runs. guide_at, for t >= t_stopgrad:
+      "x_t"   x_t += omega * grad rho(x_t, t) before the denoiser (Diffuser's
+              n_step_guided_p_sample, the server's Sample, the paper's runs);
+      "mean"  x_{t-1} = mu_base(x_t, t) + omega * grad rho(x_t, t) + sigma_t z (classifier
+              guidance on the posterior mean; one gradient per step, n_guide_steps ignored).
+    Why "mean": rho is fitted so that grad rho(x_t, t) ~ mu_expert(x_t, t) - mu_base(x_t, t),
+    so at omega 1 a perfect rho turns the base's step into the expert's, including the last
+    step (t = 0) that yields the executed action. An x0-predicting denoiser that reads the
+    action off the inpainted state ignores a shift of its noisy input, so "x_t" guidance can
+    leave the executed action almost where it was (docs/results.md, diagnose.py).
 
     seed: one int (one generator for the whole batch), or one per row of state_norm (episodes
     planned in lockstep): then row i's plans draw their noise from generator seed[i] alone, so
@@ -214,13 +226,17 @@ def sample(p: Planner, state_norm: np.ndarray, n_plans: int, seed, grad_fn=None,
 
     x = noise()
     x[:, 0, A:] = cond
+    if guide_at not in GUIDE_AT:
+        raise ValueError(f"guide_at: {guide_at!r} is not one of {GUIDE_AT}")
     for t in reversed(range(s.T)):
-        if grad_fn is not None and omega != 0.0 and t >= t_stopgrad:
+        guided = grad_fn is not None and omega != 0.0 and t >= t_stopgrad
+        if guided and guide_at == "x_t":
             for _ in range(n_guide_steps):
                 x = x + omega * grad_fn(x, t)
                 x[:, 0, A:] = cond
+        g = omega * grad_fn(x, t) if guided and guide_at == "mean" else 0.0
         x0 = np.clip(_denoise(p, x, t), -1, 1)
-        x = s.coef1[t] * x0 + s.coef2[t] * x
+        x = s.coef1[t] * x0 + s.coef2[t] * x + g
         if t > 0:
             x = x + np.exp(0.5 * s.log_var[t]) * noise()
         x[:, 0, A:] = cond
@@ -228,7 +244,7 @@ def sample(p: Planner, state_norm: np.ndarray, n_plans: int, seed, grad_fn=None,
 
 
 def act_many(p: Planner, obs: np.ndarray, n_plans: int, seeds, grad_fn=None, omega: float = 0.0,
-             t_stopgrad: int = 0, select_fn=None) -> np.ndarray:
+             t_stopgrad: int = 0, select_fn=None, guide_at: str = "x_t") -> np.ndarray:
     """Receding-horizon decisions for several episodes at once (obs [S, O], one planner seed
     each): n_plans plans per episode sampled as one batch (one gradient request per denoising
     step for all of them), in each episode the plan chosen by select_fn(plans) -> scores
@@ -239,7 +255,7 @@ def act_many(p: Planner, obs: np.ndarray, n_plans: int, seeds, grad_fn=None, ome
     # state only feeds the denoiser inputs it never saw. (The server-side mode does not clip;
     # both modes gave the same returns in docs/results.md.)
     state = np.clip(2 * (np.asarray(obs) - lo) / (hi - lo) - 1, -1, 1)
-    plans = sample(p, state, n_plans, list(seeds), grad_fn, omega, t_stopgrad)
+    plans = sample(p, state, n_plans, list(seeds), grad_fn, omega, t_stopgrad, guide_at=guide_at)
     plans = plans.reshape(len(state), n_plans, *plans.shape[1:])
     if select_fn is not None:
         k = np.argmax(np.asarray(select_fn(plans.reshape(-1, *plans.shape[2:]))).reshape(len(state), n_plans), axis=1)
@@ -249,9 +265,9 @@ def act_many(p: Planner, obs: np.ndarray, n_plans: int, seeds, grad_fn=None, ome
 
 
 def act(p: Planner, obs: np.ndarray, n_plans: int, seed: int, grad_fn=None, omega: float = 0.0,
-        t_stopgrad: int = 0, select_fn=None) -> np.ndarray:
+        t_stopgrad: int = 0, select_fn=None, guide_at: str = "x_t") -> np.ndarray:
     """One episode's decision: `act_many` for a single observation."""
-    return act_many(p, obs[None, :], n_plans, [seed], grad_fn, omega, t_stopgrad, select_fn)[0]
+    return act_many(p, obs[None, :], n_plans, [seed], grad_fn, omega, t_stopgrad, select_fn, guide_at)[0]
 
 
 def run_episode(env, decide, seed: int, max_steps: int) -> dict:

@@ -14,6 +14,9 @@ Arms (n plans per env step, the first action of the chosen plan executed, then r
   unsteered       no guidance, the first plan
   reward          guidance by grad rho, the plan with the highest rho
   discriminator   guidance by the discriminator's logit gradient, the plan it scores highest
+Guidance enters the external planner's step on the posterior mean by default (`--guide-at
+mean`; planner.sample says why), or on x_t as in Diffuser (`--guide-at x_t`); the server-side
+mode's `Sample` always guides x_t.
   select-reward   no guidance (omega 0), the plan with the highest rho
   select-disc     no guidance, the plan the discriminator scores highest
 Seeds: episode k of every arm uses env seed `seed_base + k` and the same planner noise, so
@@ -41,7 +44,7 @@ import torch
 
 import relreward
 from common import ENVS, PLANNERS, episodes, normalized_score, paired, welch
-from planner import Planner, act_many, run_episodes
+from planner import GUIDE_AT, Planner, act_many, run_episodes
 
 REPO = Path(__file__).resolve().parents[2]
 ARMS = ("unsteered", "reward", "discriminator", "select-reward", "select-disc")
@@ -99,12 +102,21 @@ class Config:
     reward_steps: int = 1500
     disc_steps: int = 1500
     batch_size: int = 128
-    omegas: tuple = (0.1, 0.3, 1.0)
-    t_stopgrads: tuple = (2,)
+    # The sweep: omega over `omegas` at t_stopgrads[0], then the other t_stopgrads at the best
+    # omega (coordinate-wise: 3 + 1 settings per guided arm). With guidance on the mean, omega 1
+    # is the value at which a perfect rho makes the base's step the expert's; 3.0 because
+    # Hopper's earlier sweep chose the top of {0.1, 0.3, 1.0}; t_stopgrad 0 first because the
+    # last step (t = 0) is the one that sets the executed action.
+    omegas: tuple = (0.3, 1.0, 3.0)
+    t_stopgrads: tuple = (0, 2)
     omega: float | None = None
     t_stopgrad: int | None = None
     disc_omega: float | None = None
     disc_t_stopgrad: int | None = None
+    # How the external planner applies grad rho (planner.sample): "mean" (on the posterior
+    # mean, the default since diagnose.py showed Diffuser's "x_t" rule barely moves this
+    # planner's executed action) or "x_t" (Diffuser's, the server's Sample, the paper's runs).
+    guide_at: str = "mean"
     arms: tuple = ARMS
     server_mode_episodes: int = 1
     # Episodes of an arm planned together in lockstep (0: all of them; 1: one at a time).
@@ -215,7 +227,7 @@ def decider(arm: str, mode: str, planner: Planner, client, names: dict, cfg: Con
 
     def decide(obs, seeds, step):
         return act_many(planner, obs, cfg.n_plans, [s * 100_003 + step for s in seeds], grad_fn,
-                        omega if guided else 0.0, t_stopgrad, select_fn)
+                        omega if guided else 0.0, t_stopgrad, select_fn, cfg.guide_at)
     return decide, stream
 
 
@@ -249,13 +261,22 @@ def run_arm(arm: str, mode: str, seeds, planner, client, names, cfg, omega, t_st
 
 
 def sweep(cfg, planner, client, names, kind: str) -> tuple[float, int, list]:
-    """omega x t_stopgrad by mean return on the sweep seeds (disjoint from the reported ones)."""
+    """omega, then t_stopgrad, by mean return on the sweep seeds (disjoint from the reported
+    ones): omega over cfg.omegas at cfg.t_stopgrads[0], then the other t_stopgrads at the best
+    omega. Ties keep the earlier setting (the smaller omega, the first t_stopgrad)."""
     seeds = range(cfg.sweep_seed_base, cfg.sweep_seed_base + cfg.sweep_episodes)
     rows = []
+
+    def run(om, ts):
+        eps = run_arm(kind, "external", seeds, planner, client, names, cfg, om, ts)
+        rows.append(dict(omega=om, t_stopgrad=ts, mean_normalized=float(np.mean([e["normalized"] for e in eps]))))
+        cfg.log(f"sweep {kind}: omega {om} t_stopgrad {ts}: {rows[-1]['mean_normalized']:.3f}")
+
     for om in cfg.omegas:
-        for ts in cfg.t_stopgrads:
-            eps = run_arm(kind, "external", seeds, planner, client, names, cfg, om, ts)
-            rows.append(dict(omega=om, t_stopgrad=ts, mean_normalized=float(np.mean([e["normalized"] for e in eps]))))
+        run(om, cfg.t_stopgrads[0])
+    best_om = max(rows, key=lambda r: r["mean_normalized"])["omega"]
+    for ts in cfg.t_stopgrads[1:]:
+        run(best_om, ts)
     best = max(rows, key=lambda r: r["mean_normalized"])
     cfg.log(f"sweep {kind}: best omega {best['omega']} t_stopgrad {best['t_stopgrad']} ({best['mean_normalized']:.2f})")
     return best["omega"], best["t_stopgrad"], rows
@@ -407,12 +428,16 @@ def main() -> None:
     p.add_argument("--n-plans", type=int, default=16)
     p.add_argument("--reward-steps", type=int, default=1500)
     p.add_argument("--disc-steps", type=int, default=1500)
-    p.add_argument("--omegas", default="0.1,0.3,1.0", help="the sweep's omegas")
-    p.add_argument("--t-stopgrads", default="2", help="the sweep's t_stopgrads")
+    p.add_argument("--omegas", default="0.3,1.0,3.0", help="the sweep's omegas (at the first t_stopgrad)")
+    p.add_argument("--t-stopgrads", default="0,2",
+                   help="the sweep's t_stopgrads: the first during the omega sweep, the rest then at the best omega")
     p.add_argument("--omega", type=float)
     p.add_argument("--t-stopgrad", type=int)
     p.add_argument("--disc-omega", type=float)
     p.add_argument("--disc-t-stopgrad", type=int)
+    p.add_argument("--guide-at", default="mean", choices=GUIDE_AT,
+                   help="external planner: guidance on the posterior mean (default) or on x_t before the "
+                        "denoiser (Diffuser's rule, which the server-side Sample mode always uses)")
     p.add_argument("--server-mode-episodes", type=int, default=1,
                    help="episodes of the unsteered and reward arms through the Sample RPC")
     p.add_argument("--batch-episodes", type=int, default=0,
@@ -427,7 +452,8 @@ def main() -> None:
                  episodes=a.episodes, seed_base=a.seed_base, sweep_episodes=a.sweep_episodes, max_steps=a.max_steps,
                  n_plans=a.n_plans, reward_steps=a.reward_steps, disc_steps=a.disc_steps, omega=a.omega,
                  t_stopgrad=a.t_stopgrad, disc_omega=a.disc_omega, disc_t_stopgrad=a.disc_t_stopgrad,
-                 server_mode_episodes=a.server_mode_episodes, batch_episodes=a.batch_episodes, log=lambda s: print(s, flush=True),
+                 server_mode_episodes=a.server_mode_episodes, guide_at=a.guide_at, batch_episodes=a.batch_episodes,
+                 log=lambda s: print(s, flush=True),
                  omegas=tuple(float(v) for v in a.omegas.split(",")),
                  t_stopgrads=tuple(int(v) for v in a.t_stopgrads.split(",")))
     if a.full:
