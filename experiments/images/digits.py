@@ -8,9 +8,9 @@ with its data in a temporary directory, unless --endpoint names one):
 
 1. Data: pixels 0..16 scaled to [-1, 1], items [1, 8, 8]; a stratified 75/25 split by --seed.
    The expert's subset is a set of classes a person can see (--subset, default 0,1,2,3,4).
-2. Two DDPMs (native UNet2D, diffusers' UNet2DModel layout, eps prediction, linear betas,
-   T = 50): the base on every training digit, the expert on the training digits of the subset,
-   both with one normalizer (pooled over both datasets and over all pixels).
+2. Two DDPMs (native UNet2D, diffusers' UNet2DModel layout without attention, eps prediction,
+   linear betas, T = 50): the base on every training digit, the expert on the training digits
+   of the subset, both with one normalizer (pooled over both datasets and over all pixels).
 3. Rewards: Algorithm 2 from the two models alone (the job is given no dataset), Algorithm 1
    on both datasets, and the discriminator baseline, all with the same conv encoder.
 4. Separation: `relreward eval discriminate` on held-out real test digits, inside vs outside
@@ -21,7 +21,8 @@ with its data in a temporary directory, unless --endpoint names one):
    histograms of the reward of both groups (PNG, under --out).
 6. Steering: a small classifier (logistic regression on pixels, trained here on the real
    training digits) labels samples of the base model drawn unguided and guided by the
-   Algorithm 2 reward (omega fixed beforehand, not tuned); both fractions in the subset.
+   Algorithm 2 reward (omega chosen on development seed 100, never on a reported seed); both
+   fractions in the subset.
 
 Writes `summary.json` and the PNGs under --out, and prints the summary.
 """
@@ -48,12 +49,20 @@ from relreward.specs import DiffusionJob, DiscriminatorJob, Optimization, Reward
 SERVER_BIN = pathlib.Path(os.environ.get("RELREWARD_SERVER_BIN", REPO / "target/release/relreward-server"))
 CLI_BIN = pathlib.Path(os.environ.get("RELREWARD_CLI_BIN", REPO / "target/release/relreward"))
 
-# The default run (chosen before any result was seen; see docs/results.md) and --tiny, the
-# end-to-end test's configuration: every stage runs, nothing is expected to separate.
-DEFAULT = dict(ddpm_steps=1200, ddpm_batch=64, ddpm_lr=1e-3, widths=[32, 64], layers=1,
+# The default run (chosen before any result was seen, then changed twice on development seeds
+# 100 and 101 only; see docs/results.md, "Images") and --tiny, the end-to-end test's
+# configuration: every stage runs, nothing is expected to separate.
+# - attention=False: with attention at the 4x4 level (and in the mid block) the DDPM pair
+#   separated held-out digits far worse at small t (seed 100, 800 steps: AUC 0.88 against 0.97
+#   at t = 0) and trained 1.5-2x slower; the plain conv UNet is also what the independent
+#   PyTorch anchor used (REFERENCE.md section 10).
+# - omega=1.0: on seed 100 omega 1 already brings the base model's samples into the subset as
+#   often as the expert's (0.98) with the expert's class mix; omega 2 overshoots onto 0s and 1s.
+# --tiny keeps attention on so that the end-to-end test still runs that path.
+DEFAULT = dict(ddpm_steps=1200, ddpm_batch=64, ddpm_lr=1e-3, widths=[32, 64], layers=1, attention=False,
                chains=512, reward_steps=800, reward_batch=128, reward_lr=1e-3, encoder=[16, 32, 64],
-               n_samples=256, omega=2.0, t_stopgrad=1)
-TINY = dict(ddpm_steps=20, ddpm_batch=16, ddpm_lr=1e-3, widths=[16], layers=1,
+               n_samples=256, omega=1.0, t_stopgrad=1)
+TINY = dict(ddpm_steps=20, ddpm_batch=16, ddpm_lr=1e-3, widths=[16], layers=1, attention=True,
             chains=16, reward_steps=10, reward_batch=16, reward_lr=1e-3, encoder=[8],
             n_samples=24, omega=2.0, t_stopgrad=1)
 T = 50
@@ -212,7 +221,8 @@ def experiment(client, endpoint, cfg, args, subset, tmp, x_train, x_test, y_trai
     client.upload_dataset("digits-all", x_train, kind="samples")
     client.upload_dataset("digits-subset", x_train[in_train], kind="samples")
 
-    unet = ("unet2d", {"block_out_channels": cfg["widths"], "layers_per_block": cfg["layers"], "attention": True,
+    unet = ("unet2d", {"block_out_channels": cfg["widths"], "layers_per_block": cfg["layers"],
+                       "attention": cfg["attention"],
                        "norm_num_groups": 8 if min(cfg["widths"]) >= 8 else 1, "attention_head_dim": 8})
     ddpm = Optimization(steps=cfg["ddpm_steps"], batch_size=cfg["ddpm_batch"], learning_rate=cfg["ddpm_lr"])
 
