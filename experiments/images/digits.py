@@ -59,7 +59,8 @@ CLI_BIN = pathlib.Path(os.environ.get("RELREWARD_CLI_BIN", REPO / "target/releas
 #   at t = 0) at the same training loss; 0.63M parameters instead of 0.70M. A plain conv UNet
 #   is also what the independent PyTorch anchor used (REFERENCE.md section 10).
 # - omega=1.0: on seed 100 omega 1 already brings the base model's samples into the subset as
-#   often as the expert's (0.98) with the expert's class mix; omega 2 overshoots onto 0s and 1s.
+#   often as the expert's (0.98-0.99) with the expert's class mix; omega 2 overshot onto 0s and
+#   1s on the pair without EMA.
 # - ddpm_ema: the DDPMs register an exponential moving average of their weights over about the
 #   last 200 of their steps (decay 0.995 every step from step 400). The server's default EMA
 #   (Diffuser's: from step 2000, every 10 steps) never starts in a 1200-step run, so each model
