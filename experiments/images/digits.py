@@ -1,7 +1,7 @@
 """Models-only reward extraction on real images: the paper's section 5.3 on scikit-learn's 8x8
 digits (1797 images that ship inside the scikit-learn wheel; nothing is downloaded).
 
-    .venv/bin/python experiments/images/digits.py [--out DIR] [--seed S] [--tiny] [--attention]
+    .venv/bin/python experiments/images/digits.py [--out DIR] [--seed S] [--tiny] [--attention] [--no-ema]
     (or: make images)
 
 What it does, every model trained by relreward (a server started here on a free loopback port
@@ -199,10 +199,14 @@ def main() -> None:
     ap.add_argument("--tiny", action="store_true", help="the end-to-end test's configuration (seconds)")
     ap.add_argument("--attention", action="store_true",
                     help="DDPMs with attention at the lowest resolution (the default before issue 20's third session)")
+    ap.add_argument("--no-ema", action="store_true",
+                    help="DDPMs with the server's default EMA (which never starts in 1200 steps), for comparison")
     ap.add_argument("--t-eval", default=f"0,2,5,{SCORE_T}", help="diffusion times at which held-out digits are scored")
     args = ap.parse_args()
     cfg = dict(TINY if args.tiny else DEFAULT)
     cfg["attention"] = cfg["attention"] or args.attention
+    if args.no_ema:
+        cfg["ddpm_ema"] = {}
     subset = sorted({int(c) for c in args.subset.split(",")})
     args.t_eval = [int(t) for t in args.t_eval.split(",")]
     args.out.mkdir(parents=True, exist_ok=True)
