@@ -263,7 +263,7 @@ fn algorithm_1_steps_match_pytorch() {
         let m = manifest(case.parametrization, unet.clone(), case.horizon, big_t);
         let mut rng = Rng::new(10 + i as u64);
         let (base, _, base_spec) = diffusion(&m, &dir.path().join(format!("base-{i}.safetensors")), &mut rng);
-        let (expert, _, expert_spec) = diffusion(&m, &dir.path().join(format!("expert-{i}.safetensors")), &mut rng);
+        let (mut expert, _, expert_spec) = diffusion(&m, &dir.path().join(format!("expert-{i}.safetensors")), &mut rng);
         let item = base.item_shape();
         let (reward, reward_spec) =
             reward_net(&case.reward, &item, &dir.path().join(format!("reward-{i}.safetensors")), &mut rng);
@@ -274,7 +274,8 @@ fn algorithm_1_steps_match_pytorch() {
         let trained = train(&params, |k| {
             let (x0, t, noise) = &batches[k];
             let (target, point) =
-                noised_target_and_point(&base, &expert, x0, t, noise, case.target, case.eval_point).expect("target");
+                noised_target_and_point(&base, &mut expert, x0, t, noise, case.target, case.eval_point)
+                    .expect("target");
             assert!(max_abs(&target) > 1e-3, "case {i}: the target is trivially zero");
             alignment_loss(&reward, &point, t, &target, case.rho_l2).expect("loss")
         });

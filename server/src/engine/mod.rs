@@ -14,6 +14,8 @@
 //! - [`relative_reward`]: the gradient-alignment objective of Algorithm 1.
 //! - [`target_pool`]: Algorithm 1's amortised targets: a pool of (t, target, point) computed
 //!   in big passes, each reused several times, refreshed a fraction per epoch.
+//! - [`threads`]: two independent computations (Algorithm 1's base and expert passes) side
+//!   by side, one intra-op thread each.
 //! - [`nets`]: native architectures (TemporalUnet, MLP denoiser) with safetensors weights.
 //! - [`torchscript`]: [`torchscript::TorchScriptDenoiser`], an uploaded TorchScript module as a
 //!   denoiser, validated against its manifest by one forward pass.
@@ -36,6 +38,7 @@ pub mod rng;
 pub mod sampling;
 pub mod schedule;
 pub mod target_pool;
+pub mod threads;
 pub mod torchscript;
 
 use std::sync::OnceLock;

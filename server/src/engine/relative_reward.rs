@@ -37,6 +37,7 @@ use super::diffusion::DiffusionModel;
 use super::manifest::Space;
 use super::nets::reward::{RewardArchitecture, RewardNet};
 use super::normalizer::Normalizer;
+use super::threads::side_by_side;
 use crate::error::{Error, Result};
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -106,38 +107,57 @@ impl Alignment {
     }
 }
 
-/// The expert's (mean or score) at base-unit x_t, aligned through raw coordinates.
-fn aligned_expert(
-    base: &DiffusionModel,
+/// The expert's side of the target, computed from the expert alone (so that it can run on
+/// another thread than the base's side): its posterior mean or score at x_t when the two
+/// models share a normalizer, else its x0_hat at x_t mapped through raw coordinates into the
+/// base's units (the base turns that into a mean or score, [`target_and_point`]).
+enum ExpertSide {
+    Output(Tensor),
+    AlignedX0(Tensor),
+}
+
+fn expert_side(
     expert: &DiffusionModel,
-    alignment: &Alignment,
+    alignment: Option<&Alignment>,
     x_t: &Tensor,
     t: &Tensor,
     target: Target,
-) -> Result<Tensor> {
-    let x0 = alignment.to_base(&expert.x0_hat(&alignment.to_expert(x_t), t, false)?);
-    match target {
-        Target::Mean => base.q_posterior_mean(&x0, x_t, t),
-        Target::Score => base.score_from_x0(x_t, t, &x0),
-    }
+) -> Result<ExpertSide> {
+    Ok(match (alignment, target) {
+        (None, Target::Mean) => ExpertSide::Output(expert.posterior_mean(x_t, t, false)?),
+        (None, Target::Score) => ExpertSide::Output(expert.score(x_t, t)?),
+        (Some(a), _) => ExpertSide::AlignedX0(a.to_base(&expert.x0_hat(&a.to_expert(x_t), t, false)?)),
+    })
 }
 
 /// The regression target and the evaluation point for a batch of x_t, under no-grad.
+///
+/// The base's and the expert's passes are independent, so on the CPU with two or more intra-op
+/// threads they run side by side, one thread each ([`side_by_side`]); the numbers are those of
+/// running them one after the other. The expert is borrowed mutably only because it is handed
+/// to that other thread for the duration of the call.
 pub fn target_and_point(
     base: &DiffusionModel,
-    expert: &DiffusionModel,
+    expert: &mut DiffusionModel,
     x_t: &Tensor,
     t: &Tensor,
     target: Target,
     eval_point: EvalPoint,
 ) -> Result<(Tensor, Tensor)> {
     let _guard = tch::no_grad_guard();
-    let mu_base = base.posterior_mean(x_t, t, false)?;
-    let y = match (Alignment::between(base, expert), target) {
-        (None, Target::Mean) => expert.posterior_mean(x_t, t, false)? - &mu_base,
-        (None, Target::Score) => expert.score(x_t, t)? - base.score(x_t, t)?,
-        (Some(a), Target::Mean) => aligned_expert(base, expert, &a, x_t, t, target)? - &mu_base,
-        (Some(a), Target::Score) => aligned_expert(base, expert, &a, x_t, t, target)? - base.score(x_t, t)?,
+    let alignment = Alignment::between(base, expert);
+    let parallel = x_t.device() == tch::Device::Cpu;
+    let (x_e, t_e) = (x_t.shallow_clone(), t.shallow_clone());
+    let (mu_base, side) = side_by_side(
+        parallel,
+        || base.posterior_mean(x_t, t, false),
+        move || expert_side(expert, alignment.as_ref(), &x_e, &t_e, target),
+    )?;
+    let y = match (side, target) {
+        (ExpertSide::Output(e), Target::Mean) => e - &mu_base,
+        (ExpertSide::Output(e), Target::Score) => e - base.score(x_t, t)?,
+        (ExpertSide::AlignedX0(x0), Target::Mean) => base.q_posterior_mean(&x0, x_t, t)? - &mu_base,
+        (ExpertSide::AlignedX0(x0), Target::Score) => base.score_from_x0(x_t, t, &x0)? - base.score(x_t, t)?,
     };
     let point = match eval_point {
         EvalPoint::XT => x_t.shallow_clone(),
@@ -151,7 +171,7 @@ pub fn target_and_point(
 /// (server/tests/training_vs_pytorch.rs) passes fixed ones, so both run this same code.
 pub fn noised_target_and_point(
     base: &DiffusionModel,
-    expert: &DiffusionModel,
+    expert: &mut DiffusionModel,
     x0: &Tensor,
     t: &Tensor,
     noise: &Tensor,
@@ -287,17 +307,18 @@ mod tests {
         for p in [Parametrization::Epsilon, Parametrization::X0] {
             for theirs in [&other, &gaussian] {
                 let base = nonlinear(1, Parametrization::Epsilon, &shared);
-                let expert = nonlinear(2, p, &shared);
+                let mut expert = nonlinear(2, p, &shared);
                 let moved =
                     InOtherUnits { inner: nonlinear(2, p, &shared), shared: shared.clone(), other: theirs.clone() };
-                let moved =
+                let mut moved =
                     DiffusionModel::new(manifest(Parametrization::X0, theirs.clone()), Box::new(moved)).expect("m");
                 check_pair(&base, &moved).expect("different normalizers are aligned, not refused");
                 for target in [Target::Mean, Target::Score] {
                     for point in [EvalPoint::XT, EvalPoint::MuBase] {
                         let (y_shared, p_shared) =
-                            target_and_point(&base, &expert, &x_t, &t, target, point).expect("s");
-                        let (y_moved, p_moved) = target_and_point(&base, &moved, &x_t, &t, target, point).expect("m");
+                            target_and_point(&base, &mut expert, &x_t, &t, target, point).expect("s");
+                        let (y_moved, p_moved) =
+                            target_and_point(&base, &mut moved, &x_t, &t, target, point).expect("m");
                         let diff = f64::try_from((&y_shared - &y_moved).abs().max()).expect("max");
                         let scale = f64::try_from(y_shared.abs().max()).expect("max");
                         assert!(diff <= 1e-4 * scale.max(1.0), "{p:?} {target:?} {point:?}: {diff} (scale {scale})");
@@ -309,7 +330,8 @@ mod tests {
                 let _g = tch::no_grad_guard();
                 let naive = moved.posterior_mean(&x_t, &t, false).expect("m")
                     - base.posterior_mean(&x_t, &t, false).expect("b");
-                let (y_shared, _) = target_and_point(&base, &expert, &x_t, &t, Target::Mean, EvalPoint::XT).expect("s");
+                let (y_shared, _) =
+                    target_and_point(&base, &mut expert, &x_t, &t, Target::Mean, EvalPoint::XT).expect("s");
                 let off = f64::try_from((&y_shared - &naive).abs().max()).expect("max");
                 assert!(off > 1e-2, "{p:?}: the units did not matter ({off})");
             }

@@ -100,7 +100,7 @@ impl AmortisedTargets {
 /// What the pool computes its targets with.
 pub struct TargetSource<'a> {
     pub base: &'a DiffusionModel,
-    pub expert: &'a DiffusionModel,
+    pub expert: &'a mut DiffusionModel,
     pub data: &'a TrainingData,
     pub target: Target,
     pub eval_point: EvalPoint,
@@ -162,7 +162,7 @@ impl TargetPool {
     /// Makes the pool hold the generation step `step` draws from: the first call fills it
     /// (for a resumed job, with the content it had at that step), later calls apply the
     /// refreshes in between.
-    pub fn ensure(&mut self, step: u64, src: &TargetSource) -> Result<()> {
+    pub fn ensure(&mut self, step: u64, src: &mut TargetSource) -> Result<()> {
         let g = self.generation_for_step(step);
         match self.generation {
             Some(have) if have >= g => Ok(()),
@@ -177,7 +177,7 @@ impl TargetPool {
     }
 
     /// The whole pool as of generation `g`: each slot from the draw of its last writer.
-    fn fill(&mut self, g: u64, src: &TargetSource) -> Result<()> {
+    fn fill(&mut self, g: u64, src: &mut TargetSource) -> Result<()> {
         let p = self.settings.pool_size;
         let mut by_generation: std::collections::BTreeMap<u64, (Vec<i64>, Vec<i64>)> = Default::default();
         for slot in 0..p {
@@ -213,7 +213,7 @@ impl TargetPool {
     }
 
     /// Applies refresh generation `g` (>= 1) to a filled pool.
-    fn refresh(&mut self, g: u64, src: &TargetSource) -> Result<()> {
+    fn refresh(&mut self, g: u64, src: &mut TargetSource) -> Result<()> {
         let (p, r) = (self.settings.pool_size, self.settings.refresh_items());
         let start = ((g - 1) as u128 * r as u128 % p as u128) as usize;
         let slots: Vec<i64> = (0..r).map(|j| ((start + j) % p) as i64).collect();
@@ -228,7 +228,7 @@ impl TargetPool {
 
     /// Generation `g`'s draws (all of them, cheap), then targets for those at `keep` (all if
     /// None) through the frozen models in passes of [`PASS_ITEMS`].
-    fn compute(&mut self, g: u64, keep: Option<&[i64]>, src: &TargetSource) -> Result<(Tensor, Tensor, Tensor)> {
+    fn compute(&mut self, g: u64, keep: Option<&[i64]>, src: &mut TargetSource) -> Result<(Tensor, Tensor, Tensor)> {
         let n = if g == 0 { self.settings.pool_size } else { self.settings.refresh_items() };
         let mut rng = self.stream(g);
         let x0 = src.data.batch(&mut rng, n);
@@ -249,7 +249,7 @@ impl TargetPool {
             let len = (PASS_ITEMS as i64).min(m - at);
             let (tg, pt) = noised_target_and_point(
                 src.base,
-                src.expert,
+                &mut *src.expert,
                 &x0.narrow(0, at, len),
                 &t.narrow(0, at, len),
                 &noise.narrow(0, at, len),
@@ -328,21 +328,26 @@ mod tests {
     /// went through the models to rebuild it.
     #[test]
     fn a_resumed_pool_equals_the_pool_that_never_stopped() {
-        let (base, expert) = models(&[1.0, -2.0]);
+        let (base, mut expert) = models(&[1.0, -2.0]);
         let rows = Tensor::randn([300, 2], (Kind::Float, tch::Device::Cpu));
         let data =
             TrainingData::new(&rows, &crate::engine::normalizer::Normalizer::Identity, 1, None, None, 3).expect("data");
-        let src =
-            TargetSource { base: &base, expert: &expert, data: &data, target: Target::Mean, eval_point: EvalPoint::XT };
+        let mut src = TargetSource {
+            base: &base,
+            expert: &mut expert,
+            data: &data,
+            target: Target::Mean,
+            eval_point: EvalPoint::XT,
+        };
         for f in [0.3, 1.0, 0.05] {
             let settings = AmortisedTargets { pool_size: 50, reuse: 2, refresh_fraction: f };
             // batch 10: an epoch is 10 steps.
             let mut live = TargetPool::new(settings, 5, 10, 10);
             for step in 1..=137 {
-                live.ensure(step, &src).expect("ensure");
+                live.ensure(step, &mut src).expect("ensure");
             }
             let mut resumed = TargetPool::new(settings, 5, 10, 10);
-            resumed.ensure(137, &src).expect("fill");
+            resumed.ensure(137, &mut src).expect("fill");
             assert_eq!(resumed.computed, 50, "f {f}");
             assert_eq!(live.generation, Some(13));
             assert_eq!(resumed.generation, live.generation);

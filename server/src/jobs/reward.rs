@@ -2,6 +2,8 @@
 //! frozen base and expert diffusion model on the union of the named datasets, registered as
 //! a reward model when it succeeds.
 
+use std::cell::RefCell;
+
 use tch::{Device, Kind, Tensor};
 
 use super::context::{JobContext, Stop};
@@ -356,6 +358,12 @@ pub fn run(ctx: &mut JobContext, job: &RewardJob) -> std::result::Result<String,
     }
     let t_max = base.manifest.n_timesteps as u64;
     let batch = opt.batch_size;
+    // The training step and the held-out evaluation both compute targets, one at a time; each
+    // borrows the expert mutably for the duration (it runs on a helper thread beside the base,
+    // engine/threads.rs).
+    let expert = RefCell::new(expert);
+    let expert_mut =
+        || expert.try_borrow_mut().map_err(|_| Error::internal("reward job", "the expert model is already in use"));
     // (t, target, evaluation point) for a batch.
     let draw = |rng: &mut Rng, held_out: bool| -> Result<Option<(Tensor, Tensor, Tensor)>> {
         match &pairs {
@@ -371,8 +379,9 @@ pub fn run(ctx: &mut JobContext, job: &RewardJob) -> std::result::Result<String,
                 let n = x0.size()[0] as usize;
                 let t = rng.randint(t_max, n, device);
                 let noise = rng.randn(&x0.size(), device);
+                let mut expert = expert_mut()?;
                 let (target, point) =
-                    noised_target_and_point(&base, &expert, &x0, &t, &noise, job.target, job.eval_point)?;
+                    noised_target_and_point(&base, &mut expert, &x0, &t, &noise, job.target, job.eval_point)?;
                 Ok(Some((t, target, point)))
             }
             Pairs::Chains(c) => {
@@ -412,14 +421,15 @@ pub fn run(ctx: &mut JobContext, job: &RewardJob) -> std::result::Result<String,
             step += 1;
             let (t, target, point) = match (&mut pool, &pairs) {
                 (Some(pool), Pairs::Dataset(data)) => {
-                    let src = TargetSource {
+                    let mut expert = expert_mut()?;
+                    let mut src = TargetSource {
                         base: &base,
-                        expert: &expert,
+                        expert: &mut expert,
                         data,
                         target: job.target,
                         eval_point: job.eval_point,
                     };
-                    pool.ensure(step, &src)?;
+                    pool.ensure(step, &mut src)?;
                     pool.sample(rng)
                 }
                 _ => draw(rng, false)?.ok_or_else(|| Error::internal("reward job", "empty batch"))?,
