@@ -58,8 +58,17 @@ impl TrainLoop {
     /// at. Each checkpoint's files are checked against their digests first (once, here); a
     /// corrupt latest checkpoint falls back to the previous one, and a job whose every
     /// checkpoint is corrupt fails with `DataLoss` rather than silently starting over.
+    /// On a fresh start, a job whose EMA would never begin (`ema_start` at or past `steps`)
+    /// logs that its registered weights will be the last step's: the default `ema_start`
+    /// (2000, Diffuser's) silently disables averaging for shorter jobs, and on small models the
+    /// last Adam iterate's noise can swamp what the weights are used for (issue 20's DDPMs).
     pub fn resume(&mut self, ctx: &mut JobContext) -> Result<Option<u64>> {
-        let Some((ckpt_step, dir)) = ctx.intact_checkpoint()? else { return Ok(None) };
+        let Some((ckpt_step, dir)) = ctx.intact_checkpoint()? else {
+            if let Some(note) = ema_note(&self.opt) {
+                ctx.log(note)?;
+            }
+            return Ok(None);
+        };
         self.restore(&dir, ckpt_step)?;
         ctx.log(format!("resumed from the checkpoint at step {}", self.step))?;
         Ok(Some(self.step))
@@ -191,4 +200,40 @@ impl TrainLoop {
 fn write_weights(named: &[(String, Tensor)], path: &Path) -> Result<()> {
     let named: Vec<(&String, Tensor)> = named.iter().map(|(n, t)| (n, t.to_device(tch::Device::Cpu))).collect();
     Tensor::write_safetensors(&named, path).map_err(|e| Error::internal("writing weights", e))
+}
+
+/// Why a job's EMA will not average anything, if it will not.
+fn ema_note(opt: &Optimization) -> Option<String> {
+    (opt.ema_start >= opt.steps).then(|| {
+        format!(
+            "spec.optimization.ema_start ({}) is not below spec.optimization.steps ({}): the registered weights \
+             are the last step's, not an average; set ema_start below steps to average them",
+            opt.ema_start, opt.steps
+        )
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_ema_note_names_both_fields_only_when_averaging_never_starts() {
+        let opt = |steps, ema_start| Optimization {
+            steps,
+            batch_size: 8,
+            learning_rate: 1e-3,
+            grad_clip: None,
+            ema_decay: 0.995,
+            ema_every: 10,
+            ema_start,
+            checkpoint_every: 100,
+            eval_every: 100,
+            log_every: 10,
+        };
+        let note = ema_note(&opt(1200, 2000)).expect("never starts");
+        assert!(note.contains("ema_start (2000)") && note.contains("steps (1200)"), "{note}");
+        assert!(ema_note(&opt(2000, 2000)).is_some(), "starting at the last step averages nothing");
+        assert_eq!(ema_note(&opt(1200, 400)), None);
+    }
 }
