@@ -3,10 +3,12 @@ server) against PyTorch eager running diffusers' UNet2DModel of the same configu
 same weights and the same sizes.
 
     .venv/bin/python tests/bench/unet2d.py [--steps 60] [--warmup 20] [--reps 3] [--threads 1]
+                                           [--no-attention]
 
 Both sides: items [1, 8, 8] (the digits experiment's), batch 64, eps prediction, linear betas,
 T = 50, Adam lr 1e-3, UNet2D block_out_channels (32, 64), layers_per_block 1, attention at the
-lowest resolution, GroupNorm(8) (the digits experiment's default network, 0.70M parameters);
+lowest resolution (none with --no-attention, the digits experiment's default network since its
+EMA/attention change, 0.63M parameters), GroupNorm(8) (0.70M parameters with attention);
 one libtorch intra-op thread on both sides (the server's engine.intra_op_threads, PyTorch's
 torch.set_num_threads).
 
@@ -101,7 +103,9 @@ def main():
     ap.add_argument("--warmup", type=int, default=20)
     ap.add_argument("--reps", type=int, default=3)
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--no-attention", action="store_true", help="no attention block (digits.py's default)")
     args = ap.parse_args()
+    CONFIG["attention"] = not args.no_attention
     if args.steps % 10 or args.warmup % 10:
         sys.exit("--steps and --warmup must be multiples of 10 (the job's progress interval)")
     torch.set_num_threads(args.threads)
