@@ -25,12 +25,21 @@
 #    recipe (summary.json); time to a reward: each reward job's training time from its events
 #    (steps / rate at the last step), summed over the goals. About 20 minutes on a loaded
 #    2-core machine (the per-step demo trains five diffusion models first).
+# 4. maze-unet: quality where the frozen models dominate the step. `relreward extract` over umaze
+#    data from `relreward maze generate` (base 200k rows seed MAZE_SEED, experts 60k rows at
+#    UNET_GOALS, seeds MAZE_SEED+1.., action noise 0.5 as the demo's) with --config's [extract]
+#    table UNET_CONFIG (TemporalUnet denoisers instead of the default MLPs), per-step and then
+#    with DEMO_POOL's amortised flags against the same server and --name, so the second run
+#    reuses the first's diffusion models and only the rewards and their evaluation are redone.
+#    Reported per goal as part 3 (report.json), with each reward job's training time and rate.
 #
 # Settings (environment): GAUSS_STEPS ("100 200 400 800 1600"), POOL ("4096 4 0.25": pool size,
 # reuse, refresh fraction for the Gaussian pair; MAZE_POOL ("4096 4 0.25", an epoch of 256
 # steps at batch 64, so refreshes fall inside the run) for the maze part), STEPS (600), THREADS (1), OUT (a directory to keep results.jsonl).
-# PARTS ("gaussian maze-speed maze-quality": which parts run), LAYOUT (umaze), MAZE_SEED (0),
-# DEMO_POOL ("16384 4 0.25", the server's defaults), BIN (target/release).
+# PARTS ("gaussian maze-speed maze-quality"; maze-unet only when named: which parts run), LAYOUT (umaze), MAZE_SEED (0),
+# DEMO_POOL ("16384 4 0.25", the server's defaults), BIN (target/release); part 4: UNET_GOALS
+# ("1,1 3,3"), UNET_CONFIG (the [extract] table's body, "; " between keys: 'diffusion_architecture =
+# { kind = "temporal_unet", dim = 48, dim_mults = [1, 2] }; diffusion_steps = 2000').
 # Prints one JSON line per job and a markdown summary.
 #
 # Builds nothing: expects target/release/{relreward-server,relreward}. Starts its own server on
@@ -47,6 +56,9 @@ PARTS=${PARTS:-gaussian maze-speed maze-quality}
 LAYOUT=${LAYOUT:-umaze}
 MAZE_SEED=${MAZE_SEED:-0}
 DEMO_POOL=${DEMO_POOL:-16384 4 0.25}
+UNET_GOALS=${UNET_GOALS:-1,1 3,3}
+UNET_ARCH='{ kind = "temporal_unet", dim = 48, dim_mults = [1, 2] }'
+UNET_CONFIG=${UNET_CONFIG:-diffusion_architecture = $UNET_ARCH; diffusion_steps = 2000}
 BIN=${BIN:-target/release}
 PY=.venv/bin/python
 for b in relreward-server relreward; do
@@ -199,6 +211,38 @@ done
 stop_server
 fi
 
+# --- 4. maze-unet: quality with TemporalUnet denoisers --------------------------------------------
+if want maze-unet; then
+start_server
+gen() { quiet rr maze generate --layout "$LAYOUT" --action-noise 0.5 "$@"; }
+gen --mode base --transitions 200000 --seed "$MAZE_SEED" --out "$tmp/unet-base.npz"
+experts=()
+k=1
+for g in $UNET_GOALS; do
+  gen --mode expert --goal "$g" --transitions 60000 --seed $((MAZE_SEED + k)) --out "$tmp/unet-expert-${g/,/-}.npz"
+  experts+=(--expert "$tmp/unet-expert-${g/,/-}.npz" --goal "$g")
+  k=$((k + 1))
+done
+printf '[extract]\n%s\n' "${UNET_CONFIG//; /$'\n'}" >"$tmp/unet.toml"
+for recipe in per-step amortised; do
+  extra=()
+  [[ $recipe == amortised ]] && read -ra extra <<<"$(pool_flags "$DEMO_POOL")"
+  t0=$(date +%s.%N)
+  quiet rr extract --base "$tmp/unet-base.npz" "${experts[@]}" --config "$tmp/unet.toml" --name unet \
+    --seed "$MAZE_SEED" --out "$tmp/unet-$recipe" "${extra[@]}"
+  wall=$(echo "$(date +%s.%N) - $t0" | bc)
+  jobs_json="["
+  for reward in $("$PY" -c 'import json,sys; print(" ".join(json.load(open(sys.argv[1]))["models"]["rewards"]))' "$tmp/unet-$recipe/report.json"); do
+    rr --json job watch "$reward" >"$tmp/events"
+    jobs_json+="$(train_seconds "$tmp/events"),"
+  done
+  jobs_json="${jobs_json%,}]"
+  echo "{\"part\": \"maze-unet\", \"recipe\": \"$recipe\", \"pool\": \"$DEMO_POOL\", \"layout\": \"$LAYOUT\", \"seed\": $MAZE_SEED, \"extract_seconds\": $wall, \"reward_jobs\": $jobs_json, \"report\": $("$PY" -c 'import json,sys; print(json.dumps(json.load(open(sys.argv[1]))))' "$tmp/unet-$recipe/report.json")}" | tee -a "$results"
+  if [[ -n $OUT ]]; then mkdir -p "$OUT" && cp -r "$tmp/unet-$recipe" "$OUT/"; fi
+done
+stop_server
+fi
+
 # --- report --------------------------------------------------------------------------------------
 "$PY" - "$results" "$(($(date +%s) - started))" "GAUSS_STEPS='$GAUSS_STEPS' POOL='$POOL' MAZE_POOL='$MAZE_POOL' STEPS=$STEPS THREADS=$THREADS PARTS='$PARTS' LAYOUT=$LAYOUT MAZE_SEED=$MAZE_SEED DEMO_POOL='$DEMO_POOL'" <<'PY'
 import json, sys, subprocess, time
@@ -260,5 +304,26 @@ if len(demo) == 2:
     print(f"- reward training time, all goals: per-step {sp:.1f} s, amortised {sa:.1f} s: **{sp / sa:.2f}x**")
     print(f"- whole demo wall time: per-step {p['demo_seconds']:.0f} s (diffusion models trained), "
           f"amortised {a['demo_seconds']:.0f} s (diffusion models reused)")
+unet = {r["recipe"]: r for r in runs if r["part"] == "maze-unet"}
+if len(unet) == 2:
+    p, a = unet["per-step"], unet["amortised"]
+    print()
+    print(f"Maze, TemporalUnet denoisers: `relreward extract` ({p['layout']}, seed {p['seed']}, sizes "
+          f"{json.dumps(p['report']['sizes'])}), per-step vs amortised (pool, reuse, refresh {a['pool']}; the same diffusion models)")
+    print()
+    print("| expert | recovered per-step / amortised | balanced accuracy per-step / amortised | reward training s per-step / amortised | steps/s per-step / amortised |")
+    print("|---|---|---|---|---|")
+    for gp, ga, jp, ja in zip(p["report"]["rewards"], a["report"]["rewards"], p["reward_jobs"], a["reward_jobs"]):
+        yn = lambda g: "yes" if g["goal_recovered"] else "no"
+        print(f"| {gp['label']} | {yn(gp)} / {yn(ga)} | {gp['balanced_accuracy']:.3f} / {ga['balanced_accuracy']:.3f} | "
+              f"{jp['seconds']:.1f} / {ja['seconds']:.1f} | {jp['steps'] / jp['seconds']:.1f} / {ja['steps'] / ja['seconds']:.1f} |")
+    sp, sa = (sum(j["seconds"] for j in r["reward_jobs"]) for r in (p, a))
+    print()
+    print(f"- goals recovered: per-step {p['report']['goals_recovered']}, amortised {a['report']['goals_recovered']} "
+          f"of {p['report']['goals_evaluated']}; mean balanced accuracy: per-step "
+          f"{100 * p['report']['mean_balanced_accuracy']:.1f}%, amortised {100 * a['report']['mean_balanced_accuracy']:.1f}%")
+    print(f"- reward training time, all goals: per-step {sp:.1f} s, amortised {sa:.1f} s: **{sp / sa:.2f}x**")
+    print(f"- whole extract wall time: per-step {p['extract_seconds']:.0f} s (diffusion models trained), "
+          f"amortised {a['extract_seconds']:.0f} s (diffusion models reused)")
 PY
 if [[ -n $OUT ]]; then mkdir -p "$OUT" && cp "$results" "$OUT/"; fi
