@@ -192,6 +192,16 @@ stop_server
 fi
 
 # --- 3. the maze default pipeline: quality and time to a reward ------------------------------------
+# The training seconds of every reward job a demo summary or extract report names, as a JSON list.
+reward_seconds() {
+  local list="[" reward
+  for reward in $("$PY" -c 'import json,sys; print(" ".join(json.load(open(sys.argv[1]))["models"]["rewards"]))' "$1"); do
+    rr --json job watch "$reward" >"$tmp/events"
+    list+="$(train_seconds "$tmp/events"),"
+  done
+  echo "${list%,}]"
+}
+
 if want maze-quality; then
 start_server
 for recipe in per-step amortised; do
@@ -200,12 +210,7 @@ for recipe in per-step amortised; do
   t0=$(date +%s.%N)
   quiet rr demo --layout "$LAYOUT" --seed "$MAZE_SEED" --out "$tmp/demo-$recipe" "${extra[@]}"
   wall=$(echo "$(date +%s.%N) - $t0" | bc)
-  jobs_json="["
-  for reward in $("$PY" -c 'import json,sys; print(" ".join(json.load(open(sys.argv[1]))["models"]["rewards"]))' "$tmp/demo-$recipe/summary.json"); do
-    rr --json job watch "$reward" >"$tmp/events"
-    jobs_json+="$(train_seconds "$tmp/events"),"
-  done
-  jobs_json="${jobs_json%,}]"
+  jobs_json=$(reward_seconds "$tmp/demo-$recipe/summary.json")
   echo "{\"part\": \"maze-quality\", \"recipe\": \"$recipe\", \"pool\": \"$DEMO_POOL\", \"layout\": \"$LAYOUT\", \"seed\": $MAZE_SEED, \"demo_seconds\": $wall, \"reward_jobs\": $jobs_json, \"summary\": $("$PY" -c 'import json,sys; print(json.dumps(json.load(open(sys.argv[1]))))' "$tmp/demo-$recipe/summary.json")}" | tee -a "$results"
 done
 stop_server
@@ -231,12 +236,7 @@ for recipe in per-step amortised; do
   quiet rr extract --base "$tmp/unet-base.npz" "${experts[@]}" --config "$tmp/unet.toml" --name unet \
     --seed "$MAZE_SEED" --out "$tmp/unet-$recipe" "${extra[@]}"
   wall=$(echo "$(date +%s.%N) - $t0" | bc)
-  jobs_json="["
-  for reward in $("$PY" -c 'import json,sys; print(" ".join(json.load(open(sys.argv[1]))["models"]["rewards"]))' "$tmp/unet-$recipe/report.json"); do
-    rr --json job watch "$reward" >"$tmp/events"
-    jobs_json+="$(train_seconds "$tmp/events"),"
-  done
-  jobs_json="${jobs_json%,}]"
+  jobs_json=$(reward_seconds "$tmp/unet-$recipe/report.json")
   echo "{\"part\": \"maze-unet\", \"recipe\": \"$recipe\", \"pool\": \"$DEMO_POOL\", \"layout\": \"$LAYOUT\", \"seed\": $MAZE_SEED, \"extract_seconds\": $wall, \"reward_jobs\": $jobs_json, \"report\": $("$PY" -c 'import json,sys; print(json.dumps(json.load(open(sys.argv[1]))))' "$tmp/unet-$recipe/report.json")}" | tee -a "$results"
   if [[ -n $OUT ]]; then mkdir -p "$OUT" && cp -r "$tmp/unet-$recipe" "$OUT/"; fi
 done
