@@ -7,7 +7,8 @@ functions the benchmarks time (bench/reference/reference.py).
 Each case is a JSON object with "kind" and "output" (a safetensors file written here):
 
 - "alg1": {"base": M, "expert": M, "reward": R, "batches": [path, ...] (tensors x0, t, noise),
-  "target", "eval_point", "rho_l2", "lr", "ema": [decay, every, start]}, with M = {"manifest",
+  "target", "eval_point", "rho_l2", "entry_weights": [action_weight, condition_weight], "lr",
+  "ema": [decay, every, start]}, with M = {"manifest",
   "weights"} and R = {"architecture", "item_shape", "weights"}. One Algorithm 1 step per batch
   with torch.optim.Adam and the EMA. Writes "loss" [steps], "grad<k>.<name>" (the parameter
   gradients of step k = 1, 2, ...), "param.<name>" (weights after the last step), "ema.<name>".
@@ -30,6 +31,7 @@ from reference import (
     Ema,
     alg1_step,
     apply_conditioning,
+    entry_weights,
     build_denoiser,
     build_reward,
     ddpm_step,
@@ -81,9 +83,13 @@ def run_alg1(case):
     for p in list(base.net.parameters()) + list(expert.net.parameters()):
         p.requires_grad_(False)  # frozen, as in the paper
 
+    space = case["base"]["manifest"]["space"]
+    aw, cw = case.get("entry_weights", (1.0, 1.0))
+    weights = entry_weights(space["horizon"], space["action_dim"], space["obs_dim"], aw, cw)
+
     def step(optimizer, ema, k, b):
         return alg1_step(base, expert, reward, optimizer, ema, k, b["x0"], b["t"], b["noise"], case["target"],
-                         case["eval_point"], case["rho_l2"])
+                         case["eval_point"], case["rho_l2"], weights)
 
     return train(case, reward, step)
 

@@ -161,24 +161,37 @@ def alignment_target(base, expert, x_t, t, target="mean", eval_point="x_t"):
     return y, point
 
 
-def alignment_loss(reward, point, t, target, rho_l2=0.0):
-    """mean_b || grad_x rho(point_b, t_b) - target_b ||^2 (+ rho_l2 mean rho^2), differentiable
-    in the reward's parameters through the double backward."""
+def entry_weights(horizon, action_dim, obs_dim, action_weight=1.0, condition_weight=1.0):
+    """[H, A + O] weights of the alignment loss: the first step's action entries action_weight,
+    its observation entries condition_weight, 1 elsewhere."""
+    w = torch.ones(horizon, action_dim + obs_dim)
+    w[0, :action_dim] = action_weight
+    w[0, action_dim:] = condition_weight
+    return w
+
+
+def alignment_loss(reward, point, t, target, rho_l2=0.0, weights=None):
+    """mean_b sum(weights * (grad_x rho(point_b, t_b) - target_b)^2) (+ rho_l2 mean rho^2),
+    differentiable in the reward's parameters through the double backward (weights None: 1)."""
     x = point.detach().requires_grad_(True)
     rho = reward(x, t)
     (grad_x,) = torch.autograd.grad(rho.sum(), x, create_graph=True)
-    loss = (grad_x - target).pow(2).flatten(1).sum(dim=1).mean()
+    sq = (grad_x - target).pow(2)
+    if weights is not None:
+        sq = sq * weights
+    loss = sq.flatten(1).sum(dim=1).mean()
     if rho_l2 > 0:
         loss = loss + rho_l2 * reward(point, t).pow(2).mean()
     return loss
 
 
-def alg1_step(base, expert, reward, optimizer, ema, step, x0, t, noise, target="mean", eval_point="x_t", rho_l2=0.0):
+def alg1_step(base, expert, reward, optimizer, ema, step, x0, t, noise, target="mean", eval_point="x_t", rho_l2=0.0,
+              weights=None):
     """One step of Algorithm 1 with a dataset; returns the loss."""
     with torch.no_grad():
         x_t = base.q_sample(x0, t, noise)
     y, point = alignment_target(base, expert, x_t, t, target, eval_point)
-    loss = alignment_loss(reward, point, t, y, rho_l2)
+    loss = alignment_loss(reward, point, t, y, rho_l2, weights)
     loss.backward()
     optimizer.step()
     optimizer.zero_grad(set_to_none=True)

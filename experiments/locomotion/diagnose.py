@@ -5,13 +5,14 @@ steer.py's work directory by bench.py's `torch_reward`), `fit` (per denoising st
 planner's own x_t (current state inpainted, as when planning) and on data windows noised by
 q(x_t | x_0) (as Algorithm 1 trains): the cosine between grad rho and the target mu_expert -
 mu_base, over the free entries and over the executed first action, the relative error
-||grad rho - target|| / ||target||, and the guidance step omega ||grad rho|| against the
+||grad rho - target|| / ||target|| (over both as well), and the guidance step omega ||grad rho|| against the
 denoising step ||mu_base - x_t||), `separation` (AUC of rho(x_t, t) between expert and
 medium-replay windows, at every t), `actions` (how far the expert planner's first action is
 from the base planner's, against the spread of the base's own plans: what choosing among the
 plans can reach), `shift` (how much of the
 base -> expert first-action gap guidance closes at each omega, by grad rho and by the true
-difference), `oracle` (closed-loop episodes on sweep seeds guided by the true difference
+difference), `asymmetry` (whether the target mu_expert - mu_base can be a gradient at all: the
+antisymmetric share of its Jacobian, and which blocks carry it), `oracle` (closed-loop episodes on sweep seeds guided by the true difference
 mu_expert - mu_base in place of grad rho: what a perfect rho gradient would add at this omega).
 
     python experiments/locomotion/diagnose.py --env hopper --data steer-out/data --work steer-out/hopper
@@ -38,7 +39,7 @@ def load(a):
     # steer.py's results when it has finished; its reward is stored under this name from the start.
     path = a.work / f"{a.env}-results.json"
     res = json.loads(path.read_text()) if path.exists() else dict(omega=1.0, t_stopgrad=0)
-    rho = torch_reward(a.work / "server-data", f"{a.env}-reward")
+    rho = torch_reward(a.work / "server-data", a.reward or f"{a.env}-reward")
     return base, expert, rho, res
 
 
@@ -85,6 +86,7 @@ def fit(base, expert, rho, win, omega, rng) -> list[dict]:
             row[f"{label}_cos_free"] = float(np.mean(cos(g[:, free], d[:, free])))
             row[f"{label}_cos_action"] = float(np.mean(cos(g[:, 0, :A], d[:, 0, :A])))
             row[f"{label}_rel_err"] = float(np.linalg.norm(g[:, free] - d[:, free]) / np.linalg.norm(d[:, free]))
+            row[f"{label}_rel_err_action"] = float(np.linalg.norm(g[:, 0, :A] - d[:, 0, :A]) / np.linalg.norm(d[:, 0, :A]))
             row[f"{label}_grad_norm"] = float(np.linalg.norm(g[:, free], axis=1).mean())
             row[f"{label}_target_norm"] = float(np.linalg.norm(d[:, free], axis=1).mean())
         # The base planner's own step from x (no noise), against omega * grad rho there.
@@ -161,6 +163,39 @@ def shift(base, expert, rho, win, omegas, t_stopgrad: int, seed: int, guide_at: 
     return out
 
 
+def asymmetry(base, expert, win, ts, rng) -> list[dict]:
+    """How far the target field mu_expert - mu_base is from any gradient field, per t, at data
+    windows noised by q(x_t | x_0): a gradient's Jacobian is symmetric, so the share
+    ||J - J^T|| / (2 ||J||) of its antisymmetric part is 0 for a field grad rho can match and
+    about 0.71 for a Jacobian with no symmetry at all (as for a random matrix). Also the norms of
+    the blocks d(first action) / d(current state) and d(current state) / d(first action): a
+    planner that reads its action off the state (the policy part) gives the first and not the
+    second, which no gradient can (its two blocks are each other's transpose)."""
+    A, s = base.act_dim, base.sched
+    D = win.shape[2]
+    rows = []
+    for t in ts:
+        tt = torch.full((1,), t, dtype=torch.int64)
+
+        def target(x, t=t, tt=tt):
+            return float(s.coef1[t]) * (expert.net(x[None], tt).clamp(-1, 1) - base.net(x[None], tt).clamp(-1, 1))[0]
+        shares, act_state, state_act = [], [], []
+        for w in win:
+            x0 = torch.tensor(w, dtype=torch.float32)
+            xt = float(s.sqrt_abar[t]) * x0 + float(s.sqrt_1m_abar[t]) * torch.tensor(rng.standard_normal(w.shape),
+                                                                                      dtype=torch.float32)
+            n = xt.numel()
+            J = torch.autograd.functional.jacobian(lambda x: target(x.reshape(xt.shape)).reshape(-1), xt.reshape(-1))
+            J = J.reshape(n, n).double()
+            shares.append(float((J - J.T).norm() / (2 * J.norm() + 1e-30)))
+            Jb = J.reshape(*xt.shape, *xt.shape)
+            act_state.append(float(Jb[0, :A, 0, A:].norm()))
+            state_act.append(float(Jb[0, A:D, 0, :A].norm()))
+        rows.append(dict(t=t, antisymmetric_share=float(np.mean(shares)),
+                         d_action_d_state=float(np.mean(act_state)), d_state_d_action=float(np.mean(state_act))))
+    return rows
+
+
 def oracle(a, base, expert, rho, omega: float) -> dict:
     """Normalised returns of episodes on sweep seeds, every arm choosing its plan by rho except
     the unsteered one: unsteered, select-only, guided by grad rho, guided by the true
@@ -190,6 +225,7 @@ def main() -> None:
     p.add_argument("--data", type=Path, required=True)
     p.add_argument("--work", type=Path, required=True, help="steer.py's --work directory (its trained reward)")
     p.add_argument("--planners", type=Path, default=PLANNERS)
+    p.add_argument("--reward", help="the stored reward's name (default: steer.py's, ENV-reward)")
     p.add_argument("--n", type=int, default=256, help="windows per statistic")
     p.add_argument("--omega", type=float, help="default: the omega steer.py chose")
     p.add_argument("--t-stopgrad", type=int, default=0, help="for the gap-closing measure")
@@ -208,6 +244,7 @@ def main() -> None:
     out = dict(env=a.env, omega=omega, t_stopgrad=res["t_stopgrad"], fit=fit(base, expert, rho, win_b, omega, rng),
                separation_auc=separation(base, rho, win_b, win_e, rng),
                actions=actions(base, expert, win_b[:64], 16, 1),
+               target_asymmetry=asymmetry(base, expert, win_b[:16], (0, 2, 10, base.sched.T - 1), rng),
                shift={g: shift(base, expert, rho, win_b[:64], (0.3, 1.0, 3.0), a.t_stopgrad, 2, g) for g in GUIDE_AT})
     if a.episodes:
         out["oracle"] = oracle(a, base, expert, rho, omega)

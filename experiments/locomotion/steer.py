@@ -15,8 +15,9 @@ Arms (n plans per env step, the first action of the chosen plan executed, then r
   reward          guidance by grad rho, the plan with the highest rho
   discriminator   guidance by the discriminator's logit gradient, the plan it scores highest
 Guidance enters the external planner's step on the posterior mean by default (`--guide-at
-mean`; planner.sample says why), or on x_t as in Diffuser (`--guide-at x_t`); the server-side
-mode's `Sample` always guides x_t.
+mean`; planner.sample says why), or on x_t as in Diffuser (`--guide-at x_t`), or by whichever of
+the two the sweep seeds favour for that arm (`--guide-at sweep`); the server-side mode's `Sample`
+always guides x_t.
   select-reward   no guidance (omega 0), the plan with the highest rho
   select-disc     no guidance, the plan the discriminator scores highest
 Seeds: episode k of every arm uses env seed `seed_base + k` and the same planner noise, so
@@ -101,6 +102,13 @@ class Config:
     widths: tuple = (32, 64, 128)
     reward_steps: int = 1500
     disc_steps: int = 1500
+    # The reward's loss weights on the first step's action and observation entries (TrainReward
+    # action_weight / condition_weight). The target's action entries depend on the state (the
+    # policy) and its state entries hardly on the action, which no gradient can fit at once
+    # (diagnose.py's target_asymmetry); 10 and 0 move the unavoidable error off the executed
+    # action and onto the inpainted state, where the planner discards it. 1 and 1: the paper's.
+    reward_action_weight: float = 10.0
+    reward_condition_weight: float = 0.0
     batch_size: int = 128
     # The sweep: omega over `omegas` at t_stopgrads[0], then the other t_stopgrads at the best
     # omega (coordinate-wise: 3 + 1 settings per guided arm). With guidance on the mean, omega 1
@@ -115,7 +123,8 @@ class Config:
     disc_t_stopgrad: int | None = None
     # How the external planner applies grad rho (planner.sample): "mean" (on the posterior
     # mean, the default since diagnose.py showed Diffuser's "x_t" rule barely moves this
-    # planner's executed action) or "x_t" (Diffuser's, the server's Sample, the paper's runs).
+    # planner's executed action), "x_t" (Diffuser's, the server's Sample, the paper's runs), or
+    # "sweep": both rules in each guided arm's sweep, the arm then using the one it chose.
     guide_at: str = "mean"
     arms: tuple = ARMS
     server_mode_episodes: int = 1
@@ -149,7 +158,8 @@ def prepare(cfg: Config, client: relreward.Client) -> dict:
     if names["reward"] not in have_m:
         jobs.append(("reward", client.submit_job(relreward.RewardJob(
             names["reward"], names["medium-replay"], names["expert"], datasets=[f"{env}-medium-replay", f"{env}-expert"],
-            architecture=arch, seed=0, optimization=relreward.Optimization(
+            architecture=arch, seed=0, action_weight=cfg.reward_action_weight,
+            condition_weight=cfg.reward_condition_weight, optimization=relreward.Optimization(
                 steps=cfg.reward_steps, batch_size=cfg.batch_size, learning_rate=2e-4)))))
     if names["discriminator"] not in have_m:
         jobs.append(("discriminator", client.submit_job(relreward.DiscriminatorJob(
@@ -188,10 +198,14 @@ class Timer:
 
 
 def decider(arm: str, mode: str, planner: Planner, client, names: dict, cfg: Config, omega: float,
-            t_stopgrad: int, timer: Timer, grad_source=None):
+            t_stopgrad: int, timer: Timer, grad_source=None, guide_at: str | None = None):
     """decide(obs [S, O], seeds [S], step) -> actions [S, A] for one arm and mode, for the S
     episodes planned together; grad_source(model) overrides the external planner's gradient
-    function (the in-process PyTorch reward of the benchmark)."""
+    function (the in-process PyTorch reward of the benchmark); guide_at overrides cfg.guide_at
+    (an arm's swept rule)."""
+    guide_at = guide_at or cfg.guide_at
+    if mode == "external" and guide_at not in GUIDE_AT:
+        raise ValueError(f"guide_at: {guide_at!r} is not one of {GUIDE_AT} (an arm needs its swept rule)")
     model = {"reward": names["reward"], "select-reward": names["reward"],
              "discriminator": names["discriminator"], "select-disc": names["discriminator"]}.get(arm)
     guided = arm in ("reward", "discriminator") and omega != 0.0
@@ -227,11 +241,12 @@ def decider(arm: str, mode: str, planner: Planner, client, names: dict, cfg: Con
 
     def decide(obs, seeds, step):
         return act_many(planner, obs, cfg.n_plans, [s * 100_003 + step for s in seeds], grad_fn,
-                        omega if guided else 0.0, t_stopgrad, select_fn, cfg.guide_at)
+                        omega if guided else 0.0, t_stopgrad, select_fn, guide_at)
     return decide, stream
 
 
-def run_arm(arm: str, mode: str, seeds, planner, client, names, cfg, omega, t_stopgrad, grad_source=None) -> list:
+def run_arm(arm: str, mode: str, seeds, planner, client, names, cfg, omega, t_stopgrad, grad_source=None,
+            guide_at: str | None = None) -> list:
     """The arm's episodes, `cfg.batch_episodes` seeds at a time in lockstep (0: all at once).
     Planner noise depends only on (env seed, step), so the batching changes no plan; it only
     shares each denoising step's gradient round trip among the episodes."""
@@ -241,7 +256,8 @@ def run_arm(arm: str, mode: str, seeds, planner, client, names, cfg, omega, t_st
     for g in range(0, len(seeds), k):
         group = seeds[g:g + k]
         timer = Timer()
-        decide, stream = decider(arm, mode, planner, client, names, cfg, omega, t_stopgrad, timer, grad_source)
+        decide, stream = decider(arm, mode, planner, client, names, cfg, omega, t_stopgrad, timer, grad_source,
+                                 guide_at)
         try:
             eps = run_episodes(lambda: gym.make(ENVS[cfg.env]["id"], max_episode_steps=cfg.max_steps), decide,
                                group, cfg.max_steps)
@@ -252,6 +268,7 @@ def run_arm(arm: str, mode: str, seeds, planner, client, names, cfg, omega, t_st
         for ep in eps:
             # The group's waiting shared as its wall time is (run_episodes' equal split per step).
             ep.update(arm=arm, mode=mode, omega=omega, t_stopgrad=t_stopgrad,
+                      guide_at=(guide_at or cfg.guide_at) if mode == "external" else "x_t",
                       wait_seconds=timer.wait * ep["seconds"] / total if total > 0 else 0.0,
                       normalized=float(normalized_score(cfg.env, ep["ret"])))
             cfg.log(f"  {arm:14s} {mode:8s} seed {ep['seed']}: return {ep['ret']:.1f} (norm {ep['normalized']:.2f}) "
@@ -260,26 +277,31 @@ def run_arm(arm: str, mode: str, seeds, planner, client, names, cfg, omega, t_st
     return out
 
 
-def sweep(cfg, planner, client, names, kind: str) -> tuple[float, int, list]:
-    """omega, then t_stopgrad, by mean return on the sweep seeds (disjoint from the reported
-    ones): omega over cfg.omegas at cfg.t_stopgrads[0], then the other t_stopgrads at the best
-    omega. Ties keep the earlier setting (the smaller omega, the first t_stopgrad)."""
+def sweep(cfg, planner, client, names, kind: str) -> tuple[str, float, int, list]:
+    """The guidance rule, omega, then t_stopgrad, by mean return on the sweep seeds (disjoint
+    from the reported ones): for each rule (both with `--guide-at sweep`), omega over cfg.omegas
+    at cfg.t_stopgrads[0]; then the other t_stopgrads at the best (rule, omega). Ties keep the
+    earlier setting (the first rule, the smaller omega, the first t_stopgrad)."""
     seeds = range(cfg.sweep_seed_base, cfg.sweep_seed_base + cfg.sweep_episodes)
+    rules = GUIDE_AT if cfg.guide_at == "sweep" else (cfg.guide_at,)
     rows = []
 
-    def run(om, ts):
-        eps = run_arm(kind, "external", seeds, planner, client, names, cfg, om, ts)
-        rows.append(dict(omega=om, t_stopgrad=ts, mean_normalized=float(np.mean([e["normalized"] for e in eps]))))
-        cfg.log(f"sweep {kind}: omega {om} t_stopgrad {ts}: {rows[-1]['mean_normalized']:.3f}")
+    def run(rule, om, ts):
+        eps = run_arm(kind, "external", seeds, planner, client, names, cfg, om, ts, guide_at=rule)
+        rows.append(dict(guide_at=rule, omega=om, t_stopgrad=ts,
+                         mean_normalized=float(np.mean([e["normalized"] for e in eps]))))
+        cfg.log(f"sweep {kind}: guide at {rule} omega {om} t_stopgrad {ts}: {rows[-1]['mean_normalized']:.3f}")
 
-    for om in cfg.omegas:
-        run(om, cfg.t_stopgrads[0])
-    best_om = max(rows, key=lambda r: r["mean_normalized"])["omega"]
+    for rule in rules:
+        for om in cfg.omegas:
+            run(rule, om, cfg.t_stopgrads[0])
+    first = max(rows, key=lambda r: r["mean_normalized"])
     for ts in cfg.t_stopgrads[1:]:
-        run(best_om, ts)
+        run(first["guide_at"], first["omega"], ts)
     best = max(rows, key=lambda r: r["mean_normalized"])
-    cfg.log(f"sweep {kind}: best omega {best['omega']} t_stopgrad {best['t_stopgrad']} ({best['mean_normalized']:.2f})")
-    return best["omega"], best["t_stopgrad"], rows
+    cfg.log(f"sweep {kind}: best guide at {best['guide_at']} omega {best['omega']} t_stopgrad {best['t_stopgrad']} "
+            f"({best['mean_normalized']:.2f})")
+    return best["guide_at"], best["omega"], best["t_stopgrad"], rows
 
 
 def summarize(cfg: Config, episodes: list, data_mean: float) -> dict:
@@ -376,18 +398,21 @@ def experiment(cfg: Config) -> dict:
         names = prepare(cfg, client)
         planner = Planner.load(cfg.planners / f"{cfg.env}-medium-replay")
         sweeps = {}
-        om, ts = cfg.omega, cfg.t_stopgrad
+        om, ts, rule = cfg.omega, cfg.t_stopgrad, cfg.guide_at
         if "reward" in cfg.arms and (om is None or ts is None):
-            om, ts, sweeps["reward"] = sweep(cfg, planner, client, names, "reward")
-        dom, dts = cfg.disc_omega, cfg.disc_t_stopgrad
+            rule, om, ts, sweeps["reward"] = sweep(cfg, planner, client, names, "reward")
+        dom, dts, drule = cfg.disc_omega, cfg.disc_t_stopgrad, cfg.guide_at
         if "discriminator" in cfg.arms and (dom is None or dts is None):
-            dom, dts, sweeps["discriminator"] = sweep(cfg, planner, client, names, "discriminator")
+            drule, dom, dts, sweeps["discriminator"] = sweep(cfg, planner, client, names, "discriminator")
+        # Without a sweep (an arm not run), "sweep" falls back to the default rule.
+        rule, drule = (r if r in GUIDE_AT else "mean" for r in (rule, drule))
         seeds = range(cfg.seed_base, cfg.seed_base + cfg.episodes)
         eps = []
         for arm in cfg.arms:
-            o, t = {"reward": (om, ts), "discriminator": (dom, dts)}.get(arm, (0.0, 0))
-            cfg.log(f"arm {arm} (omega {o}, t_stopgrad {t})")
-            eps += run_arm(arm, "external", seeds, planner, client, names, cfg, o, t)
+            # The select-only arms do not guide: their rule is moot, the reward arm's is kept.
+            o, t, g = {"reward": (om, ts, rule), "discriminator": (dom, dts, drule)}.get(arm, (0.0, 0, rule))
+            cfg.log(f"arm {arm} (guide at {g}, omega {o}, t_stopgrad {t})")
+            eps += run_arm(arm, "external", seeds, planner, client, names, cfg, o, t, guide_at=g)
         # The server-side mode: the same arms through the Sample RPC on the first seeds.
         k = min(cfg.server_mode_episodes, cfg.episodes)
         for arm in [a for a in ("unsteered", "reward") if a in cfg.arms] if k else []:
@@ -399,7 +424,8 @@ def experiment(cfg: Config) -> dict:
                     ms_per_step=float(1e3 * sum(e["seconds"] for e in v) / sum(e["length"] for e in v)))
             for a in ("unsteered", "reward")
             if (v := [e for e in eps if e["mode"] == "server" and e["arm"] == a])}
-        result = dict(env=cfg.env, omega=om, t_stopgrad=ts, disc_omega=dom, disc_t_stopgrad=dts, sweeps=sweeps,
+        result = dict(env=cfg.env, guide_at=rule, omega=om, t_stopgrad=ts, disc_guide_at=drule, disc_omega=dom,
+                      disc_t_stopgrad=dts, sweeps=sweeps,
                       names=names, summary=summary, episodes=eps, seconds=time.time() - t0,
                       config={k: (str(v) if isinstance(v, Path) else v) for k, v in cfg.__dict__.items()
                               if k != "log"})
@@ -428,6 +454,10 @@ def main() -> None:
     p.add_argument("--n-plans", type=int, default=16)
     p.add_argument("--reward-steps", type=int, default=1500)
     p.add_argument("--disc-steps", type=int, default=1500)
+    p.add_argument("--reward-action-weight", type=float, default=10.0,
+                   help="the reward's loss weight on the first action (1 with --reward-condition-weight 1: the paper's)")
+    p.add_argument("--reward-condition-weight", type=float, default=0.0,
+                   help="the reward's loss weight on the first observation, which the planner inpaints")
     p.add_argument("--omegas", default="0.3,1.0,3.0", help="the sweep's omegas (at the first t_stopgrad)")
     p.add_argument("--t-stopgrads", default="0,2",
                    help="the sweep's t_stopgrads: the first during the omega sweep, the rest then at the best omega")
@@ -435,9 +465,10 @@ def main() -> None:
     p.add_argument("--t-stopgrad", type=int)
     p.add_argument("--disc-omega", type=float)
     p.add_argument("--disc-t-stopgrad", type=int)
-    p.add_argument("--guide-at", default="mean", choices=GUIDE_AT,
+    p.add_argument("--guide-at", default="mean", choices=GUIDE_AT + ("sweep",),
                    help="external planner: guidance on the posterior mean (default) or on x_t before the "
-                        "denoiser (Diffuser's rule, which the server-side Sample mode always uses)")
+                        "denoiser (Diffuser's rule, which the server-side Sample mode always uses), or "
+                        "'sweep': each guided arm's sweep tries both and the arm uses the one it chose")
     p.add_argument("--server-mode-episodes", type=int, default=1,
                    help="episodes of the unsteered and reward arms through the Sample RPC")
     p.add_argument("--batch-episodes", type=int, default=0,
@@ -447,10 +478,14 @@ def main() -> None:
                    help="the paper's sizes: ValueFunction widths (64, 64, 128, 128), 50k reward and "
                         "discriminator steps, 512 episodes per arm")
     a = p.parse_args()
+    if a.guide_at == "sweep" and (a.omega is not None or a.disc_omega is not None):
+        p.error("--guide-at sweep chooses the rule in the sweep: leave --omega and --disc-omega unset")
     cfg = Config(env=a.env, data=a.data, planners=a.planners,
                  work=a.work or Path(tempfile.mkdtemp(prefix=f"steer-{a.env}-")), endpoint=a.endpoint,
                  episodes=a.episodes, seed_base=a.seed_base, sweep_episodes=a.sweep_episodes, max_steps=a.max_steps,
-                 n_plans=a.n_plans, reward_steps=a.reward_steps, disc_steps=a.disc_steps, omega=a.omega,
+                 n_plans=a.n_plans, reward_steps=a.reward_steps, disc_steps=a.disc_steps,
+                 reward_action_weight=a.reward_action_weight, reward_condition_weight=a.reward_condition_weight,
+                 omega=a.omega,
                  t_stopgrad=a.t_stopgrad, disc_omega=a.disc_omega, disc_t_stopgrad=a.disc_t_stopgrad,
                  server_mode_episodes=a.server_mode_episodes, guide_at=a.guide_at, batch_episodes=a.batch_episodes,
                  log=lambda s: print(s, flush=True),

@@ -11,7 +11,7 @@
 use relreward_server::engine::denoiser::Denoiser;
 use relreward_server::engine::manifest::{Architecture, Space};
 use relreward_server::engine::nets::NativeDenoiser;
-use tch::{Device, Kind, Tensor};
+use tch::{Device, Tensor};
 
 mod common;
 use common::{randomize, run_reference};

@@ -127,6 +127,8 @@ fn reward_spec(
             })),
             rho_l2: None,
             amortised_targets: None,
+            action_weight: None,
+            condition_weight: None,
         })),
     }
 }

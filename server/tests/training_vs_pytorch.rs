@@ -33,7 +33,7 @@ use relreward_server::engine::nets::{NativeDenoiser, RewardArchitecture, RewardN
 use relreward_server::engine::normalizer::Normalizer;
 use relreward_server::engine::optim::{Adam, Ema, named_parameters};
 use relreward_server::engine::relative_reward::{
-    EvalPoint, Objective, RewardManifest, Target, alignment_loss, noised_target_and_point,
+    EvalPoint, Objective, RewardManifest, Target, alignment_loss, entry_weights, noised_target_and_point,
 };
 use relreward_server::engine::reward_model::RewardModel;
 use relreward_server::engine::rng::Rng;
@@ -231,6 +231,8 @@ fn algorithm_1_steps_match_pytorch() {
         target: Target,
         eval_point: EvalPoint,
         rho_l2: f64,
+        /// The loss's first-action and first-observation weights.
+        entry_weights: (f64, f64),
         horizon: usize,
     }
     let cases = [
@@ -241,9 +243,11 @@ fn algorithm_1_steps_match_pytorch() {
             target: Target::Mean,
             eval_point: EvalPoint::XT,
             rho_l2: 0.0,
+            entry_weights: (1.0, 1.0),
             horizon: 16,
         },
-        // The other options: eps nets, score target at mu_base, the rho^2 penalty, a flat MLP
+        // The other options: eps nets, score target at mu_base, the rho^2 penalty, the loss's
+        // entry weights (a planner's: the first action up, the inpainted state off), a flat MLP
         // as rho (Diffuser's ValueFunction's double backward is checked against PyTorch in
         // reward_nets_vs_pytorch.rs; over two Adam steps its GroupNorms on groups of a few
         // elements amplify rounding beyond what an element-wise comparison of moves can use).
@@ -253,6 +257,7 @@ fn algorithm_1_steps_match_pytorch() {
             target: Target::Score,
             eval_point: EvalPoint::MuBase,
             rho_l2: 0.1,
+            entry_weights: (10.0, 0.0),
             horizon: 32,
         },
     ];
@@ -271,17 +276,21 @@ fn algorithm_1_steps_match_pytorch() {
             (0..STEPS).map(|k| dir.path().join(format!("alg1-{i}-batch-{k}.safetensors"))).collect();
         let batches: Vec<_> = paths.iter().map(|p| batch(&mut rng, n, &item, big_t as u64, p)).collect();
         let params = named_parameters(reward.var_store());
+        let (aw, cw) = case.entry_weights;
+        let weights = entry_weights(&m.space, aw, cw, tch::Device::Cpu, "case").expect("weights");
+        assert_eq!(weights.is_some(), case.entry_weights != (1.0, 1.0));
         let trained = train(&params, |k| {
             let (x0, t, noise) = &batches[k];
             let (target, point) =
                 noised_target_and_point(&base, &mut expert, x0, t, noise, case.target, case.eval_point)
                     .expect("target");
             assert!(max_abs(&target) > 1e-3, "case {i}: the target is trivially zero");
-            alignment_loss(&reward, &point, t, &target, case.rho_l2).expect("loss")
+            alignment_loss(&reward, &point, t, &target, weights.as_ref(), case.rho_l2).expect("loss")
         });
         jobs.push(json!({
             "kind": "alg1", "base": base_spec, "expert": expert_spec, "reward": reward_spec, "batches": paths,
-            "target": case.target, "eval_point": case.eval_point, "rho_l2": case.rho_l2, "lr": LR,
+            "target": case.target, "eval_point": case.eval_point, "rho_l2": case.rho_l2,
+            "entry_weights": [case.entry_weights.0, case.entry_weights.1], "lr": LR,
             "ema": [EMA.0, EMA.1, EMA.2], "output": dir.path().join(format!("alg1-{i}-out.safetensors")),
         }));
         ours.push(trained);
@@ -353,7 +362,13 @@ fn guided_sampling_matches_pytorch_step_by_step() {
             base_model: "base".into(),
             expert_model: "expert".into(),
             datasets: vec![],
-            objective: Objective::Alignment { target: Target::Mean, eval_point: EvalPoint::XT, models_only: false },
+            objective: Objective::Alignment {
+                target: Target::Mean,
+                eval_point: EvalPoint::XT,
+                models_only: false,
+                action_weight: 1.0,
+                condition_weight: 1.0,
+            },
             step_normalization: false,
             final_loss: 0.0,
             eval_loss: None,

@@ -479,6 +479,31 @@ async fn each_kind_of_field_has_one_rule_on_every_rpc() {
         let s = sample_error(&client, pb::SampleRequest { model: bad.into(), ..Default::default() }).await;
         assert_refused(&s, Code::InvalidArgument, "model:");
     }
+    // The alignment loss's entry weights: finite and zero or positive, each named.
+    for (field, action_weight, condition_weight) in
+        [("spec.reward.action_weight:", Some(-1.0), None), ("spec.reward.condition_weight:", None, Some(f64::NAN))]
+    {
+        let reward = pb::JobSpec {
+            output_model: "out".into(),
+            kind: Some(pb::job_spec::Kind::Reward(pb::TrainReward {
+                base_model: m.base.clone(),
+                expert_model: m.base.clone(),
+                algorithm: Some(pb::train_reward::Algorithm::WithDataset(pb::train_reward::WithDataset {
+                    datasets: vec![m.dataset.clone()],
+                })),
+                action_weight,
+                condition_weight,
+                ..Default::default()
+            })),
+            ..Default::default()
+        };
+        let s = client
+            .jobs()
+            .submit_job(pb::SubmitJobRequest { spec: Some(reward), job_id: String::new() })
+            .await
+            .expect_err("entry weight");
+        assert_refused(&s, Code::InvalidArgument, field);
+    }
     // A well-formed name that does not exist is NOT_FOUND, as everywhere.
     let spec = relreward_tests::tiny_diffusion_spec("absent", "out", 0, pb::Optimization::default());
     let s = client

@@ -49,7 +49,8 @@ def test_tiny_steering_experiment_runs_both_planner_modes(tmp_path):
         pl.save(planners / f"hopper-{name}", dict(set=name))
     cfg = steer.Config(env="hopper", data=d, planners=planners, work=tmp_path / "work", episodes=2, sweep_episodes=1,
                        max_steps=6, n_plans=3, widths=(32,), reward_steps=10, disc_steps=10, batch_size=8,
-                       omegas=(0.1,), t_stopgrads=(1,), server_mode_episodes=1, log=lambda s: None)
+                       omegas=(0.1,), t_stopgrads=(1,), server_mode_episodes=1, guide_at="sweep",
+                       log=lambda s: None)
     result = steer.experiment(cfg)
 
     eps = result["episodes"]
@@ -64,6 +65,11 @@ def test_tiny_steering_experiment_runs_both_planner_modes(tmp_path):
     assert all(e["wait_seconds"] > 0 for e in eps if e["arm"] != "unsteered")
     assert all(e["wait_seconds"] == 0 for e in eps if e["arm"] == "unsteered" and e["mode"] == "external")
     assert set(result["sweeps"]) == {"reward", "discriminator"}
+    # guide_at="sweep": each guided arm tried both rules and its episodes used the one it chose.
+    for arm, key in (("reward", "guide_at"), ("discriminator", "disc_guide_at")):
+        assert {r["guide_at"] for r in result["sweeps"][arm]} == set(planner_mod.GUIDE_AT)
+        assert result[key] in planner_mod.GUIDE_AT
+        assert {e["guide_at"] for e in eps if e["arm"] == arm and e["mode"] == "external"} == {result[key]}
     saved = json.loads((cfg.work / "hopper-results.json").read_text())
     assert len(saved["episodes"]) == len(eps)
     assert saved["summary"]["arms"]["reward"]["welch"]["p"] <= 1.0

@@ -132,6 +132,8 @@ impl Jobs {
                         eval_point,
                         algorithm,
                         rho_l2: r.rho_l2.unwrap_or(0.0),
+                        action_weight: r.action_weight.unwrap_or(1.0),
+                        condition_weight: r.condition_weight.unwrap_or(1.0),
                         amortised_targets: r.amortised_targets.map(|a| {
                             let d = AmortisedTargets::DEFAULT;
                             AmortisedTargets {
@@ -320,6 +322,8 @@ fn spec_to_proto(spec: &JobSpec) -> pb::JobSpec {
                 }
             }),
             rho_l2: Some(r.rho_l2),
+            action_weight: Some(r.action_weight),
+            condition_weight: Some(r.condition_weight),
             amortised_targets: r.amortised_targets.map(|a| pb::AmortisedTargets {
                 pool_size: Some(a.pool_size as u32),
                 reuse: Some(a.reuse),

@@ -8,6 +8,13 @@
 //! loss   = mean_batch || grad_x rho(x_eval, t) - target ||^2  (+ rho_l2 * mean rho^2)
 //! ```
 //!
+//! optionally with per-entry weights on the squared error ([`entry_weights`]): for trajectory
+//! models, the first step's action and observation entries, as Diffuser weights its denoising
+//! loss. Why a planner wants them: the target's action entries depend on the state (the
+//! policy) while its state entries hardly depend on the action, and a gradient's Jacobian is
+//! symmetric, so no rho fits both; an unweighted loss splits the error between the two blocks
+//! (experiments/locomotion/diagnose.py measures both the asymmetry and the split).
+//!
 //! with x_eval = x_t (the paper's formula, default) or mu_base(x_t, t) (the authors' code).
 //! Expert minus base, so grad rho points from base toward expert (REFERENCE section 1). Both
 //! diffusion models are frozen and evaluated under no-grad; the loss reaches rho's parameters
@@ -31,7 +38,7 @@
 //! normalizer).
 
 use serde::{Deserialize, Serialize};
-use tch::{Kind, Tensor};
+use tch::{Device, Kind, Tensor};
 
 use super::diffusion::DiffusionModel;
 use super::manifest::Space;
@@ -184,9 +191,21 @@ pub fn noised_target_and_point(
 
 /// || grad_x rho(point, t) - target ||^2 summed over an item, averaged over the batch, plus
 /// the optional rho^2 penalty. Differentiable with respect to rho's parameters.
-pub fn alignment_loss(reward: &RewardNet, point: &Tensor, t: &Tensor, target: &Tensor, rho_l2: f64) -> Result<Tensor> {
+pub fn alignment_loss(
+    reward: &RewardNet,
+    point: &Tensor,
+    t: &Tensor,
+    target: &Tensor,
+    weights: Option<&Tensor>,
+    rho_l2: f64,
+) -> Result<Tensor> {
     let grad = reward.grad_create_graph(point, t)?;
-    let per_item = (grad - target).square().flatten(1, -1).sum_dim_intlist(1, false, Kind::Float);
+    let squared = (grad - target).square();
+    let squared = match weights {
+        Some(w) => squared * w,
+        None => squared,
+    };
+    let per_item = squared.flatten(1, -1).sum_dim_intlist(1, false, Kind::Float);
     let mut loss = per_item.mean(Kind::Float);
     if rho_l2 > 0.0 {
         loss += reward.rho(point, t)?.square().mean(Kind::Float) * rho_l2;
@@ -222,12 +241,55 @@ pub struct RewardManifest {
     pub eval_loss: Option<f64>,
 }
 
+/// Per-entry weights [H, A + O] of the alignment loss for a trajectory space: `action_weight`
+/// on the first step's action entries, `condition_weight` on its observation entries, 1
+/// elsewhere; None when both are 1 (the unweighted loss). `field` names the job's fields in
+/// the error for a space without a first action and observation.
+pub fn entry_weights(
+    space: &Space,
+    action_weight: f64,
+    condition_weight: f64,
+    device: Device,
+    field: &str,
+) -> Result<Option<Tensor>> {
+    if action_weight == 1.0 && condition_weight == 1.0 {
+        return Ok(None);
+    }
+    let Space::Trajectory { horizon, action_dim, obs_dim } = *space else {
+        return Err(Error::invalid(format!(
+            "{field}.action_weight / condition_weight: only trajectory models have a first action and observation; \
+             this space is {space:?}"
+        )));
+    };
+    let weights = Tensor::f_ones([horizon as i64, (action_dim + obs_dim) as i64], (Kind::Float, device))?;
+    let _ = weights.f_narrow(0, 0, 1)?.f_narrow(1, 0, action_dim as i64)?.f_fill_(action_weight)?;
+    let _ = weights.f_narrow(0, 0, 1)?.f_narrow(1, action_dim as i64, obs_dim as i64)?.f_fill_(condition_weight)?;
+    Ok(Some(weights))
+}
+
+fn one() -> f64 {
+    1.0
+}
+
+fn is_one(w: &f64) -> bool {
+    *w == 1.0
+}
+
 /// How rho was trained.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(tag = "kind", rename_all = "snake_case")]
 pub enum Objective {
-    /// Gradient alignment (the paper's relative reward).
-    Alignment { target: Target, eval_point: EvalPoint, models_only: bool },
+    /// Gradient alignment (the paper's relative reward), with the loss's entry weights
+    /// ([`entry_weights`]; 1 and 1, the unweighted loss, are not written).
+    Alignment {
+        target: Target,
+        eval_point: EvalPoint,
+        models_only: bool,
+        #[serde(default = "one", skip_serializing_if = "is_one")]
+        action_weight: f64,
+        #[serde(default = "one", skip_serializing_if = "is_one")]
+        condition_weight: f64,
+    },
     /// Binary cross-entropy, expert = 1 vs base = 0 (the paper's baseline).
     Discriminator,
 }
@@ -294,6 +356,24 @@ mod tests {
         tch::manual_seed(seed);
         let w = Tensor::randn([3, 3], (Kind::Float, tch::Device::Cpu)) * 0.5;
         DiffusionModel::new(manifest(p, n.clone()), Box::new(Nonlinear { w })).expect("model")
+    }
+
+    #[test]
+    fn entry_weights_cover_the_first_action_and_observation_only() {
+        let space = Space::Trajectory { horizon: 3, action_dim: 2, obs_dim: 3 };
+        let cpu = tch::Device::Cpu;
+        assert!(entry_weights(&space, 1.0, 1.0, cpu, "spec.reward").expect("unweighted").is_none());
+        let w = entry_weights(&space, 10.0, 0.0, cpu, "spec.reward").expect("weights").expect("some");
+        let expected = Tensor::from_slice(&[
+            10.0f32, 10.0, 0.0, 0.0, 0.0, //
+            1.0, 1.0, 1.0, 1.0, 1.0, //
+            1.0, 1.0, 1.0, 1.0, 1.0,
+        ])
+        .reshape([3, 5]);
+        assert_eq!(w.size(), [3, 5]);
+        assert!(w.equal(&expected), "{w}");
+        let err = entry_weights(&Space::Sample { shape: vec![2, 2] }, 2.0, 1.0, cpu, "spec.reward").unwrap_err();
+        assert!(matches!(&err, Error::InvalidArgument(m) if m.starts_with("spec.reward.action_weight")), "{err}");
     }
 
     #[test]

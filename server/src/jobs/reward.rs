@@ -17,7 +17,7 @@ use crate::engine::nets::reward::{RewardArchitecture, RewardNet};
 use crate::engine::normalizer::Normalizer;
 use crate::engine::registry::load_diffusion_copy;
 use crate::engine::relative_reward::{
-    EvalPoint, Objective, RewardManifest, Target, alignment_loss, check_pair, noised_target_and_point,
+    EvalPoint, Objective, RewardManifest, Target, alignment_loss, check_pair, entry_weights, noised_target_and_point,
 };
 use crate::engine::reward_model::STEP_NORM_FILE;
 use crate::engine::rng::Rng;
@@ -88,6 +88,8 @@ pub async fn validate_inputs(store: &Store, job: &RewardJob) -> Result<()> {
     if let Some(a) = &job.amortised_targets {
         a.check_memory(base.space.item_shape().iter().product::<i64>() as usize)?;
     }
+    // Weights other than 1 need a trajectory space: refused at submission, not at run time.
+    entry_weights(&base.space, job.action_weight, job.condition_weight, tch::Device::Cpu, "spec.reward")?;
     match &job.algorithm {
         RewardAlgorithm::ModelsOnly { .. } => {}
         RewardAlgorithm::WithDataset { datasets } => {
@@ -356,6 +358,7 @@ pub fn run(ctx: &mut JobContext, job: &RewardJob) -> std::result::Result<String,
             pairs.train_len()
         ))?;
     }
+    let weights = entry_weights(&space, job.action_weight, job.condition_weight, device, "spec.reward")?;
     let t_max = base.manifest.n_timesteps as u64;
     let batch = opt.batch_size;
     // The training step and the held-out evaluation both compute targets, one at a time; each
@@ -434,13 +437,19 @@ pub fn run(ctx: &mut JobContext, job: &RewardJob) -> std::result::Result<String,
                 }
                 _ => draw(rng, false)?.ok_or_else(|| Error::internal("reward job", "empty batch"))?,
             };
-            alignment_loss(&reward, &point, &t, &target, job.rho_l2)
+            alignment_loss(&reward, &point, &t, &target, weights.as_ref(), job.rho_l2)
         },
         || {
             let mut eval_rng = Rng::new(spec.seed ^ 0xe7a1);
             let Some((t, target, point)) = draw(&mut eval_rng, true)? else { return Ok(None) };
             let (_, grad) = reward.grad(&point, &t)?;
-            let per_item = (grad - target).square().flatten(1, -1).sum_dim_intlist(1, false, Kind::Float);
+            // The training objective on held-out items, weights included.
+            let squared = (grad - target).square();
+            let squared = match &weights {
+                Some(w) => squared * w,
+                None => squared,
+            };
+            let per_item = squared.flatten(1, -1).sum_dim_intlist(1, false, Kind::Float);
             Ok(Some(per_item.mean(Kind::Float).double_value(&[])))
         },
     )?;
@@ -457,6 +466,8 @@ pub fn run(ctx: &mut JobContext, job: &RewardJob) -> std::result::Result<String,
             target: job.target,
             eval_point: job.eval_point,
             models_only: matches!(job.algorithm, RewardAlgorithm::ModelsOnly { .. }),
+            action_weight: job.action_weight,
+            condition_weight: job.condition_weight,
         },
         step_normalization: matches!(job.algorithm, RewardAlgorithm::ModelsOnly { .. }),
         final_loss: train.loss,
@@ -534,6 +545,8 @@ pub async fn validate_discriminator(store: &Store, job: &DiscriminatorJob) -> Re
         },
         rho_l2: 0.0,
         amortised_targets: None,
+        action_weight: 1.0,
+        condition_weight: 1.0,
     };
     validate_inputs(store, &as_reward).await.map_err(|e| match e {
         Error::InvalidArgument(m) => Error::InvalidArgument(m.replace("spec.reward", "spec.discriminator")),

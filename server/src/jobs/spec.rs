@@ -76,6 +76,17 @@ pub struct RewardJob {
     /// Algorithm 1's amortised targets (None: off, targets computed for every batch).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub amortised_targets: Option<AmortisedTargets>,
+    /// Weights of the first step's action and observation entries in the alignment loss
+    /// (trajectory models; 1 and 1: unweighted). See `engine::relative_reward::entry_weights`.
+    #[serde(default = "one")]
+    pub action_weight: f64,
+    #[serde(default = "one")]
+    pub condition_weight: f64,
+}
+
+/// Serde's default for weights that jobs stored before they existed did not carry.
+fn one() -> f64 {
+    1.0
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -178,6 +189,13 @@ impl JobSpec {
             JobKind::Reward(r) => {
                 if !(r.rho_l2.is_finite() && r.rho_l2 >= 0.0) {
                     return Err(Error::invalid(format!("spec.reward.rho_l2: {} must be zero or positive", r.rho_l2)));
+                }
+                for (field, w) in [("action_weight", r.action_weight), ("condition_weight", r.condition_weight)] {
+                    if !(w.is_finite() && w >= 0.0) {
+                        return Err(Error::invalid(format!(
+                            "spec.reward.{field}: {w} must be finite and zero or positive"
+                        )));
+                    }
                 }
                 match &r.algorithm {
                     RewardAlgorithm::WithDataset { datasets } if datasets.is_empty() => {

@@ -391,6 +391,8 @@ fn reward_json(r: &pb::TrainReward) -> Value {
             None => Value::Null,
         },
         "rho_l2": r.rho_l2,
+        "action_weight": r.action_weight,
+        "condition_weight": r.condition_weight,
         "amortised_targets": r.amortised_targets.as_ref().map(|a| json!({
             "pool_size": a.pool_size, "reuse": a.reuse, "refresh_fraction": a.refresh_fraction
         })),

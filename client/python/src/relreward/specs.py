@@ -156,6 +156,11 @@ class RewardJob:
     target: str | None = None
     eval_point: str | None = None
     rho_l2: float | None = None
+    #: Trajectory models: weights of the first step's action and observation entries in the
+    #: alignment loss (None: 1, unweighted). A planner that inpaints the current state and executes
+    #: the first action is served best by ``action_weight`` > 1 and ``condition_weight`` = 0.
+    action_weight: float | None = None
+    condition_weight: float | None = None
     #: Algorithm 1's amortised targets: a mapping with any of ``pool_size``, ``reuse``,
     #: ``refresh_fraction`` (``{}`` for the server's defaults); None leaves the option off.
     amortised_targets: Mapping[str, Any] | None = None
@@ -178,6 +183,10 @@ class RewardJob:
                 r.models_only.num_chains = self.num_chains
         if self.rho_l2 is not None:
             r.rho_l2 = self.rho_l2
+        if self.action_weight is not None:
+            r.action_weight = self.action_weight
+        if self.condition_weight is not None:
+            r.condition_weight = self.condition_weight
         if self.amortised_targets is not None:
             r.amortised_targets.CopyFrom(jobs_pb2.AmortisedTargets(**dict(self.amortised_targets)))
         spec = _base(self.output_model, self.seed, self.optimization)

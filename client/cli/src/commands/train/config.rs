@@ -63,6 +63,8 @@ pub struct RewardConfig {
     pub eval_point: Option<EvalPoint>,
     pub algorithm: Option<Algorithm>,
     pub rho_l2: Option<f64>,
+    pub action_weight: Option<f64>,
+    pub condition_weight: Option<f64>,
 }
 
 #[derive(Debug, Clone, Default, PartialEq, Deserialize)]

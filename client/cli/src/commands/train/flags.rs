@@ -118,6 +118,13 @@ pub struct TrainRewardArgs {
     /// Weight of the rho^2 regularizer (0: off).
     #[arg(long, value_name = "X")]
     pub rho_l2: Option<f64>,
+    /// Trajectory models: weight of the first step's action entries in the loss (default 1).
+    #[arg(long, value_name = "W")]
+    pub action_weight: Option<f64>,
+    /// Trajectory models: weight of the first step's observation entries, the state a planner
+    /// inpaints (default 1; 0 leaves grad rho there free).
+    #[arg(long, value_name = "W")]
+    pub condition_weight: Option<f64>,
     #[command(flatten)]
     pub amortised: AmortisedArgs,
     #[command(flatten)]

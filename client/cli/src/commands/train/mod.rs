@@ -28,6 +28,8 @@
 //! target = "score"                  # --target mean|score
 //! eval_point = "mu_base"            # --eval-point x_t|mu_base
 //! rho_l2 = 0.0                      # --rho-l2
+//! action_weight = 10.0              # --action-weight (trajectory models; first action)
+//! condition_weight = 0.0            # --condition-weight (first observation)
 //! architecture = { kind = "windowed_mlp", window = 4, hidden = [128, 64, 32] }
 //! # or { kind = "value_function", widths = [..] }, { kind = "conv_encoder", widths = [..] },
 //! # { kind = "mlp", hidden = [..] }  (--arch, --window, --hidden, --widths)
@@ -110,6 +112,7 @@ mod tests {
         target = "score"
         eval_point = "mu_base"
         rho_l2 = 0.01
+        action_weight = 10.0
     "#;
 
     const DISCRIMINATOR_CONFIG: &str = r#"
@@ -348,6 +351,8 @@ mod tests {
                 algorithm: with_dataset(&["maze-a", "maze-b"]),
                 rho_l2: Some(0.01),
                 amortised_targets: None,
+                action_weight: Some(10.0),
+                condition_weight: None,
             }
         );
         // Algorithm 2 from the file, with its chain count.
@@ -528,6 +533,8 @@ mod tests {
             ("--num-chains: 1 chains", TrainRewardArgs { datasets: Vec::new(), num_chains: Some(1), ..full.clone() }),
             ("--rho-l2: -1", TrainRewardArgs { rho_l2: Some(-1.0), ..full.clone() }),
             ("--rho-l2: NaN", TrainRewardArgs { rho_l2: Some(f64::NAN), ..full.clone() }),
+            ("--action-weight: -2", TrainRewardArgs { action_weight: Some(-2.0), ..full.clone() }),
+            ("--condition-weight: inf", TrainRewardArgs { condition_weight: Some(f64::INFINITY), ..full.clone() }),
             ("--window needs an architecture", arch(ArchArgs { window: Some(4), ..Default::default() })),
             ("--hidden needs an architecture", arch(ArchArgs { hidden: Some(vec![8]), ..Default::default() })),
             (
@@ -565,6 +572,7 @@ mod tests {
         // Bad values in the file name their field (and are not usage errors).
         let file_cases = [
             ("rho_l2 = -0.5", "--config: reward.rho_l2: -0.5"),
+            ("condition_weight = -1.0", "--config: reward.condition_weight: -1"),
             ("algorithm = { kind = \"models_only\", num_chains = 0 }", "reward.algorithm.num_chains: 0 chains"),
             ("architecture = { kind = \"windowed_mlp\", window = 0 }", "reward.architecture.window"),
             ("architecture = { kind = \"conv_encoder\", widths = [0] }", "reward.architecture.widths: width 1"),

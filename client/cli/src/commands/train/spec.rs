@@ -68,18 +68,32 @@ pub fn diffusion_spec(config: TrainConfig, args: &TrainDiffusionArgs) -> Result<
 /// [`UsageError`]s.
 pub fn reward_spec(config: TrainConfig, args: &TrainRewardArgs) -> Result<pb::JobSpec> {
     let common = Common::new(&config, &args.job, "reward")?;
-    let RewardConfig { base_model, expert_model, architecture, target, eval_point, algorithm, rho_l2 } =
-        config.reward.unwrap_or_default();
+    let RewardConfig {
+        base_model,
+        expert_model,
+        architecture,
+        target,
+        eval_point,
+        algorithm,
+        rho_l2,
+        action_weight,
+        condition_weight,
+    } = config.reward.unwrap_or_default();
     let base_model = required(&args.base, base_model, "no base model", "--base MODEL", "base_model", "reward")?;
     let expert_model =
         required(&args.expert, expert_model, "no expert model", "--expert MODEL", "expert_model", "reward")?;
     let algorithm = reward_algorithm(algorithm, args)?;
     let architecture = reward_architecture(architecture, &args.arch, "reward")?;
     let rho_l2 = flag_or_file(args.rho_l2, "--rho-l2", rho_l2, || "reward.rho_l2".into());
-    if let Some((x, source)) = &rho_l2
-        && !(x.is_finite() && *x >= 0.0)
-    {
-        return Err(source.invalid(format!("{x} is not zero or positive")));
+    let action_weight =
+        flag_or_file(args.action_weight, "--action-weight", action_weight, || "reward.action_weight".into());
+    let condition_weight = flag_or_file(args.condition_weight, "--condition-weight", condition_weight, || {
+        "reward.condition_weight".into()
+    });
+    for (x, source) in [&rho_l2, &action_weight, &condition_weight].into_iter().flatten() {
+        if !(x.is_finite() && *x >= 0.0) {
+            return Err(source.invalid(format!("{x} is not zero or positive")));
+        }
     }
     Ok(common.spec(Kind::Reward(pb::TrainReward {
         base_model,
@@ -90,6 +104,8 @@ pub fn reward_spec(config: TrainConfig, args: &TrainRewardArgs) -> Result<pb::Jo
         algorithm: Some(algorithm),
         rho_l2: rho_l2.map(|(x, _)| x),
         amortised_targets: args.amortised.to_proto(),
+        action_weight: action_weight.map(|(x, _)| x),
+        condition_weight: condition_weight.map(|(x, _)| x),
     })))
 }
 
