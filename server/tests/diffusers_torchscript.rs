@@ -3,7 +3,7 @@
 //! (TorchScript module + manifest from the scheduler's config), loaded the way the model
 //! registry loads an uploaded module ([`TorchScriptDenoiser::load_and_validate`]), must give
 //! diffusers' own eps (`unet(x, t).sample`) and posterior mean (`DDPMScheduler.step` without its
-//! noise) to 1e-5, at t = 0 (no previous step), 1, inside the schedule and at T - 1.
+//! noise) to 1e-5 (relative where the values exceed 1), at t = 0 (no previous step), 1, inside the schedule and at T - 1.
 
 use std::collections::BTreeMap;
 use std::path::PathBuf;
@@ -47,10 +47,16 @@ fn diffusers_unet2d_eps_and_posterior_mean_match_diffusers() {
     let (eps, mean) = tch::no_grad(|| (model.eps_hat(x, t).expect("eps"), model.model_mean(x, t).expect("mean")));
     let diff = |a: &Tensor, b: &Tensor| (a - b).abs().max().double_value(&[]);
     let (d_eps, d_mean) = (diff(&eps, &check["eps"]), diff(&mean, &check["mean"]));
-    eprintln!("max |relreward - diffusers|: eps {d_eps:e}, posterior mean {d_mean:e}");
-    assert!(check["eps"].abs().max().double_value(&[]) > 1e-2, "eps is trivially small");
-    assert!(d_eps < TOLERANCE, "eps differs from diffusers' by {d_eps}");
-    assert!(d_mean < TOLERANCE, "posterior mean differs from diffusers' by {d_mean}");
+    let magnitude = |a: &Tensor| a.abs().max().double_value(&[]);
+    let (m_eps, m_mean) = (magnitude(&check["eps"]), magnitude(&check["mean"]));
+    eprintln!(
+        "max |relreward - diffusers|: eps {d_eps:e} (max |eps| {m_eps:.3}), posterior mean {d_mean:e} (max |mean| {m_mean:.3})"
+    );
+    assert!(m_eps > 1e-2, "eps is trivially small");
+    // 1e-5, relative to the values where they exceed 1: float32 rounding grows with them, and
+    // the inputs (torch.randn in the export script) differ between CPUs' vector units.
+    assert!(d_eps < TOLERANCE * m_eps.max(1.0), "eps differs from diffusers' by {d_eps}");
+    assert!(d_mean < TOLERANCE * m_mean.max(1.0), "posterior mean differs from diffusers' by {d_mean}");
     // Clipping mattered somewhere (|x0_hat| > 1), so the comparison covers it.
     let unclipped = tch::no_grad(|| model.posterior_mean(x, t, false).expect("unclipped mean"));
     assert!(diff(&unclipped, &mean) > 1e-4, "no x0_hat was clipped: the test would not see a clipping mismatch");

@@ -50,7 +50,7 @@ def test_tiny_steering_experiment_runs_both_planner_modes(tmp_path):
     cfg = steer.Config(env="hopper", data=d, planners=planners, work=tmp_path / "work", episodes=2, sweep_episodes=1,
                        max_steps=6, n_plans=3, widths=(32,), reward_steps=10, disc_steps=10, batch_size=8,
                        omegas=(0.1,), t_stopgrads=(1,), server_mode_episodes=1, guide_at="sweep",
-                       log=lambda s: None)
+                       reward_action_weight=10.0, reward_condition_weight=0.0, log=lambda s: None)
     result = steer.experiment(cfg)
 
     eps = result["episodes"]

@@ -377,6 +377,24 @@ mod tests {
     }
 
     #[test]
+    fn objective_records_entry_weights_only_when_set() {
+        let objective = |action_weight, condition_weight| Objective::Alignment {
+            target: Target::Mean,
+            eval_point: EvalPoint::XT,
+            models_only: false,
+            action_weight,
+            condition_weight,
+        };
+        // Manifests written before the weights existed read as unweighted, and are written unchanged.
+        let old = r#"{"kind":"alignment","target":"mean","eval_point":"x_t","models_only":false}"#;
+        assert_eq!(serde_json::from_str::<Objective>(old).expect("old manifest"), objective(1.0, 1.0));
+        assert_eq!(serde_json::to_string(&objective(1.0, 1.0)).expect("json"), old);
+        let weighted = serde_json::to_string(&objective(10.0, 0.0)).expect("json");
+        assert!(weighted.contains(r#""action_weight":10.0"#) && weighted.contains(r#""condition_weight":0.0"#));
+        assert_eq!(serde_json::from_str::<Objective>(&weighted).expect("round trip"), objective(10.0, 0.0));
+    }
+
+    #[test]
     fn aligned_target_equals_the_shared_normalizer_target() {
         let shared = Normalizer::Limits { min: vec![-1.0, 0.0, -3.0], max: vec![1.0, 5.0, 2.0] };
         let other = Normalizer::Limits { min: vec![-2.0, -1.0, -3.5], max: vec![0.5, 9.0, 4.0] };
