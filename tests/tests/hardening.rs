@@ -449,6 +449,24 @@ async fn each_kind_of_field_has_one_rule_on_every_rpc() {
         assert_refused(&s, Code::InvalidArgument, &format!("t_stopgrad: {t} is outside [0, {big_t})"));
     }
 
+    // A reward job on the tiny models' dataset; `set` fills in the field under test.
+    let reward_job = |set: &dyn Fn(&mut pb::TrainReward)| {
+        let mut reward = pb::TrainReward {
+            base_model: m.base.clone(),
+            expert_model: m.base.clone(),
+            algorithm: Some(pb::train_reward::Algorithm::WithDataset(pb::train_reward::WithDataset {
+                datasets: vec![m.dataset.clone()],
+            })),
+            ..Default::default()
+        };
+        set(&mut reward);
+        let spec = pb::JobSpec {
+            output_model: "out".into(),
+            kind: Some(pb::job_spec::Kind::Reward(reward)),
+            ..Default::default()
+        };
+        pb::SubmitJobRequest { spec: Some(spec), job_id: String::new() }
+    };
     // Names: malformed is INVALID_ARGUMENT before any lookup, in every field that holds one.
     for bad in ["../x", "X", "a/b", ""] {
         let spec = relreward_tests::tiny_diffusion_spec(bad, "out", 0, pb::Optimization::default());
@@ -458,23 +476,7 @@ async fn each_kind_of_field_has_one_rule_on_every_rpc() {
             .await
             .expect_err("dataset name");
         assert_refused(&s, Code::InvalidArgument, "spec.diffusion.dataset:");
-        let reward = pb::JobSpec {
-            output_model: "out".into(),
-            kind: Some(pb::job_spec::Kind::Reward(pb::TrainReward {
-                base_model: m.base.clone(),
-                expert_model: bad.into(),
-                algorithm: Some(pb::train_reward::Algorithm::WithDataset(pb::train_reward::WithDataset {
-                    datasets: vec![m.dataset.clone()],
-                })),
-                ..Default::default()
-            })),
-            ..Default::default()
-        };
-        let s = client
-            .jobs()
-            .submit_job(pb::SubmitJobRequest { spec: Some(reward), job_id: String::new() })
-            .await
-            .expect_err("model name");
+        let s = client.jobs().submit_job(reward_job(&|r| r.expert_model = bad.into())).await.expect_err("model name");
         assert_refused(&s, Code::InvalidArgument, "spec.reward.expert_model:");
         let s = sample_error(&client, pb::SampleRequest { model: bad.into(), ..Default::default() }).await;
         assert_refused(&s, Code::InvalidArgument, "model:");
@@ -483,25 +485,11 @@ async fn each_kind_of_field_has_one_rule_on_every_rpc() {
     for (field, action_weight, condition_weight) in
         [("spec.reward.action_weight:", Some(-1.0), None), ("spec.reward.condition_weight:", None, Some(f64::NAN))]
     {
-        let reward = pb::JobSpec {
-            output_model: "out".into(),
-            kind: Some(pb::job_spec::Kind::Reward(pb::TrainReward {
-                base_model: m.base.clone(),
-                expert_model: m.base.clone(),
-                algorithm: Some(pb::train_reward::Algorithm::WithDataset(pb::train_reward::WithDataset {
-                    datasets: vec![m.dataset.clone()],
-                })),
-                action_weight,
-                condition_weight,
-                ..Default::default()
-            })),
-            ..Default::default()
-        };
-        let s = client
-            .jobs()
-            .submit_job(pb::SubmitJobRequest { spec: Some(reward), job_id: String::new() })
-            .await
-            .expect_err("entry weight");
+        let request = reward_job(&|r| {
+            r.action_weight = action_weight;
+            r.condition_weight = condition_weight;
+        });
+        let s = client.jobs().submit_job(request).await.expect_err("entry weight");
         assert_refused(&s, Code::InvalidArgument, field);
     }
     // A well-formed name that does not exist is NOT_FOUND, as everywhere.

@@ -267,6 +267,13 @@ pub fn entry_weights(
     Ok(Some(weights))
 }
 
+impl Objective {
+    /// The paper's alignment objective: unweighted (entry weights 1).
+    pub fn alignment(target: Target, eval_point: EvalPoint, models_only: bool) -> Self {
+        Self::Alignment { target, eval_point, models_only, action_weight: 1.0, condition_weight: 1.0 }
+    }
+}
+
 fn one() -> f64 {
     1.0
 }
