@@ -343,3 +343,52 @@ async fn corrupt_models_and_datasets_are_reported_never_served() {
     println!("FIGURE fault=flip reward model byte outcome=Score DATA_LOSS x2, other models served");
     println!("FIGURE fault=flip dataset byte outcome=job FAILED naming dataset 'traj'");
 }
+
+/// The embedded store belongs to one process: a second server started on a data directory that
+/// a live server holds stops at start with a message naming `storage.data_dir` (it would
+/// otherwise break the first one's job leases and run its jobs beside it), and the first keeps
+/// serving with its data intact. Once the first is gone (here: killed, so only the OS releases
+/// the lock), a server opens the directory again.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_second_server_on_a_held_data_directory_is_refused() {
+    let mut server = TestServer::start();
+    let client = server.client().await;
+    upload_lines(&client, "held", &LINES).await;
+    let mut second = std::process::Command::new(relreward_tests::bin("relreward-server"))
+        .args(["--listen", "127.0.0.1:0", "--data-dir"])
+        .arg(&server.data_dir)
+        .env("RELREWARD__METRICS__LISTEN", "")
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .expect("run a second server");
+    // A second server that started would serve until stopped: give it 30 s to exit.
+    let mut exited = None;
+    for _ in 0..600 {
+        exited = second.try_wait().expect("wait");
+        if exited.is_some() {
+            break;
+        }
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    }
+    if exited.is_none() {
+        let _ = second.kill();
+    }
+    let second = second.wait_with_output().expect("second server's output");
+    let stderr = String::from_utf8_lossy(&second.stderr);
+    assert!(exited.is_some() && !second.status.success(), "the second server started; stderr:\n{stderr}");
+    assert!(
+        stderr.contains("storage.data_dir") && stderr.contains("in use by another relreward-server"),
+        "stderr does not name the setting:\n{stderr}"
+    );
+    let names = |c: &Client| {
+        let c = c.clone();
+        async move {
+            let listed = c.datasets().list_datasets(pb::ListDatasetsRequest::default()).await.expect("list");
+            listed.into_inner().datasets.into_iter().map(|d| d.name).collect::<Vec<_>>()
+        }
+    };
+    assert_eq!(names(&client).await, ["held"], "the first server still serves its data");
+    server.restart();
+    assert_eq!(names(&server.client().await).await, ["held"], "a server opens the directory once it is free");
+}

@@ -406,11 +406,38 @@ pub struct Store {
     /// keyed by model name can skip re-reading the record while it is unchanged (the serving
     /// hot path).
     models_generation: Arc<AtomicU64>,
+    /// The embedded store's lock on its data directory (`relreward.lock`, held while any clone
+    /// of this store lives; None for the shared backend).
+    _owner: Option<Arc<std::fs::File>>,
 }
 
 /// How often a shared store looks for model changes made by other processes; a model deleted
 /// or replaced elsewhere is served from cache at most this much longer.
 const MODELS_VERSION_POLL: Duration = Duration::from_millis(500);
+
+/// Takes the embedded store's exclusive lock on `dir` (an advisory lock on `dir/relreward.lock`,
+/// released by the OS when the process ends, however it ends). The embedded store belongs to
+/// one process: it breaks every job lease when it opens, so a second server on the same
+/// directory would take over the first one's running jobs and both would write their
+/// checkpoints and outputs. Refused with a message naming the setting instead.
+fn lock_data_dir(dir: &std::path::Path) -> Result<std::fs::File> {
+    let path = dir.join("relreward.lock");
+    let file = std::fs::OpenOptions::new()
+        .create(true)
+        .truncate(false)
+        .write(true)
+        .open(&path)
+        .map_err(|e| Error::internal(&format!("opening {}", path.display()), e))?;
+    match file.try_lock() {
+        Ok(()) => Ok(file),
+        Err(std::fs::TryLockError::WouldBlock) => Err(Error::FailedPrecondition(format!(
+            "storage.data_dir: {} is in use by another relreward-server (the embedded store is for one \
+             process; run several servers with storage.backend = \"shared\")",
+            dir.display()
+        ))),
+        Err(std::fs::TryLockError::Error(e)) => Err(Error::internal(&format!("locking {}", path.display()), e)),
+    }
+}
 
 impl Store {
     /// Opens the configured backend and repairs what a crash may have left: abandoned staging
@@ -422,10 +449,12 @@ impl Store {
         let store = if config.storage.backend == "shared" {
             let meta = postgres::PostgresMetadata::connect(&config.storage.postgres).await?;
             let blobs = s3::S3Blobs::open(&config.storage.s3, dir).await?;
-            let store = Self { meta: Arc::new(meta), blobs: Arc::new(blobs), models_generation: Arc::default() };
+            let store =
+                Self { meta: Arc::new(meta), blobs: Arc::new(blobs), models_generation: Arc::default(), _owner: None };
             store.follow_model_changes().await?;
             store
         } else {
+            let owner = lock_data_dir(dir)?;
             let meta = sqlite::SqliteMetadata::open(&dir.join("metadata.sqlite3"))?;
             // One process owns the embedded store and it has just started: every job lease is
             // its predecessor's, so interrupted jobs can resume now rather than at lease expiry.
@@ -434,7 +463,12 @@ impl Store {
                 tracing::info!(jobs = broken, "jobs interrupted by the previous shutdown resume now");
             }
             let blobs = local::LocalBlobs::open(dir)?;
-            Self { meta: Arc::new(meta), blobs: Arc::new(blobs), models_generation: Arc::default() }
+            Self {
+                meta: Arc::new(meta),
+                blobs: Arc::new(blobs),
+                models_generation: Arc::default(),
+                _owner: Some(Arc::new(owner)),
+            }
         };
         store.recover().await?;
         Ok(store)
