@@ -107,9 +107,9 @@ class Config:
     # action_weight / condition_weight). The target's action entries depend on the state (the
     # policy) and its state entries hardly on the action, which no gradient can fit at once
     # (diagnose.py's target_asymmetry); 10 and 0 move the unavoidable error off the executed
-    # action and onto the inpainted state, where the planner discards it (a better fit of the
-    # action, docs/results.md, but no better steering in Walker2d or HalfCheetah there), so the
-    # default stays the paper's unweighted loss, 1 and 1.
+    # action and onto the inpainted state, where the planner discards it (docs/results.md:
+    # Hopper +31 instead of +0.4, Walker2d +0.55 (not significant), HalfCheetah no gain). The
+    # default stays the paper's unweighted loss, 1 and 1, until all three are rerun under it.
     reward_action_weight: float = 1.0
     reward_condition_weight: float = 1.0
     batch_size: int = 128
