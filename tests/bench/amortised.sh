@@ -282,48 +282,57 @@ if len(maze) == 2:
     print()
     print(f"- per-step / amortised training time for the same steps: **{a['total_seconds'] / b['total_seconds']:.2f}x** "
           f"(pool {maze['amortised']['pool']}, an epoch is {maze['amortised']['epoch_steps']} steps)")
+
+
+def quality_table(intro, first_column, pairs, summaries, counts, wall, rates):
+    """The maze parts' per-goal table (per-step / amortised) and its summary lines. pairs:
+    (first cell, per-step goal, amortised goal, per-step job, amortised job); summaries: the
+    two runs' summaries; counts: (recovered key, total key); wall: (label, per-step s,
+    amortised s); rates: add the steps/s column."""
+    print()
+    print(intro)
+    print()
+    cols = ["recovered", "balanced accuracy", "reward training s"] + (["steps/s"] if rates else [])
+    print(f"| {first_column} | " + " | ".join(f"{c} per-step / amortised" for c in cols) + " |")
+    print("|---|" + "---|" * len(cols))
+    yn = lambda g: "yes" if g["goal_recovered"] else "no"  # noqa: E731
+    for cell, gp, ga, jp, ja in pairs:
+        row = [f"{yn(gp)} / {yn(ga)}", f"{gp['balanced_accuracy']:.3f} / {ga['balanced_accuracy']:.3f}",
+               f"{jp['seconds']:.1f} / {ja['seconds']:.1f}"]
+        if rates:
+            row.append(f"{jp['steps'] / jp['seconds']:.1f} / {ja['steps'] / ja['seconds']:.1f}")
+        print(f"| {cell} | " + " | ".join(row) + " |")
+    sp, sa = (sum(pair[k]["seconds"] for pair in pairs) for k in (3, 4))
+    (ps, as_), (recovered, total) = summaries, counts
+    print()
+    print(f"- goals recovered: per-step {ps[recovered]}, amortised {as_[recovered]} of {ps[total]}; mean balanced "
+          f"accuracy: per-step {100 * ps['mean_balanced_accuracy']:.1f}%, amortised {100 * as_['mean_balanced_accuracy']:.1f}%")
+    print(f"- reward training time, all goals: per-step {sp:.1f} s, amortised {sa:.1f} s: **{sp / sa:.2f}x**")
+    print(f"- whole {wall[0]} wall time: per-step {wall[1]:.0f} s (diffusion models trained), "
+          f"amortised {wall[2]:.0f} s (diffusion models reused)")
+
+
 demo = {r["recipe"]: r for r in runs if r["part"] == "maze-quality"}
 if len(demo) == 2:
     p, a = demo["per-step"], demo["amortised"]
-    print()
-    print(f"Maze default pipeline: `relreward demo --layout {p['layout']} --seed {p['seed']}`, per-step vs "
-          f"amortised (pool, reuse, refresh {a['pool']}; the same diffusion models)")
-    print()
-    print("| goal cell | recovered per-step / amortised | balanced accuracy per-step / amortised | reward training s per-step / amortised |")
-    print("|---|---|---|---|")
-    for gp, ga, jp, ja in zip(p["summary"]["goals"], a["summary"]["goals"], p["reward_jobs"], a["reward_jobs"]):
-        cell = ",".join(str(c) for c in gp["goal_cell"])
-        yn = lambda g: "yes" if g["goal_recovered"] else "no"
-        print(f"| {cell} | {yn(gp)} / {yn(ga)} | {gp['balanced_accuracy']:.3f} / {ga['balanced_accuracy']:.3f} | "
-              f"{jp['seconds']:.1f} / {ja['seconds']:.1f} |")
-    sp, sa = (sum(j["seconds"] for j in r["reward_jobs"]) for r in (p, a))
-    print()
-    print(f"- goals recovered: per-step {p['summary']['goals_recovered']}, amortised {a['summary']['goals_recovered']} "
-          f"of {p['summary']['goals_total']}; mean balanced accuracy: per-step "
-          f"{100 * p['summary']['mean_balanced_accuracy']:.1f}%, amortised {100 * a['summary']['mean_balanced_accuracy']:.1f}%")
-    print(f"- reward training time, all goals: per-step {sp:.1f} s, amortised {sa:.1f} s: **{sp / sa:.2f}x**")
-    print(f"- whole demo wall time: per-step {p['demo_seconds']:.0f} s (diffusion models trained), "
-          f"amortised {a['demo_seconds']:.0f} s (diffusion models reused)")
+    quality_table(
+        f"Maze default pipeline: `relreward demo --layout {p['layout']} --seed {p['seed']}`, per-step vs "
+        f"amortised (pool, reuse, refresh {a['pool']}; the same diffusion models)",
+        "goal cell",
+        [(",".join(str(c) for c in gp["goal_cell"]), gp, ga, jp, ja)
+         for gp, ga, jp, ja in zip(p["summary"]["goals"], a["summary"]["goals"], p["reward_jobs"], a["reward_jobs"])],
+        (p["summary"], a["summary"]), ("goals_recovered", "goals_total"),
+        ("demo", p["demo_seconds"], a["demo_seconds"]), rates=False)
 unet = {r["recipe"]: r for r in runs if r["part"] == "maze-unet"}
 if len(unet) == 2:
     p, a = unet["per-step"], unet["amortised"]
-    print()
-    print(f"Maze, TemporalUnet denoisers: `relreward extract` ({p['layout']}, seed {p['seed']}, sizes "
-          f"{json.dumps(p['report']['sizes'])}), per-step vs amortised (pool, reuse, refresh {a['pool']}; the same diffusion models)")
-    print()
-    print("| expert | recovered per-step / amortised | balanced accuracy per-step / amortised | reward training s per-step / amortised | steps/s per-step / amortised |")
-    print("|---|---|---|---|---|")
-    for gp, ga, jp, ja in zip(p["report"]["rewards"], a["report"]["rewards"], p["reward_jobs"], a["reward_jobs"]):
-        yn = lambda g: "yes" if g["goal_recovered"] else "no"
-        print(f"| {gp['label']} | {yn(gp)} / {yn(ga)} | {gp['balanced_accuracy']:.3f} / {ga['balanced_accuracy']:.3f} | "
-              f"{jp['seconds']:.1f} / {ja['seconds']:.1f} | {jp['steps'] / jp['seconds']:.1f} / {ja['steps'] / ja['seconds']:.1f} |")
-    sp, sa = (sum(j["seconds"] for j in r["reward_jobs"]) for r in (p, a))
-    print()
-    print(f"- goals recovered: per-step {p['report']['goals_recovered']}, amortised {a['report']['goals_recovered']} "
-          f"of {p['report']['goals_evaluated']}; mean balanced accuracy: per-step "
-          f"{100 * p['report']['mean_balanced_accuracy']:.1f}%, amortised {100 * a['report']['mean_balanced_accuracy']:.1f}%")
-    print(f"- reward training time, all goals: per-step {sp:.1f} s, amortised {sa:.1f} s: **{sp / sa:.2f}x**")
-    print(f"- whole extract wall time: per-step {p['extract_seconds']:.0f} s (diffusion models trained), "
-          f"amortised {a['extract_seconds']:.0f} s (diffusion models reused)")
+    quality_table(
+        f"Maze, TemporalUnet denoisers: `relreward extract` ({p['layout']}, seed {p['seed']}, sizes "
+        f"{json.dumps(p['report']['sizes'])}), per-step vs amortised (pool, reuse, refresh {a['pool']}; the same diffusion models)",
+        "expert",
+        [(gp["label"], gp, ga, jp, ja)
+         for gp, ga, jp, ja in zip(p["report"]["rewards"], a["report"]["rewards"], p["reward_jobs"], a["reward_jobs"])],
+        (p["report"], a["report"]), ("goals_recovered", "goals_evaluated"),
+        ("extract", p["extract_seconds"], a["extract_seconds"]), rates=True)
 PY
 if [[ -n $OUT ]]; then mkdir -p "$OUT" && cp "$results" "$OUT/"; fi
