@@ -200,13 +200,7 @@ pub fn alignment_loss(
     rho_l2: f64,
 ) -> Result<Tensor> {
     let grad = reward.grad_create_graph(point, t)?;
-    let squared = (grad - target).square();
-    let squared = match weights {
-        Some(w) => squared * w,
-        None => squared,
-    };
-    let per_item = squared.flatten(1, -1).sum_dim_intlist(1, false, Kind::Float);
-    let mut loss = per_item.mean(Kind::Float);
+    let mut loss = alignment_error(&grad, target, weights);
     if rho_l2 > 0.0 {
         loss += reward.rho(point, t)?.square().mean(Kind::Float) * rho_l2;
     }
@@ -239,6 +233,17 @@ pub struct RewardManifest {
     pub step_normalization: bool,
     pub final_loss: f64,
     pub eval_loss: Option<f64>,
+}
+
+/// mean_batch sum(weights * (grad - target)^2): the alignment term of [`alignment_loss`], and
+/// the held-out loss a job reports (from a grad computed without a graph).
+pub fn alignment_error(grad: &Tensor, target: &Tensor, weights: Option<&Tensor>) -> Tensor {
+    let squared = (grad - target).square();
+    let squared = match weights {
+        Some(w) => squared * w,
+        None => squared,
+    };
+    squared.flatten(1, -1).sum_dim_intlist(1, false, Kind::Float).mean(Kind::Float)
 }
 
 /// Per-entry weights [H, A + O] of the alignment loss for a trajectory space: `action_weight`

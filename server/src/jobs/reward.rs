@@ -17,7 +17,8 @@ use crate::engine::nets::reward::{RewardArchitecture, RewardNet};
 use crate::engine::normalizer::Normalizer;
 use crate::engine::registry::load_diffusion_copy;
 use crate::engine::relative_reward::{
-    EvalPoint, Objective, RewardManifest, Target, alignment_loss, check_pair, entry_weights, noised_target_and_point,
+    EvalPoint, Objective, RewardManifest, Target, alignment_error, alignment_loss, check_pair, entry_weights,
+    noised_target_and_point,
 };
 use crate::engine::reward_model::STEP_NORM_FILE;
 use crate::engine::rng::Rng;
@@ -444,13 +445,7 @@ pub fn run(ctx: &mut JobContext, job: &RewardJob) -> std::result::Result<String,
             let Some((t, target, point)) = draw(&mut eval_rng, true)? else { return Ok(None) };
             let (_, grad) = reward.grad(&point, &t)?;
             // The training objective on held-out items, weights included.
-            let squared = (grad - target).square();
-            let squared = match &weights {
-                Some(w) => squared * w,
-                None => squared,
-            };
-            let per_item = squared.flatten(1, -1).sum_dim_intlist(1, false, Kind::Float);
-            Ok(Some(per_item.mean(Kind::Float).double_value(&[])))
+            Ok(Some(alignment_error(&grad, &target, weights.as_ref()).double_value(&[])))
         },
     )?;
 
