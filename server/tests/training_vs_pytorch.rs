@@ -147,7 +147,7 @@ fn train(params: &[(String, Tensor)], mut loss_at: impl FnMut(usize) -> Tensor) 
                 })
                 .collect(),
         );
-        adam.step(params, None);
+        let _ = adam.step(params, None);
         ema.after_step(params, step as u64);
     }
     Trained { losses, grads, params: copy(params), initial, ema: copy(&ema.named(params)) }

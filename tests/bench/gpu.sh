@@ -5,8 +5,11 @@
 #
 #   here:  mkdir -p .gpu && strip -o .gpu/relreward-server target/release/relreward-server \
 #            && strip -o .gpu/relreward target/release/relreward \
-#            && .venv/bin/python tests/python/make_dataset.py --rows 20000 --seed 1 --out .gpu/maze.npz
-#   there: tests/bench/gpu.sh            (BIN=.gpu, STEPS, WARMUP, PORT overridable)
+#            && .venv/bin/python tests/python/make_dataset.py --rows 20000 --seed 1 --out .gpu/maze.npz --expected /tmp/e.json
+#          (or tests/bench/gpu-build.sh, which builds against that machine's older libtorch,
+#          and also carries relreward-loadgen for the serving figure below)
+#   there: tests/bench/gpu.sh            (BIN=.gpu, STEPS, WARMUP, PORT, KEEP overridable;
+#                                         KEEP=DIR keeps the server's log there)
 #
 # Sizes: TemporalUnet(dim 32, dim_mults (1, 4, 8)) base and expert over [256, 6] windows,
 # T = 256, Diffuser's cosine schedule, x0 (relreward's defaults); reward ValueFunction widths
@@ -27,7 +30,7 @@ export RELREWARD_ENDPOINT=http://127.0.0.1:$PORT
 LD_LIBRARY_PATH=$TL LD_PRELOAD=$TL/libtorch_cuda.so RELREWARD__ENGINE__DEVICE=cuda RELREWARD__METRICS__LISTEN= \
   "$BIN/relreward-server" --listen 127.0.0.1:$PORT --data-dir "$tmp/data" >"$tmp/out" 2>"$tmp/log" &
 server=$!
-trap 'kill $server 2>/dev/null; wait $server 2>/dev/null; rm -rf "$tmp"' EXIT
+trap 'kill $server 2>/dev/null || true; wait $server 2>/dev/null || true; if [[ -n ${KEEP:-} ]]; then cp "$tmp/log" "$KEEP/server.log"; fi; rm -rf "$tmp"' EXIT
 for _ in $(seq 100); do grep -q "listening on" "$tmp/out" 2>/dev/null && break; sleep 0.2; done
 grep -m1 "libtorch initialised" "$tmp/log" >&2 || { tail -20 "$tmp/log" >&2; exit 1; }
 
@@ -63,6 +66,12 @@ for variant in per-step amortised; do
     --widths 32,128,256 --steps "$total" --batch-size 256 "${extra[@]}" --watch >"$tmp/events-$variant"
   echo "{\"side\": \"relreward\", \"variant\": \"$variant\", \"result\": $(rate "$tmp/events-$variant")}"
 done
+# Serving on the device: 64 streaming planners, one [256, 6] window per request at t = 10, on
+# the per-step reward (when the load generator was carried).
+if [[ -x $BIN/relreward-loadgen ]]; then
+  "$BIN/relreward-loadgen" --endpoint "$RELREWARD_ENDPOINT" --model r-per-step --mode stream --clients 64 \
+    --t 10 --warmup 3 --duration 10 --json | "$PY" -c 'import json, sys; print(json.dumps({"side": "relreward", "variant": "serving-64-stream", "result": json.load(sys.stdin)}))'
+fi
 kill $server; wait $server 2>/dev/null || true
 
 (cd bench/reference && "$PY" gpu_alg1.py --device cuda --steps "$STEPS" --warmup 5) | sed 's/^/{"side": "pytorch-eager", "result": /; s/$/}/'

@@ -85,7 +85,7 @@ impl TrainingData {
     }
 
     fn gather(&self, starts: &[i64]) -> Tensor {
-        let idx = Tensor::from_slice(starts).to_device(self.rows.device());
+        let idx = super::upload(&Tensor::from_slice(starts), self.rows.device()).expect("an int64 upload");
         match self.horizon {
             Some(h) => {
                 let offsets = Tensor::arange(h, (Kind::Int64, self.rows.device()));

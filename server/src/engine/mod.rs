@@ -58,6 +58,30 @@ pub fn device() -> Device {
     DEVICE.get().copied().unwrap_or(Device::Cpu)
 }
 
+/// `t` (a host tensor) on `device`, without making the host wait for the device's queue.
+///
+/// Why not `to_device`: a plain copy from pageable host memory to a CUDA device synchronises
+/// the stream first, so each of a training step's small uploads (noise, timesteps, batch
+/// indices, schedule coefficients) would drain the GPU's queue and leave it idle while the
+/// next kernels are launched. The copy is staged in pinned memory and made asynchronously;
+/// libtorch's host allocator keeps the staging block until the copy has run. On the CPU, and
+/// for a tensor already there, nothing is copied.
+pub fn upload(t: &tch::Tensor, device: Device) -> tch::Result<tch::Tensor> {
+    if t.device() == device {
+        return Ok(t.shallow_clone());
+    }
+    match device {
+        Device::Cuda(_) if t.device() == Device::Cpu => {
+            // `_pin_memory`, not `pin_memory`: tch passes `pin_memory` a device, which
+            // libtorch deprecates with a warning at every call; `_pin_memory` is the same
+            // copy into the pinned allocator without that warning (the tensor is a fresh host
+            // tensor, never already pinned).
+            t.f_internal_pin_memory(device)?.f_to_device_(device, t.f_kind()?, true, false)
+        }
+        _ => t.f_to_device(device),
+    }
+}
+
 /// `engine.device` against the CUDA devices libtorch sees: `cpu`, `cuda` (= `cuda:0`),
 /// `cuda:N`, or `auto` (the first CUDA device if there is one, else the CPU). A CUDA device
 /// that is not there is an error naming the key, never a silent fall back to the CPU.

@@ -39,14 +39,21 @@ impl Adam {
     }
 
     /// Applies one update from the parameters' gradients, then zeroes them. Returns the global
-    /// gradient norm before clipping. Parameters without a gradient are left alone.
-    pub fn step(&mut self, params: &[(String, Tensor)], clip: Option<f64>) -> f64 {
+    /// gradient norm before clipping, as a float64 scalar on the parameters' device: without
+    /// clipping nothing here waits for the device, so on a GPU the caller reads it once with
+    /// the loss, after the whole step is queued. Parameters without a gradient are left alone.
+    pub fn step(&mut self, params: &[(String, Tensor)], clip: Option<f64>) -> Tensor {
         let _guard = tch::no_grad_guard();
         let grads: Vec<Option<Tensor>> = params.iter().map(|(_, p)| Some(p.grad()).filter(Tensor::defined)).collect();
-        let norm = grads.iter().flatten().map(|g| g.square().sum(Kind::Double).double_value(&[])).sum::<f64>().sqrt();
-        // torch.nn.utils.clip_grad_norm_: scale by max_norm / (norm + 1e-6) when above.
-        let scale = match clip {
-            Some(c) if norm > c => c / (norm + 1e-6),
+        let squares: Vec<Tensor> = grads.iter().flatten().map(|g| g.square().sum(Kind::Double)).collect();
+        let norm = match squares.first() {
+            None => Tensor::zeros([], (Kind::Double, params.first().map_or(tch::Device::Cpu, |(_, p)| p.device()))),
+            Some(_) => Tensor::stack(&squares, 0).sum(Kind::Double).sqrt(),
+        };
+        // torch.nn.utils.clip_grad_norm_: scale by max_norm / (norm + 1e-6) when above (the
+        // one read of the norm that clipping needs).
+        let scale = match clip.map(|c| (c, norm.double_value(&[]))) {
+            Some((c, n)) if n > c => c / (n + 1e-6),
             _ => 1.0,
         };
         self.steps += 1;
@@ -205,7 +212,7 @@ mod tests {
         let mut theirs = nn::Adam::default().build(&vs_b, 0.01).expect("adam");
         for _ in 0..25 {
             loss(&lin_a).backward();
-            ours.step(&params, None);
+            let _ = ours.step(&params, None);
             theirs.zero_grad();
             loss(&lin_b).backward();
             theirs.step();
@@ -223,7 +230,7 @@ mod tests {
         loss(&lin).backward();
         let before = grad_norm(&params);
         let mut adam = Adam::new(&params, 0.1);
-        let reported = adam.step(&params, Some(before / 10.0));
+        let reported = adam.step(&params, Some(before / 10.0)).double_value(&[]);
         assert!((reported - before).abs() < 1e-9);
         assert_eq!(grad_norm(&params), 0.0, "gradients are zeroed after the step");
     }
@@ -235,7 +242,7 @@ mod tests {
         let params = named_parameters(&vs);
         let mut adam = Adam::new(&params, 0.01);
         loss(&lin).backward();
-        adam.step(&params, None);
+        let _ = adam.step(&params, None);
         adam.save(&params, &dir.path().join("adam.safetensors")).expect("save");
         let mut fresh = Adam::new(&params, 0.01);
         fresh.load(&params, &dir.path().join("adam.safetensors")).expect("load");

@@ -15,7 +15,9 @@
 //! are kept as separate kinds so a manifest names the exact code path its model was trained
 //! with, and each is computed the way its source writes it.
 
-use tch::{Kind, Tensor};
+use std::sync::Mutex;
+
+use tch::{Device, Kind, Tensor};
 
 use super::manifest::{MAX_TIMESTEPS, ScheduleSpec};
 use crate::error::{Error, Result};
@@ -102,6 +104,9 @@ pub struct Schedule {
     values: Vec<Vec<f64>>,
     /// float32 `[T]` on the CPU, in [`Table::ALL`] order.
     tensors: Vec<Tensor>,
+    /// The same tables on the last accelerator asked for, copied there once: gathering from
+    /// the CPU tables for a `t` on a GPU would upload a table at every coefficient.
+    on_device: Mutex<Option<(Device, Vec<Tensor>)>>,
 }
 
 impl Clone for Schedule {
@@ -111,6 +116,7 @@ impl Clone for Schedule {
             n_timesteps: self.n_timesteps,
             values: self.values.clone(),
             tensors: self.tensors.iter().map(Tensor::shallow_clone).collect(),
+            on_device: Mutex::new(None),
         }
     }
 }
@@ -219,7 +225,7 @@ impl Schedule {
                 Tensor::f_from_slice(&f)
             })
             .collect::<Result<Vec<_>, _>>()?;
-        Ok(Self { n_timesteps: t, values, tensors })
+        Ok(Self { n_timesteps: t, values, tensors, on_device: Mutex::new(None) })
     }
 
     /// T, the number of diffusion steps.
@@ -256,8 +262,10 @@ impl Schedule {
             return Err(Error::invalid(format!("t: expected shape [{b}] (one step per batch element), got {size:?}")));
         }
         if size[0] > 0 {
-            let lo = t.f_min()?.f_int64_value(&[])?;
-            let hi = t.f_max()?.f_int64_value(&[])?;
+            // One read of [min, max] from the device (each read waits for its queue).
+            let (lo, hi) = t.f_aminmax(None::<i64>, false)?;
+            let bounds = Tensor::f_stack(&[lo, hi], 0)?.f_to_device(Device::Cpu)?;
+            let (lo, hi) = (bounds.f_int64_value(&[0])?, bounds.f_int64_value(&[1])?);
             if lo < 0 || hi >= self.n_timesteps as i64 {
                 return Err(Error::invalid(format!(
                     "t: values must lie in 0..{} (T = {}), got min {lo}, max {hi}",
@@ -277,8 +285,22 @@ impl Schedule {
         }
         let mut shape = vec![1i64; x_ndim];
         shape[0] = t.size()[0];
-        let out = self.tensor(table).f_to_device(t.device())?.f_index_select(0, t)?.f_reshape(&shape)?;
-        Ok(out)
+        let device = t.device();
+        let out = if device == Device::Cpu {
+            self.tensor(table).f_index_select(0, t)?
+        } else {
+            let mut cached = self.on_device.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
+            let tables = match &mut *cached {
+                Some((d, tables)) if *d == device => tables,
+                slot => {
+                    let tables =
+                        self.tensors.iter().map(|x| super::upload(x, device)).collect::<tch::Result<Vec<_>>>()?;
+                    &mut slot.insert((device, tables)).1
+                }
+            };
+            tables[table.index()].f_index_select(0, t)?
+        };
+        Ok(out.f_reshape(&shape)?)
     }
 }
 

@@ -200,7 +200,7 @@ impl TargetPool {
         let mut target = Tensor::zeros(&shape, (Kind::Float, device));
         let mut point = Tensor::zeros(&shape, (Kind::Float, device));
         for (slots, tt, tg, pt) in &parts {
-            let idx = Tensor::from_slice(slots).to_device(device);
+            let idx = crate::engine::upload(&Tensor::from_slice(slots), device)?;
             let _ = t.index_copy_(0, &idx, tt);
             let _ = target.index_copy_(0, &idx, tg);
             let _ = point.index_copy_(0, &idx, pt);
@@ -218,7 +218,7 @@ impl TargetPool {
         let start = ((g - 1) as u128 * r as u128 % p as u128) as usize;
         let slots: Vec<i64> = (0..r).map(|j| ((start + j) % p) as i64).collect();
         let (t, target, point) = self.compute(g, None, src)?;
-        let idx = Tensor::from_slice(&slots).to_device(self.target.device());
+        let idx = crate::engine::upload(&Tensor::from_slice(&slots), self.target.device())?;
         let _ = self.t.index_copy_(0, &idx, &t);
         let _ = self.target.index_copy_(0, &idx, &target);
         let _ = self.point.index_copy_(0, &idx, &point);
@@ -237,7 +237,7 @@ impl TargetPool {
         let noise = rng.randn(&x0.size(), device);
         let (x0, t, noise) = match keep {
             Some(js) if js.len() < n => {
-                let idx = Tensor::from_slice(js).to_device(device);
+                let idx = crate::engine::upload(&Tensor::from_slice(js), device)?;
                 (x0.index_select(0, &idx), t.index_select(0, &idx), noise.index_select(0, &idx))
             }
             _ => (x0, t, noise),

@@ -235,7 +235,7 @@ fn chain_pairs(base: &DiffusionModel, expert: &DiffusionModel, k: usize, rng: &m
     for i in (1..order.len()).rev() {
         order.swap(i, rng.below(i as u64 + 1) as usize);
     }
-    let order = Tensor::from_slice(&order).to_device(x.device());
+    let order = crate::engine::upload(&Tensor::from_slice(&order), x.device())?;
     let train = n - (n / 20).max(1);
     Ok(ChainPairs {
         x: x.index_select(0, &order),
@@ -397,7 +397,7 @@ pub fn run(ctx: &mut JobContext, job: &RewardJob) -> std::result::Result<String,
                 if idx.is_empty() {
                     return Ok(None);
                 }
-                let idx = Tensor::from_slice(&idx).to_device(c.t.device());
+                let idx = crate::engine::upload(&Tensor::from_slice(&idx), c.t.device())?;
                 Ok(Some((c.t.index_select(0, &idx), c.target.index_select(0, &idx), c.x.index_select(0, &idx))))
             }
         }

@@ -126,16 +126,22 @@ impl TrainLoop {
             }
             self.step += 1;
             let loss = loss_fn(&mut self.rng)?;
+            // The whole step (backward, update, EMA) is queued before the loss and the
+            // gradient norm are read: on a GPU a read waits for the device, which would then
+            // idle while the host queues the rest. A diverged step has updated the weights,
+            // but the job fails there and nothing after its last checkpoint is kept or
+            // registered.
+            loss.backward();
+            let grad_norm = self.adam.step(&self.params, self.opt.grad_clip);
+            self.ema.after_step(&self.params, self.step);
             self.loss = loss.double_value(&[]);
+            let grad_norm = grad_norm.double_value(&[]);
             if !self.loss.is_finite() {
                 return Err(Stop::Failed(Error::FailedPrecondition(format!(
                     "training diverged at step {} (loss {}); lower spec.optimization.learning_rate or set grad_clip",
                     self.step, self.loss
                 ))));
             }
-            loss.backward();
-            let grad_norm = self.adam.step(&self.params, self.opt.grad_clip);
-            self.ema.after_step(&self.params, self.step);
             let eval_loss = if self.step.is_multiple_of(self.opt.eval_every) || self.step == self.opt.steps {
                 eval_fn()?
             } else {

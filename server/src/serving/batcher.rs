@@ -255,10 +255,11 @@ fn compute(queue: &ModelQueue, kind: BatchKind, batch: &[Pending]) -> Result<Vec
     }
     let x_host = Tensor::f_from_slice(&xs)?.f_reshape(&shape)?;
     let t = Tensor::f_from_slice(&ts)?;
-    // On a GPU (`engine.device`): one copy of the whole batch there and one of each result
-    // back, never one per query. On the CPU both moves are no-ops.
+    // On a GPU (`engine.device`): one copy of the whole batch there (pinned, asynchronous:
+    // `engine::upload`) and one of each result back, never one per query. On the CPU both
+    // moves are no-ops.
     let device = crate::engine::device();
-    let (x, t) = (x_host.f_to_device(device)?, t.f_to_device(device)?);
+    let (x, t) = (crate::engine::upload(&x_host, device)?, crate::engine::upload(&t, device)?);
     let model = queue.model.lock();
     match kind {
         BatchKind::Score { per_window, per_step } => {
