@@ -111,9 +111,11 @@ soak: build
 ## halfcheetah, walker2d) from the committed ARS policy and planners under experiments/locomotion:
 ## the data sets by deterministic rollouts, then the reward, the discriminator and every arm
 ## (experiments/locomotion/steer.py; STEER_ARGS adds its flags, e.g. --full). Writes steer-out/.
-## Defaults: guidance on the posterior mean; omega swept over {0.3, 1, 3} at t_stopgrad 0, then
-## t_stopgrad 2 at the best omega, one episode per setting on seed 10000 (never a reported seed);
-## 5 episodes per arm on seeds 0..4. Results: docs/results.md ("Locomotion steering").
+## Defaults: the reward's loss weighted on the executed action (10) and not on the inpainted
+## state (0); each guided arm sweeps both guidance rules (posterior mean, x_t) and omega over
+## {0.3, 1, 3} at t_stopgrad 0, then t_stopgrad 2 at the best, three episodes per setting on
+## seeds 10000..10002 (never a reported seed); 5 episodes per arm on seeds 0..4.
+## Results: docs/results.md ("Locomotion steering").
 ENV ?= hopper
 STEER_ARGS ?=
 steer: build

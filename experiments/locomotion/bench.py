@@ -61,7 +61,9 @@ def main() -> None:
     a = p.parse_args()
     torch.set_num_threads(1)
     res = json.loads((a.work / f"{a.env}-results.json").read_text())
-    names, omega, ts = res["names"], res["omega"], res["t_stopgrad"]
+    # The reward arm's rule as steer.py chose or was told it ("mean" in results from before it
+    # was recorded).
+    names, omega, ts, rule = res["names"], res["omega"], res["t_stopgrad"], res.get("guide_at", "mean")
     net = torch_reward(a.work / "server-data", names["reward"])
 
     def torch_source(model):
@@ -86,10 +88,10 @@ def main() -> None:
         g_pt = torch_source(None)[0](x, 5)
         agree = float(np.abs(g_srv - g_pt).max() / (np.abs(g_pt).max() + 1e-12))
         seeds = range(a.seed_base, a.seed_base + a.episodes)
-        out = dict(env=a.env, omega=omega, t_stopgrad=ts, gradient_max_rel_diff=agree)
+        out = dict(env=a.env, guide_at=rule, omega=omega, t_stopgrad=ts, gradient_max_rel_diff=agree)
         for k in (int(v) for v in a.batch_episodes.split(",")):
             cfg = Config(env=a.env, data=Path("."), planners=a.planners, work=a.work, max_steps=a.max_steps,
-                         batch_episodes=k, log=lambda s: print(s, flush=True))
+                         batch_episodes=k, guide_at=rule, log=lambda s: print(s, flush=True))
             for label, src in (("service", None), ("pytorch", torch_source)):
                 eps = run_arm("reward", "external", seeds, planner, client, names, cfg, omega, ts, grad_source=src)
                 steps = sum(e["length"] for e in eps)

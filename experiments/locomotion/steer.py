@@ -14,10 +14,11 @@ Arms (n plans per env step, the first action of the chosen plan executed, then r
   unsteered       no guidance, the first plan
   reward          guidance by grad rho, the plan with the highest rho
   discriminator   guidance by the discriminator's logit gradient, the plan it scores highest
-Guidance enters the external planner's step on the posterior mean by default (`--guide-at
-mean`; planner.sample says why), or on x_t as in Diffuser (`--guide-at x_t`), or by whichever of
-the two the sweep seeds favour for that arm (`--guide-at sweep`); the server-side mode's `Sample`
-always guides x_t.
+Guidance enters the external planner's step by whichever rule the sweep seeds favour for that
+arm (`--guide-at sweep`, the default): on the posterior mean (`--guide-at mean`; planner.sample
+says why) or on x_t as in Diffuser (`--guide-at x_t`); the server-side mode's `Sample` always
+guides x_t. The reward is trained with the first action weighted 10 and the inpainted first
+observation 0 (`--reward-action-weight`, `--reward-condition-weight`; Config says why).
   select-reward   no guidance (omega 0), the plan with the highest rho
   select-disc     no guidance, the plan the discriminator scores highest
 Seeds: episode k of every arm uses env seed `seed_base + k` and the same planner noise, so
@@ -97,7 +98,9 @@ class Config:
     episodes: int = 5
     seed_base: int = 0
     sweep_seed_base: int = 10_000
-    sweep_episodes: int = 1
+    # Episodes per sweep setting (in lockstep, so about the cost of one): a single episode's
+    # return moves more between seeds than most settings differ, so one seed picks by noise.
+    sweep_episodes: int = 3
     max_steps: int = 1000
     n_plans: int = 16
     widths: tuple = (32, 64, 128)
@@ -108,10 +111,9 @@ class Config:
     # policy) and its state entries hardly on the action, which no gradient can fit at once
     # (diagnose.py's target_asymmetry); 10 and 0 move the unavoidable error off the executed
     # action and onto the inpainted state, where the planner discards it (docs/results.md:
-    # Hopper +31 instead of +0.4, Walker2d +0.55 (not significant), HalfCheetah no gain). The
-    # default stays the paper's unweighted loss, 1 and 1, until all three are rerun under it.
-    reward_action_weight: float = 1.0
-    reward_condition_weight: float = 1.0
+    # Hopper +31 instead of +0.4). 1 and 1 are the paper's unweighted loss.
+    reward_action_weight: float = 10.0
+    reward_condition_weight: float = 0.0
     batch_size: int = 128
     # The sweep: omega over `omegas` at t_stopgrads[0], then the other t_stopgrads at the best
     # omega (coordinate-wise: 3 + 1 settings per guided arm). With guidance on the mean, omega 1
@@ -125,10 +127,11 @@ class Config:
     disc_omega: float | None = None
     disc_t_stopgrad: int | None = None
     # How the external planner applies grad rho (planner.sample): "mean" (on the posterior
-    # mean, the default since diagnose.py showed Diffuser's "x_t" rule barely moves this
-    # planner's executed action), "x_t" (Diffuser's, the server's Sample, the paper's runs), or
-    # "sweep": both rules in each guided arm's sweep, the arm then using the one it chose.
-    guide_at: str = "mean"
+    # mean), "x_t" (Diffuser's, the server's Sample, the paper's runs), or "sweep" (the
+    # default): both rules in each guided arm's sweep, the arm then using the one it chose;
+    # which rule steers further differed between environments and between reward and
+    # discriminator (docs/results.md).
+    guide_at: str = "sweep"
     arms: tuple = ARMS
     server_mode_episodes: int = 1
     # Episodes of an arm planned together in lockstep (0: all of them; 1: one at a time).
@@ -452,16 +455,17 @@ def main() -> None:
     p.add_argument("--episodes", type=int, default=5,
                    help="per arm; Hopper's returns vary little across seeds (docs/results.md)")
     p.add_argument("--seed-base", type=int, default=0)
-    p.add_argument("--sweep-episodes", type=int, default=1)
+    p.add_argument("--sweep-episodes", type=int, default=3,
+                   help="episodes per sweep setting, on seeds 10000.. (in lockstep)")
     p.add_argument("--max-steps", type=int, default=1000)
     p.add_argument("--n-plans", type=int, default=16)
     p.add_argument("--reward-steps", type=int, default=1500)
     p.add_argument("--disc-steps", type=int, default=1500)
-    p.add_argument("--reward-action-weight", type=float, default=1.0,
-                   help="the reward's loss weight on the first action (default 1, the paper's; e.g. 10)")
-    p.add_argument("--reward-condition-weight", type=float, default=1.0,
+    p.add_argument("--reward-action-weight", type=float, default=10.0,
+                   help="the reward's loss weight on the first action (default 10; 1 is the paper's)")
+    p.add_argument("--reward-condition-weight", type=float, default=0.0,
                    help="the reward's loss weight on the first observation, which the planner inpaints "
-                        "(default 1, the paper's; 0 leaves grad rho there free)")
+                        "(default 0: grad rho there is free; 1 is the paper's)")
     p.add_argument("--omegas", default="0.3,1.0,3.0", help="the sweep's omegas (at the first t_stopgrad)")
     p.add_argument("--t-stopgrads", default="0,2",
                    help="the sweep's t_stopgrads: the first during the omega sweep, the rest then at the best omega")
@@ -469,10 +473,10 @@ def main() -> None:
     p.add_argument("--t-stopgrad", type=int)
     p.add_argument("--disc-omega", type=float)
     p.add_argument("--disc-t-stopgrad", type=int)
-    p.add_argument("--guide-at", default="mean", choices=GUIDE_AT + ("sweep",),
-                   help="external planner: guidance on the posterior mean (default) or on x_t before the "
+    p.add_argument("--guide-at", default="sweep", choices=GUIDE_AT + ("sweep",),
+                   help="external planner: guidance on the posterior mean or on x_t before the "
                         "denoiser (Diffuser's rule, which the server-side Sample mode always uses), or "
-                        "'sweep': each guided arm's sweep tries both and the arm uses the one it chose")
+                        "'sweep' (default): each guided arm's sweep tries both and the arm uses the one it chose")
     p.add_argument("--server-mode-episodes", type=int, default=1,
                    help="episodes of the unsteered and reward arms through the Sample RPC")
     p.add_argument("--batch-episodes", type=int, default=0,
