@@ -64,8 +64,9 @@ pub fn device() -> Device {
 /// the stream first, so each of a training step's small uploads (noise, timesteps, batch
 /// indices, schedule coefficients) would drain the GPU's queue and leave it idle while the
 /// next kernels are launched. The copy is staged in pinned memory and made asynchronously;
-/// libtorch's host allocator keeps the staging block until the copy has run. On the CPU, and
-/// for a tensor already there, nothing is copied.
+/// libtorch's host allocator keeps the staging block until the copy has run. Where pinning is
+/// refused (pinned memory exhausted), a plain copy does. On the CPU, and for a tensor already
+/// there, nothing is copied.
 pub fn upload(t: &tch::Tensor, device: Device) -> tch::Result<tch::Tensor> {
     if t.device() == device {
         return Ok(t.shallow_clone());
@@ -76,7 +77,10 @@ pub fn upload(t: &tch::Tensor, device: Device) -> tch::Result<tch::Tensor> {
             // libtorch deprecates with a warning at every call; `_pin_memory` is the same
             // copy into the pinned allocator without that warning (the tensor is a fresh host
             // tensor, never already pinned).
-            t.f_internal_pin_memory(device)?.f_to_device_(device, t.f_kind()?, true, false)
+            match t.f_internal_pin_memory(device) {
+                Ok(pinned) => pinned.f_to_device_(device, t.f_kind()?, true, false),
+                Err(_) => t.f_to_device(device),
+            }
         }
         _ => t.f_to_device(device),
     }

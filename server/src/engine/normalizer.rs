@@ -94,9 +94,9 @@ impl Normalizer {
         let keep = size.len().saturating_sub(item_dims);
         let mut shape: Vec<i64> = vec![1; keep];
         shape.extend_from_slice(&size[keep..]);
-        let v = Tensor::from_slice(v).to_kind(Kind::Float);
-        // Where pinned staging is refused (pinned memory exhausted), a plain copy does.
-        super::upload(&v, x.device()).unwrap_or_else(|_| v.to_device(x.device())).reshape(&shape)
+        super::upload(&Tensor::from_slice(v).to_kind(Kind::Float), x.device())
+            .expect("a float32 upload")
+            .reshape(&shape)
     }
 
     /// Raw → normalized. Differentiable (so gradients can be chained through it).
