@@ -7,6 +7,8 @@
 //! whole state is one `u64`, so a training checkpoint can store it and a resumed job continues
 //! the exact stream.
 
+use std::sync::OnceLock;
+
 use serde::{Deserialize, Serialize};
 use tch::{Device, Tensor};
 
@@ -21,6 +23,12 @@ const GAMMA: u64 = 0x9E37_79B9_7F4A_7C15;
 
 /// Below this many values a fill stays on the calling thread (starting threads costs more).
 const PARALLEL_FILL: usize = 1 << 16;
+
+/// The machine's cores, read once (the standard library re-reads the cgroup limits per call).
+fn cores() -> usize {
+    static CORES: OnceLock<usize> = OnceLock::new();
+    *CORES.get_or_init(|| std::thread::available_parallelism().map_or(1, usize::from))
+}
 
 impl Rng {
     pub fn new(seed: u64) -> Self {
@@ -54,23 +62,28 @@ impl Rng {
     /// at the paper's maze size (393k values) took about 8 ms on one core, time in which a
     /// GPU would sit idle every step.
     pub fn fill_normal(&mut self, out: &mut [f32]) {
-        let pairs = out.len().div_ceil(2);
-        let threads = std::thread::available_parallelism().map_or(1, usize::from).min(out.len() / PARALLEL_FILL);
-        if threads > 1 {
-            // Parts of an even length, so that every part but the last holds whole pairs.
-            let part = out.len().div_ceil(threads).next_multiple_of(2);
-            let start = self.state;
-            std::thread::scope(|s| {
-                for (i, chunk) in out.chunks_mut(part).enumerate() {
-                    let skip = (i * part) as u64;
-                    let mut rng = Rng::new(start.wrapping_add(skip.wrapping_mul(GAMMA)));
-                    s.spawn(move || rng.fill_normal_here(chunk));
-                }
-            });
-            self.state = start.wrapping_add((2 * pairs as u64).wrapping_mul(GAMMA));
-        } else {
-            self.fill_normal_here(out);
+        // Short fills (every sampling step's noise) never ask how many cores there are.
+        let threads = if out.len() < 2 * PARALLEL_FILL { 1 } else { cores().min(out.len() / PARALLEL_FILL) };
+        self.fill_normal_split(out, threads);
+    }
+
+    /// [`Self::fill_normal`] in `threads` parts (one part: on this thread).
+    fn fill_normal_split(&mut self, out: &mut [f32], threads: usize) {
+        if threads <= 1 || out.len() < 2 {
+            return self.fill_normal_here(out);
         }
+        // Parts of an even length, so that every part but the last holds whole pairs.
+        let part = out.len().div_ceil(threads).next_multiple_of(2);
+        let start = self.state;
+        let pairs = out.len().div_ceil(2);
+        std::thread::scope(|s| {
+            for (i, chunk) in out.chunks_mut(part).enumerate() {
+                let skip = (i * part) as u64;
+                let mut rng = Rng::new(start.wrapping_add(skip.wrapping_mul(GAMMA)));
+                s.spawn(move || rng.fill_normal_here(chunk));
+            }
+        });
+        self.state = start.wrapping_add((2 * pairs as u64).wrapping_mul(GAMMA));
     }
 
     fn fill_normal_here(&mut self, out: &mut [f32]) {
@@ -141,14 +154,22 @@ mod tests {
 
     #[test]
     fn a_fill_split_among_threads_is_the_one_thread_fill() {
-        for n in [300_001usize, 262_144, 131_073] {
+        // Any number of parts, odd and even lengths, a part shorter than a pair: the same values
+        // and the same state afterwards as one thread, whatever this machine's core count.
+        for (n, threads) in [(1001usize, 2usize), (1000, 3), (7, 5), (2, 4), (300_001, 4)] {
             let (mut split, mut one) = (Rng::new(11), Rng::new(11));
             let (mut a, mut b) = (vec![0f32; n], vec![0f32; n]);
-            split.fill_normal(&mut a);
+            split.fill_normal_split(&mut a, threads);
             one.fill_normal_here(&mut b);
-            assert!(a == b, "n = {n}: values differ");
-            assert_eq!(split, one, "n = {n}: state after the fill");
+            assert!(a == b, "n = {n}, {threads} parts: values differ");
+            assert_eq!(split, one, "n = {n}, {threads} parts: state after the fill");
         }
+        // And through the public entry point, whichever split it picks here.
+        let (mut split, mut one) = (Rng::new(5), Rng::new(5));
+        let (mut a, mut b) = (vec![0f32; 262_145], vec![0f32; 262_145]);
+        split.fill_normal(&mut a);
+        one.fill_normal_here(&mut b);
+        assert!(a == b && split == one);
     }
 
     #[test]
