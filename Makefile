@@ -44,13 +44,19 @@ setup: $(SETUP_STAMP) $(PY_CLIENT_STAMP)
 $(SETUP_STAMP): $(REQUIREMENTS)
 	@command -v $(CARGO) >/dev/null || { echo "cargo not found: install the Rust toolchain (rustup)"; exit 1; }
 	@test -x $(VENV)/bin/python || $(PYTHON) -m venv $(VENV)
-	$(VENV)/bin/python -m pip install --quiet --disable-pip-version-check -r $(REQUIREMENTS)
+	@# The venv takes about 6 GB and a release target/ about 5 GB. Say so before pip runs out of
+	@# room half-way (its error names neither).
+	@free_kb=$$(df -Pk . | awk 'NR == 2 { print $$4 }'); \
+	  if [[ $$free_kb -lt $$((12 * 1024 * 1024)) ]]; then \
+	    echo "warning: $$((free_kb / 1024 / 1024)) GB free here; .venv needs about 6 GB and target/ about 5 GB"; fi
+	@# --no-cache-dir: a second copy of the 3 GB of wheels in ~/.cache would only raise the peak.
+	$(VENV)/bin/python -m pip install --quiet --disable-pip-version-check --no-cache-dir -r $(REQUIREMENTS)
 	@# A version-independent path to the torch package, used as LIBTORCH by .cargo/config.toml.
 	ln -sfn "$$($(VENV)/bin/python -c 'import os, torch; print(os.path.dirname(torch.__file__))')" $(VENV)/torch-root
 	@touch $@
 
 $(PY_CLIENT_STAMP): $(SETUP_STAMP) $(PY_CLIENT_SOURCES)
-	$(VENV)/bin/python -m pip install --quiet --disable-pip-version-check --no-build-isolation --no-deps \
+	$(VENV)/bin/python -m pip install --quiet --disable-pip-version-check --no-cache-dir --no-build-isolation --no-deps \
 	  --force-reinstall ./client/python
 	@touch $@
 

@@ -25,7 +25,7 @@ if [[ ! -x $VENV/bin/python ]]; then
 fi
 stamp="$VENV/.deploy-tools-$(sha256sum "$REQUIREMENTS" | cut -d' ' -f1)"
 if [[ ! -e $stamp ]]; then
-    "$VENV/bin/python" -m pip install --quiet --disable-pip-version-check -r "$REQUIREMENTS" || exit 1
+    "$VENV/bin/python" -m pip install --quiet --disable-pip-version-check --no-cache-dir -r "$REQUIREMENTS" || exit 1
     rm -f "$VENV"/.deploy-tools-*
     touch "$stamp"
 fi
