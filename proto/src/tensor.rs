@@ -20,6 +20,12 @@ pub enum CodecError {
     WrongDType { expected: &'static str, actual: &'static str },
     #[error("value at flat index {index} is not finite ({value})")]
     NotFinite { index: u64, value: f64 },
+    #[error(
+        "value at flat index {index} ({value:e}) is outside float32's range (about 3.4e38), the precision models compute in"
+    )]
+    OutOfF32Range { index: u64, value: f64 },
+    #[error("bool byte at flat index {index} is {value}; a bool is one byte, 0 or 1")]
+    NotBool { index: u64, value: u8 },
 }
 
 /// Size in bytes of one element, or `None` for `DTYPE_UNSPECIFIED`.
@@ -92,6 +98,11 @@ pub fn validate(t: &Tensor) -> Result<Dtype, CodecError> {
     if expected != actual {
         return Err(CodecError::ByteCount { shape: t.shape.clone(), dtype: dtype_name(dtype), expected, actual });
     }
+    if dtype == Dtype::Bool
+        && let Some(index) = t.data.iter().position(|&b| b > 1)
+    {
+        return Err(CodecError::NotBool { index: index as u64, value: t.data[index] });
+    }
     Ok(dtype)
 }
 
@@ -149,12 +160,14 @@ pub fn decode_finite_f32(t: &Tensor) -> Result<Vec<f32>, CodecError> {
     let mut out = Vec::with_capacity(t.data.len() / 4);
     let mut bad = None;
     for_each_float(t, |v| {
-        if bad.is_none() && !v.is_finite() {
+        // A finite float64 beyond float32's range would become an infinity here.
+        if bad.is_none() && !(v as f32).is_finite() {
             bad = Some((out.len() as u64, v));
         }
         out.push(v as f32);
     })?;
     match bad {
+        Some((index, value)) if value.is_finite() => Err(CodecError::OutOfF32Range { index, value }),
         Some((index, value)) => Err(CodecError::NotFinite { index, value }),
         None => Ok(out),
     }
@@ -171,6 +184,23 @@ pub fn decode_flags(t: &Tensor) -> Result<Vec<bool>, CodecError> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_float64_beyond_float32_is_named_as_such() {
+        let e = decode_finite_f32(&encode_f64(&[2], &[1.0, 1e300])).expect_err("1e300");
+        assert!(e.to_string().contains("index 1 (1e300) is outside float32's range"), "{e}");
+        let e = decode_finite_f32(&encode_f64(&[1], &[f64::NAN])).expect_err("nan");
+        assert!(e.to_string().contains("not finite"), "{e}");
+    }
+
+    #[test]
+    fn a_bool_byte_other_than_0_or_1_is_refused() {
+        let t = Tensor { shape: vec![3], dtype: Dtype::Bool as i32, data: vec![0, 1, 7] };
+        let e = validate(&t).expect_err("byte 7");
+        assert!(e.to_string().contains("index 2 is 7"), "{e}");
+        let ok = Tensor { shape: vec![3], dtype: Dtype::Uint8 as i32, data: vec![0, 1, 7] };
+        assert_eq!(validate(&ok).expect("uint8 takes any byte"), Dtype::Uint8);
+    }
 
     #[test]
     fn f32_round_trip_preserves_bits() {

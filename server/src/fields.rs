@@ -48,14 +48,26 @@ pub fn known<E: TryFrom<i32>>(field: &str, raw: i32, expected: &str) -> Result<E
     E::try_from(raw).map_err(|_| Error::invalid(format!("{field}: unknown value {raw}; expected {expected}")))
 }
 
-/// The page token of a listing in name order: empty (the first page) or the last name of the
-/// previous page, which is a valid name; `list` names the call it must come from.
+/// Prefix of the page tokens of listings in name order: a bare name (what a token would be
+/// without it) is refused, so only a token a List call handed out is taken back.
+const NAME_TOKEN_PREFIX: &str = "after:";
+
+/// The page token of a listing in name order: empty (the first page) or what
+/// [`next_name_token`] made of the last name of the previous page; `list` names the call it
+/// must come from. Returns the name to list after ("" for the first page).
 pub fn name_page_token<'a>(token: &'a str, list: &str) -> Result<&'a str> {
-    if token.is_empty() || validate_name("page.page_token", token).is_ok() {
-        Ok(token)
-    } else {
-        Err(Error::invalid(format!("page.page_token: {} is not a token from {list}", quote(token))))
+    if token.is_empty() {
+        return Ok(token);
     }
+    match token.strip_prefix(NAME_TOKEN_PREFIX) {
+        Some(name) if validate_name("page.page_token", name).is_ok() => Ok(name),
+        _ => Err(Error::invalid(format!("page.page_token: {} is not a token from {list}", quote(token)))),
+    }
+}
+
+/// The next page's token of a listing in name order, after `last_name`.
+pub fn next_name_token(last_name: &str) -> String {
+    format!("{NAME_TOKEN_PREFIX}{last_name}")
 }
 
 /// The page token of a listing by position: empty (0, the first page) or a non-negative
@@ -115,7 +127,10 @@ mod tests {
         let e = known::<relreward_proto::v1::Units>("input_units", 99, "UNITS_RAW or UNITS_NORMALIZED").unwrap_err();
         assert!(e.to_string().starts_with("input_units: unknown value 99"), "{e}");
         assert_eq!(name_page_token("", "ListModels").expect("empty"), "");
-        assert_eq!(name_page_token("m-1", "ListModels").expect("a name"), "m-1");
+        assert_eq!(name_page_token(&next_name_token("m-1"), "ListModels").expect("a token"), "m-1");
+        for bare in ["m-1", "after:", "after:Bad"] {
+            assert!(name_page_token(bare, "ListModels").is_err(), "{bare}");
+        }
         assert!(name_page_token("!!garbage", "ListModels").unwrap_err().to_string().contains("ListModels"));
         assert_eq!(position_page_token("", "ListJobs").expect("empty"), 0);
         assert_eq!(position_page_token("17", "ListJobs").expect("position"), 17);

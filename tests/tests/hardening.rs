@@ -360,7 +360,8 @@ async fn each_kind_of_field_has_one_rule_on_every_rpc() {
     let page = |token: &str| Some(pb::PageRequest { page_size: 1, page_token: token.into() });
 
     // Page tokens: only what a List call returned.
-    for token in ["!!garbage", "-1", "../x", "\u{1f600}"] {
+    // A bare name is not a token either (the calls hand out "after:<name>").
+    for token in ["!!garbage", "-1", "../x", "\u{1f600}", "a", "after:", "after:../x"] {
         let s = client
             .models()
             .list_models(pb::ListModelsRequest { page: page(token), kind: 0 })
@@ -507,4 +508,114 @@ async fn sample_error(client: &relreward_client::Client, request: pb::SampleRequ
         Err(s) => s,
         Ok(r) => r.into_inner().message().await.expect_err("the sample request must be refused"),
     }
+}
+
+/// Sample's condition states, guide steps and wire floats, and the training jobs' fields that
+/// were once only checked after the job was accepted (or checked under another field's name).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn conditions_guide_steps_and_job_fields_are_refused_at_the_door_by_their_own_names() {
+    let server = TestServer::start();
+    let dir = tempfile::tempdir().expect("tmp");
+    let m = train_tiny_reward(&server, dir.path());
+    let client = server.client().await;
+    let obs = |values: &[f32], shape: &[u64]| Some(tensor::encode_f32(shape, values));
+    let sample = |conditions: Vec<pb::Condition>| pb::SampleRequest {
+        model: m.base.clone(),
+        n: 1,
+        seed: Some(1),
+        conditions,
+        ..Default::default()
+    };
+    // One observation has shape [obs_dim] (2 here): [2, 1] holds two values but is not one.
+    let s = sample_error(&client, sample(vec![pb::Condition { index: 0, state: obs(&[0.1, 0.2], &[2, 1]) }])).await;
+    assert_refused(&s, Code::InvalidArgument, "conditions[0].state: shape [2, 1]");
+    // One condition per index.
+    let twice = vec![
+        pb::Condition { index: 1, state: obs(&[0.1, 0.2], &[2]) },
+        pb::Condition { index: 1, state: obs(&[0.3, 0.4], &[2]) },
+    ];
+    let s = sample_error(&client, sample(twice)).await;
+    assert_refused(&s, Code::InvalidArgument, "conditions[1].index: 1 is already fixed by conditions[0]");
+    // A state far outside the data is refused like Score's x (it made Inf samples).
+    for value in [3.4e38f32, 1e30, -1e9] {
+        let s = sample_error(&client, sample(vec![pb::Condition { index: 0, state: obs(&[value, 0.0], &[2]) }])).await;
+        assert_refused(&s, Code::InvalidArgument, "conditions[0].state: element 0");
+    }
+    // In range, the samples come back finite.
+    let mut ok = client
+        .rewards()
+        .sample(sample(vec![pb::Condition { index: 0, state: obs(&[0.5, -0.5], &[2]) }]))
+        .await
+        .expect("sample")
+        .into_inner();
+    let first = ok.message().await.expect("stream").expect("one sample");
+    tensor::decode_finite_f32(&first.x.expect("x")).expect("finite");
+    // Zero guide steps with omega != 0 would sample unguided without saying so.
+    let s = sample_error(
+        &client,
+        pb::SampleRequest {
+            model: m.base.clone(),
+            reward_model: m.reward.clone(),
+            omega: 0.1,
+            n_guide_steps: Some(0),
+            ..Default::default()
+        },
+    )
+    .await;
+    assert_refused(&s, Code::InvalidArgument, "n_guide_steps: 0");
+    // A finite float64 that float32 cannot hold is named as such, not as "not finite (inf)".
+    let (h, d) = (m.horizon as u64, m.transition_dim as u64);
+    let mut values = vec![0.0f64; (h * d) as usize];
+    values[3] = 1e300;
+    let s = client
+        .rewards()
+        .score(pb::ScoreRequest {
+            model: m.reward.clone(),
+            x: Some(tensor::encode_f64(&[1, h, d], &values)),
+            ..Default::default()
+        })
+        .await
+        .expect_err("1e300");
+    assert_refused(&s, Code::InvalidArgument, "x: element 3 (1e300) is outside float32's range");
+
+    // Diffusion jobs: the network is planned at submission, and errors name the job's fields.
+    let submit = |spec: pb::JobSpec| pb::SubmitJobRequest { spec: Some(spec), job_id: String::new() };
+    let diffusion = |set: &dyn Fn(&mut pb::TrainDiffusion)| {
+        let mut spec = relreward_tests::tiny_diffusion_spec(&m.dataset, "out", 0, pb::Optimization::default());
+        if let Some(pb::job_spec::Kind::Diffusion(d)) = spec.kind.as_mut() {
+            set(d);
+        }
+        submit(spec)
+    };
+    let mlp = |hidden: Vec<u32>| Some(pb::train_diffusion::Architecture::Mlp(pb::Mlp { hidden }));
+    for (set, field) in [
+        (
+            Box::new(|d: &mut pb::TrainDiffusion| d.architecture = mlp(vec![100_000, 100_000]))
+                as Box<dyn Fn(&mut pb::TrainDiffusion)>,
+            "spec.diffusion.mlp",
+        ),
+        (Box::new(|d: &mut pb::TrainDiffusion| d.architecture = mlp(vec![1 << 31])), "spec.diffusion.mlp"),
+        (Box::new(|d: &mut pb::TrainDiffusion| d.n_timesteps = Some(0)), "spec.diffusion.n_timesteps"),
+        (Box::new(|d: &mut pb::TrainDiffusion| d.pooled_normalizer = Some(true)), "spec.diffusion.pooled_normalizer"),
+    ] {
+        let s = client.jobs().submit_job(diffusion(&*set)).await.expect_err(field);
+        assert_refused(&s, Code::InvalidArgument, field);
+    }
+    // Discriminator jobs: its own field names, not the reward job's it is checked as.
+    let discriminator = |base: &str, expert: &str| {
+        submit(pb::JobSpec {
+            output_model: "disc".into(),
+            kind: Some(pb::job_spec::Kind::Discriminator(pb::TrainDiscriminator {
+                base_dataset: base.into(),
+                expert_dataset: expert.into(),
+                diffusion_model: m.base.clone(),
+                ..Default::default()
+            })),
+            ..Default::default()
+        })
+    };
+    let s = client.jobs().submit_job(discriminator("nope", &m.dataset)).await.expect_err("base");
+    assert_refused(&s, Code::NotFound, "spec.discriminator.base_dataset:");
+    let s = client.jobs().submit_job(discriminator(&m.dataset, "nope")).await.expect_err("expert");
+    assert_refused(&s, Code::NotFound, "spec.discriminator.expert_dataset:");
 }

@@ -164,7 +164,7 @@ async fn upload_get_list_delete_and_restart() {
         .await
         .expect("page 1")
         .into_inner();
-    assert_eq!((first.models.len(), first.next_page_token.as_str()), (1, "a-linear"));
+    assert_eq!((first.models.len(), first.next_page_token.as_str()), (1, "after:a-linear"));
     let second = client
         .models()
         .list_models(pb::ListModelsRequest {

@@ -138,7 +138,7 @@ impl DatasetService for Datasets {
         let mut records = self.store.meta.list_datasets(after, limit + 1).await?;
         let next_page_token = if records.len() > limit {
             records.truncate(limit);
-            records.last().map(|r| r.name.clone()).unwrap_or_default()
+            records.last().map(|r| fields::next_name_token(&r.name)).unwrap_or_default()
         } else {
             String::new()
         };

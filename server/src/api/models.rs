@@ -229,7 +229,7 @@ impl Models {
         }
         let next_page_token = if matched.len() > limit {
             matched.truncate(limit);
-            matched.last().map(|r| r.name.clone()).unwrap_or_default()
+            matched.last().map(|r| fields::next_name_token(&r.name)).unwrap_or_default()
         } else {
             String::new()
         };

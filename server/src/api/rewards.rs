@@ -60,7 +60,21 @@ fn decode_x(field: &str, x: Option<&pb::Tensor>) -> Result<(Vec<i64>, Vec<f32>)>
     let x = x.ok_or_else(|| Error::invalid(format!("{field}: missing")))?;
     // Sized for float32 (float64 needs half): one allocation per request, not a doubling series.
     let mut values = Vec::with_capacity(x.data.len() / 4);
-    tensor::for_each_float(x, |v| values.push(v as f32)).map_err(|e| Error::invalid(format!("{field}: {e}")))?;
+    // NaN and infinities are refused later with their element (serving::prepare); a finite
+    // float64 that float32 cannot hold is refused here, before it becomes an infinity.
+    let mut overflow = None;
+    tensor::for_each_float(x, |v| {
+        if overflow.is_none() && v.is_finite() && !(v as f32).is_finite() {
+            overflow = Some((values.len(), v));
+        }
+        values.push(v as f32);
+    })
+    .map_err(|e| Error::invalid(format!("{field}: {e}")))?;
+    if let Some((i, v)) = overflow {
+        return Err(Error::invalid(format!(
+            "{field}: element {i} ({v:e}) is outside float32's range (about 3.4e38), the precision models compute in"
+        )));
+    }
     let shape = x
         .shape
         .iter()
@@ -154,6 +168,13 @@ fn plan(
     if n_guide_steps > MAX_GUIDE_STEPS {
         return Err(Error::invalid(format!("n_guide_steps: {n_guide_steps} is above the limit of {MAX_GUIDE_STEPS}")));
     }
+    // Zero guide steps would silently sample unguided while the caller asked for omega != 0.
+    if n_guide_steps == 0 && req.omega != 0.0 {
+        return Err(Error::invalid(format!(
+            "n_guide_steps: 0 guides nothing, but omega is {}; omit n_guide_steps (1) or set omega to 0 for unguided sampling",
+            req.omega
+        )));
+    }
     let n = if req.n == 0 { 1 } else { req.n };
     if n > MAX_SAMPLES {
         return Err(Error::invalid(format!("n: {n} is above the limit of {MAX_SAMPLES}")));
@@ -179,17 +200,24 @@ fn plan(
                 c.index
             )));
         }
-        let state = c.state.as_ref().ok_or_else(|| Error::invalid(format!("conditions[{i}].state: missing")))?;
-        let values =
-            tensor::decode_finite_f32(state).map_err(|e| Error::invalid(format!("conditions[{i}].state: {e}")))?;
-        if values.len() != *obs_dim {
+        if let Some((j, _)) = conditions.iter().enumerate().find(|(_, (index, _))| *index == c.index as usize) {
             return Err(Error::invalid(format!(
-                "conditions[{i}].state: {} values (shape {}) but the model's obs_dim is {obs_dim}",
-                values.len(),
+                "conditions[{i}].index: {} is already fixed by conditions[{j}]; give each index once",
+                c.index
+            )));
+        }
+        let state = c.state.as_ref().ok_or_else(|| Error::invalid(format!("conditions[{i}].state: missing")))?;
+        if state.shape != [*obs_dim as u64] {
+            return Err(Error::invalid(format!(
+                "conditions[{i}].state: shape {} but one observation of the model has shape [{obs_dim}]",
                 brief(&state.shape)
             )));
         }
+        let values =
+            tensor::decode_finite_f32(state).map_err(|e| Error::invalid(format!("conditions[{i}].state: {e}")))?;
         let values = if units == Units::Normalized { values } else { normalize_obs(&values) };
+        // As Score's inputs: a state far outside the data overflows the model (Inf samples).
+        serving::check_normalized_range(&format!("conditions[{i}].state"), &values, units)?;
         conditions.push((c.index as usize, values));
     }
     let seed = req.seed.unwrap_or_else(|| {
@@ -395,6 +423,7 @@ impl RewardService for Rewards {
         };
         let reward = guiding_reward(&self.registry, &req, &space, n_timesteps, &normalizer).await?;
         let scale_grad_by_std = req.scale_grad_by_std;
+        let req_model = req.model.clone();
         let permit = Arc::clone(&self.slots)
             .acquire_owned()
             .await
@@ -437,13 +466,21 @@ impl RewardService for Rewards {
                     };
                     let sampled = sampler.sample_with(b, &mut rng, &mut stop_if_gone)?;
                     if !bool::try_from(sampled.x.f_isfinite()?.f_all()?).unwrap_or(false) {
-                        // Guidance too strong for the model (or a model that diverges): refuse
-                        // rather than send Inf or NaN.
-                        return Err(Error::invalid(format!(
-                            "omega: the samples of batch {} are not finite with omega = {}; lower omega or n_guide_steps",
-                            done / plan.batch,
-                            plan.omega
-                        )));
+                        // Refused rather than sent as Inf or NaN. With guidance acting, omega is
+                        // the likely cause; without it, the model itself diverged.
+                        return Err(if per_call.is_some() && plan.omega != 0.0 {
+                            Error::invalid(format!(
+                                "omega: the samples of batch {} are not finite with omega = {}; lower omega or n_guide_steps",
+                                done / plan.batch,
+                                plan.omega
+                            ))
+                        } else {
+                            Error::FailedPrecondition(format!(
+                                "model '{}': its unguided samples of batch {} are not finite (the model's outputs overflow or are NaN at these inputs)",
+                                req_model,
+                                done / plan.batch
+                            ))
+                        });
                     }
                     let rewards = match &per_call {
                         Some(r) => {
@@ -460,6 +497,12 @@ impl RewardService for Rewards {
                     // One copy of the batch to the host (a no-op on the CPU), then per-item views.
                     let x_host = sampled.x.to_device(tch::Device::Cpu);
                     let raw = normalizer.unnormalize(&x_host, item_dims);
+                    if !bool::try_from(raw.f_isfinite()?.f_all()?).unwrap_or(false) {
+                        return Err(Error::FailedPrecondition(format!(
+                            "model '{req_model}': the samples of batch {} overflow float32 in raw units (the normalizer's scale is too large for them)",
+                            done / plan.batch
+                        )));
+                    }
                     for i in 0..b {
                         let response = pb::SampleResponse {
                             index: (done + i) as u32,

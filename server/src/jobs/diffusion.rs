@@ -35,8 +35,29 @@ pub async fn validate_inputs(store: &Store, job: &DiffusionJob) -> Result<()> {
             Error::NotFound(format!("spec.diffusion.normalizer_datasets[{i}]: dataset '{name}' not found"))
         })?);
     }
+    // Fields that only mean something for the other kind of dataset are refused, not ignored.
+    if ds.kind == DatasetKind::Trajectories && job.pooled_normalizer {
+        return Err(Error::invalid(format!(
+            "spec.diffusion.pooled_normalizer: applies to sample datasets only; '{}' holds trajectories (normalized per coordinate by their limits)",
+            ds.name
+        )));
+    }
+    if ds.kind == DatasetKind::Samples && job.action_weight != 1.0 {
+        return Err(Error::invalid(format!(
+            "spec.diffusion.action_weight: {} applies to trajectories only (the first action's loss); '{}' holds samples",
+            job.action_weight, ds.name
+        )));
+    }
     let manifest = manifest_for(job, &ds, &pooled)?;
-    manifest.validate()?;
+    // The network is planned (sizes, parameter count) here, so that an architecture the server
+    // cannot build is refused at submission rather than failing the accepted job.
+    manifest
+        .validate()
+        .and_then(|()| match &manifest.architecture {
+            Some(arch) => NativeDenoiser::planned_parameter_count(arch, &manifest.space).map(|_| ()),
+            None => Ok(()),
+        })
+        .map_err(|e| job_field(e, &job.architecture))?;
     if let (DatasetKind::Trajectories, Some(ep)) = (ds.kind, &ds.episodes)
         && (ep.max_length as usize) < job.horizon
     {
@@ -46,6 +67,29 @@ pub async fn validate_inputs(store: &Store, job: &DiffusionJob) -> Result<()> {
         )));
     }
     Ok(())
+}
+
+/// Renames the manifest's and the network plan's fields in an error after the job's own
+/// (`manifest.n_timesteps` -> `spec.diffusion.n_timesteps`, `architecture.hidden` ->
+/// `spec.diffusion.mlp.hidden`), so the message names what the caller sent.
+fn job_field(err: Error, architecture: &Architecture) -> Error {
+    let Error::InvalidArgument(m) = err else { return err };
+    let arch = match architecture {
+        Architecture::TemporalUnet { .. } => "spec.diffusion.temporal_unet",
+        Architecture::Mlp { .. } => "spec.diffusion.mlp",
+        Architecture::Unet2d { .. } => "spec.diffusion.unet2d",
+    };
+    let renamed = [
+        ("manifest.space.horizon", "spec.diffusion.horizon".to_string()),
+        ("manifest.architecture", arch.to_string()),
+        ("architecture", arch.to_string()),
+        ("manifest.space", "spec.diffusion.dataset (its item layout)".to_string()),
+        ("manifest.normalizer", "spec.diffusion.dataset (the normalizer from its statistics)".to_string()),
+        ("manifest", "spec.diffusion".to_string()),
+    ]
+    .into_iter()
+    .find_map(|(from, to)| m.strip_prefix(from).map(|rest| format!("{to}{rest}")));
+    Error::InvalidArgument(renamed.unwrap_or(m))
 }
 
 /// The manifest of the model this job trains: layout and normalizer from the dataset.

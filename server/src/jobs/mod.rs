@@ -222,6 +222,16 @@ impl JobManager {
                     }
                 }
                 Ok(Lease::Lost) => {
+                    // The job's own thread ends the lease when it records the final state, a
+                    // moment before it signals `finished`: that is not a takeover.
+                    // (Stopping is harmless then, and right if another worker finished it.)
+                    let ended =
+                        matches!(self.inner.store.meta.get_job(&id).await, Ok(Some(r)) if r.state.is_terminal());
+                    if finished.is_cancelled() || ended {
+                        tracing::debug!(job = id, "lease ended with the job");
+                        lost.cancel();
+                        return;
+                    }
                     tracing::warn!(job = id, "lease lost: another worker runs this job now; stopping here");
                     lost.cancel();
                     return;

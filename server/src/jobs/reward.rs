@@ -543,9 +543,21 @@ pub async fn validate_discriminator(store: &Store, job: &DiscriminatorJob) -> Re
         action_weight: 1.0,
         condition_weight: 1.0,
     };
+    // The reward job's field names, renamed to the discriminator's own.
+    let rename = |m: String| {
+        [
+            ("spec.reward.with_dataset.datasets[0]", "spec.discriminator.base_dataset"),
+            ("spec.reward.with_dataset.datasets[1]", "spec.discriminator.expert_dataset"),
+            ("spec.reward.base_model", "spec.discriminator.diffusion_model"),
+            ("spec.reward.expert_model", "spec.discriminator.diffusion_model"),
+            ("spec.reward", "spec.discriminator"),
+        ]
+        .iter()
+        .fold(m, |m, (from, to)| m.replace(from, to))
+    };
     validate_inputs(store, &as_reward).await.map_err(|e| match e {
-        Error::InvalidArgument(m) => Error::InvalidArgument(m.replace("spec.reward", "spec.discriminator")),
-        Error::NotFound(m) => Error::NotFound(m.replace("spec.reward", "spec.discriminator")),
+        Error::InvalidArgument(m) => Error::InvalidArgument(rename(m)),
+        Error::NotFound(m) => Error::NotFound(rename(m)),
         other => other,
     })
 }

@@ -254,7 +254,7 @@ impl Serving {
         // Only a normalizer fitted to data says what range is meaningful; with identity, the
         // results' own finiteness is the check.
         if !identity {
-            check_normalized_range(&x, query.input_units)?;
+            check_normalized_range("x", &x, query.input_units)?;
         }
         Ok(Prepared { model, x, t, kind, gradient_post, deadline: query.deadline })
     }
@@ -327,10 +327,10 @@ fn check_steps(field: &str, name: &str, table: &VarianceTable, big_t: i64) -> Re
     Ok(Arc::clone(table))
 }
 
-/// Refuses normalized inputs beyond [`MAX_NORMALIZED_X`], naming the first such element and
-/// the units it was given in.
-fn check_normalized_range(x: &[f32], units: Units) -> Result<()> {
-    let Some(first) = x.iter().position(|v| f64::from(v.abs()) > MAX_NORMALIZED_X) else {
+/// Refuses normalized inputs beyond [`MAX_NORMALIZED_X`], naming `field`, its first such
+/// element and the units it was given in (Score and Gradient's `x`, Sample's condition states).
+pub(crate) fn check_normalized_range(field: &str, x: &[f32], units: Units) -> Result<()> {
+    let Some(first) = x.iter().position(|v| v.is_nan() || f64::from(v.abs()) > MAX_NORMALIZED_X) else {
         return Ok(());
     };
     let value = x[first];
@@ -339,7 +339,7 @@ fn check_normalized_range(x: &[f32], units: Units) -> Result<()> {
         Units::Normalized => "as given (input_units normalized)",
     };
     Err(Error::invalid(format!(
-        "x: element {first} is {value:e} in the model's normalized units ({given}), outside the accepted \
+        "{field}: element {first} is {value:e} in the model's normalized units ({given}), outside the accepted \
          [-{MAX_NORMALIZED_X:e}, {MAX_NORMALIZED_X:e}]; the normalizer maps the training data to about [-1, 1], so \
          check the input's units and scale"
     )))
