@@ -190,6 +190,12 @@ conditions=(--condition 0=1.5,1.5,0,10000 --condition 63=6.5,8.5,0,10000)
 guide=(--n-guide-steps 1 --t-stopgrad 0)
 if wanted sample; then
 start_server
+# The guiding reward comes from part 1; run alone (ONLY=sample), train one briefly (its weights
+# do not change the time of a sampling step).
+if ! wanted alg1; then
+  rr --json train reward --name reward-1 --base base --expert expert --dataset maze --arch windowed_mlp \
+    --window 4 --hidden 128,64,32 --steps "$LOG_EVERY" --batch-size 64 --watch >/dev/null
+fi
 sample() { rr --json sample --base base --reward reward-1 --scale 0.1 "${guide[@]}" "${conditions[@]}" --n "$SAMPLE_N" --seed "$1" >/dev/null; }
 sample 0 # warm-up: loads both models into the server's cache
 for rep in $(seq "$REPS"); do

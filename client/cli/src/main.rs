@@ -72,7 +72,8 @@
 //!   `demo` is its maze-generating front end.
 //!
 //! Global options: `--endpoint URL` (env `RELREWARD_ENDPOINT`, default
-//! `http://127.0.0.1:50051`; `https://` for TLS) and `--json`, which prints one JSON document
+//! `http://127.0.0.1:50051`; `https://` for TLS; a bare `host:port` means `http://host:port`)
+//! and `--json`, which prints one JSON document
 //! on stdout per command (`job watch`: one JSON object per event per line). For servers with
 //! access control and TLS: `--token TOKEN` (env `RELREWARD_TOKEN`), `--ca-cert FILE`
 //! (`RELREWARD_CA_CERT`), `--client-cert FILE --client-key FILE` (`RELREWARD_CLIENT_CERT`,
@@ -97,7 +98,8 @@ use commands::{Ctx, Report, UsageError};
 #[derive(Debug, Parser)]
 #[command(name = "relreward", version, about = "Command-line client of the relreward service")]
 struct Cli {
-    /// Server address [default: http://127.0.0.1:50051].
+    /// Server address: http://HOST:PORT, https://HOST:PORT (TLS) or HOST:PORT (plain http)
+    /// [default: http://127.0.0.1:50051].
     // No clap default_value: clap would then list `--endpoint` in every usage error.
     #[arg(long, global = true, env = "RELREWARD_ENDPOINT", value_name = "URL")]
     endpoint: Option<String>,
@@ -185,7 +187,7 @@ fn main() -> ExitCode {
 
 async fn run(cli: Cli) -> Result<Report> {
     let ctx = Ctx {
-        endpoint: cli.endpoint.unwrap_or_else(|| commands::DEFAULT_ENDPOINT.to_owned()),
+        endpoint: commands::endpoint_url(cli.endpoint.as_deref().unwrap_or(commands::DEFAULT_ENDPOINT)),
         json: cli.json,
         connect: cli.connect,
     };
@@ -237,6 +239,17 @@ mod tests {
     #[test]
     fn cli_definition_is_valid() {
         Cli::command().debug_assert();
+    }
+
+    #[test]
+    fn endpoints_without_a_scheme_are_plain_http() {
+        assert_eq!(commands::endpoint_url("127.0.0.1:50051"), "http://127.0.0.1:50051");
+        assert_eq!(commands::endpoint_url(" localhost:9 "), "http://localhost:9");
+        assert_eq!(commands::endpoint_url("http://h:1"), "http://h:1");
+        assert_eq!(commands::endpoint_url("https://h.example:443"), "https://h.example:443");
+        let cli = Cli::try_parse_from(["relreward", "health", "--endpoint", "10.0.0.2:7"]).expect("parse");
+        let endpoint = cli.endpoint.as_deref().map(commands::endpoint_url);
+        assert_eq!(endpoint.as_deref(), Some("http://10.0.0.2:7"));
     }
 
     #[test]

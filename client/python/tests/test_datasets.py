@@ -97,8 +97,8 @@ def test_d4rl_keyed_hdf5_file(client, tmp_path):
 def test_local_validation_and_server_errors(client):
     with pytest.raises(ValueError, match="'actions'"):
         client.upload_dataset("py-bad", {"observations": np.zeros((4, 2), np.float32)})
-    with pytest.raises(ValueError, match="float32 or float64"):
-        client.upload_dataset("py-bad", {"observations": np.zeros((4, 2), np.int32), "actions": np.zeros((4, 1))})
+    with pytest.raises(ValueError, match="'observations' has dtype <U1; expected numbers"):
+        client.upload_dataset("py-bad", {"observations": np.full((4, 2), "x"), "actions": np.zeros((4, 1))})
     with pytest.raises(relreward.InvalidArgument) as e:
         client.upload_dataset("Bad Name!", np.zeros((4, 2), np.float32))
     assert e.value.code.name == "INVALID_ARGUMENT" and "name" in e.value.message
@@ -133,3 +133,62 @@ def test_a_read_failure_mid_upload_is_reported_and_nothing_is_stored(client):
         client.upload_dataset("py-flaky", data, chunk_bytes=64)
     with pytest.raises(relreward.NotFound):
         client.get_dataset("py-flaky")
+
+
+def test_cartpole_like_hdf5_with_an_odd_suffix_uploads_as_the_cli_reads_it(client, server, tmp_path):
+    """Integer [T] actions, float64 observations, integer 0/1 flags, a '.hdf' suffix: read as
+    the Rust reader reads them (values float32 [N, dim], flags bool), so both store the same."""
+    h5py = pytest.importorskip("h5py")
+    rng = np.random.default_rng(9)
+    obs = rng.standard_normal((30, 4))
+    act = rng.integers(0, 2, 30)
+    terminals = np.zeros(30, np.int64)
+    terminals[[11, 29]] = 1
+    path = tmp_path / "cartpole.hdf"
+    with h5py.File(path, "w") as f:
+        f["observations"], f["actions"], f["terminals"] = obs, act, terminals
+        f["timeouts"] = np.zeros(30, np.float32)
+    ds = client.upload_dataset("py-cartpole", path, chunk_bytes=64)
+    assert [(a.spec.name, a.spec.dtype, list(a.spec.shape)) for a in ds.arrays] == [
+        ("observations", relreward.pb.tensor.DTYPE_FLOAT32, [30, 4]),
+        ("actions", relreward.pb.tensor.DTYPE_FLOAT32, [30, 1]),
+        ("terminals", relreward.pb.tensor.DTYPE_BOOL, [30]),
+        ("timeouts", relreward.pb.tensor.DTYPE_BOOL, [30]),
+    ]
+    assert ds.sha256 == payload_sha([obs.astype(np.float32), act.astype(np.float32).reshape(30, 1),
+                                     terminals.astype(bool), np.zeros(30, bool)])
+    assert ds.episodes.count == 2
+    cli = server.cli_json("dataset", "upload", str(path), "--name", "py-cartpole-cli")
+    assert cli["sha256"] == ds.sha256
+    # The same arrays from a dict are the same dataset.
+    d = client.upload_dataset("py-cartpole-dict", {"observations": obs, "actions": act, "terminals": terminals,
+                                                   "timeouts": np.zeros(30, np.float32)})
+    assert d.sha256 == ds.sha256
+
+
+def test_a_non_finite_hdf5_value_stops_the_upload_and_nothing_is_stored(client, tmp_path):
+    h5py = pytest.importorskip("h5py")
+    obs = np.zeros((40, 2))
+    obs[33, 1] = np.nan
+    path = tmp_path / "nan.h5"
+    with h5py.File(path, "w") as f:
+        f["observations"], f["actions"] = obs, np.zeros((40, 1), np.float32)
+    with pytest.raises(ValueError, match="'observations' holds a value that is not finite at row 33"):
+        client.upload_dataset("py-nan", path, chunk_bytes=64)
+    with pytest.raises(relreward.NotFound):
+        client.get_dataset("py-nan")
+
+
+def test_minari_file_with_an_empty_episode_and_a_nan_last_observation(client, tmp_path):
+    h5py = pytest.importorskip("h5py")
+    path = tmp_path / "main_data.hdf5"
+    with h5py.File(path, "w") as f:
+        for i, t in ((0, 5), (1, 0), (2, 3)):
+            g = f.create_group(f"episode_{i}")
+            o = np.arange(2 * (t + 1), dtype=np.float64).reshape(t + 1, 2)
+            o[-1] = np.nan  # the state after the last action is dropped
+            g["observations"], g["actions"] = o, np.ones(t, np.int64)
+            g["terminations"], g["truncations"] = np.zeros(t, bool), np.eye(1, t, t - 1, dtype=np.int8)[0]
+    ds = client.upload_dataset("py-minari-gaps", path)
+    assert ds.num_rows == 8 and ds.episodes.count == 2
+    assert ds.episodes.min_length == 3 and ds.episodes.max_length == 5

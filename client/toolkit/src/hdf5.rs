@@ -6,7 +6,7 @@
 //! Module map:
 //! - [`read_hdf5`]: any supported file or directory; tells the two layouts apart.
 //! - [`read_d4rl`]: D4RL's layout: top-level datasets `observations` `[N, obs_dim]`, `actions`
-//!   `[N, act_dim]`, optional `terminals`, `timeouts` (`[N]`, bool or integer 0/1),
+//!   `[N, act_dim]` (N > 0), optional `terminals`, `timeouts` (`[N]`, bool or numbers 0/1),
 //!   `episode_starts` / `episode_lengths` and maze walls (`walls` / `wall_map` / `maze_map`),
 //!   by the rules of [`crate::episodes`]. `rewards`, `infos/...` and everything else are left
 //!   out (listed in [`Trajectories::ignored`]).
@@ -15,7 +15,9 @@
 //!   Each holds `observations` (`[T + 1, ...]`: the state after every action, plus the first),
 //!   `actions` `[T, ...]`, `terminations` and `truncations` `[T]`. The last observation of an
 //!   episode has no action and is dropped, so row k pairs a state with the action taken in it
-//!   (D4RL's layout); each episode's first row is flagged in `episode_starts`.
+//!   (D4RL's layout); each episode's first row is flagged in `episode_starts`. An episode of
+//!   zero steps (observations `[1, ...]`, actions `[0, ...]`) has no row: it is skipped, named
+//!   in [`Trajectories::notes`].
 //!
 //! **Dict observations** (a group instead of a dataset, e.g. PointMaze's `achieved_goal`,
 //! `desired_goal`, `observation`) are flattened the way gymnasium's `spaces.flatten` does for
@@ -24,9 +26,12 @@
 //! therefore `[achieved_goal (2), desired_goal (2), observation (4)]`. Dict actions are
 //! refused (no environment we know of has them).
 //!
-//! Values are read as float32 (float64 data is rounded, as the server's training does); any
-//! integer or float dtype in either byte order is accepted for values and flags, and h5py's
-//! bool (an enum over int8) for flags.
+//! Values follow the rules of [`crate::values`], as the `.npz` reader does: any integer or float
+//! type (float16 included) in either byte order, read as float32 (float64 data is rounded, as
+//! the server's training does) and refused where not finite as float32, naming the key, row and
+//! coordinate (only in the rows kept: Minari's dropped last observation is not checked); `[N]`
+//! is `[N, 1]` and more dimensions are flattened row-major; flags are h5py's bool (an enum over
+//! int8) or numbers that are all 0 or 1. Any other HDF5 type is refused, described in words.
 
 use std::path::{Path, PathBuf};
 
@@ -35,6 +40,7 @@ use hdf5_reader::{ByteOrder, Dataset, Datatype, Hdf5File};
 
 use crate::episodes;
 use crate::trajectories::Trajectories;
+use crate::values::{self, Element, Kind};
 
 /// Why a file cannot be read: the file and what is wrong, naming the key or group.
 #[derive(Debug, thiserror::Error)]
@@ -119,82 +125,80 @@ enum Class {
     Float,
 }
 
+/// An HDF5 type the readers do not decode, in words (`a 16-byte float`, `a string`).
+fn describe(dtype: &Datatype) -> String {
+    match dtype {
+        Datatype::FixedPoint { size, signed, .. } => {
+            format!("a {size}-byte {} integer", if *signed { "signed" } else { "unsigned" })
+        }
+        Datatype::FloatingPoint { size, .. } => format!("a {size}-byte float"),
+        Datatype::String { .. } => "a string".to_owned(),
+        Datatype::VarLen { kind: hdf5_reader::VarLenKind::String, .. } => "a variable-length string".to_owned(),
+        Datatype::VarLen { .. } => "a variable-length sequence".to_owned(),
+        Datatype::Compound { fields, .. } => {
+            format!("a compound type of {} fields (a record, or complex numbers)", fields.len())
+        }
+        Datatype::Array { dims, .. } => format!("an array type of shape {dims:?} per element"),
+        Datatype::Enum { base, .. } => format!("an enum over {}", describe(base)),
+        Datatype::Opaque { size, .. } => format!("{size} opaque bytes"),
+        Datatype::Reference { .. } => "a reference".to_owned(),
+        Datatype::Bitfield { size, .. } => format!("a {size}-byte bitfield"),
+    }
+}
+
+/// The element type of a dataset, or what it is in words. h5py writes numpy bool as an enum
+/// FALSE = 0, TRUE = 1 over int8, read as bool.
+fn element_of(dtype: &Datatype, key: &str) -> std::result::Result<(Element, Class), String> {
+    let unsupported = || format!("'{key}' holds {}; expected integers, floats or bool", describe(dtype));
+    let (base, class) = match dtype {
+        Datatype::Enum { base, .. } => (base.as_ref(), Class::Bool),
+        other => (other, Class::Integer),
+    };
+    let (kind, size, order) = match base {
+        Datatype::FixedPoint { size, signed, byte_order } => {
+            (if *signed { Kind::Int } else { Kind::Uint }, *size, *byte_order)
+        }
+        Datatype::FloatingPoint { size, byte_order } if class != Class::Bool => (Kind::Float, *size, *byte_order),
+        _ => return Err(unsupported()),
+    };
+    let element = Element::new(kind, usize::from(size), order == ByteOrder::BigEndian).ok_or_else(unsupported)?;
+    let class = match (class, kind) {
+        (Class::Bool, _) => Class::Bool,
+        (_, Kind::Float) => Class::Float,
+        _ => Class::Integer,
+    };
+    Ok((element, class))
+}
+
 /// A numeric dataset as f64 with its shape and class. Errors name `key`.
 fn numbers(ds: &Dataset, key: &str) -> std::result::Result<(Vec<u64>, Vec<f64>, Class), String> {
     let shape = ds.shape().to_vec();
-    let (base, class) = match ds.dtype() {
-        // h5py writes numpy bool as an enum FALSE = 0, TRUE = 1 over int8.
-        Datatype::Enum { base, .. } => (base.as_ref().clone(), Class::Bool),
-        other => (other.clone(), Class::Integer),
-    };
-    // (bytes per element, byte order, how to read one little-endian element)
-    let (size, order, float) = match base {
-        Datatype::FixedPoint { size, signed, byte_order } => {
-            (usize::from(size), byte_order, if signed { Some(false) } else { None })
-        }
-        Datatype::FloatingPoint { size, byte_order } if size == 4 || size == 8 => {
-            (usize::from(size), byte_order, Some(true))
-        }
-        other => return Err(format!("'{key}' has HDF5 type {other:?}; expected integers, floats or bool")),
-    };
-    if !matches!(size, 1 | 2 | 4 | 8) {
-        return Err(format!("'{key}' has {size}-byte integers; expected 1, 2, 4 or 8"));
-    }
-    let class = match (class, float) {
-        (Class::Bool, _) => Class::Bool,
-        (_, Some(true)) => Class::Float,
-        _ => Class::Integer,
-    };
+    let (element, class) = element_of(ds.dtype(), key)?;
     let raw = ds.read_raw_bytes().map_err(|e| format!("'{key}': {e}"))?;
-    let mut values = Vec::with_capacity(raw.len() / size);
-    let mut b = [0u8; 8];
-    for chunk in raw.chunks_exact(size) {
-        b[..size].copy_from_slice(chunk);
-        if order == ByteOrder::BigEndian {
-            b[..size].reverse();
-        }
-        values.push(match (float, size) {
-            (Some(true), 4) => f64::from(f32::from_le_bytes([b[0], b[1], b[2], b[3]])),
-            (Some(true), _) => f64::from_le_bytes(b),
-            (Some(false), 1) => f64::from(b[0] as i8),
-            (Some(false), 2) => f64::from(i16::from_le_bytes([b[0], b[1]])),
-            (Some(false), 4) => f64::from(i32::from_le_bytes([b[0], b[1], b[2], b[3]])),
-            (Some(false), _) => i64::from_le_bytes(b) as f64,
-            (None, 1) => f64::from(b[0]),
-            (None, 2) => f64::from(u16::from_le_bytes([b[0], b[1]])),
-            (None, 4) => f64::from(u32::from_le_bytes([b[0], b[1], b[2], b[3]])),
-            (None, _) => u64::from_le_bytes(b) as f64,
-        });
-    }
-    Ok((shape, values, class))
+    Ok((shape, element.decode_all(&raw), class))
 }
 
-/// `[N, d]` float values of a dataset (`[N]` is taken as `[N, 1]`, more dimensions are
-/// flattened per row).
-fn rows_of(ds: &Dataset, key: &str) -> std::result::Result<(usize, usize, Vec<f32>), String> {
+/// `[N, width]` float32 values of a dataset by the row rule of [`crate::values`] (`[N]` is
+/// `[N, 1]`, more dimensions are flattened row-major), and its stored shape. Values must be
+/// finite as float32 in the first `keep` rows (every row when `None`).
+fn rows_of(ds: &Dataset, key: &str, keep: Option<usize>) -> std::result::Result<(usize, usize, Vec<f32>), String> {
     let (shape, values, class) = numbers(ds, key)?;
+    let shown = format!("'{key}'");
     if class == Class::Bool {
-        return Err(format!("'{key}' is bool; expected numbers"));
+        return Err(format!("{shown} is bool; expected integers or floats (read as float32)"));
     }
-    let Some(&n) = shape.first() else { return Err(format!("'{key}' is a scalar; expected [N, dim]")) };
-    let n = n as usize;
-    let width = values.len().checked_div(n).unwrap_or(0);
-    if let Some(bad) = values.iter().position(|v| !v.is_finite()) {
-        return Err(format!("'{key}' holds a value that is not finite (element {bad})"));
-    }
-    Ok((n, width, values.iter().map(|&v| v as f32).collect()))
+    let (n, width) = values::row_shape(&shown, &shape)?;
+    let values = values::rows_to_f32(&shown, &values, &shape, keep)?;
+    Ok((n, width, values))
 }
 
-/// `[N]` flags of a dataset (bool or integer 0/1).
+/// `[N]` flags of a dataset: bool, or integers or floats that are all 0 or 1.
 fn flags_of(ds: &Dataset, key: &str, rows: usize) -> std::result::Result<Vec<bool>, String> {
-    let (shape, values, class) = numbers(ds, key)?;
+    let (shape, values, _) = numbers(ds, key)?;
     if shape.len() != 1 || shape[0] as usize != rows {
         return Err(format!("'{key}' has shape {shape:?}; episode flags must be [N] with N = {rows}"));
     }
-    if class == Class::Float && values.iter().any(|&v| v != 0.0 && v != 1.0) {
-        return Err(format!("'{key}' holds values other than 0 and 1; episode flags must be bool"));
-    }
-    Ok(values.iter().map(|&v| v != 0.0).collect())
+    values::flags(&format!("'{key}'"), &values)
 }
 
 fn d4rl_from(path: &Path, root: &Group, groups: &[String], datasets: &[String]) -> Result<Trajectories> {
@@ -210,8 +214,11 @@ fn d4rl_from(path: &Path, root: &Group, groups: &[String], datasets: &[String]) 
             err(path, format!("no '{key}' dataset at the top level (it holds {})", list(datasets, groups)))
         })
     };
-    let (n, obs_dim, observations) = rows_of(&required("observations")?, "observations").map_err(e)?;
-    let (na, act_dim, actions) = rows_of(&required("actions")?, "actions").map_err(e)?;
+    let (n, obs_dim, observations) = rows_of(&required("observations")?, "observations", None).map_err(e)?;
+    if n == 0 {
+        return Err(err(path, "'observations' has no rows (N = 0); a dataset needs at least one"));
+    }
+    let (na, act_dim, actions) = rows_of(&required("actions")?, "actions", None).map_err(e)?;
     if na != n {
         return Err(err(path, format!("'actions' has {na} rows but 'observations' has {n}")));
     }
@@ -274,12 +281,18 @@ fn list(datasets: &[String], groups: &[String]) -> String {
 }
 
 /// A dataset or a (dict) group, flattened per row by the module's rule: `(rows, width,
-/// values)`. `at` names the place in errors.
-fn flattened(group: &Group, name: &str, at: &str) -> std::result::Result<(usize, usize, Vec<f32>), String> {
+/// values)`, finite as float32 in the first `keep` rows (all when `None`). `at` names the place
+/// in errors.
+fn flattened(
+    group: &Group,
+    name: &str,
+    at: &str,
+    keep: Option<usize>,
+) -> std::result::Result<(usize, usize, Vec<f32>), String> {
     let (groups, datasets) = group.member_names().map_err(|e| format!("{at}: {e}"))?;
     if datasets.iter().any(|d| d == name) {
         let ds = group.dataset(name).map_err(|e| format!("{at}/{name}: {e}"))?;
-        return rows_of(&ds, &format!("{at}/{name}"));
+        return rows_of(&ds, &format!("{at}/{name}"), keep);
     }
     if !groups.iter().any(|g| g == name) {
         return Err(format!("no '{name}' in {at}"));
@@ -293,7 +306,7 @@ fn flattened(group: &Group, name: &str, at: &str) -> std::result::Result<(usize,
     }
     let here = format!("{at}/{name}");
     let parts: Vec<(usize, usize, Vec<f32>)> =
-        keys_g.iter().map(|k| flattened(&sub, k, &here)).collect::<std::result::Result<_, _>>()?;
+        keys_g.iter().map(|k| flattened(&sub, k, &here, keep)).collect::<std::result::Result<_, _>>()?;
     let rows = parts[0].0;
     if let Some((k, p)) = keys_g.iter().zip(&parts).find(|(_, p)| p.0 != rows) {
         return Err(format!("{here}/{k} has {} rows but {here}/{} has {rows}", p.0, keys_g[0]));
@@ -319,14 +332,21 @@ fn minari_from(path: &Path, root: &Group, groups: &[String]) -> Result<Trajector
         return Err(err(path, "no 'episode_<id>' groups (not a Minari main_data.hdf5)"));
     }
     let mut t = Trajectories::default();
+    let mut skipped = Vec::new();
     for (_, name) in &episodes {
         let ep = root.group(name).map_err(|x| err(path, format!("group '{name}': {x}")))?;
         let (_, ep_datasets) = ep.member_names().map_err(|x| err(path, format!("group '{name}': {x}")))?;
         if !ep_datasets.iter().any(|d| d == "actions") {
             return Err(err(path, format!("'{name}/actions' is missing or a group (dict actions are not supported)")));
         }
-        let (steps, act_dim, actions) = flattened(&ep, "actions", name).map_err(e)?;
-        let (n_obs, obs_dim, observations) = flattened(&ep, "observations", name).map_err(e)?;
+        let (steps, act_dim, actions) = flattened(&ep, "actions", name, None).map_err(e)?;
+        if steps == 0 {
+            // No action, so no row: nothing to read (its observations are its first state only).
+            skipped.push(format!("'{name}'"));
+            continue;
+        }
+        // The last observation is dropped: only the rows kept must be finite.
+        let (n_obs, obs_dim, observations) = flattened(&ep, "observations", name, Some(steps)).map_err(e)?;
         if n_obs != steps + 1 {
             return Err(err(
                 path,
@@ -345,9 +365,6 @@ fn minari_from(path: &Path, root: &Group, groups: &[String]) -> Result<Trajector
                 ),
             ));
         }
-        if steps == 0 {
-            continue;
-        }
         t.observations.extend_from_slice(&observations[..steps * obs_dim]);
         t.actions.extend_from_slice(&actions);
         for (key, out) in [("terminations", &mut t.terminals), ("truncations", &mut t.timeouts)] {
@@ -365,6 +382,62 @@ fn minari_from(path: &Path, root: &Group, groups: &[String]) -> Result<Trajector
     if t.is_empty() {
         return Err(err(path, "every episode is empty (no actions)"));
     }
+    if !skipped.is_empty() {
+        t.notes.push(format!("skipped {} empty episode(s) (no steps): {}", skipped.len(), skipped.join(", ")));
+    }
     t.ignored = vec!["rewards".to_owned(), "infos".to_owned()];
     Ok(t)
+}
+
+#[cfg(test)]
+mod tests {
+    use hdf5_reader::{CompoundField, StringEncoding, StringPadding, StringSize, VarLenKind};
+
+    use super::*;
+
+    #[test]
+    fn unsupported_types_are_described_in_words() {
+        let le = ByteOrder::LittleEndian;
+        let f128 = Datatype::FloatingPoint { size: 16, byte_order: le };
+        let string = Datatype::String {
+            size: StringSize::Variable,
+            encoding: StringEncoding::Utf8,
+            padding: StringPadding::NullTerminate,
+        };
+        let vlen = Datatype::VarLen {
+            base: Box::new(Datatype::FixedPoint { size: 1, signed: false, byte_order: le }),
+            kind: VarLenKind::String,
+            encoding: StringEncoding::Utf8,
+            padding: StringPadding::NullTerminate,
+        };
+        let field = |name: &str, byte_offset| CompoundField {
+            name: name.to_owned(),
+            byte_offset,
+            datatype: Datatype::FloatingPoint { size: 8, byte_order: le },
+        };
+        let complex = Datatype::Compound { size: 16, fields: vec![field("r", 0), field("i", 8)] };
+        let int16bytes = Datatype::FixedPoint { size: 16, signed: true, byte_order: le };
+        for (dtype, words) in [
+            (f128, "holds a 16-byte float;"),
+            (string, "holds a string;"),
+            (vlen, "holds a variable-length string;"),
+            (complex, "holds a compound type of 2 fields (a record, or complex numbers);"),
+            (int16bytes, "holds a 16-byte signed integer;"),
+        ] {
+            let err = element_of(&dtype, "episode_0/observations").expect_err("unsupported");
+            assert!(err.starts_with("'episode_0/observations' ") && err.contains(words), "{err}");
+            assert!(!err.contains('{'), "no debug dump: {err}");
+        }
+        // float16 and every integer size in either byte order are read.
+        for size in [2, 4, 8] {
+            let (e, class) =
+                element_of(&Datatype::FloatingPoint { size, byte_order: ByteOrder::BigEndian }, "x").expect("float");
+            assert_eq!((e.kind, e.size, e.big_endian, class), (Kind::Float, usize::from(size), true, Class::Float));
+        }
+        for size in [1, 2, 4, 8] {
+            let (e, class) =
+                element_of(&Datatype::FixedPoint { size, signed: false, byte_order: le }, "x").expect("int");
+            assert_eq!((e.kind, e.size, class), (Kind::Uint, usize::from(size), Class::Integer));
+        }
+    }
 }

@@ -7,6 +7,8 @@
 //!   [`relreward_client::UploadSource`].
 //! - [`episodes`]: the rules every reader applies to episode boundaries (flags, start indices,
 //!   lengths) and maze walls (`walls` / `wall_map` / `maze_map`).
+//! - [`values`]: the rules every reader applies to values: element types (any integer or
+//!   float, either byte order) read as float32 and checked finite, shapes as rows, 0/1 flags.
 //! - [`trajectories`]: a trajectory dataset in memory, as converting readers produce it; to an
 //!   upload or the canonical `.npz`; absorbing terminal states held at rest, and the rule that
 //!   finds the velocity coordinates.
@@ -33,3 +35,4 @@ pub mod npz;
 pub mod npz_write;
 pub mod profile;
 pub mod trajectories;
+pub mod values;

@@ -1,10 +1,13 @@
 //! Reads numpy `.npz` archives and `.npy` files into an [`UploadSource`], streaming the data.
 //!
-//! Only what the wire format can carry without conversion is accepted: C-order arrays of
-//! little-endian (or byte-order-free) `float32`, `float64`, `int32`, `int64`, `uint8` and `bool`.
-//! Everything else (big-endian data, Fortran order, object/pickled arrays, other dtypes) is
-//! refused with an error that names the array and its dtype string, so the fix (`astype`,
-//! `np.ascontiguousarray`) is obvious.
+//! Trajectories ([`trajectories_from_npz`]) follow the rules every reader shares
+//! ([`crate::values`], [`crate::episodes`], `docs/data-formats.md`): observations and actions of
+//! any integer or float dtype in either byte order are sent as float32 rows, converted as they
+//! are read; episode flags of bool or of numbers that are all 0 or 1 are sent as bool.
+//! Samples ([`samples_from_npz_or_npy`]) are sent as stored, so only little-endian (or
+//! byte-order-free) `float32` and `float64` are taken there. Everything else (Fortran order,
+//! object/pickled arrays, strings, complex numbers) is refused with an error that names the
+//! array and its dtype string, so the fix (`astype`, `np.ascontiguousarray`) is obvious.
 //!
 //! Opening a file reads only the npy headers of the arrays that will be sent; [`NpzSource::open`]
 //! reopens an array and returns a reader of exactly its declared data bytes, so files larger
@@ -30,6 +33,8 @@ use std::path::{Path, PathBuf};
 
 use npyz::zip::ZipArchive;
 use npyz::{DType, Endianness, Order, TypeChar};
+
+use crate::values::{Element, Kind};
 use relreward_proto::v1::{ArraySpec, DatasetKind, Dtype};
 
 use relreward_client::UploadSource;
@@ -71,10 +76,76 @@ pub struct NpyInfo {
     pub data_len: u64,
 }
 
-/// Reads and checks an npy header, leaving `reader` at the first data byte.
+/// Reads and checks an npy header, leaving `reader` at the first data byte. Only dtypes the wire
+/// format carries as they are (little-endian or byte-order-free `float32`, `float64`, `int32`,
+/// `int64`, `uint8`, `bool`) are accepted: this is the reader of arrays sent unconverted
+/// (samples, model inputs). The trajectory reader takes any integer or float type
+/// ([`crate::values`]).
 ///
 /// Errors are plain messages that do not name the array; callers add that.
 pub fn read_npy_header(reader: &mut dyn Read) -> Result<NpyInfo, String> {
+    let parsed = parse_header(reader)?;
+    let dtype = map_dtype(&parsed.dtype)?;
+    check_order(&parsed)?;
+    let data_len = tensor::byte_len(&parsed.shape, dtype).map_err(|e| e.to_string())?;
+    Ok(NpyInfo { dtype, shape: parsed.shape, header_len: parsed.header_len, data_len })
+}
+
+/// What an npy header declares, as stored: the element type (any integer, float or bool the
+/// readers decode), shape and sizes.
+#[derive(Debug, Clone, PartialEq, Eq)]
+struct Header {
+    element: Element,
+    shape: Vec<u64>,
+    /// The dtype as the file writes it (`'<i8'`), for messages.
+    descr: String,
+    header_len: u64,
+    data_len: u64,
+}
+
+impl Header {
+    /// The wire dtype the data already is, if any (little-endian or one-byte `float32`,
+    /// `float64`, `int32`, `int64`, `uint8`, `bool`).
+    fn wire_dtype(&self) -> Option<Dtype> {
+        let e = self.element;
+        if e.big_endian {
+            return None;
+        }
+        Some(match (e.kind, e.size) {
+            (Kind::Float, 4) => Dtype::Float32,
+            (Kind::Float, 8) => Dtype::Float64,
+            (Kind::Int, 4) => Dtype::Int32,
+            (Kind::Int, 8) => Dtype::Int64,
+            (Kind::Uint, 1) => Dtype::Uint8,
+            (Kind::Bool, 1) => Dtype::Bool,
+            _ => return None,
+        })
+    }
+}
+
+/// Reads and checks an npy header of any integer, float or bool dtype in either byte order.
+fn read_header(reader: &mut dyn Read) -> Result<Header, String> {
+    let parsed = parse_header(reader)?;
+    let element = element_of(&parsed.dtype)?;
+    check_order(&parsed)?;
+    let descr = parsed.dtype.descr();
+    let data_len = parsed
+        .shape
+        .iter()
+        .try_fold(element.size as u64, |a, &d| a.checked_mul(d))
+        .ok_or("npy header declares a shape with more bytes than fit in 64 bits")?;
+    Ok(Header { element, shape: parsed.shape, descr, header_len: parsed.header_len, data_len })
+}
+
+/// A header's fields before its dtype is judged.
+struct Parsed {
+    dtype: DType,
+    shape: Vec<u64>,
+    order: Order,
+    header_len: u64,
+}
+
+fn parse_header(reader: &mut dyn Read) -> Result<Parsed, String> {
     const TRUNCATED: &str = "file ends inside the npy header";
     let mut pre = [0u8; 8];
     read_exact_or(reader, &mut pre, TRUNCATED)?;
@@ -101,17 +172,58 @@ pub fn read_npy_header(reader: &mut dyn Read) -> Result<NpyInfo, String> {
     precheck_header_text(&buf[text_start..])?;
 
     let header = npyz::NpyHeader::from_reader(buf.as_slice()).map_err(|e| format!("invalid npy header: {e}"))?;
-    let dtype = map_dtype(&header.dtype())?;
-    let shape = header.shape().to_vec();
-    // Fortran order only changes the layout when two or more dimensions exceed 1.
-    if header.order() == Order::Fortran && shape.iter().filter(|&&d| d > 1).count() > 1 {
+    Ok(Parsed {
+        dtype: header.dtype(),
+        shape: header.shape().to_vec(),
+        order: header.order(),
+        header_len: buf.len() as u64,
+    })
+}
+
+/// Fortran order only changes the layout when two or more dimensions exceed 1.
+fn check_order(parsed: &Parsed) -> Result<(), String> {
+    let shape = &parsed.shape;
+    if parsed.order == Order::Fortran && shape.iter().filter(|&&d| d > 1).count() > 1 {
         return Err(format!(
             "Fortran-order (column-major) array of shape {shape:?} is not supported; \
              save np.ascontiguousarray(arr) instead"
         ));
     }
-    let data_len = tensor::byte_len(&shape, dtype).map_err(|e| e.to_string())?;
-    Ok(NpyInfo { dtype, shape, header_len: buf.len() as u64, data_len })
+    Ok(())
+}
+
+/// The element type of an npy dtype, or what it is, in words, when the readers cannot decode it.
+fn element_of(dtype: &DType) -> Result<Element, String> {
+    let DType::Plain(ts) = dtype else {
+        return Err(format!("structured dtype {} is not supported; expected integers, floats or bool", dtype.descr()));
+    };
+    let name = ts.to_string();
+    let size = usize::try_from(ts.size_field()).unwrap_or(usize::MAX);
+    let kind = match ts.type_char() {
+        TypeChar::Bool => Kind::Bool,
+        TypeChar::Int => Kind::Int,
+        TypeChar::Uint => Kind::Uint,
+        TypeChar::Float => Kind::Float,
+        other => {
+            let what = match other {
+                TypeChar::Complex => "complex numbers",
+                TypeChar::TimeDelta => "time deltas",
+                TypeChar::DateTime => "dates",
+                TypeChar::ByteStr | TypeChar::UnicodeStr => "strings",
+                TypeChar::Object => "an object array (pickled Python objects)",
+                _ => "raw bytes",
+            };
+            return Err(format!("dtype '{name}' is {what}, which is not supported; expected integers, floats or bool"));
+        }
+    };
+    Element::new(kind, size, ts.endianness() == Endianness::Big).ok_or_else(|| {
+        let what = match kind {
+            Kind::Float => "float",
+            Kind::Bool => "bool",
+            _ => "integer",
+        };
+        format!("dtype '{name}' is a {size}-byte {what}, which is not supported; expected integers or floats of 1, 2, 4 or 8 bytes")
+    })
 }
 
 fn read_exact_or(reader: &mut dyn Read, buf: &mut [u8], eof_message: &str) -> Result<(), String> {
@@ -289,42 +401,87 @@ fn open_archive(path: &Path) -> Result<(ZipArchive<BufReader<File>>, Vec<Member>
 
 /// Reads the header of archive member `member`, checking that the entry holds all the data it
 /// declares.
-fn member_info(path: &Path, archive: &mut ZipArchive<BufReader<File>>, member: &Member) -> Result<NpyInfo> {
+fn member_header(path: &Path, archive: &mut ZipArchive<BufReader<File>>, member: &Member) -> Result<Header> {
     let key = &member.key;
     let mut entry = archive.by_index(member.index).map_err(|e| NpzError::new(path, format!("array '{key}': {e}")))?;
     let size = entry.size();
-    let info = read_npy_header(&mut entry).map_err(|m| NpzError::new(path, format!("array '{key}': {m}")))?;
-    check_complete(path, key, &info, size)?;
-    Ok(info)
+    let header = read_header(&mut entry).map_err(|m| NpzError::new(path, format!("array '{key}': {m}")))?;
+    check_complete(path, key, &header, size)?;
+    Ok(header)
 }
 
-fn check_complete(path: &Path, key: &str, info: &NpyInfo, stored: u64) -> Result<()> {
-    let available = stored.saturating_sub(info.header_len);
-    if available < info.data_len {
+/// The header and every value (as f64) of archive member `member`.
+fn member_values(
+    path: &Path,
+    archive: &mut ZipArchive<BufReader<File>>,
+    member: &Member,
+) -> Result<(Header, Vec<f64>)> {
+    let key = &member.key;
+    let header = member_header(path, archive, member)?;
+    let mut entry = archive.by_index(member.index).map_err(|e| NpzError::new(path, format!("array '{key}': {e}")))?;
+    read_header(&mut entry).map_err(|m| NpzError::new(path, format!("array '{key}': {m}")))?;
+    let values = read_values(&mut entry, &header).map_err(|m| NpzError::new(path, format!("array '{key}': {m}")))?;
+    Ok((header, values))
+}
+
+/// The data of an array whose header was just read from `reader`, decoded as f64.
+fn read_values(reader: &mut dyn Read, header: &Header) -> Result<Vec<f64>, String> {
+    let len = usize::try_from(header.data_len).map_err(|_| "too large for this machine".to_owned())?;
+    let mut data = Vec::new();
+    data.try_reserve_exact(len).map_err(|_| format!("{len} bytes do not fit in memory"))?;
+    reader.take(header.data_len).read_to_end(&mut data).map_err(|e| e.to_string())?;
+    if data.len() != len {
+        return Err(format!("ends after {} of its {len} data bytes (truncated file?)", data.len()));
+    }
+    Ok(header.element.decode_all(&data))
+}
+
+fn check_complete(path: &Path, key: &str, header: &Header, stored: u64) -> Result<()> {
+    let available = stored.saturating_sub(header.header_len);
+    if available < header.data_len {
         return Err(NpzError::new(
             path,
             format!(
                 "array '{key}' is truncated: shape {:?} of {} needs {} data bytes but only {available} are stored",
-                info.shape,
-                tensor::dtype_name(info.dtype),
-                info.data_len
+                header.shape, header.element, header.data_len
             ),
         ));
     }
     Ok(())
 }
 
-/// Where one array's bytes are.
+/// Where one array's bytes are, and how they are sent.
 #[derive(Debug, Clone)]
 struct Entry {
     /// Name in the file (differs from the sent name for Minari aliases and samples).
     key: String,
     /// Archive entry index; `None` for a plain `.npy` file or an array made in memory.
     zip_index: Option<usize>,
-    info: NpyInfo,
-    /// The bytes of an array converted while reading (episode starts given as indices or
-    /// lengths become per-row flags; see [`crate::episodes`]).
+    /// The array's header as stored; checked again whenever the array is reopened. `None` for
+    /// an array made in memory.
+    stored: Option<Header>,
+    /// The bytes of an array converted while reading (episode flags as bool; episode starts
+    /// given as indices or lengths as per-row flags, see [`crate::episodes`]).
     memory: Option<Vec<u8>>,
+    /// Whether the stored values are converted to float32 as they are read
+    /// ([`crate::values`]): observations and actions.
+    to_f32: bool,
+    /// Bytes sent.
+    sent_len: u64,
+}
+
+impl Entry {
+    /// An array sent as stored.
+    fn as_stored(key: String, zip_index: Option<usize>, header: Header) -> Self {
+        let sent_len = header.data_len;
+        Self { key, zip_index, stored: Some(header), memory: None, to_f32: false, sent_len }
+    }
+
+    /// An array made in memory.
+    fn in_memory(key: String, bytes: Vec<u8>) -> Self {
+        let sent_len = bytes.len() as u64;
+        Self { key, zip_index: None, stored: None, memory: Some(bytes), to_f32: false, sent_len }
+    }
 }
 
 /// Arrays of one `.npz` or `.npy` file, ready to upload (see the module docs).
@@ -382,7 +539,7 @@ impl NpzSource {
 
     /// Total data bytes of every array that will be sent.
     pub fn total_bytes(&self) -> u64 {
-        self.entries.iter().map(|e| e.info.data_len).sum()
+        self.entries.iter().map(|e| e.sent_len).sum()
     }
 
     /// Reads array `index` whole into memory, as a wire tensor (its full shape and dtype).
@@ -393,7 +550,7 @@ impl NpzSource {
             .get(index)
             .cloned()
             .ok_or_else(|| io::Error::new(io::ErrorKind::NotFound, format!("no array {index}")))?;
-        let len = self.entries[index].info.data_len;
+        let len = self.entries[index].sent_len;
         let len =
             usize::try_from(len).map_err(|_| invalid_data(format!("array '{}' does not fit in memory", spec.name)))?;
         let mut data = Vec::new();
@@ -408,12 +565,8 @@ impl NpzSource {
         tensor::from_raw(&spec.shape, dtype, data).map_err(|e| invalid_data(format!("array '{}': {e}", spec.name)))
     }
 
-    fn push(&mut self, name: &str, entry: Entry) {
-        self.specs.push(ArraySpec {
-            name: name.to_owned(),
-            dtype: entry.info.dtype as i32,
-            shape: entry.info.shape.clone(),
-        });
+    fn push(&mut self, name: &str, dtype: Dtype, shape: Vec<u64>, entry: Entry) {
+        self.specs.push(ArraySpec { name: name.to_owned(), dtype: dtype as i32, shape });
         self.entries.push(entry);
     }
 }
@@ -430,8 +583,12 @@ impl UploadSource for NpzSource {
             .ok_or_else(|| io::Error::new(io::ErrorKind::NotFound, format!("no array {index}")))?;
         let path = self.path.display();
         let key = &entry.key;
-        let changed = |info: NpyInfo| {
-            if info == entry.info {
+        if let Some(bytes) = &entry.memory {
+            return Ok(Box::new(bytes.as_slice()));
+        }
+        let Some(stored) = &entry.stored else { return Err(io::Error::other("npz source is inconsistent")) };
+        let changed = |header: Header| {
+            if header == *stored {
                 Ok(())
             } else {
                 Err(invalid_data(format!("{path}: array '{key}' changed since the file was first read")))
@@ -439,21 +596,24 @@ impl UploadSource for NpzSource {
         };
         let header_err = |m: String| invalid_data(format!("{path}: array '{key}': {m}"));
         let label = format!("{path}: array '{key}'");
-        if let Some(bytes) = &entry.memory {
-            return Ok(Box::new(bytes.as_slice()));
-        }
-        match (&mut self.archive, entry.zip_index) {
+        let data: Box<dyn Read + '_> = match (&mut self.archive, entry.zip_index) {
             (Some(archive), Some(zip_index)) => {
                 let mut file = archive.by_index(zip_index).map_err(io::Error::from)?;
-                changed(read_npy_header(&mut file).map_err(header_err)?)?;
-                Ok(Box::new(ExactReader::new(file, entry.info.data_len, label)))
+                changed(read_header(&mut file).map_err(header_err)?)?;
+                Box::new(ExactReader::new(file, stored.data_len, label))
             }
             (None, None) => {
                 let mut file = BufReader::new(File::open(&self.path)?);
-                changed(read_npy_header(&mut file).map_err(header_err)?)?;
-                Ok(Box::new(ExactReader::new(file, entry.info.data_len, label)))
+                changed(read_header(&mut file).map_err(header_err)?)?;
+                Box::new(ExactReader::new(file, stored.data_len, label))
             }
-            _ => Err(io::Error::other("npz source is inconsistent")),
+            _ => return Err(io::Error::other("npz source is inconsistent")),
+        };
+        if entry.to_f32 {
+            let label = format!("{path}: '{key}'");
+            Ok(Box::new(F32Reader::new(data, stored.element, stored.shape.clone(), label)))
+        } else {
+            Ok(data)
         }
     }
 }
@@ -499,6 +659,80 @@ impl<R: Read> Read for ExactReader<R> {
     }
 }
 
+/// Converts a stream of stored elements to float32 (little-endian bytes), refusing a value that
+/// is not finite as float32 ([`crate::values::to_f32`]) with an `InvalidData` error that names
+/// the array, the row and the coordinate.
+struct F32Reader<R> {
+    inner: R,
+    element: Element,
+    /// The stored shape, to place a bad value.
+    shape: Vec<u64>,
+    label: String,
+    /// Elements converted so far.
+    index: usize,
+    /// Bytes of a partly read element.
+    carry: Vec<u8>,
+    out: Vec<u8>,
+    at: usize,
+}
+
+impl<R: Read> F32Reader<R> {
+    const BLOCK: usize = 64 * 1024;
+
+    fn new(inner: R, element: Element, shape: Vec<u64>, label: String) -> Self {
+        Self { inner, element, shape, label, index: 0, carry: Vec::new(), out: Vec::new(), at: 0 }
+    }
+
+    /// Converts the next block; `false` at the end of the data.
+    fn fill(&mut self) -> io::Result<bool> {
+        let size = self.element.size;
+        let mut raw = std::mem::take(&mut self.carry);
+        let start = raw.len();
+        raw.resize(start + Self::BLOCK, 0);
+        let n = loop {
+            match self.inner.read(&mut raw[start..]) {
+                Err(e) if e.kind() == io::ErrorKind::Interrupted => {}
+                other => break other?,
+            }
+        };
+        raw.truncate(start + n);
+        if n == 0 {
+            if raw.is_empty() {
+                return Ok(false);
+            }
+            return Err(invalid_data(format!("{} ends inside an element", self.label)));
+        }
+        let whole = raw.len() / size * size;
+        self.carry = raw[whole..].to_vec();
+        self.out.clear();
+        self.at = 0;
+        for chunk in raw[..whole].chunks_exact(size) {
+            let value = crate::values::to_f32(&self.label, self.element.decode(chunk), self.index, &self.shape)
+                .map_err(invalid_data)?;
+            self.out.extend_from_slice(&value.to_le_bytes());
+            self.index += 1;
+        }
+        Ok(true)
+    }
+}
+
+impl<R: Read> Read for F32Reader<R> {
+    fn read(&mut self, buf: &mut [u8]) -> io::Result<usize> {
+        if buf.is_empty() {
+            return Ok(0);
+        }
+        while self.at == self.out.len() {
+            if !self.fill()? {
+                return Ok(0);
+            }
+        }
+        let n = buf.len().min(self.out.len() - self.at);
+        buf[..n].copy_from_slice(&self.out[self.at..self.at + n]);
+        self.at += n;
+        Ok(n)
+    }
+}
+
 /// Which kind a file looks like: trajectories for an `.npz` holding `observations`, else
 /// samples.
 pub fn detect_kind(path: impl AsRef<Path>) -> Result<DatasetKind> {
@@ -526,42 +760,20 @@ pub fn npz_keys(path: impl AsRef<Path>) -> Result<Vec<String>> {
 }
 
 /// One numeric array of an `.npz` (or of a plain `.npy`, whatever `key`) as f64 with its
-/// shape; `None` when an archive has no such array. Any integer, bool or float dtype; C order
-/// only. Errors do not name the file; callers add it.
+/// shape; `None` when an archive has no such array. Any integer, bool or float dtype in either
+/// byte order ([`crate::values::Element`]); C order only. Errors do not name the file; callers
+/// add it.
 pub fn read_numbers(path: &Path, key: &str) -> io::Result<Option<(Vec<u64>, Vec<f64>)>> {
     if path.extension().is_some_and(|e| e.eq_ignore_ascii_case("npy")) {
-        let npy = npyz::NpyFile::new(BufReader::new(File::open(path)?))?;
-        return npy_numbers(npy, key).map(Some);
+        let mut reader = BufReader::new(File::open(path)?);
+        let header = read_header(&mut reader).map_err(|m| invalid_data(format!("'{key}': {m}")))?;
+        let values = read_values(&mut reader, &header).map_err(|m| invalid_data(format!("'{key}': {m}")))?;
+        return Ok(Some((header.shape, values)));
     }
-    let mut archive = npyz::npz::NpzArchive::open(path)?;
-    match archive.by_name(key)? {
-        Some(npy) => npy_numbers(npy, key).map(Some),
-        None => Ok(None),
-    }
-}
-
-fn npy_numbers<R: Read>(npy: npyz::NpyFile<R>, key: &str) -> io::Result<(Vec<u64>, Vec<f64>)> {
-    let invalid = |message: String| io::Error::new(io::ErrorKind::InvalidData, message);
-    let shape = npy.shape().to_vec();
-    if npy.order() != Order::C && shape.len() > 1 {
-        return Err(invalid(format!("'{key}' is in Fortran order; save it with np.ascontiguousarray")));
-    }
-    let DType::Plain(ts) = npy.dtype() else { return Err(invalid(format!("'{key}' is not a plain numeric array"))) };
-    let values: Vec<f64> = match (ts.type_char(), ts.size_field()) {
-        (TypeChar::Bool, 1) => npy.into_vec::<bool>()?.into_iter().map(|b| f64::from(u8::from(b))).collect(),
-        (TypeChar::Uint, 1) => npy.into_vec::<u8>()?.into_iter().map(f64::from).collect(),
-        (TypeChar::Uint, 2) => npy.into_vec::<u16>()?.into_iter().map(f64::from).collect(),
-        (TypeChar::Uint, 4) => npy.into_vec::<u32>()?.into_iter().map(f64::from).collect(),
-        (TypeChar::Uint, 8) => npy.into_vec::<u64>()?.into_iter().map(|v| v as f64).collect(),
-        (TypeChar::Int, 1) => npy.into_vec::<i8>()?.into_iter().map(f64::from).collect(),
-        (TypeChar::Int, 2) => npy.into_vec::<i16>()?.into_iter().map(f64::from).collect(),
-        (TypeChar::Int, 4) => npy.into_vec::<i32>()?.into_iter().map(f64::from).collect(),
-        (TypeChar::Int, 8) => npy.into_vec::<i64>()?.into_iter().map(|v| v as f64).collect(),
-        (TypeChar::Float, 4) => npy.into_vec::<f32>()?.into_iter().map(f64::from).collect(),
-        (TypeChar::Float, 8) => npy.into_vec::<f64>()?,
-        _ => return Err(invalid(format!("'{key}' has dtype {ts}; expected bool, integers or floats"))),
-    };
-    Ok((shape, values))
+    let (mut archive, members) = open_archive(path).map_err(|e| invalid_data(e.message))?;
+    let Some(member) = members.iter().find(|m| m.key == key) else { return Ok(None) };
+    let (header, values) = member_values(path, &mut archive, member).map_err(|e| invalid_data(e.message))?;
+    Ok(Some((header.shape, values)))
 }
 
 /// The shape of array `key` of an `.npz` archive, from its header; `None` when the archive has
@@ -579,14 +791,18 @@ fn list_keys(members: &[Member]) -> String {
     }
 }
 
-/// A D4RL / Minari style trajectory dataset from an `.npz` archive.
+/// A D4RL / Minari style trajectory dataset from an `.npz` archive, by the rules of
+/// [`crate::values`] and [`crate::episodes`] (the HDF5 reader's too).
 ///
-/// Required: `observations` `[N, obs_dim]` and `actions` `[N, act_dim]`, float32 or float64.
-/// Optional, `[N]` bool or uint8: `terminals` (Minari: `terminations`) and `timeouts` (Minari:
-/// `truncations`); Minari names are sent under the D4RL names. Optional episode boundaries:
-/// `episode_starts` (per-row flags or start indices) and/or `episode_lengths`, read by the
-/// rules of [`crate::episodes`] and sent as per-row `episode_starts` flags. Other arrays are
-/// left out and listed by [`NpzSource::ignored_keys`].
+/// Required: `observations` and `actions`, `N` rows each (`[N]`, `[N, d]` or `[N, a, b, ...]`,
+/// the trailing dimensions flattened row-major), of any integer or float dtype in either byte
+/// order; they are sent as float32 `[N, width]`, converted as they are read, and a value that is
+/// not finite as float32 fails the read naming the array, row and coordinate. `N = 0` is
+/// refused. Optional, `[N]` bool or any integer or float type holding only 0 and 1, sent as
+/// bool: `terminals` (Minari: `terminations`) and `timeouts` (Minari: `truncations`); Minari
+/// names are sent under the D4RL names. Optional episode boundaries: `episode_starts` (per-row
+/// flags or start indices) and/or `episode_lengths`, sent as per-row `episode_starts` flags.
+/// Other arrays are left out and listed by [`NpzSource::ignored_keys`].
 pub fn trajectories_from_npz(path: impl AsRef<Path>) -> Result<NpzSource> {
     let path = path.as_ref();
     if sniff(path)? == FileFormat::Npy {
@@ -619,50 +835,41 @@ pub fn trajectories_from_npz(path: impl AsRef<Path>) -> Result<NpzSource> {
     let starts_member = find("episode_starts");
     let lengths_member = find("episode_lengths");
 
-    let mut infos = Vec::with_capacity(chosen.len());
+    // (header, width of a row) of each chosen array.
+    let mut headers = Vec::with_capacity(chosen.len());
     for &(name, member) in &chosen {
-        let info = member_info(path, &mut archive, member)?;
+        let header = member_header(path, &mut archive, member)?;
         let shown = describe_key(&member.key, name);
-        if matches!(name, "observations" | "actions") {
-            let dim = if name == "observations" { "obs_dim" } else { "act_dim" };
-            require_float(path, &shown, &info)?;
-            if info.shape.len() != 2 {
-                let hint = if info.shape.len() == 1 { " (reshape 1-D data to [N, 1])" } else { "" };
+        let width = if matches!(name, "observations" | "actions") {
+            if header.element.kind == Kind::Bool {
                 return Err(NpzError::new(
                     path,
-                    format!("{shown} has shape {:?}; expected 2-D [N, {dim}]{hint}", info.shape),
+                    format!("{shown} has dtype bool; expected integers or floats (read as float32)"),
                 ));
             }
+            crate::values::row_shape(&shown, &header.shape).map_err(|m| NpzError::new(path, m))?.1
         } else {
-            if !matches!(info.dtype, Dtype::Bool | Dtype::Uint8) {
+            if header.shape.len() != 1 {
                 return Err(NpzError::new(
                     path,
-                    format!(
-                        "{shown} has dtype {}; episode flags must be bool or uint8 (convert with arr.astype(bool))",
-                        tensor::dtype_name(info.dtype)
-                    ),
+                    format!("{shown} has shape {:?}; episode flags must be 1-D [N]", header.shape),
                 ));
             }
-            if info.shape.len() != 1 {
-                return Err(NpzError::new(
-                    path,
-                    format!("{shown} has shape {:?}; episode flags must be 1-D [N]", info.shape),
-                ));
-            }
-        }
-        infos.push(info);
+            1
+        };
+        headers.push((header, width));
     }
     // Every array must have N = len(observations) rows.
-    if let (Some(first), Some(&(first_name, first_member))) = (infos.first(), chosen.first()) {
-        let rows = first.shape.first().copied().unwrap_or(0);
-        for (info, &(name, member)) in infos.iter().zip(&chosen).skip(1) {
-            if info.shape.first().copied().unwrap_or(0) != rows {
+    let rows = headers.first().and_then(|(h, _)| h.shape.first().copied()).unwrap_or(0);
+    if let (Some((first, _)), Some(&(first_name, first_member))) = (headers.first(), chosen.first()) {
+        for ((header, _), &(name, member)) in headers.iter().zip(&chosen).skip(1) {
+            if header.shape.first().copied().unwrap_or(0) != rows {
                 return Err(NpzError::new(
                     path,
                     format!(
                         "{} has shape {:?} but {} has shape {:?}: the leading dimensions (rows) differ",
                         describe_key(&member.key, name),
-                        info.shape,
+                        header.shape,
                         describe_key(&first_member.key, first_name),
                         first.shape
                     ),
@@ -670,8 +877,10 @@ pub fn trajectories_from_npz(path: impl AsRef<Path>) -> Result<NpzSource> {
             }
         }
     }
+    if rows == 0 {
+        return Err(NpzError::new(path, "'observations' has no rows (N = 0); a dataset needs at least one"));
+    }
 
-    let rows = infos.first().and_then(|i| i.shape.first().copied()).unwrap_or(0);
     let starts = episode_boundaries(path, &mut archive, rows, starts_member, lengths_member)?;
     let used = |m: &Member| {
         chosen.iter().any(|(_, c)| c.index == m.index)
@@ -686,13 +895,26 @@ pub fn trajectories_from_npz(path: impl AsRef<Path>) -> Result<NpzSource> {
         ignored,
         archive: None,
     };
-    for (&(name, member), info) in chosen.iter().zip(infos) {
-        source.push(name, Entry { key: member.key.clone(), zip_index: Some(member.index), info, memory: None });
+    for (&(name, member), (header, width)) in chosen.iter().zip(headers) {
+        if matches!(name, "observations" | "actions") {
+            let mut entry = Entry::as_stored(member.key.clone(), Some(member.index), header);
+            entry.to_f32 = true;
+            entry.sent_len = rows * width as u64 * 4;
+            source.push(name, Dtype::Float32, vec![rows, width as u64], entry);
+        } else {
+            // Flags are small ([N] bytes): read whole, checked and sent as bool.
+            let (_, values) = member_values(path, &mut archive, member)?;
+            let flags =
+                crate::values::flags(&describe_key(&member.key, name), &values).map_err(|m| NpzError::new(path, m))?;
+            let bytes = flags.iter().map(|&f| u8::from(f)).collect();
+            let mut entry = Entry::in_memory(member.key.clone(), bytes);
+            entry.zip_index = Some(member.index);
+            source.push(name, Dtype::Bool, vec![rows], entry);
+        }
     }
     if let Some((key, flags)) = starts {
-        let info = NpyInfo { dtype: Dtype::Bool, shape: vec![rows], header_len: 0, data_len: rows };
-        let memory = Some(flags.iter().map(|&f| u8::from(f)).collect());
-        source.push("episode_starts", Entry { key, zip_index: None, info, memory });
+        let bytes = flags.iter().map(|&f| u8::from(f)).collect();
+        source.push("episode_starts", Dtype::Bool, vec![rows], Entry::in_memory(key, bytes));
     }
     source.archive = Some(archive);
     Ok(source)
@@ -713,13 +935,10 @@ fn episode_boundaries(
     let rows_usize = usize::try_from(rows).map_err(|_| NpzError::new(path, "too many rows for this machine"))?;
     // (shape, values, is_bool, is_integer) of one member.
     let mut load = |member: &Member| -> Result<(Vec<u64>, Vec<f64>, bool, bool)> {
-        let info = member_info(path, archive, member)?;
-        let (shape, values) = read_numbers(path, &member.key)
-            .map_err(|e| NpzError::new(path, format!("array '{}': {e}", member.key)))?
-            .ok_or_else(|| NpzError::new(path, format!("array '{}' vanished while reading", member.key)))?;
-        let is_bool = info.dtype == Dtype::Bool;
-        let is_integer = matches!(info.dtype, Dtype::Int32 | Dtype::Int64 | Dtype::Uint8);
-        Ok((shape, values, is_bool, is_integer))
+        let (header, values) = member_values(path, archive, member)?;
+        let is_bool = header.element.kind == Kind::Bool;
+        let is_integer = header.element.is_integer();
+        Ok((header.shape, values, is_bool, is_integer))
     };
     let s = starts.map(&mut load).transpose()?;
     let l = lengths.map(&mut load).transpose()?;
@@ -754,17 +973,26 @@ fn describe_key(key: &str, name: &str) -> String {
     if key == name { format!("'{key}'") } else { format!("'{key}' (sent as '{name}')") }
 }
 
-fn require_float(path: &Path, shown: &str, info: &NpyInfo) -> Result<()> {
-    if matches!(info.dtype, Dtype::Float32 | Dtype::Float64) {
-        Ok(())
-    } else {
-        Err(NpzError::new(
+/// Samples are sent as stored: little-endian float32 or float64 only.
+fn require_float(path: &Path, shown: &str, header: &Header) -> Result<Dtype> {
+    match header.wire_dtype() {
+        Some(dtype @ (Dtype::Float32 | Dtype::Float64)) => Ok(dtype),
+        _ if header.element.kind == Kind::Float && header.element.big_endian => Err(NpzError::new(
+            path,
+            format!(
+                "{shown} has dtype {} ({}); samples are sent as stored: convert with arr.astype('<f{}')",
+                header.descr,
+                header.element,
+                header.element.size.max(4)
+            ),
+        )),
+        _ => Err(NpzError::new(
             path,
             format!(
                 "{shown} has dtype {}; it must be float32 or float64 (convert with arr.astype('float32'))",
-                tensor::dtype_name(info.dtype)
+                header.element
             ),
-        ))
+        )),
     }
 }
 
@@ -788,9 +1016,9 @@ pub fn samples_from_npz_or_npy(path: impl AsRef<Path>, key: Option<&str>) -> Res
             let stored = file.metadata().map_err(|e| NpzError::new(path, e.to_string()))?.len();
             let mut reader = BufReader::new(file);
             let stem = path.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
-            let info = read_npy_header(&mut reader).map_err(|m| NpzError::new(path, format!("array '{stem}': {m}")))?;
-            check_complete(path, &stem, &info, stored)?;
-            (Entry { key: stem, zip_index: None, info, memory: None }, Vec::new(), None)
+            let header = read_header(&mut reader).map_err(|m| NpzError::new(path, format!("array '{stem}': {m}")))?;
+            check_complete(path, &stem, &header, stored)?;
+            (Entry::as_stored(stem, None, header), Vec::new(), None)
         }
         FileFormat::Npz => {
             let (mut archive, members) = open_archive(path)?;
@@ -815,24 +1043,21 @@ pub fn samples_from_npz_or_npy(path: impl AsRef<Path>, key: Option<&str>) -> Res
                     },
                 },
             };
-            let info = member_info(path, &mut archive, member)?;
+            let header = member_header(path, &mut archive, member)?;
             let ignored = members.iter().filter(|m| m.index != member.index).map(|m| m.key.clone()).collect();
-            (
-                Entry { key: member.key.clone(), zip_index: Some(member.index), info, memory: None },
-                ignored,
-                Some(archive),
-            )
+            (Entry::as_stored(member.key.clone(), Some(member.index), header), ignored, Some(archive))
         }
     };
     let shown = describe_key(&entry.key, "samples");
-    require_float(path, &shown, &entry.info)?;
-    if entry.info.shape.len() < 2 {
+    let Some(stored) = entry.stored.clone() else { return Err(NpzError::new(path, "npz source is inconsistent")) };
+    let dtype = require_float(path, &shown, &stored)?;
+    if stored.shape.len() < 2 {
         return Err(NpzError::new(
             path,
             format!(
                 "{shown} has shape {:?}; samples must be [N, ...] with at least 2 dimensions \
                  (reshape 1-D data to [N, 1])",
-                entry.info.shape
+                stored.shape
             ),
         ));
     }
@@ -844,7 +1069,7 @@ pub fn samples_from_npz_or_npy(path: impl AsRef<Path>, key: Option<&str>) -> Res
         ignored,
         archive,
     };
-    source.push("samples", entry);
+    source.push("samples", dtype, stored.shape, entry);
     Ok(source)
 }
 
@@ -911,8 +1136,8 @@ mod tests {
     /// Archive entries: (array name, npy file bytes).
     type Entries = Vec<(&'static str, Vec<u8>)>;
 
-    /// A small D4RL-like file: 4 rows, obs_dim 3, act_dim 2, bool flags, plus extras; and the
-    /// data bytes of the arrays that are sent, in order.
+    /// A small D4RL-like file: 4 rows, obs_dim 3, act_dim 2 (float64), bool flags, plus extras;
+    /// and the data bytes of the arrays that are sent, in order.
     fn d4rl_entries() -> (Entries, Vec<Vec<u8>>) {
         let obs = f32_bytes(&(0..12).map(|i| i as f32 * 0.5).collect::<Vec<_>>());
         let act = f64_bytes(&[1.0, -1.0, 2.0, -2.0, 3.0, -3.0, 4.0, -4.0]);
@@ -927,7 +1152,9 @@ mod tests {
             ("timeouts", npy("|b1", false, &[4], &timeouts)),
             ("infos/qpos", npy("<f8", false, &[4, 1], &f64_bytes(&[0.0; 4]))),
         ];
-        (entries, vec![obs, act, terminals, timeouts])
+        // Actions are sent as float32 whatever their stored type.
+        let act_sent = f32_bytes(&[1.0, -1.0, 2.0, -2.0, 3.0, -3.0, 4.0, -4.0]);
+        (entries, vec![obs, act_sent, terminals, timeouts])
     }
 
     #[test]
@@ -944,14 +1171,14 @@ mod tests {
                 source.arrays(),
                 &[
                     spec("observations", Dtype::Float32, &[4, 3]),
-                    spec("actions", Dtype::Float64, &[4, 2]),
+                    spec("actions", Dtype::Float32, &[4, 2]),
                     spec("terminals", Dtype::Bool, &[4]),
                     spec("timeouts", Dtype::Bool, &[4]),
                 ]
             );
             assert_eq!(source.ignored_keys(), &["rewards".to_owned(), "infos/qpos".to_owned()]);
             assert!(source.renamed().is_empty());
-            assert_eq!(source.total_bytes(), 48 + 64 + 4 + 4);
+            assert_eq!(source.total_bytes(), 48 + 32 + 4 + 4);
             for (i, expected) in data.iter().enumerate() {
                 assert_eq!(&read_all(&mut source, i).expect("read array"), expected, "array {i}");
                 // Reopening gives the same bytes again.
@@ -991,7 +1218,8 @@ mod tests {
         let mut source = trajectories_from_npz(&path).expect("read");
         let names: Vec<&str> = source.arrays().iter().map(|s| s.name.as_str()).collect();
         assert_eq!(names, ["observations", "actions", "terminals", "timeouts", "episode_starts"]);
-        assert_eq!(source.arrays()[2].dtype, Dtype::Uint8 as i32);
+        // uint8 flags (0/1) are sent as bool.
+        assert_eq!(source.arrays()[2].dtype, Dtype::Bool as i32);
         assert_eq!(source.file_key(2), Some("terminations"));
         assert_eq!(
             source.renamed(),
@@ -1088,23 +1316,21 @@ mod tests {
 
     #[test]
     fn unsupported_layouts_and_dtypes_are_refused_naming_array_and_dtype() {
-        let err = npy_error(">f4", false, &[2, 2], &[0; 16]);
-        assert!(err.contains("'observations'") && err.contains("'>f4'") && err.contains("big-endian"), "{err}");
         let err = npy_error("<f4", true, &[2, 2], &[0; 16]);
         assert!(err.contains("'observations'") && err.contains("Fortran"), "{err}");
-        let err = npy_error("<f2", false, &[2, 2], &[0; 8]);
-        assert!(err.contains("'observations'") && err.contains("'<f2'"), "{err}");
         let err = npy_error("<c8", false, &[2, 2], &[0; 32]);
-        assert!(err.contains("'<c8'"), "{err}");
-        let err = npy_error("<u4", false, &[2, 2], &[0; 16]);
-        assert!(err.contains("'<u4'"), "{err}");
+        assert!(err.contains("'observations'") && err.contains("'<c8'") && err.contains("complex"), "{err}");
+        let err = npy_error("<f16", false, &[2, 2], &[0; 64]);
+        assert!(err.contains("'<f16'") && err.contains("16-byte float"), "{err}");
+        let err = npy_error("<U3", false, &[2, 2], &[0; 48]);
+        assert!(err.contains("'<U3'") && err.contains("strings"), "{err}");
         let err = npy_error("|O", false, &[2, 2], &[0x80, 0x02]);
         assert!(err.contains("'observations'") && err.contains("object"), "{err}");
-        let err = npy_error("<i8", false, &[2, 2], &[0; 32]);
-        assert!(err.contains("'observations'") && err.contains("int64") && err.contains("float"), "{err}");
+        let err = npy_error("|b1", false, &[2, 2], &[0; 4]);
+        assert!(err.contains("'observations' has dtype bool"), "{err}");
         // A structured dtype.
         let err = npy_error("[('a', '<f4')]", false, &[2, 2], &[0; 16]);
-        assert!(err.contains("'observations'"), "{err}");
+        assert!(err.contains("'observations'") && err.contains("structured"), "{err}");
 
         // Fortran order with one non-trivial dimension is the same layout: accepted.
         let dir = tempfile::tempdir().expect("tempdir");
@@ -1123,6 +1349,219 @@ mod tests {
             false,
         );
         trajectories_from_npz(&path).expect("one-byte big-endian");
+    }
+
+    /// The float32 values a trajectories archive sends for array `index`.
+    fn sent_f32(source: &mut NpzSource, index: usize) -> io::Result<Vec<f32>> {
+        let bytes = read_all(source, index)?;
+        Ok(bytes.chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect())
+    }
+
+    /// `values` stored as `descr` (`'<i2'`, `'>f8'`, ...).
+    fn encode(descr: &str, values: &[f64]) -> Vec<u8> {
+        let big = descr.starts_with('>');
+        let mut out = Vec::new();
+        for &v in values {
+            let mut b: Vec<u8> = match &descr[1..] {
+                "i1" => (v as i8).to_le_bytes().to_vec(),
+                "i2" => (v as i16).to_le_bytes().to_vec(),
+                "i4" => (v as i32).to_le_bytes().to_vec(),
+                "i8" => (v as i64).to_le_bytes().to_vec(),
+                "u1" => (v as u8).to_le_bytes().to_vec(),
+                "u2" => (v as u16).to_le_bytes().to_vec(),
+                "u4" => (v as u32).to_le_bytes().to_vec(),
+                "u8" => (v as u64).to_le_bytes().to_vec(),
+                // Small integers and halves only: exact in binary16.
+                "f2" => {
+                    let bits: u16 =
+                        (0..=u16::MAX).find(|&h| f64::from(crate::values::f16_to_f32(h)) == v).expect("a half");
+                    bits.to_le_bytes().to_vec()
+                }
+                "f4" => (v as f32).to_le_bytes().to_vec(),
+                "f8" => v.to_le_bytes().to_vec(),
+                other => panic!("{other}"),
+            };
+            if big {
+                b.reverse();
+            }
+            out.extend(b);
+        }
+        out
+    }
+
+    #[test]
+    fn every_integer_and_float_dtype_in_either_byte_order_is_sent_as_float32() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let path = dir.path().join("t.npz");
+        // Values every type holds exactly (unsigned: no negatives).
+        let signed = [0.0, -1.0, 2.0, -3.0, 4.0, 5.5, -6.5, 7.0];
+        let unsigned = [0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0];
+        for order in ['<', '>'] {
+            for ty in ["i1", "i2", "i4", "i8", "u1", "u2", "u4", "u8", "f2", "f4", "f8"] {
+                let descr = if ty.ends_with('1') { format!("|{ty}") } else { format!("{order}{ty}") };
+                let values: Vec<f64> = if ty.starts_with('f') {
+                    signed.to_vec()
+                } else if ty.starts_with('u') {
+                    unsigned.to_vec()
+                } else {
+                    signed.iter().map(|v| v.trunc()).collect()
+                };
+                let data = encode(&format!("{order}{ty}"), &values);
+                write_npz(
+                    &path,
+                    &[
+                        ("observations", npy(&descr, false, &[4, 2], &data)),
+                        ("actions", npy(&descr, false, &[4], &data[..data.len() / 2])),
+                    ],
+                    false,
+                );
+                let mut source = trajectories_from_npz(&path).unwrap_or_else(|e| panic!("{descr}: {e}"));
+                assert_eq!(
+                    source.arrays(),
+                    &[spec("observations", Dtype::Float32, &[4, 2]), spec("actions", Dtype::Float32, &[4, 1])],
+                    "{descr}"
+                );
+                let want: Vec<f32> = values.iter().map(|&v| v as f32).collect();
+                assert_eq!(sent_f32(&mut source, 0).expect("obs"), want, "{descr}");
+                assert_eq!(sent_f32(&mut source, 1).expect("act"), &want[..4], "{descr}");
+                assert_eq!(source.total_bytes(), 32 + 16);
+                // Whole-array reads (score, extract) convert too.
+                let t = source.read_tensor(0).expect("tensor");
+                assert_eq!(tensor::decode_finite_f32(&t).expect("finite"), want, "{descr}");
+            }
+        }
+        // float64 is rounded to float32, as the HDF5 reader does.
+        write_npz(
+            &path,
+            &[
+                ("observations", npy("<f8", false, &[1, 1], &f64_bytes(&[0.1]))),
+                ("actions", npy(">f8", false, &[1, 1], &0.1f64.to_be_bytes())),
+            ],
+            false,
+        );
+        let mut source = trajectories_from_npz(&path).expect("f64");
+        assert_eq!(sent_f32(&mut source, 0).expect("obs"), [0.1f32]);
+        assert_eq!(sent_f32(&mut source, 1).expect("act"), [0.1f32]);
+    }
+
+    #[test]
+    fn rows_are_one_value_per_row_for_1d_and_flattened_row_major_beyond_2d() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let path = dir.path().join("t.npz");
+        let obs: Vec<f32> = (0..12).map(|i| i as f32).collect();
+        write_npz(
+            &path,
+            &[
+                ("observations", npy("<f4", false, &[2, 3, 2], &f32_bytes(&obs))),
+                ("actions", npy("<i8", false, &[2], &encode("<i8", &[3.0, -4.0]))),
+            ],
+            false,
+        );
+        let mut source = trajectories_from_npz(&path).expect("read");
+        assert_eq!(
+            source.arrays(),
+            &[spec("observations", Dtype::Float32, &[2, 6]), spec("actions", Dtype::Float32, &[2, 1])]
+        );
+        assert_eq!(sent_f32(&mut source, 0).expect("obs"), obs);
+        assert_eq!(sent_f32(&mut source, 1).expect("act"), [3.0, -4.0]);
+        // A scalar is not rows.
+        write_npz(
+            &path,
+            &[("observations", npy("<f4", false, &[], &[0; 4])), ("actions", npy("<f4", false, &[1], &[0; 4]))],
+            false,
+        );
+        let err = trajectories_from_npz(&path).expect_err("scalar").to_string();
+        assert!(err.contains("'observations' is a scalar"), "{err}");
+    }
+
+    #[test]
+    fn values_not_finite_as_float32_are_refused_naming_row_and_coordinate() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let path = dir.path().join("t.npz");
+        let act = npy("<f4", false, &[2, 1], &[0; 8]);
+        for (values, shape, want) in [
+            (vec![0.0, 1.0, 2.0, f64::NAN], vec![2, 2], "value NaN at row 1, coordinate 1 is not finite"),
+            (vec![0.0, 1e300, 2.0, 3.0], vec![2, 2], "value 1e300 at row 0, coordinate 1 is outside float32's range"),
+            (vec![0.0, 1.0, f64::INFINITY, 3.0], vec![2, 1, 2], "row 1, flattened coordinate 0 of [1, 2]"),
+        ] {
+            write_npz(
+                &path,
+                &[("observations", npy("<f8", false, &shape, &f64_bytes(&values))), ("actions", act.clone())],
+                false,
+            );
+            let mut source = trajectories_from_npz(&path).expect("opens: values are read when sent");
+            let err = read_all(&mut source, 0).expect_err("not finite");
+            assert_eq!(err.kind(), io::ErrorKind::InvalidData);
+            let err = err.to_string();
+            assert!(err.contains("'observations'") && err.contains(want), "{err}");
+            assert!(payload_sha256(&mut source).is_err());
+        }
+    }
+
+    #[test]
+    fn flags_of_any_number_type_holding_only_0_and_1_are_sent_as_bool() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let path = dir.path().join("t.npz");
+        let base = || {
+            vec![
+                ("observations", npy("<f4", false, &[4, 1], &[0; 16])),
+                ("actions", npy("<f4", false, &[4, 1], &[0; 16])),
+            ]
+        };
+        for (descr, key) in [
+            ("<i8", "terminals"),
+            ("<f4", "timeouts"),
+            (">f8", "terminations"),
+            ("|i1", "truncations"),
+            ("<f2", "terminals"),
+        ] {
+            let mut entries = base();
+            entries.push((key, npy(descr, false, &[4], &encode(&descr.replace('|', "<"), &[0.0, 1.0, 0.0, 1.0]))));
+            write_npz(&path, &entries, false);
+            let mut source = trajectories_from_npz(&path).unwrap_or_else(|e| panic!("{descr}: {e}"));
+            assert_eq!(source.arrays()[2].dtype, Dtype::Bool as i32, "{descr}");
+            assert_eq!(read_all(&mut source, 2).expect("flags"), [0, 1, 0, 1], "{descr}");
+        }
+        for (descr, values, want) in [
+            ("<i8", [0.0, 1.0, 2.0, 1.0], "'terminals' holds 2 at row 2"),
+            ("<f4", [0.0, 0.5, 0.0, 1.0], "'terminals' holds 0.5 at row 1"),
+            ("<i4", [-1.0, 0.0, 0.0, 0.0], "'terminals' holds -1 at row 0"),
+            ("|u1", [0.0, 0.0, 0.0, 7.0], "'terminals' holds 7 at row 3"),
+        ] {
+            let mut entries = base();
+            entries.push(("terminals", npy(descr, false, &[4], &encode(&descr.replace('|', "<"), &values))));
+            write_npz(&path, &entries, false);
+            let err = trajectories_from_npz(&path).expect_err("not 0/1").to_string();
+            assert!(err.contains(want), "{descr}: {err}");
+        }
+    }
+
+    #[test]
+    fn no_rows_is_refused_by_name() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let path = dir.path().join("t.npz");
+        write_npz(
+            &path,
+            &[("observations", npy("<f4", false, &[0, 3], &[])), ("actions", npy("<f4", false, &[0, 1], &[]))],
+            false,
+        );
+        let err = trajectories_from_npz(&path).expect_err("empty").to_string();
+        assert!(err.contains("'observations' has no rows (N = 0)"), "{err}");
+    }
+
+    #[test]
+    fn samples_keep_their_stored_float_type() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let path = dir.path().join("s.npy");
+        std::fs::write(&path, npy("<f8", false, &[2, 1], &f64_bytes(&[0.1, 0.2]))).expect("write");
+        let source = samples_from_npz_or_npy(&path, None).expect("f64 samples");
+        assert_eq!(source.arrays(), &[spec("samples", Dtype::Float64, &[2, 1])]);
+        std::fs::write(&path, npy(">f4", false, &[2, 1], &[0; 8])).expect("write");
+        let err = samples_from_npz_or_npy(&path, None).expect_err("big-endian").to_string();
+        assert!(err.contains("'>f4'") && err.contains("astype('<f4')"), "{err}");
+        std::fs::write(&path, npy("<i8", false, &[2, 1], &[0; 16])).expect("write");
+        let err = samples_from_npz_or_npy(&path, None).expect_err("int").to_string();
+        assert!(err.contains("int64") && err.contains("float32 or float64"), "{err}");
     }
 
     #[test]
@@ -1158,27 +1597,18 @@ mod tests {
         let err = trajectories_from_npz(&path).expect_err("must fail").to_string();
         assert!(err.contains("'truncations' (sent as 'timeouts') has shape [4]"), "{err}");
 
-        // 1-D observations.
-        write_npz(
-            &path,
-            &[("observations", npy("<f4", false, &[3], &[0; 12])), ("actions", npy("<f4", false, &[3, 1], &[0; 12]))],
-            false,
-        );
-        let err = trajectories_from_npz(&path).expect_err("must fail").to_string();
-        assert!(err.contains("'observations' has shape [3]") && err.contains("2-D"), "{err}");
-
-        // Float flags.
+        // Flags of shape [N, 1].
         write_npz(
             &path,
             &[
                 ("observations", npy("<f4", false, &[1, 1], &[0; 4])),
                 ("actions", npy("<f4", false, &[1, 1], &[0; 4])),
-                ("terminals", npy("<f4", false, &[1], &[0; 4])),
+                ("terminals", npy("|b1", false, &[1, 1], &[0])),
             ],
             false,
         );
         let err = trajectories_from_npz(&path).expect_err("must fail").to_string();
-        assert!(err.contains("'terminals' has dtype float32"), "{err}");
+        assert!(err.contains("'terminals' has shape [1, 1]") && err.contains("1-D [N]"), "{err}");
 
         // A single .npy cannot be trajectories.
         let npy_path = dir.path().join("obs.npy");

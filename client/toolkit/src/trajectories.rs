@@ -38,6 +38,9 @@ pub struct Trajectories {
     pub walls: Option<Walls>,
     /// What the reader left out, for a note to the user (keys, groups).
     pub ignored: Vec<String>,
+    /// Other things the reader did that the user should hear of (e.g. empty Minari episodes
+    /// skipped), one sentence each.
+    pub notes: Vec<String>,
 }
 
 impl Trajectories {
@@ -145,6 +148,7 @@ impl Trajectories {
             act_dim: ad,
             walls: self.walls.clone(),
             ignored: self.ignored.clone(),
+            notes: self.notes.clone(),
             ..Default::default()
         };
         let flag = |v: &Vec<bool>, t: usize| v.get(t).copied().unwrap_or(false);

@@ -94,6 +94,9 @@ async fn upload(ctx: &Ctx, args: UploadArgs) -> Result<Report> {
             let keys = t.ignored.iter().map(|k| format!("'{k}'")).collect::<Vec<_>>().join(", ");
             eprint_line(&format!("note: {shown}: not uploading {keys} (not part of a trajectories dataset)"));
         }
+        for note in &t.notes {
+            eprint_line(&format!("note: {shown}: {note}"));
+        }
         let request = DatasetUpload { name, kind: pb::DatasetKind::Trajectories, description, chunk_bytes };
         return send(ctx, request, t.upload_source()).await;
     }

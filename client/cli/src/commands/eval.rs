@@ -614,12 +614,13 @@ fn constant_goal(path: &Path) -> Result<Option<(f64, f64)>> {
     Ok(constant.then_some(first))
 }
 
-/// Observation width of a trajectories file (its `observations` header).
+/// Observation width of a trajectories file (its `observations` header): the values per row,
+/// trailing dimensions flattened as the readers do (`[N]` is 1).
 fn obs_dim(path: &Path) -> Result<usize> {
     let shape = npz::npz_array_shape(path, "observations")
         .with_context(|| format!("--dataset {}", path.display()))?
         .ok_or_else(|| anyhow!("--dataset {}: no 'observations' array", path.display()))?;
-    Ok(shape.get(1).copied().unwrap_or(1) as usize)
+    Ok(shape.iter().skip(1).product::<u64>() as usize)
 }
 
 async fn heatmap(ctx: &Ctx, args: HeatmapArgs) -> Result<Report> {

@@ -345,6 +345,9 @@ fn canonical(
 ) -> Result<(PathBuf, Trajectories)> {
     let hdf5 = relreward_toolkit::hdf5::is_hdf5(path);
     let mut t = if hdf5 { relreward_toolkit::hdf5::read_hdf5(path)? } else { Trajectories::from_npz(path)? };
+    for note in &t.notes {
+        eprintln!("{label}: {note}");
+    }
     let padded = absorbing > 0 && t.terminals.iter().any(|&b| b);
     if padded {
         let columns = match at_rest {

@@ -37,6 +37,13 @@ use serde_json::{Value, json};
 use tonic_health::pb::health_check_response::ServingStatus;
 
 pub const DEFAULT_ENDPOINT: &str = "http://127.0.0.1:50051";
+
+/// The URL of an `--endpoint` as given: a URL with a scheme (`http://`, `https://`) is kept as
+/// it is; a bare `host:port` (no `://`) is taken as plain `http://host:port`.
+pub fn endpoint_url(given: &str) -> String {
+    let given = given.trim();
+    if given.contains("://") { given.to_owned() } else { format!("http://{given}") }
+}
 /// How long to wait for the server to accept the connection.
 const CONNECT_TIMEOUT: Duration = Duration::from_secs(15);
 

@@ -116,8 +116,10 @@ class Client:
         ``data``: a D4RL-style dict of numpy arrays (``observations`` ``[N, obs_dim]``,
         ``actions`` ``[N, act_dim]``, optional ``terminals``/``timeouts``/``episode_starts``
         ``[N]``; Minari's ``terminations``/``truncations`` accepted), a numpy array ``[N, ...]``
-        (a samples dataset), or a path to an ``.npz``, ``.npy`` or HDF5 file (``.h5``/``.hdf5``
-        with D4RL keys; needs h5py). Keys that are not part of a dataset (``rewards``,
+        (a samples dataset), or a path to an ``.npz``, ``.npy`` or HDF5 file (D4RL keys or a
+        Minari ``main_data.hdf5``; needs h5py) or a Minari dataset directory, told apart by the
+        file's signature, not its suffix. Observations and actions of any integer or float
+        dtype are sent as float32. Keys that are not part of a dataset (``rewards``,
         ``infos/...``) are left out. See :mod:`relreward.datasets` (and
         :func:`relreward.datasets.from_minari_episodes` for Minari episodes).
 

@@ -1,14 +1,22 @@
 """What a dataset upload sends: arrays from numpy, ``.npz``/``.npy``, D4RL/Minari dicts, HDF5.
 
 A **trajectories** dataset holds ``observations`` ``[N, obs_dim]`` and ``actions``
-``[N, act_dim]`` (float32 or float64) and optionally the episode flags ``terminals``,
-``timeouts`` and ``episode_starts`` ``[N]`` (bool or uint8). D4RL's keys map directly; Minari's
-flat names ``terminations`` / ``truncations`` are sent as ``terminals`` / ``timeouts``. Every
-other key (``rewards``, ``infos/...``, ``next_observations``) is not part of a dataset and is
-left out (listed in :attr:`UploadSource.ignored`), as the CLI does.
+``[N, act_dim]`` and optionally the episode flags ``terminals``, ``timeouts`` and
+``episode_starts`` ``[N]``. Observations and actions of any integer or float dtype (float16
+included, either byte order) are read as float32 and sent as float32, as the Rust readers do;
+``[N]`` is read as ``[N, 1]`` and ``[N, a, b, ...]`` flattened row-major to ``[N, a*b*...]``;
+a value that is not finite is refused naming the key and its row. Flags are sent as bool: a
+bool array, or integers/floats that are all 0 or 1 (any other value is refused naming the key
+and its row). D4RL's keys map directly; Minari's flat names ``terminations`` /
+``truncations`` are sent as ``terminals`` / ``timeouts``. Every other key (``rewards``,
+``infos/...``, ``next_observations``) is not part of a dataset and is left out (listed in
+:attr:`UploadSource.ignored`), as the CLI does.
 
 A **samples** dataset holds one array ``samples`` ``[N, ...]`` (float32 or float64, at least
-2-D), e.g. diffusion latents ``[N, C, H, W]``.
+2-D, sent in its own dtype), e.g. diffusion latents ``[N, C, H, W]``.
+
+A path is read by its signature (first bytes), not its suffix: HDF5 (``\\x89HDF``), a zip
+archive (``.npz``), an ``.npy`` array (``\\x93NUMPY``), or a Minari dataset directory.
 
 Minari *episodes* (``observations`` with one more row than ``actions``: the state after the
 last action) are converted by :func:`from_minari_episodes`; Minari's on-disk layout
@@ -28,6 +36,10 @@ The rules shared with the Rust toolkit (``relreward_toolkit::episodes``, docs/da
 - Dict observations (Minari) are flattened like gymnasium's ``spaces.flatten`` for a Dict
   built from a plain dict: keys sorted, nested dicts recursively, each entry's trailing
   dimensions row-major.
+- Minari episodes without actions are skipped; the last observation of each episode is
+  dropped before anything is checked, so a non-finite value there does not matter.
+- A D4RL-layout HDF5 file needs ``observations`` and ``actions`` as top-level datasets: a group
+  there (dict observations) is refused as the Rust reader refuses it.
 - Maze walls: :func:`walls_of` takes the first of ``walls``, ``wall_map``, ``maze_map``
   (nonzero = wall); several present must agree.
 
@@ -148,15 +160,134 @@ def _is_float(a: Any) -> bool:
     return np.dtype(a.dtype).kind == "f" and np.dtype(a.dtype).itemsize in (4, 8)
 
 
-def _flag_ok(a: Any) -> bool:
+_F32 = np.dtype("<f4")
+# Rows per block when checking values, so a check never allocates more than about 1M flags.
+_CHECK_ELEMENTS = 1 << 20
+
+
+def _is_group(value: Any) -> bool:
+    return isinstance(value, Mapping) or (hasattr(value, "keys") and not hasattr(value, "shape"))
+
+
+def _array_like(a: Any) -> Any:
+    """``a`` itself when it has a numpy ``shape`` and ``dtype`` (an ndarray, an h5py dataset),
+    else ``np.asarray(a)`` (a list, a torch tensor)."""
+    if hasattr(a, "shape") and hasattr(a, "dtype"):
+        try:
+            np.dtype(a.dtype)
+            return a
+        except TypeError:
+            pass
+    return np.asarray(a)
+
+
+def _value_dims(a: Any, shown: str) -> tuple[int, int]:
+    """``(N, dim)`` of a values array (observations/actions) by the module's rule: any integer
+    or float dtype; ``[N]`` is ``[N, 1]``, ``[N, a, b, ...]`` is ``[N, a*b*...]``."""
     d = np.dtype(a.dtype)
-    return d.kind == "b" or (d.kind == "u" and d.itemsize == 1)
+    if d.kind == "b":
+        raise ValueError(f"{shown} is bool; expected numbers (any integer or float type, read as float32)")
+    if d.kind not in "iuf":
+        raise ValueError(f"{shown} has dtype {d}; expected numbers (any integer or float type, read as float32)")
+    shape = tuple(int(s) for s in a.shape)
+    if not shape:
+        raise ValueError(f"{shown} is a scalar; expected [N, dim]")
+    return shape[0], int(np.prod(shape[1:], dtype=np.int64))
+
+
+def _check_finite(out: np.ndarray, raw: Any, shown: str, first_row: int = 0) -> None:
+    """ValueError naming ``shown`` and the first row of ``out`` (float32 ``[n, d]``) holding a
+    value that is not finite; ``raw`` is what it was converted from (same rows)."""
+    step = max(1, _CHECK_ELEMENTS // max(1, out.shape[1] if out.ndim == 2 else 1))
+    for start in range(0, out.shape[0], step):
+        bad = ~np.isfinite(out[start:start + step])
+        if bad.any():
+            r = start + int(np.flatnonzero(bad.reshape(bad.shape[0], -1).any(axis=1))[0])
+            src = np.asarray(raw[r]).reshape(-1)
+            if np.dtype(src.dtype).kind == "f" and np.isfinite(src).all():
+                raise ValueError(f"{shown} holds a value beyond float32's range at row {first_row + r} "
+                                 "(values are read as float32)")
+            raise ValueError(f"{shown} holds a value that is not finite at row {first_row + r}")
+
+
+def _to_f32(part: Any, rows: int, dim: int, shown: str, first_row: int = 0) -> np.ndarray:
+    """``part`` as C-contiguous little-endian float32 ``[rows, dim]``, checked finite (no copy
+    when it already is one)."""
+    raw = np.asarray(part).reshape(rows, dim)
+    with np.errstate(over="ignore", invalid="ignore"):  # overflow is reported below, naming the row
+        out = np.ascontiguousarray(raw, dtype=_F32)
+    if np.dtype(raw.dtype).kind == "f":
+        _check_finite(out, raw, shown, first_row)
+    return out
+
+
+class _Float32Rows:
+    """A lazy float32 ``[N, dim]`` view of an array-like read by row ranges (an h5py dataset,
+    a memory-mapped ``.npy``): each read is converted and checked finite, so nothing is loaded
+    whole."""
+
+    dtype = _F32
+
+    def __init__(self, source: Any, rows: int, dim: int, shown: str) -> None:
+        self.source, self.shape, self.shown = source, (rows, dim), shown
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    def __getitem__(self, index: Any) -> np.ndarray:
+        n = self.shape[0]
+        if isinstance(index, (int, np.integer)):
+            i = int(index) + (n if index < 0 else 0)
+            if not 0 <= i < n:
+                raise IndexError(f"row {index} of {n}")
+            return self[i:i + 1][0]
+        if not isinstance(index, slice):
+            raise TypeError("rows are read by an integer or a slice")
+        start, stop, step = index.indices(n)
+        part = np.asarray(self.source[start:stop:step] if step != 1 else self.source[start:stop])
+        rows = part.shape[0] if part.ndim else 0
+        return _to_f32(part, rows, self.shape[1], self.shown, start)
+
+    def __array__(self, dtype: Any = None, copy: Any = None) -> np.ndarray:
+        a = self[:]
+        return a if dtype is None else a.astype(dtype)
+
+
+def _values(a: Any, shown: str) -> Any:
+    """Observations/actions read by the module's rule: float32 ``[N, dim]``. An in-memory array
+    is converted (and checked finite) now; an h5py dataset or memory-mapped array lazily, by
+    row ranges."""
+    a = _array_like(a)
+    rows, dim = _value_dims(a, shown)
+    if isinstance(a, np.ndarray) and not isinstance(a, np.memmap):
+        return _to_f32(a, rows, dim, shown)
+    return _Float32Rows(a, rows, dim, shown)
+
+
+def _flags(a: Any, shown: str) -> np.ndarray:
+    """Episode flags ``[N]`` as bool: a bool array, or integers/floats that are all 0 or 1
+    (ValueError naming ``shown`` and the first other value's row)."""
+    a = _array_like(a)
+    d = np.dtype(a.dtype)
+    if d.kind not in "biuf":
+        raise ValueError(f"{shown} has dtype {d}; episode flags must be bool, or integers or floats that are 0 or 1")
+    if len(a.shape) != 1:
+        raise ValueError(f"{shown} has shape {tuple(a.shape)}; episode flags must be 1-D [N]")
+    v = np.asarray(a if isinstance(a, np.ndarray) else a[()])
+    if d.kind == "b":
+        return v.astype(bool, copy=False)
+    bad = (v != 0) & (v != 1)
+    if bad.any():
+        r = int(np.flatnonzero(bad)[0])
+        raise ValueError(f"{shown} holds {v[r].item()!r} at row {r}; episode flags must be bool, or 0 or 1")
+    return v != 0
 
 
 def trajectories(data: Mapping[str, Any]) -> UploadSource:
     """A trajectories upload from a D4RL-style mapping (a dict, ``np.load(...)`` of an
-    ``.npz``, an ``h5py.File``). Checks shapes and dtypes locally (ValueError) so a bad input
-    fails before anything is sent."""
+    ``.npz``, an ``h5py.File``). Checks shapes, dtypes, flags and (for in-memory arrays)
+    finiteness locally (ValueError naming the key) so a bad input fails before anything is
+    sent; ``observations`` / ``actions`` are sent as float32 ``[N, dim]``, flags as bool."""
     keys = list(data.keys())
     for required in ("observations", "actions"):
         if required not in data:
@@ -171,23 +302,11 @@ def trajectories(data: Mapping[str, Any]) -> UploadSource:
     arrays: list[tuple[str, Any]] = []
     for name, key in chosen:
         a = data[key]
-        if not hasattr(a, "shape"):
-            a = np.asarray(a)
         shown = f"'{key}'" if key == name else f"'{key}' (sent as '{name}')"
-        if name in ("observations", "actions"):
-            if not _is_float(a):
-                raise ValueError(f"{shown} has dtype {a.dtype}; it must be float32 or float64")
-            if len(a.shape) != 2:
-                raise ValueError(f"{shown} has shape {tuple(a.shape)}; expected 2-D [N, dim]")
-        else:
-            if not _flag_ok(a):
-                if np.dtype(a.dtype).kind in "iuf":
-                    a = np.asarray(a[()] if not isinstance(a, np.ndarray) else a).astype(bool)
-                else:
-                    raise ValueError(f"{shown} has dtype {a.dtype}; episode flags must be bool or uint8")
-            if len(a.shape) != 1:
-                raise ValueError(f"{shown} has shape {tuple(a.shape)}; episode flags must be 1-D [N]")
-        arrays.append((name, a))
+        if _is_group(a):
+            raise ValueError(f"{shown} is a dict (a group of arrays); expected one array (dict observations are "
+                             "flattened for Minari datasets: from_minari_hdf5 / from_minari_episodes)")
+        arrays.append((name, _values(a, shown) if name in ("observations", "actions") else _flags(a, shown)))
     rows = arrays[0][1].shape[0]
     for name, a in arrays[1:]:
         if a.shape[0] != rows:
@@ -201,7 +320,8 @@ def trajectories(data: Mapping[str, Any]) -> UploadSource:
 
 
 def samples(array: Any) -> UploadSource:
-    """A samples upload of one float array ``[N, ...]`` (at least 2-D)."""
+    """A samples upload of one float array ``[N, ...]`` (at least 2-D), sent in its own dtype
+    (float32 or float64: a samples dataset keeps its precision)."""
     if not hasattr(array, "shape"):
         array = np.asarray(array)
     if not _is_float(array):
@@ -211,40 +331,53 @@ def samples(array: Any) -> UploadSource:
     return UploadSource(SAMPLES, [("samples", array)])
 
 
-def from_minari_episodes(episodes: Iterable[Any]) -> dict[str, np.ndarray]:
-    """Flattens Minari episodes into a D4RL-style dict for :func:`trajectories`.
+def _minari_flat(episodes: Iterable[tuple[str, Any]]) -> dict[str, np.ndarray]:
+    """:func:`from_minari_episodes` on ``(label, episode)`` pairs; errors name
+    ``'<label>/<key>'``."""
 
-    Each episode (a mapping or an object with attributes, like ``minari.EpisodeData``) has
-    ``observations`` ``[T + 1, obs_dim]`` (the state after every action, plus the first),
-    ``actions`` ``[T, act_dim]`` and ``terminations`` / ``truncations`` ``[T]``. The last
-    observation of each episode (the state after its final action, with no action of its own)
-    is dropped, so row k pairs the state an action was taken in with that action, as D4RL's
-    rows do. ``terminals`` / ``timeouts`` are the episode's flags, and ``episode_starts`` marks
-    each episode's first row so episodes stay apart even when one neither terminated nor was
-    truncated. Dict observations (goal-conditioned envs) must be flattened by the caller.
-    """
-
-    def get(ep: Any, key: str) -> np.ndarray:
-        v = ep[key] if isinstance(ep, Mapping) else getattr(ep, key)
-        if isinstance(v, Mapping):
-            raise ValueError(f"episode '{key}' is a dict; flatten it to an array first")
+    def get(ep: Any, label: str, key: str) -> Any:
+        try:
+            v = ep[key] if isinstance(ep, Mapping) else getattr(ep, key)
+        except (KeyError, AttributeError):
+            raise ValueError(f"no '{label}/{key}'") from None
+        if _is_group(v):
+            if key == "actions":
+                raise ValueError(f"'{label}/actions' is a dict (dict actions are not supported)")
+            raise ValueError(f"'{label}/{key}' is a dict; flatten it to an array first")
         return np.asarray(v)
 
     obs, act, term, trunc, starts = [], [], [], [], []
-    for i, ep in enumerate(episodes):
-        o, a = get(ep, "observations"), get(ep, "actions")
-        t = len(a)
-        if len(o) != t + 1:
-            raise ValueError(f"episode {i}: {len(o)} observations for {t} actions; Minari has one more")
-        obs.append(o[:-1].reshape(t, -1))
-        act.append(a.reshape(t, -1))
-        term.append(get(ep, "terminations").astype(bool).reshape(t))
-        trunc.append(get(ep, "truncations").astype(bool).reshape(t))
+    dims: tuple[int, int, str] | None = None
+    seen = 0
+    for label, ep in episodes:
+        seen += 1
+        o, a = get(ep, label, "observations"), get(ep, label, "actions")
+        t, act_dim = _value_dims(a, f"'{label}/actions'")
+        n_obs, obs_dim = _value_dims(o, f"'{label}/observations'")
+        if n_obs != t + 1:
+            raise ValueError(f"'{label}/observations' has {n_obs} rows for {t} actions; Minari stores one more")
+        if t == 0:
+            continue  # an empty episode (no actions) has no rows
+        if dims is None:
+            dims = (obs_dim, act_dim, label)
+        elif dims[:2] != (obs_dim, act_dim):
+            raise ValueError(f"'{label}' has observations of {obs_dim} and actions of {act_dim} values per row; "
+                             f"'{dims[2]}' has {dims[0]} and {dims[1]}")
+        # The last observation (after the last action) is dropped: only the kept rows are read and checked.
+        obs.append(_to_f32(np.asarray(o[:t]), t, obs_dim, f"'{label}/observations'"))
+        act.append(_to_f32(np.asarray(a[:t]), t, act_dim, f"'{label}/actions'"))
+        for key, out in (("terminations", term), ("truncations", trunc)):
+            f = _flags(get(ep, label, key), f"'{label}/{key}'")
+            if len(f) != t:
+                raise ValueError(f"'{label}/{key}' has {len(f)} rows; expected {t} (one per action)")
+            out.append(f)
         s = np.zeros(t, dtype=bool)
-        s[:1] = True
+        s[0] = True
         starts.append(s)
-    if not obs:
+    if not seen:
         raise ValueError("no episodes")
+    if not obs:
+        raise ValueError("every episode is empty (no actions)")
     return {
         "observations": np.concatenate(obs),
         "actions": np.concatenate(act),
@@ -254,66 +387,113 @@ def from_minari_episodes(episodes: Iterable[Any]) -> dict[str, np.ndarray]:
     }
 
 
+def from_minari_episodes(episodes: Iterable[Any]) -> dict[str, np.ndarray]:
+    """Flattens Minari episodes into a D4RL-style dict for :func:`trajectories`.
+
+    Each episode (a mapping or an object with attributes, like ``minari.EpisodeData``) has
+    ``observations`` ``[T + 1, ...]`` (the state after every action, plus the first),
+    ``actions`` ``[T, ...]`` and ``terminations`` / ``truncations`` ``[T]``. The last
+    observation of each episode (the state after its final action, with no action of its own)
+    is dropped (and never checked), so row k pairs the state an action was taken in with that
+    action, as D4RL's rows do. Values of any integer or float dtype are read as float32
+    (``[T]`` as ``[T, 1]``, more dimensions flattened per row); flags may be bool or 0/1
+    numbers. Episodes without actions are skipped. ``terminals`` / ``timeouts`` are the
+    episode's flags, and ``episode_starts`` marks each episode's first row so episodes stay
+    apart even when one neither terminated nor was truncated. Dict observations
+    (goal-conditioned envs) must be flattened by the caller. Errors name
+    ``'episode[i]/key'``.
+    """
+    return _minari_flat((f"episode[{i}]", ep) for i, ep in enumerate(episodes))
+
+
 def _flatten_dict(value: Any, where: str) -> np.ndarray:
-    """A dataset, or a dict/group flattened by gymnasium's rule (sorted keys, recursively)."""
-    if isinstance(value, Mapping) or (hasattr(value, "keys") and not hasattr(value, "shape")):
+    """A dataset as float32 ``[N, d]``, or a dict/group flattened by gymnasium's rule (sorted
+    keys, recursively)."""
+    if _is_group(value):
         keys = sorted(value.keys())
         if not keys:
-            raise ValueError(f"{where} is an empty group")
+            raise ValueError(f"'{where}' is an empty group")
         parts = [_flatten_dict(value[k], f"{where}/{k}") for k in keys]
         n = parts[0].shape[0]
         for k, p in zip(keys, parts):
             if p.shape[0] != n:
-                raise ValueError(f"{where}/{k} has {p.shape[0]} rows but {where}/{keys[0]} has {n}")
+                raise ValueError(f"'{where}/{k}' has {p.shape[0]} rows but '{where}/{keys[0]}' has {n}")
         return np.concatenate(parts, axis=1)
+    rows, dim = _value_dims(value, f"'{where}'")
     a = np.asarray(value[()] if not isinstance(value, np.ndarray) else value)
-    return a.reshape(a.shape[0], -1)
+    return np.ascontiguousarray(a.reshape(rows, dim), dtype=_F32)
+
+
+def _minari_file(path: pathlib.Path) -> pathlib.Path | None:
+    """``dir/data/main_data.hdf5`` or ``dir/main_data.hdf5``, whichever exists."""
+    for cand in (path / "data" / "main_data.hdf5", path / "main_data.hdf5"):
+        if cand.is_file():
+            return cand
+    return None
 
 
 def from_minari_hdf5(path: str | os.PathLike) -> dict[str, np.ndarray]:
     """A Minari dataset on disk (``main_data.hdf5``, or its dataset directory) as a D4RL-style
     dict for :func:`trajectories`: episodes in id order (``episode_2`` before ``episode_10``),
-    dict observations flattened by the module's rule, then :func:`from_minari_episodes`."""
+    dict observations flattened by the module's rule, then :func:`from_minari_episodes`'s rule
+    (empty episodes skipped, the last observation of each dropped)."""
     import h5py
 
     p = pathlib.Path(path)
     if p.is_dir():
-        for cand in (p / "data" / "main_data.hdf5", p / "main_data.hdf5"):
-            if cand.is_file():
-                p = cand
-                break
-        else:
+        found = _minari_file(p)
+        if found is None:
             raise ValueError(f"{path}: a directory without data/main_data.hdf5 (not a Minari dataset)")
+        p = found
     with h5py.File(p, "r") as f:
         ids = sorted(int(k[len("episode_"):]) for k in f.keys() if k.startswith("episode_") and k[8:].isdigit())
         if not ids:
             raise ValueError(f"{p}: no 'episode_<id>' groups (not a Minari main_data.hdf5)")
         episodes = []
-        for i in ids:
-            g = f[f"episode_{i}"]
-            if "actions" not in g or not hasattr(g["actions"], "shape"):
-                raise ValueError(f"{p}: 'episode_{i}/actions' is missing or a group (dict actions are not supported)")
-            for key in ("observations", "terminations", "truncations"):
-                if key not in g:
-                    raise ValueError(f"{p}: no 'episode_{i}/{key}'")
-            episodes.append(
-                {
+        try:
+            for i in ids:
+                g = f[f"episode_{i}"]
+                if "actions" not in g or not hasattr(g["actions"], "shape"):
+                    raise ValueError(f"'episode_{i}/actions' is missing or a group (dict actions are not supported)")
+                for key in ("observations", "terminations", "truncations"):
+                    if key not in g:
+                        raise ValueError(f"no 'episode_{i}/{key}'")
+                episodes.append((f"episode_{i}", {
                     "observations": _flatten_dict(g["observations"], f"episode_{i}/observations"),
                     "actions": np.asarray(g["actions"][()]),
                     "terminations": np.asarray(g["terminations"][()]),
                     "truncations": np.asarray(g["truncations"][()]),
-                }
-            )
-    return from_minari_episodes(episodes)
+                }))
+            return _minari_flat(episodes)
+        except ValueError as e:
+            raise ValueError(f"{p}: {e}") from None
 
 
-def _is_minari(path: pathlib.Path) -> bool:
+_HDF5_MAGIC = b"\x89HDF\r\n\x1a\n"
+_NPY_MAGIC = b"\x93NUMPY"
+_ZIP_MAGICS = (b"PK\x03\x04", b"PK\x05\x06")  # an archive with entries; an empty one
+FORMS = ("an HDF5 file (D4RL keys, or Minari's main_data.hdf5), an .npz archive, an .npy array, or a Minari "
+         "dataset directory")
+
+
+def _form_of(path: pathlib.Path) -> str:
+    """``"minari-dir"``, ``"hdf5"``, ``"npz"`` or ``"npy"``, by the file's signature (its first
+    bytes), never its suffix; ValueError naming the path and the forms accepted otherwise."""
     if path.is_dir():
-        return (path / "data" / "main_data.hdf5").is_file() or (path / "main_data.hdf5").is_file()
-    import h5py
-
-    with h5py.File(path, "r") as f:
-        return "observations" not in f and any(k.startswith("episode_") for k in f.keys())
+        if _minari_file(path) is None:
+            raise ValueError(f"{path}: a directory without data/main_data.hdf5 (not a Minari dataset); "
+                             f"expected {FORMS}")
+        return "minari-dir"
+    with open(path, "rb") as f:
+        head = f.read(8)
+    if head == _HDF5_MAGIC:
+        return "hdf5"
+    if head[:4] in _ZIP_MAGICS:
+        return "npz"
+    if head[:6] == _NPY_MAGIC:
+        return "npy"
+    raise ValueError(f"{path}: not a form relreward reads (by its first bytes it is not HDF5, .npz or .npy); "
+                     f"expected {FORMS}")
 
 
 def _hdf5_arrays(f: Any) -> dict[str, Any]:
@@ -328,34 +508,75 @@ def _hdf5_arrays(f: Any) -> dict[str, Any]:
     return out
 
 
+def _open_hdf5(path: pathlib.Path, kind: str | None, key: str | None) -> tuple[str, Any]:
+    """``("minari", None)`` for a Minari ``main_data.hdf5`` (by the rule of the Rust reader: no
+    top-level ``observations`` dataset and some ``episode_*`` group), else ``("arrays", file)``
+    with the file open. A trajectories upload (asked for, or a file with a top-level
+    ``observations``) needs ``observations`` and ``actions`` as top-level datasets, as D4RL
+    stores them: a group there (dict observations) is refused as the Rust reader refuses it."""
+    try:
+        import h5py
+    except ImportError:
+        raise ImportError("reading HDF5 needs h5py: pip install 'relreward[hdf5]'") from None
+    f = h5py.File(path, "r")
+    try:
+        members = {k: f.get(k) for k in f.keys()}
+        datasets = sorted(k for k, v in members.items() if isinstance(v, h5py.Dataset))
+        groups = sorted(k for k, v in members.items() if isinstance(v, h5py.Group))
+        if "observations" not in datasets and any(g.startswith("episode_") for g in groups):
+            f.close()
+            return "minari", None
+        if kind == "trajectories" or (kind is None and key is None and "observations" in members):
+            for required in ("observations", "actions"):
+                if required not in datasets:
+                    held = [f"'{d}'" for d in datasets] + [f"group '{g}'" for g in groups]
+                    raise ValueError(f"{path}: no '{required}' dataset at the top level (it holds "
+                                     f"{', '.join(held) or 'nothing'})")
+        return "arrays", f
+    except BaseException:
+        f.close()
+        raise
+
+
 def source_of(data: Any, kind: str | None = None, key: str | None = None) -> tuple[UploadSource, Any]:
     """An UploadSource for ``data``, and an object to close afterwards (an open file) or None.
 
     ``data``: a numpy array (samples), a mapping (D4RL/Minari keys: trajectories; ``samples``
-    or ``key``: samples), or a path to ``.npz``, ``.npy`` or ``.h5``/``.hdf5`` (needs h5py,
-    ``pip install relreward[hdf5]``). ``kind`` ("trajectories" or "samples") overrides the
-    detection: a mapping holding ``observations`` is trajectories, anything else samples.
+    or ``key``: samples), or a path: an ``.npz`` archive, an ``.npy`` array, an HDF5 file
+    (D4RL keys or a Minari ``main_data.hdf5``; needs h5py, ``pip install relreward[hdf5]``) or
+    a Minari dataset directory. A file's form is told by its signature (first bytes), not its
+    suffix. ``kind`` ("trajectories" or "samples") overrides the detection: a mapping holding
+    ``observations`` is trajectories, anything else samples.
     """
     closer: Any = None
+    path: pathlib.Path | None = None
     if isinstance(data, (str, os.PathLike)):
         path = pathlib.Path(data)
-        suffix = path.suffix.lower()
-        if path.is_dir() or (suffix in (".h5", ".hdf5") and _is_minari(path)):
+        form = _form_of(path)
+        if form == "hdf5":
+            form, closer = _open_hdf5(path, kind, key)
+        if form in ("minari", "minari-dir"):
             if kind == "samples" or key is not None:
                 raise ValueError("a Minari dataset uploads as trajectories")
             return trajectories(from_minari_hdf5(path)), None
-        if suffix in (".h5", ".hdf5"):
-            try:
-                import h5py
-            except ImportError:
-                raise ImportError("reading HDF5 needs h5py: pip install 'relreward[hdf5]'") from None
-            closer = h5py.File(path, "r")
+        if form == "arrays":
             data = _hdf5_arrays(closer)
-        elif suffix == ".npy":
+        elif form == "npy":
             data = np.load(path, mmap_mode="r")
         else:
             closer = np.load(path)
             data = closer
+    try:
+        return _source_of_loaded(data, kind, key), closer
+    except BaseException as e:
+        if closer is not None:
+            closer.close()
+        if path is not None and type(e) is ValueError:
+            raise ValueError(f"{path}: {e}") from None
+        raise
+
+
+def _source_of_loaded(data: Any, kind: str | None, key: str | None) -> UploadSource:
     if isinstance(data, Mapping) or hasattr(data, "files"):
         mapping: Mapping[str, Any] = data if isinstance(data, Mapping) else {k: data[k] for k in data.files}
         detected = "trajectories" if "observations" in mapping and key is None else "samples"
@@ -363,7 +584,7 @@ def source_of(data: Any, kind: str | None = None, key: str | None = None) -> tup
         if kind == "trajectories":
             if key is not None:
                 raise ValueError("key selects the array of a samples upload; trajectories always use their keys")
-            return trajectories(mapping), closer
+            return trajectories(mapping)
         if kind != "samples":
             raise ValueError(f"kind {kind!r}: expected 'trajectories' or 'samples'")
         names = list(mapping.keys())
@@ -372,10 +593,10 @@ def source_of(data: Any, kind: str | None = None, key: str | None = None) -> tup
             raise ValueError(f"which array? pass key= (the input holds {', '.join(map(repr, names))})")
         src = samples(mapping[pick])
         src.ignored = [k for k in names if k != pick]
-        return src, closer
+        return src
     if kind == "trajectories":
         raise ValueError("a trajectories upload needs a mapping with 'observations' and 'actions'")
-    return samples(data), closer
+    return samples(data)
 
 
 def row_chunks(array: Any, chunk_bytes: int) -> Iterable[np.ndarray]:

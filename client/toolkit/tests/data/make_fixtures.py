@@ -15,6 +15,26 @@ the row index, so the Rust tests check them without reading this file.
   truncations bool at the last step of the others.
 - big_endian.hdf5: D4RL layout with big-endian float32 observations [3, 2] = 0..6, big-endian
   float64 actions [3, 1] = 0..3, and episode_starts int64 [0, 2] (start indices, not flags).
+- rules/: the value rules of docs/data-formats.md, each case written twice with the same arrays,
+  as NAME.npz and as NAME.hdf5 (D4RL layout), so every reader is checked against the same file:
+  - types: observations big-endian int16 [5, 2, 2] = 10 * row + flattened index (read as
+    [5, 4]), actions float16 [5] = row / 2 - 1 (read as [5, 1]), terminals int64 0/1 (row 2),
+    timeouts float32 0/1 (row 4).
+  - f64: observations float64 [3, 2] = 0.1 * (2 * row + column) (rounded to float32), actions
+    uint64 [3, 1] = row, terminals bool (row 2).
+  - bad_flag: as f64 but terminals int64 [0, 0, 2]: refused naming 'terminals', row 2, value 2.
+  - empty: observations float32 [0, 2], actions [0, 1]: refused, N = 0.
+  - nan: observations float32 [4, 2] with NaN at row 2, coordinate 1.
+  - nan_3d: observations float32 [3, 2, 2] with +inf at [1, 1, 0] (row 1, flattened
+    coordinate 2).
+  and HDF5 only:
+  - minari_edge.hdf5: Minari layout, episode_0 (3 steps), episode_5 (0 steps: observations
+    [1, 2], actions [0, 1]) and episode_7 (2 steps, NaN in its last observation, which is
+    dropped); observations = 10 * episode + step (both columns), actions = step, terminations
+    uint8, truncations float64 0/1.
+  - f128.hdf5: observations of 16-byte floats (np.longdouble): refused, named in words.
+The .npz files are written with fixed zip timestamps, so every file is byte-for-byte the same
+at each run.
 """
 
 import h5py
@@ -123,3 +143,67 @@ with h5py.File("e2e/expert_minari/data/main_data.hdf5", "w") as f:
         tr[-1] = True
         g.create_dataset("truncations", data=tr)
         g.create_dataset("rewards", data=np.zeros(100))
+
+# ---- rules/: the value rules (docstring), each case as NAME.npz and NAME.hdf5.
+import io
+import zipfile
+
+
+def savez_fixed(path, arrays):
+    """np.savez with a fixed timestamp per entry (np.savez stamps the current time)."""
+    with zipfile.ZipFile(path, "w", zipfile.ZIP_STORED) as z:
+        for key, value in arrays.items():
+            buf = io.BytesIO()
+            np.lib.format.write_array(buf, np.asarray(value), allow_pickle=False)
+            info = zipfile.ZipInfo(key + ".npy", date_time=(1980, 1, 1, 0, 0, 0))
+            z.writestr(info, buf.getvalue())
+
+
+def both(name, arrays):
+    savez_fixed(f"rules/{name}.npz", arrays)
+    with h5py.File(f"rules/{name}.hdf5", "w") as f:
+        for key, value in arrays.items():
+            f.create_dataset(key, data=value)
+
+
+os.makedirs("rules", exist_ok=True)
+row = np.arange(5)
+both(
+    "types",
+    {
+        "observations": (10 * row[:, None] + np.arange(4)).reshape(5, 2, 2).astype(">i2"),
+        "actions": (row / 2 - 1).astype(np.float16),
+        "terminals": (row == 2).astype(np.int64),
+        "timeouts": (row == 4).astype(np.float32),
+    },
+)
+f64 = {
+    "observations": 0.1 * (2 * np.arange(3)[:, None] + np.arange(2)),
+    "actions": np.arange(3, dtype=np.uint64)[:, None],
+    "terminals": np.array([False, False, True]),
+}
+both("f64", f64)
+both("bad_flag", {**f64, "terminals": np.array([0, 0, 2], np.int64)})
+both("empty", {"observations": np.zeros((0, 2), np.float32), "actions": np.zeros((0, 1), np.float32)})
+nan = np.arange(8, dtype=np.float32).reshape(4, 2)
+nan[2, 1] = np.nan
+both("nan", {"observations": nan, "actions": np.zeros((4, 1), np.float32)})
+inf = np.arange(12, dtype=np.float32).reshape(3, 2, 2)
+inf[1, 1, 0] = np.inf
+both("nan_3d", {"observations": inf, "actions": np.zeros((3, 1), np.float32)})
+
+with h5py.File("rules/minari_edge.hdf5", "w", libver="latest") as f:
+    for ep, steps in ((0, 3), (5, 0), (7, 2)):
+        g = f.create_group(f"episode_{ep}")
+        obs = np.repeat((10 * ep + np.arange(steps + 1, dtype=np.float32))[:, None], 2, axis=1)
+        if ep == 7:
+            obs[-1, 0] = np.nan
+        g.create_dataset("observations", data=obs)
+        g.create_dataset("actions", data=np.arange(steps, dtype=np.float32)[:, None])
+        last = (np.arange(steps) == steps - 1)
+        g.create_dataset("terminations", data=last.astype(np.uint8) if ep == 7 else np.zeros(steps, np.uint8))
+        g.create_dataset("truncations", data=np.zeros(steps) if ep == 7 else last.astype(np.float64))
+
+with h5py.File("rules/f128.hdf5", "w") as f:
+    f.create_dataset("observations", data=np.zeros((2, 2), np.longdouble))
+    f.create_dataset("actions", data=np.zeros((2, 1), np.float32))
