@@ -20,9 +20,7 @@ pub enum CodecError {
     WrongDType { expected: &'static str, actual: &'static str },
     #[error("value at flat index {index} is not finite ({value})")]
     NotFinite { index: u64, value: f64 },
-    #[error(
-        "value at flat index {index} ({value:e}) is outside float32's range (about 3.4e38), the precision models compute in"
-    )]
+    #[error("value at flat index {index} ({value:e}) is {OUTSIDE_F32}")]
     OutOfF32Range { index: u64, value: f64 },
     #[error("bool byte at flat index {index} is {value}; a bool is one byte, 0 or 1")]
     NotBool { index: u64, value: u8 },
@@ -154,14 +152,24 @@ pub fn for_each_float(t: &Tensor, mut f: impl FnMut(f64)) -> Result<(), CodecErr
     Ok(())
 }
 
+/// How every reader of values words [`beyond_f32`]'s case (the server's decoders, the client's
+/// file readers), so a user meets one message for one rule.
+pub const OUTSIDE_F32: &str = "outside float32's range (about 3.4e38), the precision models compute in";
+
+/// Whether `v` is finite but beyond float32's range: narrowed, it would become an infinity.
+/// The one place of this rule: NaN and infinities are not this case (callers refuse them as
+/// "not finite", each with its own placing of the element).
+pub fn beyond_f32(v: f64) -> bool {
+    v.is_finite() && !(v as f32).is_finite()
+}
+
 /// Decodes a float32 or float64 tensor to float32 values (float64 is narrowed), refusing
 /// NaN and infinities.
 pub fn decode_finite_f32(t: &Tensor) -> Result<Vec<f32>, CodecError> {
     let mut out = Vec::with_capacity(t.data.len() / 4);
     let mut bad = None;
     for_each_float(t, |v| {
-        // A finite float64 beyond float32's range would become an infinity here.
-        if bad.is_none() && !(v as f32).is_finite() {
+        if bad.is_none() && (beyond_f32(v) || !v.is_finite()) {
             bad = Some((out.len() as u64, v));
         }
         out.push(v as f32);

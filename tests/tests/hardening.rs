@@ -601,6 +601,47 @@ async fn conditions_guide_steps_and_job_fields_are_refused_at_the_door_by_their_
         let s = client.jobs().submit_job(diffusion(&*set)).await.expect_err(field);
         assert_refused(&s, Code::InvalidArgument, field);
     }
+    // On a samples dataset, the trajectory-only fields are refused, not ignored.
+    let header = pb::UploadHeader {
+        name: "items".into(),
+        kind: pb::DatasetKind::Samples as i32,
+        arrays: vec![pb::ArraySpec { name: "samples".into(), dtype: pb::Dtype::Float32 as i32, shape: vec![8, 3] }],
+        description: String::new(),
+    };
+    let items = tensor::encode_f32(&[8, 3], &[0.5; 24]);
+    let sha256 = {
+        use sha2::Digest;
+        hex::encode(sha2::Sha256::digest(&items.data))
+    };
+    let chunk = pb::UploadDatasetRequest {
+        message: Some(pb::upload_dataset_request::Message::Chunk(pb::DatasetChunk {
+            array: "samples".into(),
+            data: Some(items),
+        })),
+    };
+    let commit = pb::UploadDatasetRequest {
+        message: Some(pb::upload_dataset_request::Message::Commit(pb::UploadCommit { sha256 })),
+    };
+    upload(&client, vec![upload_header(header), chunk, commit]).await.expect("samples upload");
+    for (set, needle) in [
+        (
+            Box::new(|d: &mut pb::TrainDiffusion| d.horizon = Some(16)) as Box<dyn Fn(&mut pb::TrainDiffusion)>,
+            "spec.diffusion.horizon: 16 applies to trajectories only",
+        ),
+        (Box::new(|d: &mut pb::TrainDiffusion| d.action_weight = Some(10.0)), "spec.diffusion.action_weight: 10"),
+    ] {
+        let s = client
+            .jobs()
+            .submit_job(diffusion(&|d: &mut pb::TrainDiffusion| {
+                d.dataset = "items".into();
+                d.horizon = None;
+                d.architecture = mlp(vec![16]);
+                set(d);
+            }))
+            .await
+            .expect_err(needle);
+        assert_refused(&s, Code::InvalidArgument, needle);
+    }
     // Discriminator jobs: its own field names, not the reward job's it is checked as.
     let discriminator = |base: &str, expert: &str| {
         submit(pb::JobSpec {

@@ -768,13 +768,18 @@ impl tonic::codec::Decoder for EmptyCodec {
 /// (c) Methods of the protocol that relreward leaves out, called on the raw channel.
 async fn unimplemented_rpcs(server: &TestServer) {
     let channel = Channel::from_shared(server.endpoint()).expect("endpoint").connect().await.expect("connect");
-    for method in ["ModelStreamInfer", "RepositoryModelLoad", "SystemSharedMemoryStatus", "LogSettings"] {
+    let methods = ["ModelStreamInfer", "RepositoryModelLoad", "SystemSharedMemoryStatus", "LogSettings"]
+        .map(|m| format!("/inference.GRPCInferenceService/{m}"));
+    // A service that does not exist at all is answered the same way.
+    for method in methods.iter().map(String::as_str).chain(["/nope.v1.Service/Call"]) {
         let mut grpc = tonic::client::Grpc::new(channel.clone());
         grpc.ready().await.expect("ready");
-        let path = format!("/inference.GRPCInferenceService/{method}");
-        let path = tonic::codegen::http::uri::PathAndQuery::try_from(path).expect("path");
+        let path = tonic::codegen::http::uri::PathAndQuery::try_from(method).expect("path");
         let err = grpc.unary(tonic::Request::new(()), path, EmptyCodec).await.expect_err(method);
         assert_eq!(err.code(), Code::Unimplemented, "{method}: {err:?}");
+        // Named, with where to find what is served (tonic's own answer has no message).
+        assert!(err.message().contains(&format!("'{method}' is not a method")), "{method}: {err:?}");
+        assert!(err.message().contains("reflection"), "{method}: {err:?}");
     }
 }
 

@@ -17,6 +17,8 @@
 
 use std::fmt;
 
+use relreward_proto::tensor;
+
 /// What kind of number a stored element is.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Kind {
@@ -143,13 +145,12 @@ pub fn position(index: usize, shape: &[u64]) -> String {
 /// A value as float32, or why it cannot be one: not finite (NaN, infinite), or finite but
 /// beyond float32's range. `index` and `shape` place it in the message ([`position`]).
 pub fn to_f32(key: &str, value: f64, index: usize, shape: &[u64]) -> Result<f32, String> {
-    let v = value as f32;
-    if v.is_finite() {
-        return Ok(v);
+    if value.is_finite() && !tensor::beyond_f32(value) {
+        return Ok(value as f32);
     }
     let at = position(index, shape);
     if value.is_finite() {
-        Err(format!("{key}: value {value:e} at {at} is outside float32's range (about 3.4e38)"))
+        Err(format!("{key}: value {value:e} at {at} is {}", tensor::OUTSIDE_F32))
     } else {
         Err(format!("{key}: value {value} at {at} is not finite"))
     }

@@ -64,16 +64,14 @@ fn decode_x(field: &str, x: Option<&pb::Tensor>) -> Result<(Vec<i64>, Vec<f32>)>
     // float64 that float32 cannot hold is refused here, before it becomes an infinity.
     let mut overflow = None;
     tensor::for_each_float(x, |v| {
-        if overflow.is_none() && v.is_finite() && !(v as f32).is_finite() {
+        if overflow.is_none() && tensor::beyond_f32(v) {
             overflow = Some((values.len(), v));
         }
         values.push(v as f32);
     })
     .map_err(|e| Error::invalid(format!("{field}: {e}")))?;
     if let Some((i, v)) = overflow {
-        return Err(Error::invalid(format!(
-            "{field}: element {i} ({v:e}) is outside float32's range (about 3.4e38), the precision models compute in"
-        )));
+        return Err(Error::invalid(format!("{field}: element {i} ({v:e}) is {}", tensor::OUTSIDE_F32)));
     }
     let shape = x
         .shape

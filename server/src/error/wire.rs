@@ -7,6 +7,8 @@
 //! - a message over a size limit is RESOURCE_EXHAUSTED naming the limit and its setting (as
 //!   gRPC specifies, and as a client-streaming handler answers through
 //!   [`super::Error::from_inbound`]);
+//! - a method the server does not serve (tonic answers UNIMPLEMENTED with no message, for an
+//!   unknown service or method alike) is named, with where to find what is served;
 //! - no message passes [`super::MAX_MESSAGE_BYTES`].
 
 use std::future::Future;
@@ -48,19 +50,36 @@ pub fn message_too_large(status: &Status) -> Option<String> {
     Some(format!("the {what} message is {found} bytes, over the server's limit of {limit} bytes ({setting}); {advice}"))
 }
 
-/// Applies the rules to a `grpc-status` in `headers` (response headers or trailers), if any.
-fn rewrite(headers: &mut HeaderMap) {
+/// The UNIMPLEMENTED message for a call to `path` that no service here answers.
+pub fn not_served(path: &str) -> String {
+    bounded(format!(
+        "'{path}' is not a method this server serves: it serves relreward.v1's services, the Open \
+         Inference Protocol's inference.GRPCInferenceService (without ModelStreamInfer, model \
+         loading, shared memory or log settings), \
+         grpc.health.v1.Health and server reflection, which lists every method"
+    ))
+}
+
+/// Applies the rules to a `grpc-status` in `headers` (response headers or trailers), if any;
+/// `path` is the call's (only a trailers-only response, in the headers, has it).
+fn rewrite(headers: &mut HeaderMap, path: Option<&str>) {
     // Cheap for the common case (response headers without a status, OK trailers): only an
-    // OUT_OF_RANGE status or a long message (percent-encoded, so never shorter than the
-    // message) is decoded at all.
+    // OUT_OF_RANGE status, an UNIMPLEMENTED one without a message, or a long message
+    // (percent-encoded, so never shorter than the message) is decoded at all.
     let Some(code) = headers.get(Status::GRPC_STATUS) else { return };
-    let long = headers.get(Status::GRPC_MESSAGE).is_some_and(|m| m.len() > MAX_MESSAGE_BYTES);
-    if !long && code.as_bytes() != b"11" {
+    let message = headers.get(Status::GRPC_MESSAGE);
+    let long = message.is_some_and(|m| m.len() > MAX_MESSAGE_BYTES);
+    let unnamed = code.as_bytes() == b"12" && message.is_none_or(|m| m.is_empty());
+    if !long && !unnamed && code.as_bytes() != b"11" {
         return;
     }
     let Some(status) = Status::from_header_map(headers) else { return };
     let replacement = match message_too_large(&status) {
         Some(message) => Status::resource_exhausted(message),
+        None if unnamed => match path {
+            Some(path) => Status::unimplemented(not_served(path)),
+            None => return,
+        },
         None if status.message().len() > MAX_MESSAGE_BYTES => {
             Status::new(status.code(), bounded(status.message().to_owned()))
         }
@@ -105,12 +124,14 @@ where
     }
 
     fn call(&mut self, request: Request<ReqBody>) -> Self::Future {
+        // A clone of the URI shares its bytes: no copy per call for the rare UNIMPLEMENTED.
+        let uri = request.uri().clone();
         let response = self.inner.call(request);
         Box::pin(async move {
             let mut response = response.await?;
             // A trailers-only response (most errors, and every error tonic raises before a
             // handler runs) carries its status in the headers.
-            rewrite(response.headers_mut());
+            rewrite(response.headers_mut(), Some(uri.path()));
             Ok(response.map(|inner| WireBody { inner }))
         })
     }
@@ -133,7 +154,7 @@ impl<B: Body> Body for WireBody<B> {
         if let Some(Ok(frame)) = polled.as_mut()
             && let Some(trailers) = frame.trailers_mut()
         {
-            rewrite(trailers);
+            rewrite(trailers, None);
         }
         Poll::Ready(polled)
     }
@@ -163,7 +184,7 @@ mod tests {
 
         let mut headers = HeaderMap::new();
         decode.add_header(&mut headers).expect("header");
-        rewrite(&mut headers);
+        rewrite(&mut headers, None);
         let s = Status::from_header_map(&headers).expect("status");
         assert_eq!(s.code(), Code::ResourceExhausted);
         assert!(s.message().contains("server.max_request_bytes"), "{}", s.message());
@@ -175,7 +196,7 @@ mod tests {
         Status::permission_denied(format!("'{}' is not a method", "a".repeat(100_000)))
             .add_header(&mut headers)
             .expect("header");
-        rewrite(&mut headers);
+        rewrite(&mut headers, None);
         let s = Status::from_header_map(&headers).expect("status");
         assert_eq!(s.code(), Code::PermissionDenied);
         assert!(s.message().len() <= MAX_MESSAGE_BYTES);
@@ -183,10 +204,29 @@ mod tests {
         let mut ok = HeaderMap::new();
         ok.insert(Status::GRPC_STATUS, http::HeaderValue::from(0));
         let before = ok.clone();
-        rewrite(&mut ok);
+        rewrite(&mut ok, Some("/a.B/C"));
         assert_eq!(ok, before);
         let mut plain = HeaderMap::new();
-        rewrite(&mut plain);
+        rewrite(&mut plain, Some("/a.B/C"));
         assert!(plain.is_empty());
+    }
+
+    #[test]
+    fn an_unserved_method_is_named_and_a_handlers_own_unimplemented_kept() {
+        let path = "/inference.GRPCInferenceService/ModelStreamInfer";
+        let mut headers = HeaderMap::new();
+        Status::unimplemented("").add_header(&mut headers).expect("header");
+        rewrite(&mut headers, Some(path));
+        let s = Status::from_header_map(&headers).expect("status");
+        assert_eq!(s.code(), Code::Unimplemented);
+        assert!(s.message().contains(path) && s.message().contains("reflection"), "{}", s.message());
+
+        let mut own = HeaderMap::new();
+        Status::unimplemented("format 'onnx' is not supported").add_header(&mut own).expect("header");
+        let before = own.clone();
+        rewrite(&mut own, Some(path));
+        assert_eq!(own, before);
+        // A path far over the message limit is cut like any message.
+        assert!(not_served(&"x".repeat(100_000)).len() <= MAX_MESSAGE_BYTES);
     }
 }
