@@ -32,6 +32,9 @@
 #    with DEMO_POOL's amortised flags against the same server and --name, so the second run
 #    reuses the first's diffusion models and only the rewards and their evaluation are redone.
 #    Reported per goal as part 3 (report.json), with each reward job's training time and rate.
+#    Then (UNET_EQUAL_TIME) the per-step recipe once more, with its reward steps cut so that its
+#    training time equals the amortised recipe's: quality at equal wall time, the comparison that
+#    says whether the amortised reward is better for the time, not only as good for the steps.
 #
 # Settings (environment): GAUSS_STEPS ("100 200 400 800 1600"), POOL ("4096 4 0.25": pool size,
 # reuse, refresh fraction for the Gaussian pair; MAZE_POOL ("4096 4 0.25", an epoch of 256
@@ -39,7 +42,8 @@
 # PARTS ("gaussian maze-speed maze-quality"; maze-unet only when named: which parts run), LAYOUT (umaze), MAZE_SEED (0),
 # DEMO_POOL ("16384 4 0.25", the server's defaults), BIN (target/release); part 4: UNET_GOALS
 # ("1,1 3,3"), UNET_CONFIG (the [extract] table's body, "; " between keys: 'diffusion_architecture =
-# { kind = "temporal_unet", dim = 48, dim_mults = [1, 2] }; diffusion_steps = 2000').
+# { kind = "temporal_unet", dim = 48, dim_mults = [1, 2] }; diffusion_steps = 2000'), UNET_EQUAL_TIME
+# (1: a third run, per-step stopped at the amortised recipe's reward training time; 0: not).
 # Prints one JSON line per job and a markdown summary.
 #
 # Builds nothing: expects target/release/{relreward-server,relreward}. Starts its own server on
@@ -59,6 +63,7 @@ DEMO_POOL=${DEMO_POOL:-16384 4 0.25}
 UNET_GOALS=${UNET_GOALS:-1,1 3,3}
 UNET_ARCH='{ kind = "temporal_unet", dim = 48, dim_mults = [1, 2] }'
 UNET_CONFIG=${UNET_CONFIG:-diffusion_architecture = $UNET_ARCH; diffusion_steps = 2000}
+UNET_EQUAL_TIME=${UNET_EQUAL_TIME:-1}
 BIN=${BIN:-target/release}
 PY=.venv/bin/python
 for b in relreward-server relreward; do
@@ -229,22 +234,41 @@ for g in $UNET_GOALS; do
   k=$((k + 1))
 done
 printf '[extract]\n%s\n' "${UNET_CONFIG//; /$'\n'}" >"$tmp/unet.toml"
-for recipe in per-step amortised; do
-  extra=()
-  [[ $recipe == amortised ]] && read -ra extra <<<"$(pool_flags "$DEMO_POOL")"
+unet_extract() { # RECIPE CONFIG [FLAGS...]: one extract, its record appended to the results
+  local recipe=$1 config=$2
+  shift 2
+  local t0 wall jobs_json
   t0=$(date +%s.%N)
-  quiet rr extract --base "$tmp/unet-base.npz" "${experts[@]}" --config "$tmp/unet.toml" --name unet \
-    --seed "$MAZE_SEED" --out "$tmp/unet-$recipe" "${extra[@]}"
+  quiet rr extract --base "$tmp/unet-base.npz" "${experts[@]}" --config "$config" --name unet \
+    --seed "$MAZE_SEED" --out "$tmp/unet-$recipe" "$@"
   wall=$(echo "$(date +%s.%N) - $t0" | bc)
   jobs_json=$(reward_seconds "$tmp/unet-$recipe/report.json")
   echo "{\"part\": \"maze-unet\", \"recipe\": \"$recipe\", \"pool\": \"$DEMO_POOL\", \"layout\": \"$LAYOUT\", \"seed\": $MAZE_SEED, \"extract_seconds\": $wall, \"reward_jobs\": $jobs_json, \"report\": $("$PY" -c 'import json,sys; print(json.dumps(json.load(open(sys.argv[1]))))' "$tmp/unet-$recipe/report.json")}" | tee -a "$results"
   if [[ -n $OUT ]]; then mkdir -p "$OUT" && cp -r "$tmp/unet-$recipe" "$OUT/"; fi
-done
+}
+unet_extract per-step "$tmp/unet.toml"
+read -ra extra <<<"$(pool_flags "$DEMO_POOL")"
+unet_extract amortised "$tmp/unet.toml" "${extra[@]}"
+if [[ $UNET_EQUAL_TIME == 1 ]]; then
+  # The per-step recipe stopped at the amortised recipe's reward training time: its step count
+  # scaled by the two recipes' times (a per-step step costs the same all along). Only the
+  # rewards' sizes change, so the same diffusion models are reused.
+  eq_steps=$("$PY" - "$results" <<'PY'
+import json, sys
+runs = {r["recipe"]: r for r in map(json.loads, open(sys.argv[1])) if r["part"] == "maze-unet"}
+p, a = runs["per-step"], runs["amortised"]
+seconds = [sum(j["seconds"] for j in r["reward_jobs"]) for r in (p, a)]
+print(max(1, round(p["report"]["sizes"]["reward_steps"] * seconds[1] / seconds[0])))
+PY
+)
+  { grep -v '^reward_steps' "$tmp/unet.toml"; echo "reward_steps = $eq_steps"; } >"$tmp/unet-equal-time.toml"
+  unet_extract per-step-equal-time "$tmp/unet-equal-time.toml"
+fi
 stop_server
 fi
 
 # --- report --------------------------------------------------------------------------------------
-"$PY" - "$results" "$(($(date +%s) - started))" "GAUSS_STEPS='$GAUSS_STEPS' POOL='$POOL' MAZE_POOL='$MAZE_POOL' STEPS=$STEPS THREADS=$THREADS PARTS='$PARTS' LAYOUT=$LAYOUT MAZE_SEED=$MAZE_SEED DEMO_POOL='$DEMO_POOL' UNET_GOALS='$UNET_GOALS'" <<'PY'
+"$PY" - "$results" "$(($(date +%s) - started))" "GAUSS_STEPS='$GAUSS_STEPS' POOL='$POOL' MAZE_POOL='$MAZE_POOL' STEPS=$STEPS THREADS=$THREADS PARTS='$PARTS' LAYOUT=$LAYOUT MAZE_SEED=$MAZE_SEED DEMO_POOL='$DEMO_POOL' UNET_GOALS='$UNET_GOALS' UNET_CONFIG='$UNET_CONFIG' UNET_EQUAL_TIME=$UNET_EQUAL_TIME" <<'PY'
 import json, sys, subprocess, time
 runs = [json.loads(l) for l in open(sys.argv[1])]
 cpu = [l.split(":", 1)[1].strip() for l in subprocess.run(["lscpu"], capture_output=True, text=True).stdout.splitlines()
@@ -324,7 +348,7 @@ if len(demo) == 2:
         (p["summary"], a["summary"]), ("goals_recovered", "goals_total"),
         ("demo", p["demo_seconds"], a["demo_seconds"]), rates=False)
 unet = {r["recipe"]: r for r in runs if r["part"] == "maze-unet"}
-if len(unet) == 2:
+if "per-step" in unet and "amortised" in unet:
     p, a = unet["per-step"], unet["amortised"]
     quality_table(
         f"Maze, TemporalUnet denoisers: `relreward extract` ({p['layout']}, seed {p['seed']}, sizes "
@@ -334,5 +358,23 @@ if len(unet) == 2:
          for gp, ga, jp, ja in zip(p["report"]["rewards"], a["report"]["rewards"], p["reward_jobs"], a["reward_jobs"])],
         (p["report"], a["report"]), ("goals_recovered", "goals_evaluated"),
         ("extract", p["extract_seconds"], a["extract_seconds"]), rates=True)
+    e = unet.get("per-step-equal-time")
+    if e:
+        steps = e["report"]["sizes"]["reward_steps"]
+        print()
+        print(f"At equal wall time: per-step stopped at {steps} steps (the amortised recipe's reward training time), "
+              f"against the amortised recipe's {a['report']['sizes']['reward_steps']} steps")
+        print()
+        print("| expert | recovered per-step at equal time / amortised | balanced accuracy per-step at equal time / amortised "
+              "| AUC per-step at equal time / amortised | reward training s per-step at equal time / amortised |")
+        print("|---|---|---|---|---|")
+        yn = lambda g: "yes" if g["goal_recovered"] else "no"  # noqa: E731
+        for ge, ga, je, ja in zip(e["report"]["rewards"], a["report"]["rewards"], e["reward_jobs"], a["reward_jobs"]):
+            print(f"| {ge['label']} | {yn(ge)} / {yn(ga)} | {ge['balanced_accuracy']:.3f} / {ga['balanced_accuracy']:.3f} "
+                  f"| {ge['auc']:.3f} / {ga['auc']:.3f} | {je['seconds']:.1f} / {ja['seconds']:.1f} |")
+        print()
+        print(f"- goals recovered at equal time: per-step {e['report']['goals_recovered']}, amortised "
+              f"{a['report']['goals_recovered']} of {a['report']['goals_evaluated']}; mean balanced accuracy "
+              f"{100 * e['report']['mean_balanced_accuracy']:.1f}% vs {100 * a['report']['mean_balanced_accuracy']:.1f}%")
 PY
 if [[ -n $OUT ]]; then mkdir -p "$OUT" && cp "$results" "$OUT/"; fi

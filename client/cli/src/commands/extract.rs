@@ -185,13 +185,29 @@ impl Sizes {
         Ok(())
     }
 
-    /// A short fingerprint of everything that shapes the models (part of their names).
+    /// A short fingerprint of every size (part of the rewards' names).
     fn fingerprint(&self) -> String {
-        let text = serde_json::to_string(self).unwrap_or_default();
-        let mut h = DefaultHasher::new();
-        text.hash(&mut h);
-        format!("{:08x}", h.finish() as u32)
+        short_hash(&serde_json::to_string(self).unwrap_or_default())
     }
+
+    /// A short fingerprint of the sizes that shape the diffusion models only (part of their
+    /// names), so a run that changes only the reward's sizes reuses the diffusion models.
+    fn diffusion_fingerprint(&self) -> String {
+        let shaping = serde_json::json!([
+            self.horizon,
+            self.n_timesteps,
+            self.diffusion_architecture,
+            self.diffusion_steps,
+            self.diffusion_batch
+        ]);
+        short_hash(&shaping.to_string())
+    }
+}
+
+fn short_hash(text: &str) -> String {
+    let mut h = DefaultHasher::new();
+    text.hash(&mut h);
+    format!("{:08x}", h.finish() as u32)
 }
 
 /// `relreward extract` flags.
@@ -534,7 +550,7 @@ pub async fn pipeline(ctx: &Ctx, inputs: &Inputs, sizing: Sizing) -> Result<Extr
     let (base_ds, expert_ds) = (&datasets[0], &datasets[1..]);
 
     // ---- diffusion models: one base, one per expert, one normalizer over every dataset.
-    let fp = sizes.fingerprint();
+    let fp = sizes.diffusion_fingerprint();
     let mut diffusion = toml::Table::new();
     let mut table = toml::Table::new();
     table.insert("horizon".into(), toml::Value::Integer(i64::from(sizes.horizon)));
@@ -606,6 +622,8 @@ pub async fn pipeline(ctx: &Ctx, inputs: &Inputs, sizing: Sizing) -> Result<Extr
             &sizes.reward_lr.to_string(),
         ]));
     };
+    // Rewards and discriminators: named by every size, the reward's own included.
+    let fp = sizes.fingerprint();
     let mut rewards = Vec::new();
     let mut discriminators = Vec::new();
     for (k, label) in inputs.labels.iter().enumerate() {
@@ -944,6 +962,26 @@ mod tests {
         std::fs::write(&path, "[extract]\nhorizon = 30\nwindow = 8\n").expect("write");
         let err = Sizes::preset(Size::Tiny).apply_config(&path).expect_err("window").to_string();
         assert!(err.contains("window = 8 must divide horizon = 30"), "{err}");
+    }
+
+    #[test]
+    fn the_diffusion_models_name_depends_on_their_sizes_only() {
+        let base = Sizes::preset(Size::Default);
+        let mut reward_only = base.clone();
+        (reward_only.reward_steps, reward_only.reward_lr, reward_only.window) = (600, 3e-4, 8);
+        assert_eq!(base.diffusion_fingerprint(), reward_only.diffusion_fingerprint());
+        assert_ne!(base.fingerprint(), reward_only.fingerprint());
+        for change in [
+            |s: &mut Sizes| s.horizon = 32,
+            |s: &mut Sizes| s.n_timesteps = 50,
+            |s: &mut Sizes| s.diffusion_steps += 1,
+            |s: &mut Sizes| s.diffusion_batch = 7,
+            |s: &mut Sizes| s.diffusion_architecture = toml::Value::String("other".into()),
+        ] {
+            let mut changed = base.clone();
+            change(&mut changed);
+            assert_ne!(base.diffusion_fingerprint(), changed.diffusion_fingerprint(), "{changed:?}");
+        }
     }
 
     #[test]
