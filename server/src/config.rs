@@ -240,7 +240,8 @@ pub struct EngineConfig {
     pub device: String,
     /// libtorch intra-op threads (0: one per core).
     pub intra_op_threads: usize,
-    /// Sampling requests computed at once (each on a blocking thread); more wait their turn.
+    /// Batched Score/Gradient passes and Sample runs computed at once (each on a blocking
+    /// thread); more wait their turn.
     pub inference_workers: usize,
 }
 

@@ -5,71 +5,25 @@
 //! only: the connection is `relreward-client`, file formats, the maze generator and the
 //! evaluation are `relreward-toolkit`.
 //!
-//! Commands (each family lives in `commands/`):
-//! - `relreward health`: the server's serving status (`SERVING`, ...); exits 1 unless serving.
-//! - `relreward dataset upload FILE --name NAME [--kind trajectories|samples] [--key KEY]
-//!   [--description TEXT] [--chunk-bytes N]`: uploads an `.npz` archive or `.npy` file, with a
-//!   progress bar on stderr, then shows the stored dataset. The kind defaults to trajectories
-//!   for an `.npz` holding `observations`, otherwise samples.
-//! - `relreward dataset list`: every dataset, one per line.
-//! - `relreward dataset show NAME [--all]`: details, with per-coordinate statistics of float
-//!   arrays (the first rows of each table unless `--all`).
-//! - `relreward dataset delete NAME`.
-//! - `relreward model upload FILE.pt --name NAME --manifest MANIFEST.toml|json
-//!   [--description TEXT]`: registers a TorchScript diffusion model (progress bar on stderr).
-//! - `relreward model list [--kind diffusion|reward|discriminator]`, `model show NAME`,
-//!   `model delete NAME`.
-//! - `relreward train diffusion --name MODEL --dataset NAME [--config FILE.toml] [--steps N]
-//!   [--batch-size B] [--lr X] [--horizon H] [--n-timesteps T] [--seed S] [--job-id ID]
-//!   [--watch]`: submits a training job (flags override the config file).
-//! - `relreward train reward --name R --base B --expert E --dataset D [--dataset D2 ..]
-//!   [--algorithm 1|2] [--num-chains K] [--target mean|score] [--eval-point x_t|mu_base]
-//!   [--arch windowed_mlp|value_function|conv_encoder|mlp] [--window H] [--hidden N,N,..]
-//!   [--widths N,N,..] [--rho-l2 X] [--config FILE.toml] [--steps N] [--batch-size B] [--lr X]
-//!   [--seed S] [--job-id ID] [--watch]`: relative reward extraction (Algorithm 1 on the
-//!   datasets by default; Algorithm 2, from the models alone, with `--algorithm 2`).
-//! - `relreward train discriminator --name R --base-dataset D1 --expert-dataset D2
-//!   --diffusion-model M [--arch ..] [--window H] [--hidden ..] [--widths ..] [--config ..]
-//!   [--steps N] [--batch-size B] [--lr X] [--seed S] [--job-id ID] [--watch]`: the
-//!   discriminator baseline.
-//! - `relreward job list [--state S]`, `job show ID`, `job cancel ID`,
-//!   `job watch ID [--from-seq N]`: a live progress bar until the job finishes (exit 0 if it
-//!   succeeded, 1 otherwise), resuming across reconnects.
-//! - `relreward score --model R --input FILE.npz [--key KEY] [--stride S] [--t T]
-//!   [--units raw|normalized] [--per-window] [--per-step] [--batch N] [--out OUT.npz]`: rho of
-//!   every item of `x` [B, H, D] (or [B, ...]), or of every window of a D4RL-style trajectories
-//!   file; `--out` writes `reward` [B] (with `per_window`, `per_step`, `window_start`).
-//! - `relreward grad --model R --input FILE.npz --t T [--key KEY] [--stride S]
-//!   [--units raw|normalized] [--gradient-units raw|normalized] [--omega W]
-//!   [--scale-by-posterior-variance-of BASE] [--batch N] [--out OUT.npz]`: grad_x rho; `--out`
-//!   writes `reward` [B] and `grad_x` [B, H, D].
-//! - `relreward sample --base B [--reward R --scale W [--t-stopgrad K] [--n-guide-steps N]
-//!   [--scale-grad-by-std]] [--condition INDEX=v1,v2,..].. [--n N] [--seed S] [--batch-size M]
-//!   [--out FILE.npz]`: samples (guided by R with omega = W); `--out` writes `x` [N, H, D] in
-//!   raw units, `x_normalized` and, with a reward model, `reward` [N].
-//!
-//! - `relreward eval discriminate --model R --base-data D1.npz --expert-data D2.npz [--t T]
-//!   [--stride S] [--max-windows N] [--winsorize P] [--seed S] [--batch N] [--hist-out H.png]`:
-//!   held-out balanced accuracy of a logistic regression on the reward alone (paper 5.1).
-//! - `relreward eval heatmap --model R --dataset D.npz --out heatmap.png [--goal X,Y]
-//!   [--goal-from E.npz] [--walls W.npz] [--t T] [--bins-per-cell N] [--min-count K]
-//!   [--unit auto|item|window] [--stride S] [--max-windows N] [--winsorize P] [--smooth SIGMA]
-//!   [--xy-columns I,J] [--seed S]`: the maze reward heatmap and goal recovery.
-//! - `relreward job plot ID --out loss.png [--hist-out rewards.png [--model R] --dataset D.npz..]`:
-//!   a job's loss curve from its events, and reward histograms over datasets' windows.
-//! - `relreward maze generate --layout open|umaze|medium|large --mode base|expert [--goal ROW,COL]
-//!   --transitions N [--seed S] [--action-noise STD] --out FILE.npz`: a Maze2D dataset with D4RL's
-//!   keys from the built-in generator (no server needed; see `relreward_toolkit::maze`).
-//!
-//! - `relreward demo [--layout umaze] [--goals K] [--out DIR] [--size tiny|default|full]
-//!   [--full] [--seed S]`: the paper's Maze2D pipeline against the server (data, diffusion
-//!   models, rewards, heatmaps, discriminability, steering), written to DIR with a summary.
-//!
-//! - `relreward extract --base FILE --expert FILE [--expert FILE..] [--out DIR] [--name PREFIX]
-//!   [--size tiny|default|full] [--config FILE.toml] [--algorithm 1|2] [--discriminator]
-//!   [--goal X,Y..] [--walls FILE] [--seed S]`: recordings (.npz, D4RL HDF5, Minari) to rewards
-//!   with their evaluation; sizes derived from the data (`[extract]` in --config overrides).
-//!   `demo` is its maze-generating front end.
+//! Commands (each family lives in `commands/`; `relreward COMMAND --help` lists every flag, from
+//! the flags' own doc comments, so they are not repeated here):
+//! - `health`: the server's serving status; exits 1 unless serving.
+//! - `dataset upload|list|show|delete`: uploads `.npz`/`.npy`, D4RL HDF5 or Minari recordings
+//!   (the reader by the file's signature; docs/data-formats.md) with a progress bar.
+//! - `model upload|import|list|show|delete`: TorchScript (`.pt`) or native (`.safetensors`)
+//!   diffusion models with a manifest; `import` converts a Diffuser TemporalUnet state_dict
+//!   (exported to `.npz`) into native weights, locally.
+//! - `train diffusion|reward|discriminator`: submits a training job (flags override
+//!   `--config`), `--watch` to follow it.
+//! - `job list|show|cancel|watch|plot`: jobs, a live progress bar resuming across reconnects,
+//!   and a job's loss curve (with reward histograms over datasets' windows).
+//! - `score`, `grad`, `sample`: the RewardService over `.npz` inputs (trajectories cut into
+//!   windows; per-window and per-step values), results as `.npz`.
+//! - `eval discriminate|heatmap`: the paper's evaluation over scores of local files.
+//! - `maze generate`: Maze2D datasets with D4RL's keys from the built-in generator (no server).
+//! - `demo`: the paper's Maze2D pipeline (data, diffusion models, rewards, heatmaps,
+//!   discriminability, steering); `extract`: recordings to rewards with their evaluation,
+//!   `demo` being its maze-generating front end.
 //!
 //! Global options: `--endpoint URL` (env `RELREWARD_ENDPOINT`, default
 //! `http://127.0.0.1:50051`; `https://` for TLS; a bare `host:port` means `http://host:port`)
@@ -119,13 +73,13 @@ enum Command {
     /// Upload, list, show and delete datasets.
     #[command(subcommand)]
     Dataset(commands::datasets::DatasetCommand),
-    /// Upload, list, show and delete models.
+    /// Upload, import, list, show and delete models.
     #[command(subcommand)]
     Model(commands::models::ModelCommand),
     /// Submit a training job.
     #[command(subcommand)]
     Train(commands::jobs::TrainCommand),
-    /// List, show, cancel and watch jobs.
+    /// List, show, cancel, watch and plot jobs.
     #[command(subcommand)]
     Job(commands::jobs::JobCommand),
     /// Score items with a reward model: rho per item (and per window, per step).

@@ -2,12 +2,14 @@
 //! dispatch and the exit status are in `main.rs`.
 //!
 //! - [`datasets`]: `dataset upload|list|show|delete`;
-//! - [`models`]: `model upload|list|show|delete`, with [`manifest`] (the manifest file format);
+//! - [`models`]: `model upload|import|list|show|delete`, with [`manifest`] (the manifest file format);
 //! - [`jobs`]: `train diffusion|reward|discriminator` (specs built by [`train`]) and
 //!   `job list|show|cancel|watch`;
 //! - [`rewards`]: `score`, `grad` and `sample` (the RewardService: inputs from `.npz` files,
 //!   trajectories cut into windows, results written as `.npz`), one module per command;
-//! - [`demo`]: `demo` (the whole Maze2D pipeline, composed of the commands below);
+//! - [`extract`]: `extract` (recordings to rewards: convert, profile, upload or reuse, train,
+//!   evaluate; composed of the other commands, run in process);
+//! - [`demo`]: `demo` (the whole Maze2D pipeline: generated data, then `extract`'s steps and steering);
 //! - [`eval`]: `eval discriminate|heatmap` and `job plot` (the paper's evaluation and its
 //!   pictures, over scores of local trajectory files);
 //! - [`maze`]: `maze generate` (Maze2D datasets from the built-in generator, no server);
