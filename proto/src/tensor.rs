@@ -12,12 +12,14 @@ use crate::v1::{Dtype, Tensor};
 pub enum CodecError {
     #[error("unknown dtype {0} (expected float32, float64, int32, int64, uint8 or bool)")]
     UnknownDType(i32),
+    #[error("dtype is unset (DTYPE_UNSPECIFIED; expected float32, float64, int32, int64, uint8 or bool)")]
+    UnsetDType,
     #[error("shape {shape:?} has more elements than fit in memory")]
     ShapeOverflow { shape: Vec<u64> },
     #[error("data has {actual} bytes but shape {shape:?} of {dtype} needs {expected}")]
     ByteCount { shape: Vec<u64>, dtype: &'static str, expected: u64, actual: u64 },
-    #[error("dtype {actual} where {expected} was expected")]
-    WrongDType { expected: &'static str, actual: &'static str },
+    #[error("dtype is {actual} where {expected} was expected")]
+    WrongDType { expected: &'static str, actual: String },
     #[error("value at flat index {index} is not finite ({value})")]
     NotFinite { index: u64, value: f64 },
     #[error("value at flat index {index} ({value:e}) is {OUTSIDE_F32}")]
@@ -65,7 +67,8 @@ pub fn parse_dtype(name: &str) -> Option<Dtype> {
 /// The element type as a known `Dtype`, refusing `UNSPECIFIED` and out-of-range values.
 pub fn known_dtype(raw: i32) -> Result<Dtype, CodecError> {
     match Dtype::try_from(raw) {
-        Ok(Dtype::Unspecified) | Err(_) => Err(CodecError::UnknownDType(raw)),
+        Ok(Dtype::Unspecified) => Err(CodecError::UnsetDType),
+        Err(_) => Err(CodecError::UnknownDType(raw)),
         Ok(d) => Ok(d),
     }
 }
@@ -81,7 +84,7 @@ pub fn numel(shape: &[u64]) -> Result<u64, CodecError> {
 
 /// Byte length of `numel(shape)` elements of `dtype`, checked for overflow.
 pub fn byte_len(shape: &[u64], dtype: Dtype) -> Result<u64, CodecError> {
-    let size = item_size(dtype).ok_or(CodecError::UnknownDType(dtype as i32))? as u64;
+    let size = item_size(dtype).ok_or(CodecError::UnsetDType)? as u64;
     numel(shape)?
         .checked_mul(size)
         .filter(|&n| n <= (isize::MAX as u64))
@@ -131,10 +134,23 @@ pub fn from_raw(shape: &[u64], dtype: Dtype, data: Vec<u8>) -> Result<Tensor, Co
     Ok(t)
 }
 
+/// `t`'s dtype when it is one of `allowed` (`expected` names them in the error), then the
+/// tensor's consistency. The dtype comes first: a tensor of another type is refused as that,
+/// not for a byte count that only its type makes wrong.
+fn validate_among(t: &Tensor, allowed: &[Dtype], expected: &'static str) -> Result<Dtype, CodecError> {
+    let actual = match Dtype::try_from(t.dtype) {
+        Ok(d) if allowed.contains(&d) => return validate(t),
+        Ok(Dtype::Unspecified) => "unset (DTYPE_UNSPECIFIED)".to_owned(),
+        Ok(d) => dtype_name(d).to_owned(),
+        Err(_) => format!("an unknown value ({})", t.dtype),
+    };
+    Err(CodecError::WrongDType { expected, actual })
+}
+
 /// Visits every element of a float32 or float64 tensor as f64, in row-major order.
 /// Integer and bool tensors are refused: they are not values to compute statistics on.
 pub fn for_each_float(t: &Tensor, mut f: impl FnMut(f64)) -> Result<(), CodecError> {
-    match validate(t)? {
+    match validate_among(t, &[Dtype::Float32, Dtype::Float64], "float32 or float64")? {
         Dtype::Float32 => {
             for c in t.data.chunks_exact(4) {
                 f(f64::from(f32::from_le_bytes([c[0], c[1], c[2], c[3]])));
@@ -145,8 +161,12 @@ pub fn for_each_float(t: &Tensor, mut f: impl FnMut(f64)) -> Result<(), CodecErr
                 f(f64::from_le_bytes([c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7]]));
             }
         }
+        // validate_among let only the two float types through.
         other => {
-            return Err(CodecError::WrongDType { expected: "float32 or float64", actual: dtype_name(other) });
+            return Err(CodecError::WrongDType {
+                expected: "float32 or float64",
+                actual: dtype_name(other).to_owned(),
+            });
         }
     }
     Ok(())
@@ -183,10 +203,8 @@ pub fn decode_finite_f32(t: &Tensor) -> Result<Vec<f32>, CodecError> {
 
 /// Decodes a bool or uint8 tensor as flags (non-zero is true).
 pub fn decode_flags(t: &Tensor) -> Result<Vec<bool>, CodecError> {
-    match validate(t)? {
-        Dtype::Bool | Dtype::Uint8 => Ok(t.data.iter().map(|&b| b != 0).collect()),
-        other => Err(CodecError::WrongDType { expected: "bool or uint8", actual: dtype_name(other) }),
-    }
+    validate_among(t, &[Dtype::Bool, Dtype::Uint8], "bool or uint8")?;
+    Ok(t.data.iter().map(|&b| b != 0).collect())
 }
 
 #[cfg(test)]
@@ -251,7 +269,7 @@ mod tests {
         let t = Tensor { shape: vec![1], dtype: 99, data: vec![0; 4] };
         assert_eq!(validate(&t), Err(CodecError::UnknownDType(99)));
         let t = Tensor { shape: vec![1], dtype: 0, data: vec![0; 4] };
-        assert_eq!(validate(&t), Err(CodecError::UnknownDType(0)));
+        assert_eq!(validate(&t), Err(CodecError::UnsetDType));
     }
 
     #[test]
@@ -284,6 +302,27 @@ mod tests {
         assert_eq!(decode_flags(&t).expect("bool"), vec![false, true, false]);
         let t = encode_f32(&[1], &[1.0]);
         assert!(matches!(decode_flags(&t), Err(CodecError::WrongDType { .. })));
+    }
+
+    #[test]
+    fn a_decoder_names_a_wrong_dtype_before_any_byte_count() {
+        // float32 bytes labelled as another type: the type is what is wrong.
+        let floats = encode_f32(&[2, 3], &[0.5; 6]);
+        for (dtype, named) in [
+            (Dtype::Bool as i32, "dtype is bool where float32 or float64"),
+            (Dtype::Int64 as i32, "dtype is int64 where float32 or float64"),
+            (0, "dtype is unset (DTYPE_UNSPECIFIED) where float32 or float64"),
+            (99, "dtype is an unknown value (99) where float32 or float64"),
+        ] {
+            let t = Tensor { dtype, ..floats.clone() };
+            let err = decode_finite_f32(&t).expect_err("wrong dtype").to_string();
+            assert!(err.starts_with(named), "{err}");
+        }
+        let err = decode_flags(&Tensor { dtype: Dtype::Int32 as i32, ..floats.clone() }).expect_err("int32");
+        assert!(err.to_string().starts_with("dtype is int32 where bool or uint8"), "{err}");
+        // float64 is one of the types allowed: its byte count is then what is wrong.
+        let t = Tensor { dtype: Dtype::Float64 as i32, ..floats };
+        assert!(matches!(decode_finite_f32(&t), Err(CodecError::ByteCount { .. })));
     }
 
     #[test]

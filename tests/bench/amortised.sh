@@ -32,9 +32,14 @@
 #    with DEMO_POOL's amortised flags against the same server and --name, so the second run
 #    reuses the first's diffusion models and only the rewards and their evaluation are redone.
 #    Reported per goal as part 3 (report.json), with each reward job's training time and rate.
-#    Then (UNET_EQUAL_TIME) the per-step recipe once more, with its reward steps cut so that its
-#    training time equals the amortised recipe's: quality at equal wall time, the comparison that
-#    says whether the amortised reward is better for the time, not only as good for the steps.
+#    Then (UNET_STEPS) time to a reward of equal quality: both recipes again at shorter runs,
+#    each amortised run's pool sized to it (UNET_STEPS x the reward batch / (reuse / refresh)
+#    items, so each target is still used about reuse / refresh times; the default pool, 16384,
+#    would be filled once and barely refreshed by a short run). The reference quality is the
+#    per-step recipe at the full length (the [extract] reward_steps); a run has "equal quality"
+#    when it recovers the same goals and its mean balanced accuracy is at most 1 point below.
+#    Each recipe's time to that quality is the reward training time of its shortest run that
+#    has it (steps from the grid only: the true time may be shorter than the grid shows).
 #
 # Settings (environment): GAUSS_STEPS ("100 200 400 800 1600"), POOL ("4096 4 0.25": pool size,
 # reuse, refresh fraction for the Gaussian pair; MAZE_POOL ("4096 4 0.25", an epoch of 256
@@ -42,8 +47,8 @@
 # PARTS ("gaussian maze-speed maze-quality"; maze-unet only when named: which parts run), LAYOUT (umaze), MAZE_SEED (0),
 # DEMO_POOL ("16384 4 0.25", the server's defaults), BIN (target/release); part 4: UNET_GOALS
 # ("1,1 3,3"), UNET_CONFIG (the [extract] table's body, "; " between keys: 'diffusion_architecture =
-# { kind = "temporal_unet", dim = 48, dim_mults = [1, 2] }; diffusion_steps = 2000'), UNET_EQUAL_TIME
-# (1: a third run, per-step stopped at the amortised recipe's reward training time; 0: not).
+# { kind = "temporal_unet", dim = 48, dim_mults = [1, 2] }; diffusion_steps = 2000'), UNET_STEPS
+# ("250 500 1000": the shorter runs of both recipes; "" for none).
 # Prints one JSON line per job and a markdown summary.
 #
 # Builds nothing: expects target/release/{relreward-server,relreward}. Starts its own server on
@@ -63,7 +68,7 @@ DEMO_POOL=${DEMO_POOL:-16384 4 0.25}
 UNET_GOALS=${UNET_GOALS:-1,1 3,3}
 UNET_ARCH='{ kind = "temporal_unet", dim = 48, dim_mults = [1, 2] }'
 UNET_CONFIG=${UNET_CONFIG:-diffusion_architecture = $UNET_ARCH; diffusion_steps = 2000}
-UNET_EQUAL_TIME=${UNET_EQUAL_TIME:-1}
+UNET_STEPS=${UNET_STEPS-250 500 1000}
 BIN=${BIN:-target/release}
 PY=.venv/bin/python
 for b in relreward-server relreward; do
@@ -216,7 +221,7 @@ for recipe in per-step amortised; do
   quiet rr demo --layout "$LAYOUT" --seed "$MAZE_SEED" --out "$tmp/demo-$recipe" "${extra[@]}"
   wall=$(echo "$(date +%s.%N) - $t0" | bc)
   jobs_json=$(reward_seconds "$tmp/demo-$recipe/summary.json")
-  echo "{\"part\": \"maze-quality\", \"recipe\": \"$recipe\", \"pool\": \"$DEMO_POOL\", \"layout\": \"$LAYOUT\", \"seed\": $MAZE_SEED, \"demo_seconds\": $wall, \"reward_jobs\": $jobs_json, \"summary\": $("$PY" -c 'import json,sys; print(json.dumps(json.load(open(sys.argv[1]))))' "$tmp/demo-$recipe/summary.json")}" | tee -a "$results"
+  echo "{\"part\": \"maze-quality\", \"recipe\": \"$recipe\", \"pool\": \"$DEMO_POOL\", \"pool_flags\": \"$*\", \"layout\": \"$LAYOUT\", \"seed\": $MAZE_SEED, \"demo_seconds\": $wall, \"reward_jobs\": $jobs_json, \"summary\": $("$PY" -c 'import json,sys; print(json.dumps(json.load(open(sys.argv[1]))))' "$tmp/demo-$recipe/summary.json")}" | tee -a "$results"
 done
 stop_server
 fi
@@ -243,32 +248,26 @@ unet_extract() { # RECIPE CONFIG [FLAGS...]: one extract, its record appended to
     --seed "$MAZE_SEED" --out "$tmp/unet-$recipe" "$@"
   wall=$(echo "$(date +%s.%N) - $t0" | bc)
   jobs_json=$(reward_seconds "$tmp/unet-$recipe/report.json")
-  echo "{\"part\": \"maze-unet\", \"recipe\": \"$recipe\", \"pool\": \"$DEMO_POOL\", \"layout\": \"$LAYOUT\", \"seed\": $MAZE_SEED, \"extract_seconds\": $wall, \"reward_jobs\": $jobs_json, \"report\": $("$PY" -c 'import json,sys; print(json.dumps(json.load(open(sys.argv[1]))))' "$tmp/unet-$recipe/report.json")}" | tee -a "$results"
+  echo "{\"part\": \"maze-unet\", \"recipe\": \"$recipe\", \"pool\": \"$DEMO_POOL\", \"pool_flags\": \"$*\", \"layout\": \"$LAYOUT\", \"seed\": $MAZE_SEED, \"extract_seconds\": $wall, \"reward_jobs\": $jobs_json, \"report\": $("$PY" -c 'import json,sys; print(json.dumps(json.load(open(sys.argv[1]))))' "$tmp/unet-$recipe/report.json")}" | tee -a "$results"
   if [[ -n $OUT ]]; then mkdir -p "$OUT" && cp -r "$tmp/unet-$recipe" "$OUT/"; fi
 }
 unet_extract per-step "$tmp/unet.toml"
 read -ra extra <<<"$(pool_flags "$DEMO_POOL")"
 unet_extract amortised "$tmp/unet.toml" "${extra[@]}"
-if [[ $UNET_EQUAL_TIME == 1 ]]; then
-  # The per-step recipe stopped at the amortised recipe's reward training time: its step count
-  # scaled by the two recipes' times (a per-step step costs the same all along). Only the
-  # rewards' sizes change, so the same diffusion models are reused.
-  eq_steps=$("$PY" - "$results" <<'PY'
-import json, sys
-runs = {r["recipe"]: r for r in map(json.loads, open(sys.argv[1])) if r["part"] == "maze-unet"}
-p, a = runs["per-step"], runs["amortised"]
-seconds = [sum(j["seconds"] for j in r["reward_jobs"]) for r in (p, a)]
-print(max(1, round(p["report"]["sizes"]["reward_steps"] * seconds[1] / seconds[0])))
-PY
-)
-  { grep -v '^reward_steps' "$tmp/unet.toml"; echo "reward_steps = $eq_steps"; } >"$tmp/unet-equal-time.toml"
-  unet_extract per-step-equal-time "$tmp/unet-equal-time.toml"
-fi
+read -r _ reuse refresh <<<"$DEMO_POOL"
+for n in $UNET_STEPS; do
+  # Only the rewards' sizes change, so the same diffusion models are reused.
+  { grep -v '^reward_steps' "$tmp/unet.toml"; echo "reward_steps = $n"; } >"$tmp/unet-$n.toml"
+  unet_extract "per-step-$n" "$tmp/unet-$n.toml"
+  batch=$("$PY" -c 'import json,sys; print(json.load(open(sys.argv[1]))["sizes"]["reward_batch"])' "$tmp/unet-per-step-$n/report.json")
+  pool=$("$PY" -c "import math; print(max($batch, math.ceil($n * $batch * $refresh / $reuse)))")
+  unet_extract "amortised-$n" "$tmp/unet-$n.toml" $(pool_flags "$pool $reuse $refresh")
+done
 stop_server
 fi
 
 # --- report --------------------------------------------------------------------------------------
-"$PY" - "$results" "$(($(date +%s) - started))" "GAUSS_STEPS='$GAUSS_STEPS' POOL='$POOL' MAZE_POOL='$MAZE_POOL' STEPS=$STEPS THREADS=$THREADS PARTS='$PARTS' LAYOUT=$LAYOUT MAZE_SEED=$MAZE_SEED DEMO_POOL='$DEMO_POOL' UNET_GOALS='$UNET_GOALS' UNET_CONFIG='$UNET_CONFIG' UNET_EQUAL_TIME=$UNET_EQUAL_TIME" <<'PY'
+"$PY" - "$results" "$(($(date +%s) - started))" "GAUSS_STEPS='$GAUSS_STEPS' POOL='$POOL' MAZE_POOL='$MAZE_POOL' STEPS=$STEPS THREADS=$THREADS PARTS='$PARTS' LAYOUT=$LAYOUT MAZE_SEED=$MAZE_SEED DEMO_POOL='$DEMO_POOL' UNET_GOALS='$UNET_GOALS' UNET_CONFIG='$UNET_CONFIG' UNET_STEPS='$UNET_STEPS'" <<'PY'
 import json, sys, subprocess, time
 runs = [json.loads(l) for l in open(sys.argv[1])]
 cpu = [l.split(":", 1)[1].strip() for l in subprocess.run(["lscpu"], capture_output=True, text=True).stdout.splitlines()
@@ -358,23 +357,43 @@ if "per-step" in unet and "amortised" in unet:
          for gp, ga, jp, ja in zip(p["report"]["rewards"], a["report"]["rewards"], p["reward_jobs"], a["reward_jobs"])],
         (p["report"], a["report"]), ("goals_recovered", "goals_evaluated"),
         ("extract", p["extract_seconds"], a["extract_seconds"]), rates=True)
-    e = unet.get("per-step-equal-time")
-    if e:
-        steps = e["report"]["sizes"]["reward_steps"]
+    # Time to a reward of equal quality: the shortest run of each recipe that recovers the same
+    # goals as the full-length per-step reward, with a mean balanced accuracy at most 1 point below.
+    ref = p["report"]
+    recovered = lambda r: {g["label"] for g in r["rewards"] if g["goal_recovered"]}  # noqa: E731
+    seconds = lambda r: sum(j["seconds"] for j in r["reward_jobs"])  # noqa: E731
+    grid = sorted({int(k.rsplit("-", 1)[1]) for k in unet if k.rsplit("-", 1)[-1].isdigit()})
+    if grid:
+        full = ref["sizes"]["reward_steps"]
         print()
-        print(f"At equal wall time: per-step stopped at {steps} steps (the amortised recipe's reward training time), "
-              f"against the amortised recipe's {a['report']['sizes']['reward_steps']} steps")
+        print(f"Time to a reward of equal quality (reference: per-step at {full} steps, {len(recovered(ref))} of "
+              f"{ref['goals_evaluated']} goals, mean balanced accuracy {100 * ref['mean_balanced_accuracy']:.1f}%; "
+              "equal: the same goals recovered, at most 1 point below)")
         print()
-        print("| expert | recovered per-step at equal time / amortised | balanced accuracy per-step at equal time / amortised "
-              "| AUC per-step at equal time / amortised | reward training s per-step at equal time / amortised |")
-        print("|---|---|---|---|---|")
-        yn = lambda g: "yes" if g["goal_recovered"] else "no"  # noqa: E731
-        for ge, ga, je, ja in zip(e["report"]["rewards"], a["report"]["rewards"], e["reward_jobs"], a["reward_jobs"]):
-            print(f"| {ge['label']} | {yn(ge)} / {yn(ga)} | {ge['balanced_accuracy']:.3f} / {ga['balanced_accuracy']:.3f} "
-                  f"| {ge['auc']:.3f} / {ga['auc']:.3f} | {je['seconds']:.1f} / {ja['seconds']:.1f} |")
+        print("| reward steps | per-step: goals, balanced accuracy, s | amortised (pool): goals, balanced accuracy, s |")
+        print("|---|---|---|")
+        first = {}
+        for n in grid + [full]:
+            cells = []
+            for recipe in ("per-step", "amortised"):
+                r = unet.get(f"{recipe}-{n}") or (unet[recipe] if n == full else None)
+                if r is None:
+                    cells.append("not run")
+                    continue
+                rep_ = r["report"]
+                equal = recovered(rep_) == recovered(ref) and rep_["mean_balanced_accuracy"] >= ref["mean_balanced_accuracy"] - 0.01
+                if equal and recipe not in first:
+                    first[recipe] = (n, seconds(r))
+                flags = r.get("pool_flags", "").split()
+                pool = f" (pool {flags[1]})" if recipe == "amortised" and len(flags) > 1 else ""
+                cells.append(f"{rep_['goals_recovered']}, {100 * rep_['mean_balanced_accuracy']:.1f}%, "
+                             f"{seconds(r):.1f}{pool}{' (equal)' if equal else ''}")
+            print(f"| {n} | " + " | ".join(cells) + " |")
         print()
-        print(f"- goals recovered at equal time: per-step {e['report']['goals_recovered']}, amortised "
-              f"{a['report']['goals_recovered']} of {a['report']['goals_evaluated']}; mean balanced accuracy "
-              f"{100 * e['report']['mean_balanced_accuracy']:.1f}% vs {100 * a['report']['mean_balanced_accuracy']:.1f}%")
+        for recipe in ("per-step", "amortised"):
+            f = first.get(recipe)
+            print(f"- {recipe}: equal quality first at " + (f"{f[0]} steps, {f[1]:.1f} s" if f else "no run"))
+        if len(first) == 2:
+            print(f"- time to a reward of equal quality, per-step / amortised: **{first['per-step'][1] / first['amortised'][1]:.2f}x**")
 PY
 if [[ -n $OUT ]]; then mkdir -p "$OUT" && cp "$results" "$OUT/"; fi

@@ -225,6 +225,11 @@ async fn reflection_answers_failed_lookups_in_stream() {
             let files = &answers[2]["files"];
             assert_eq!(files[0]["package"], "relreward.v1", "{version}: {}", answers[2]);
             assert!(files[0]["services"].as_array().is_some_and(|s| s.iter().any(|s| s == "RewardService")), "{files}");
+            // With the file it imports, so that the answer alone builds the descriptors.
+            assert!(
+                files.as_array().is_some_and(|f| f.iter().any(|f| f["name"] == "relreward/v1/tensor.proto")),
+                "{files}"
+            );
             not_found(3, "unknown file");
             not_found(4, "extension");
             not_found(5, "extension numbers of an unknown type");

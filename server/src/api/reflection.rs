@@ -9,14 +9,21 @@
 //! v1 service on its own one-request stream, and whatever it answers, a response or a status,
 //! becomes one response on the client's stream.
 //!
+//! A file descriptor answer carries, after the files asked for, every file they depend on
+//! (transitively) that the stream has not carried yet, as the protocol describes: a client can
+//! then build the descriptors from the answers alone (Node's proto-loader, grpc-go's clients);
+//! tonic-reflection answers with the asked-for file only.
+//!
 //! v1alpha is the same protocol under another package name (the messages are wire-identical),
 //! so its requests are re-encoded as v1, answered in the one place, and re-encoded back.
 
+use std::collections::HashSet;
 use std::pin::Pin;
 use std::sync::Arc;
 
 use futures::future::BoxFuture;
 use futures::{Stream, StreamExt};
+use prost::Message;
 use tonic::{Request, Response, Status, Streaming};
 use tonic_reflection::pb::v1 as v1pb;
 use tonic_reflection::pb::v1::server_reflection_client::ServerReflectionClient;
@@ -130,13 +137,65 @@ where
     Req: prost::Message + Send + 'static,
     Resp: prost::Message + Default + Send + 'static,
 {
+    // The names of the files this stream has carried. `then` runs one request at a time, in
+    // order, so the lock is never contended; it only makes the state shareable with the future.
+    let sent = Arc::new(tokio::sync::Mutex::new(HashSet::new()));
     Box::pin(inbound.then(move |request| {
-        let answer = answer.clone();
+        let (answer, sent) = (answer.clone(), sent.clone());
         async move {
             let request: v1pb::ServerReflectionRequest = reencode(&request?);
-            Ok(reencode(&answer(request).await))
+            let host = request.host.clone();
+            let response = answer(request).await;
+            let response = with_dependencies(&answer, &host, response, &mut *sent.lock().await).await;
+            Ok(reencode(&response))
         }
     }))
+}
+
+/// `response` with, after the files it carries (always sent: they were asked for), every file
+/// they depend on, transitively, that is not in `sent`; every file sent is added to `sent`.
+async fn with_dependencies(
+    answer: &Answer,
+    host: &str,
+    mut response: v1pb::ServerReflectionResponse,
+    sent: &mut HashSet<String>,
+) -> v1pb::ServerReflectionResponse {
+    let Some(MessageResponse::FileDescriptorResponse(files)) = &mut response.message_response else {
+        return response;
+    };
+    let mut pending = Vec::new();
+    for bytes in &files.file_descriptor_proto {
+        let (name, dependencies) = name_and_dependencies(bytes);
+        sent.insert(name);
+        pending.extend(dependencies);
+    }
+    while let Some(name) = pending.pop() {
+        if !sent.insert(name.clone()) {
+            continue;
+        }
+        let lookup = v1pb::ServerReflectionRequest {
+            host: host.to_owned(),
+            message_request: Some(MessageRequest::FileByFilename(name)),
+        };
+        // A dependency the index lacks (it has every file of every registered set) is left
+        // out rather than failing an answer that was found.
+        if let Some(MessageResponse::FileDescriptorResponse(found)) = answer(lookup).await.message_response {
+            for bytes in found.file_descriptor_proto {
+                let (name, dependencies) = name_and_dependencies(&bytes);
+                sent.insert(name);
+                pending.extend(dependencies.into_iter().filter(|d| !sent.contains(d)));
+                files.file_descriptor_proto.push(bytes);
+            }
+        }
+    }
+    response
+}
+
+/// A serialized `FileDescriptorProto`'s name and the names of the files it imports.
+fn name_and_dependencies(bytes: &[u8]) -> (String, Vec<String>) {
+    // The bytes are tonic-reflection's copies of our own descriptor sets: they decode.
+    let file = prost_types::FileDescriptorProto::decode(bytes).unwrap_or_default();
+    (file.name.unwrap_or_default(), file.dependency)
 }
 
 /// The same message under the other version's package (v1 and v1alpha are wire-identical).
@@ -220,6 +279,40 @@ mod tests {
             assert_eq!(response.original_request, Some(request(message)));
             assert_eq!(response.valid_host, "h");
         }
+    }
+
+    fn file_names(response: &v1pb::ServerReflectionResponse) -> Vec<String> {
+        match &response.message_response {
+            Some(MessageResponse::FileDescriptorResponse(f)) => {
+                f.file_descriptor_proto.iter().map(|b| name_and_dependencies(b).0).collect()
+            }
+            other => panic!("{other:?}"),
+        }
+    }
+
+    #[tokio::test]
+    async fn file_answers_carry_the_dependencies_the_stream_has_not_carried() {
+        let client = ServerReflectionClient::new(
+            tonic_reflection::server::Builder::configure()
+                .register_encoded_file_descriptor_set(relreward_proto::FILE_DESCRIPTOR_SET)
+                .build_v1()
+                .expect("reflection"),
+        );
+        let answer: Answer = Arc::new(move |r| Box::pin(answer(client.clone(), r)));
+        let mut sent = HashSet::new();
+        let ask = |symbol: &str| request(MessageRequest::FileContainingSymbol(symbol.into()));
+        let first = answer(ask("relreward.v1.JobService")).await;
+        let first = file_names(&with_dependencies(&answer, "h", first, &mut sent).await);
+        assert_eq!(first[0], "relreward/v1/jobs.proto");
+        for dep in ["relreward/v1/models.proto", "relreward/v1/tensor.proto", "google/protobuf/timestamp.proto"] {
+            assert!(first.contains(&dep.to_owned()), "{dep} in {first:?}");
+        }
+        let unique: HashSet<_> = first.iter().collect();
+        assert_eq!(unique.len(), first.len(), "{first:?}");
+        // Asked again, the file comes alone: its dependencies were sent on this stream.
+        let again = answer(ask("relreward.v1.RewardService")).await;
+        let again = file_names(&with_dependencies(&answer, "h", again, &mut sent).await);
+        assert_eq!(again, ["relreward/v1/reward.proto"]);
     }
 
     #[tokio::test]
