@@ -55,6 +55,14 @@ impl Jobs {
                         DatasetKind::Samples => Architecture::Mlp { hidden: vec![256, 256] },
                     },
                 };
+                // Checked here, where "unset" is still visible: the stored spec holds the
+                // effective horizon (32 when unset), as resubmissions compare against it.
+                if let (DatasetKind::Samples, Some(h)) = (dataset.kind, d.horizon) {
+                    return Err(Error::invalid(format!(
+                        "spec.diffusion.horizon: {h} applies to trajectories only (the sub-trajectory length); '{}' holds samples of a fixed shape",
+                        dataset.name
+                    )));
+                }
                 let job = DiffusionJob {
                     dataset: d.dataset,
                     // Unset: x0-prediction and Diffuser's cosine schedule, as Diffuser's configs.
@@ -68,7 +76,7 @@ impl Jobs {
                         some => convert::schedule_from_proto(some, "spec.diffusion.schedule")?,
                     },
                     n_timesteps: d.n_timesteps.unwrap_or(20) as usize,
-                    horizon: d.horizon.map(|h| h as usize),
+                    horizon: d.horizon.unwrap_or(32) as usize,
                     architecture,
                     action_weight: d.action_weight.unwrap_or(1.0),
                     clip_denoised: d.clip_denoised.unwrap_or(true),
@@ -284,7 +292,7 @@ fn spec_to_proto(spec: &JobSpec) -> pb::JobSpec {
             parametrization: convert::parametrization_to_proto(d.parametrization) as i32,
             schedule: Some(convert::schedule_to_proto(&d.schedule)),
             n_timesteps: Some(d.n_timesteps as u32),
-            horizon: d.horizon.map(|h| u32::try_from(h).unwrap_or(u32::MAX)),
+            horizon: Some(d.horizon as u32),
             architecture: Some(match convert::architecture_to_proto(&d.architecture) {
                 pb::diffusion_manifest::Architecture::TemporalUnet(u) => {
                     pb::train_diffusion::Architecture::TemporalUnet(u)

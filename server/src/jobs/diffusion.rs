@@ -48,12 +48,6 @@ pub async fn validate_inputs(store: &Store, job: &DiffusionJob) -> Result<()> {
             job.action_weight, ds.name
         )));
     }
-    if let (DatasetKind::Samples, Some(h)) = (ds.kind, job.horizon) {
-        return Err(Error::invalid(format!(
-            "spec.diffusion.horizon: {h} applies to trajectories only (the sub-trajectory length); '{}' holds samples of a fixed shape",
-            ds.name
-        )));
-    }
     let manifest = manifest_for(job, &ds, &pooled)?;
     // The network is planned (sizes, parameter count) here, so that an architecture the server
     // cannot build is refused at submission rather than failing the accepted job.
@@ -65,13 +59,11 @@ pub async fn validate_inputs(store: &Store, job: &DiffusionJob) -> Result<()> {
         })
         .map_err(|e| job_field(e, &job.architecture))?;
     if let (DatasetKind::Trajectories, Some(ep)) = (ds.kind, &ds.episodes)
-        && (ep.max_length as usize) < job.horizon()
+        && (ep.max_length as usize) < job.horizon
     {
         return Err(Error::invalid(format!(
             "spec.diffusion.horizon: {} exceeds the longest episode ({}) of dataset '{}'",
-            job.horizon(),
-            ep.max_length,
-            ds.name
+            job.horizon, ep.max_length, ds.name
         )));
     }
     Ok(())
@@ -137,7 +129,7 @@ fn manifest_for(job: &DiffusionJob, ds: &DatasetRecord, pooled: &[DatasetRecord]
         // window [H * D] (small horizons, CPU budgets: the demo's default).
         DatasetKind::Trajectories => {
             let (act, obs) = (stats("actions")?, stats("observations")?);
-            let space = Space::Trajectory { horizon: job.horizon(), action_dim: act.min.len(), obs_dim: obs.min.len() };
+            let space = Space::Trajectory { horizon: job.horizon, action_dim: act.min.len(), obs_dim: obs.min.len() };
             // Rows are [action | observation], so the normalizer's coordinates follow suit.
             let normalizer = Normalizer::Limits {
                 min: act.min.iter().chain(&obs.min).copied().collect(),
@@ -228,12 +220,12 @@ pub fn run(ctx: &mut JobContext, job: &DiffusionJob) -> std::result::Result<Stri
     }
     let manifest = manifest_for(job, &ds, &pooled)?;
     let dir = ctx.block_on(store.blobs.local_dir(&ds.blob_key))?;
-    let (rows, starts) = load_rows(&dir, &ds, job.horizon())?;
+    let (rows, starts) = load_rows(&dir, &ds, job.horizon)?;
     let data = TrainingData::new(
         &rows,
         &manifest.normalizer,
         manifest.space.normalizer_dims(),
-        starts.as_ref().map(|_| job.horizon()),
+        starts.as_ref().map(|_| job.horizon),
         starts,
         spec.seed,
     )?

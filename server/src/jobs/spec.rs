@@ -105,9 +105,8 @@ pub struct DiffusionJob {
     pub parametrization: Parametrization,
     pub schedule: ScheduleSpec,
     pub n_timesteps: usize,
-    /// Sub-trajectory length H (trajectory datasets; unset: [`Self::DEFAULT_HORIZON`]). Kept
-    /// as sent so that a horizon given for a samples dataset is refused, not ignored.
-    pub horizon: Option<usize>,
+    /// Sub-trajectory length H (trajectory datasets).
+    pub horizon: usize,
     pub architecture: Architecture,
     /// Diffuser's weight on the first action's loss (1: none).
     pub action_weight: f64,
@@ -118,16 +117,6 @@ pub struct DiffusionJob {
     /// Sample datasets: one mean and std over every element (see the proto).
     #[serde(default)]
     pub pooled_normalizer: bool,
-}
-
-impl DiffusionJob {
-    /// Diffuser's locomotion configs' horizon, used when a trajectory job gives none.
-    pub const DEFAULT_HORIZON: usize = 32;
-
-    /// The sub-trajectory length a trajectory job trains on.
-    pub fn horizon(&self) -> usize {
-        self.horizon.unwrap_or(Self::DEFAULT_HORIZON)
-    }
 }
 
 impl JobSpec {
@@ -187,10 +176,8 @@ impl JobSpec {
         }
         match &self.kind {
             JobKind::Diffusion(d) => {
-                if let Some(h) = d.horizon
-                    && (h == 0 || h > 4096)
-                {
-                    return Err(Error::invalid(format!("spec.diffusion.horizon: {h} is outside 1..=4096")));
+                if d.horizon == 0 || d.horizon > 4096 {
+                    return Err(Error::invalid(format!("spec.diffusion.horizon: {} is outside 1..=4096", d.horizon)));
                 }
                 if !(d.action_weight.is_finite() && d.action_weight > 0.0) {
                     return Err(Error::invalid(format!(
