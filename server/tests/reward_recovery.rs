@@ -546,7 +546,7 @@ async fn the_served_reward_differentiates_rejects_bad_input_and_guides_sampling_
         (score(tensor(65, &normals(65 * d, 1)), vec![]), tonic::Code::InvalidArgument, "max_request_items"),
         (score(tensor(1, &normals(d, 1)), vec![T as u32]), tonic::Code::InvalidArgument, "t[0]: 20 is outside [0, 20)"),
         (score(tensor(1, &nan), vec![]), tonic::Code::InvalidArgument, "x: element 2 is not finite"),
-        (score(int64, vec![]), tonic::Code::InvalidArgument, "x: dtype int64"),
+        (score(int64, vec![]), tonic::Code::InvalidArgument, "x: dtype is int64 where float32 or float64"),
         (
             pb::ScoreRequest { model: "nope".into(), ..score(tensor(1, &normals(d, 1)), vec![]) },
             tonic::Code::NotFound,
