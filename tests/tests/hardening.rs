@@ -578,7 +578,9 @@ async fn conditions_guide_steps_and_job_fields_are_refused_at_the_door_by_their_
         .expect_err("1e300");
     assert_refused(&s, Code::InvalidArgument, "x: element 3 (1e300) is outside float32's range");
 
-    // Diffusion jobs: the network is planned at submission, and errors name the job's fields.
+    // Diffusion jobs: the network is planned at submission, and errors name the job's fields;
+    // a refused submission stores no job.
+    let jobs_before = client.list_jobs(pb::JobState::Unspecified).await.expect("jobs").len();
     let submit = |spec: pb::JobSpec| pb::SubmitJobRequest { spec: Some(spec), job_id: String::new() };
     let diffusion = |set: &dyn Fn(&mut pb::TrainDiffusion)| {
         let mut spec = relreward_tests::tiny_diffusion_spec(&m.dataset, "out", 0, pb::Optimization::default());
@@ -642,6 +644,8 @@ async fn conditions_guide_steps_and_job_fields_are_refused_at_the_door_by_their_
             .expect_err(needle);
         assert_refused(&s, Code::InvalidArgument, needle);
     }
+    let jobs_after = client.list_jobs(pb::JobState::Unspecified).await.expect("jobs").len();
+    assert_eq!(jobs_after, jobs_before, "a refused diffusion job was stored");
     // Discriminator jobs: its own field names, not the reward job's it is checked as.
     let discriminator = |base: &str, expert: &str| {
         submit(pb::JobSpec {
