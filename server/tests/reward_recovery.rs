@@ -129,6 +129,7 @@ fn reward_spec(
             amortised_targets: None,
             action_weight: None,
             condition_weight: None,
+            inpaint_condition: None,
         })),
     }
 }
@@ -453,6 +454,7 @@ async fn the_discriminator_baseline_separates_base_from_expert() {
             kind: Some(pb::reward_architecture::Kind::Mlp(pb::Mlp { hidden: vec![64, 64] })),
         }),
         diffusion_model: "base".into(),
+        inpaint_condition: None,
     }));
     client.jobs().submit_job(pb::SubmitJobRequest { spec: Some(spec), job_id: "disc".into() }).await.expect("submit");
     let events = wait_done(&client, "disc").await;

@@ -282,7 +282,7 @@ fn algorithm_1_steps_match_pytorch() {
         let trained = train(&params, |k| {
             let (x0, t, noise) = &batches[k];
             let (target, point) =
-                noised_target_and_point(&base, &mut expert, x0, t, noise, case.target, case.eval_point)
+                noised_target_and_point(&base, &mut expert, x0, t, noise, None, case.target, case.eval_point)
                     .expect("target");
             assert!(max_abs(&target) > 1e-3, "case {i}: the target is trivially zero");
             alignment_loss(&reward, &point, t, &target, weights.as_ref(), case.rho_l2).expect("loss")
@@ -364,6 +364,7 @@ fn guided_sampling_matches_pytorch_step_by_step() {
             datasets: vec![],
             objective: Objective::alignment(Target::Mean, EvalPoint::XT, false),
             step_normalization: false,
+            inpaint_condition: false,
             final_loss: 0.0,
             eval_loss: None,
         },

@@ -493,6 +493,13 @@ async fn each_kind_of_field_has_one_rule_on_every_rpc() {
         let s = client.jobs().submit_job(request).await.expect_err("entry weight");
         assert_refused(&s, Code::InvalidArgument, field);
     }
+    // A clean first observation in x_t is Algorithm 1's option; Algorithm 2 draws no x_t from data.
+    let request = reward_job(&|r| {
+        r.inpaint_condition = Some(true);
+        r.algorithm = Some(pb::train_reward::Algorithm::ModelsOnly(pb::train_reward::ModelsOnly { num_chains: None }));
+    });
+    let s = client.jobs().submit_job(request).await.expect_err("inpaint_condition with models_only");
+    assert_refused(&s, Code::InvalidArgument, "spec.reward.inpaint_condition: applies to with_dataset");
     // A well-formed name that does not exist is NOT_FOUND, as everywhere.
     let spec = relreward_tests::tiny_diffusion_spec("absent", "out", 0, pb::Optimization::default());
     let s = client

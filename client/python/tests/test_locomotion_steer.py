@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import math
+import sqlite3
 import sys
 
 import numpy as np
@@ -50,7 +51,8 @@ def test_tiny_steering_experiment_runs_both_planner_modes(tmp_path):
     cfg = steer.Config(env="hopper", data=d, planners=planners, work=tmp_path / "work", episodes=2, sweep_episodes=1,
                        max_steps=6, n_plans=3, widths=(32,), reward_steps=10, disc_steps=10, batch_size=8,
                        omegas=(0.1,), t_stopgrads=(1,), server_mode_episodes=1, guide_at="sweep",
-                       reward_action_weight=10.0, reward_condition_weight=0.0, log=lambda s: None)
+                       reward_action_weight=10.0, reward_condition_weight=0.0, inpaint_condition=True,
+                       log=lambda s: None)
     result = steer.experiment(cfg)
 
     eps = result["episodes"]
@@ -73,6 +75,11 @@ def test_tiny_steering_experiment_runs_both_planner_modes(tmp_path):
     saved = json.loads((cfg.work / "hopper-results.json").read_text())
     assert len(saved["episodes"]) == len(eps)
     assert saved["summary"]["arms"]["reward"]["welch"]["p"] <= 1.0
+    # Both networks were trained on x_t with the current state clean, and their manifests say so.
+    with sqlite3.connect(f"file:{cfg.work}/server-data/metadata.sqlite3?mode=ro", uri=True) as db:
+        for name in ("hopper-reward", "hopper-discriminator"):
+            (record,) = db.execute("SELECT record FROM models WHERE name = ?", (name,)).fetchone()
+            assert json.loads(record)["manifest"]["inpaint_condition"] is True, name
     table = (cfg.work / "hopper-table.md").read_text()
     assert all(f"| {arm} |" in table for arm in steer.ARMS)
     with Image.open(cfg.work / "hopper-steer.png") as img:

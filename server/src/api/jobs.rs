@@ -142,6 +142,7 @@ impl Jobs {
                         rho_l2: r.rho_l2.unwrap_or(0.0),
                         action_weight: r.action_weight.unwrap_or(1.0),
                         condition_weight: r.condition_weight.unwrap_or(1.0),
+                        inpaint_condition: r.inpaint_condition.unwrap_or(false),
                         amortised_targets: r.amortised_targets.map(|a| {
                             let d = AmortisedTargets::DEFAULT;
                             AmortisedTargets {
@@ -178,6 +179,7 @@ impl Jobs {
                         expert_dataset: d.expert_dataset,
                         architecture: reward_architecture(d.architecture, &space),
                         diffusion_model: d.diffusion_model,
+                        inpaint_condition: d.inpaint_condition.unwrap_or(false),
                     }),
                 })
             }
@@ -332,6 +334,7 @@ fn spec_to_proto(spec: &JobSpec) -> pb::JobSpec {
             rho_l2: Some(r.rho_l2),
             action_weight: Some(r.action_weight),
             condition_weight: Some(r.condition_weight),
+            inpaint_condition: Some(r.inpaint_condition),
             amortised_targets: r.amortised_targets.map(|a| pb::AmortisedTargets {
                 pool_size: Some(a.pool_size as u32),
                 reuse: Some(a.reuse),
@@ -343,6 +346,7 @@ fn spec_to_proto(spec: &JobSpec) -> pb::JobSpec {
             expert_dataset: d.expert_dataset.clone(),
             architecture: Some(reward_architecture_to_proto(&d.architecture)),
             diffusion_model: d.diffusion_model.clone(),
+            inpaint_condition: Some(d.inpaint_condition),
         }),
     };
     pb::JobSpec {

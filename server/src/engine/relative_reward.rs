@@ -173,19 +173,72 @@ pub fn target_and_point(
     Ok((y.detach(), point.detach()))
 }
 
-/// Algorithm 1's batch at given draws: x_t = q_sample(x0, t, noise) under no-grad, then
-/// [`target_and_point`]. The reward job passes its own Rng's draws; the PyTorch cross-check
+/// The entries of a trajectory item a planner conditions on by inpainting: the first step's
+/// observation, as (offset, length) along the transition dimension.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct ConditionEntries {
+    offset: i64,
+    len: i64,
+}
+
+impl ConditionEntries {
+    /// The first observation of `space`'s items; an error naming `field` for a space without one.
+    pub fn of(space: &Space, field: &str) -> Result<Self> {
+        match *space {
+            Space::Trajectory { action_dim, obs_dim, .. } => {
+                Ok(Self { offset: action_dim as i64, len: obs_dim as i64 })
+            }
+            _ => Err(Error::invalid(format!(
+                "{field}: only trajectory models have a first observation to inpaint; this space is {space:?}"
+            ))),
+        }
+    }
+
+    /// `x_t` with these entries copied from `x0` ([B, H, A + O] both).
+    pub fn inpaint(&self, x_t: &Tensor, x0: &Tensor) -> Result<Tensor> {
+        let out = x_t.copy();
+        let clean = x0.f_narrow(1, 0, 1)?.f_narrow(2, self.offset, self.len)?;
+        out.f_narrow(1, 0, 1)?.f_narrow(2, self.offset, self.len)?.f_copy_(&clean)?;
+        Ok(out)
+    }
+}
+
+/// A training item's noised input: x_t = q_sample(x0, t, noise), under no-grad, with the
+/// condition entries kept clean when given (`inpaint_condition`). Why: a planner that inpaints
+/// its current state was trained, and plans, with that state clean at every t, so its outputs
+/// on a noised state are outside what it learned (Diffuser's value training applies the same
+/// conditioning to its noised input); the relative reward and the discriminator are then
+/// fitted on the inputs they meet when guiding.
+pub fn noised(
+    model: &DiffusionModel,
+    x0: &Tensor,
+    t: &Tensor,
+    noise: &Tensor,
+    condition: Option<ConditionEntries>,
+) -> Result<Tensor> {
+    let _guard = tch::no_grad_guard();
+    let x_t = model.q_sample(x0, t, noise)?;
+    match condition {
+        Some(c) => c.inpaint(&x_t, x0),
+        None => Ok(x_t),
+    }
+}
+
+/// Algorithm 1's batch at given draws: x_t from [`noised`], then [`target_and_point`]. The
+/// reward job passes its own Rng's draws; the PyTorch cross-check
 /// (server/tests/training_vs_pytorch.rs) passes fixed ones, so both run this same code.
+#[allow(clippy::too_many_arguments)]
 pub fn noised_target_and_point(
     base: &DiffusionModel,
     expert: &mut DiffusionModel,
     x0: &Tensor,
     t: &Tensor,
     noise: &Tensor,
+    condition: Option<ConditionEntries>,
     target: Target,
     eval_point: EvalPoint,
 ) -> Result<(Tensor, Tensor)> {
-    let x_t = tch::no_grad(|| base.q_sample(x0, t, noise))?;
+    let x_t = noised(base, x0, t, noise, condition)?;
     target_and_point(base, expert, &x_t, t, target, eval_point)
 }
 
@@ -231,6 +284,9 @@ pub struct RewardManifest {
     /// `jobs/reward.rs`, `step_stats`); rewards stored with per-element scales load unchanged.
     #[serde(default)]
     pub step_normalization: bool,
+    /// Trained on x_t with the first observation clean (the job's `inpaint_condition`).
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub inpaint_condition: bool,
     pub final_loss: f64,
     pub eval_loss: Option<f64>,
 }
@@ -386,6 +442,33 @@ mod tests {
         assert!(w.equal(&expected), "{w}");
         let err = entry_weights(&Space::Sample { shape: vec![2, 2] }, 2.0, 1.0, cpu, "spec.reward").unwrap_err();
         assert!(matches!(&err, Error::InvalidArgument(m) if m.starts_with("spec.reward.action_weight")), "{err}");
+    }
+
+    /// With the condition inpainted, x_t is q_sample's everywhere but the first observation,
+    /// which is x0's; the target is the two models' difference at that x_t.
+    #[test]
+    fn inpainted_x_t_keeps_the_first_observation_clean_and_the_target_follows_it() {
+        let n = Normalizer::Identity;
+        let (base, mut expert) = (nonlinear(1, Parametrization::X0, &n), nonlinear(2, Parametrization::X0, &n));
+        let x0 = Tensor::randn([5, 4, 3], (Kind::Float, tch::Device::Cpu));
+        let noise = Tensor::randn([5, 4, 3], (Kind::Float, tch::Device::Cpu));
+        let t = Tensor::from_slice(&[0i64, 3, 7, 12, 19]);
+        let c = ConditionEntries::of(&SPACE, "spec.reward.inpaint_condition").expect("trajectory");
+        let plain = noised(&base, &x0, &t, &noise, None).expect("plain");
+        let clean = noised(&base, &x0, &t, &noise, Some(c)).expect("inpainted");
+        // The first step's observation (entries 1..3 of row 0) is x0's, the rest q_sample's.
+        assert!(clean.narrow(1, 0, 1).narrow(2, 1, 2).equal(&x0.narrow(1, 0, 1).narrow(2, 1, 2)));
+        assert!(clean.narrow(1, 0, 1).narrow(2, 0, 1).equal(&plain.narrow(1, 0, 1).narrow(2, 0, 1)));
+        assert!(clean.narrow(1, 1, 3).equal(&plain.narrow(1, 1, 3)));
+        assert!(!clean.equal(&plain), "q_sample left the first observation unchanged: the test proves nothing");
+        let (target, point) =
+            noised_target_and_point(&base, &mut expert, &x0, &t, &noise, Some(c), Target::Mean, EvalPoint::XT)
+                .expect("inpainted target");
+        let (direct, _) =
+            target_and_point(&base, &mut expert, &clean, &t, Target::Mean, EvalPoint::XT).expect("direct");
+        assert!(point.equal(&clean) && target.equal(&direct));
+        let err = ConditionEntries::of(&Space::Sample { shape: vec![3] }, "spec.reward.inpaint_condition").unwrap_err();
+        assert!(matches!(&err, Error::InvalidArgument(m) if m.starts_with("spec.reward.inpaint_condition:")), "{err}");
     }
 
     #[test]

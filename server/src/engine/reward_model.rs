@@ -161,6 +161,7 @@ mod tests {
             datasets: vec![],
             objective: Objective::Discriminator,
             step_normalization,
+            inpaint_condition: false,
             final_loss: 0.0,
             eval_loss: None,
         }

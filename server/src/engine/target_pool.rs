@@ -27,7 +27,7 @@ use tch::{Kind, Tensor};
 
 use super::data::TrainingData;
 use super::diffusion::DiffusionModel;
-use super::relative_reward::{EvalPoint, Target, noised_target_and_point};
+use super::relative_reward::{ConditionEntries, EvalPoint, Target, noised_target_and_point};
 use super::rng::Rng;
 use crate::error::{Error, Result};
 
@@ -102,6 +102,8 @@ pub struct TargetSource<'a> {
     pub base: &'a DiffusionModel,
     pub expert: &'a mut DiffusionModel,
     pub data: &'a TrainingData,
+    /// Entries kept clean in x_t (the job's `inpaint_condition`).
+    pub condition: Option<ConditionEntries>,
     pub target: Target,
     pub eval_point: EvalPoint,
 }
@@ -253,6 +255,7 @@ impl TargetPool {
                 &x0.narrow(0, at, len),
                 &t.narrow(0, at, len),
                 &noise.narrow(0, at, len),
+                src.condition,
                 src.target,
                 src.eval_point,
             )?;
@@ -336,6 +339,7 @@ mod tests {
             base: &base,
             expert: &mut expert,
             data: &data,
+            condition: None,
             target: Target::Mean,
             eval_point: EvalPoint::XT,
         };

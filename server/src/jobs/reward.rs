@@ -17,8 +17,8 @@ use crate::engine::nets::reward::{RewardArchitecture, RewardNet};
 use crate::engine::normalizer::Normalizer;
 use crate::engine::registry::load_diffusion_copy;
 use crate::engine::relative_reward::{
-    EvalPoint, Objective, RewardManifest, Target, alignment_error, alignment_loss, check_pair, entry_weights,
-    noised_target_and_point,
+    ConditionEntries, EvalPoint, Objective, RewardManifest, Target, alignment_error, alignment_loss, check_pair,
+    entry_weights, noised, noised_target_and_point,
 };
 use crate::engine::reward_model::STEP_NORM_FILE;
 use crate::engine::rng::Rng;
@@ -91,6 +91,9 @@ pub async fn validate_inputs(store: &Store, job: &RewardJob) -> Result<()> {
     }
     // Weights other than 1 need a trajectory space: refused at submission, not at run time.
     entry_weights(&base.space, job.action_weight, job.condition_weight, tch::Device::Cpu, "spec.reward")?;
+    if job.inpaint_condition {
+        ConditionEntries::of(&base.space, "spec.reward.inpaint_condition")?;
+    }
     match &job.algorithm {
         RewardAlgorithm::ModelsOnly { .. } => {}
         RewardAlgorithm::WithDataset { datasets } => {
@@ -360,6 +363,8 @@ pub fn run(ctx: &mut JobContext, job: &RewardJob) -> std::result::Result<String,
         ))?;
     }
     let weights = entry_weights(&space, job.action_weight, job.condition_weight, device, "spec.reward")?;
+    let condition =
+        job.inpaint_condition.then(|| ConditionEntries::of(&space, "spec.reward.inpaint_condition")).transpose()?;
     let t_max = base.manifest.n_timesteps as u64;
     let batch = opt.batch_size;
     // The training step and the held-out evaluation both compute targets, one at a time; each
@@ -384,8 +389,16 @@ pub fn run(ctx: &mut JobContext, job: &RewardJob) -> std::result::Result<String,
                 let t = rng.randint(t_max, n, device);
                 let noise = rng.randn(&x0.size(), device);
                 let mut expert = expert_mut()?;
-                let (target, point) =
-                    noised_target_and_point(&base, &mut expert, &x0, &t, &noise, job.target, job.eval_point)?;
+                let (target, point) = noised_target_and_point(
+                    &base,
+                    &mut expert,
+                    &x0,
+                    &t,
+                    &noise,
+                    condition,
+                    job.target,
+                    job.eval_point,
+                )?;
                 Ok(Some((t, target, point)))
             }
             Pairs::Chains(c) => {
@@ -430,6 +443,7 @@ pub fn run(ctx: &mut JobContext, job: &RewardJob) -> std::result::Result<String,
                         base: &base,
                         expert: &mut expert,
                         data,
+                        condition,
                         target: job.target,
                         eval_point: job.eval_point,
                     };
@@ -465,6 +479,7 @@ pub fn run(ctx: &mut JobContext, job: &RewardJob) -> std::result::Result<String,
             condition_weight: job.condition_weight,
         },
         step_normalization: matches!(job.algorithm, RewardAlgorithm::ModelsOnly { .. }),
+        inpaint_condition: job.inpaint_condition,
         final_loss: train.loss,
         eval_loss: train.eval_loss,
     };
@@ -542,6 +557,7 @@ pub async fn validate_discriminator(store: &Store, job: &DiscriminatorJob) -> Re
         amortised_targets: None,
         action_weight: 1.0,
         condition_weight: 1.0,
+        inpaint_condition: false,
     };
     // The reward job's field names, renamed to the discriminator's own.
     let rename = |m: String| {
@@ -559,7 +575,12 @@ pub async fn validate_discriminator(store: &Store, job: &DiscriminatorJob) -> Re
         Error::InvalidArgument(m) => Error::InvalidArgument(rename(m)),
         Error::NotFound(m) => Error::NotFound(rename(m)),
         other => other,
-    })
+    })?;
+    if job.inpaint_condition {
+        let model = diffusion_manifest(store, "spec.discriminator.diffusion_model", &job.diffusion_model).await?;
+        ConditionEntries::of(&model.space, "spec.discriminator.inpaint_condition")?;
+    }
+    Ok(())
 }
 
 /// The discriminator baseline: the same networks trained with binary cross-entropy to tell
@@ -585,13 +606,17 @@ pub fn run_discriminator(ctx: &mut JobContext, job: &DiscriminatorJob) -> std::r
             job.expert_dataset
         ))?;
     }
+    let condition = job
+        .inpaint_condition
+        .then(|| ConditionEntries::of(&space, "spec.discriminator.inpaint_condition"))
+        .transpose()?;
     let t_max = model.manifest.n_timesteps as u64;
     let half = (opt.batch_size / 2).max(1);
     let bce = |x0: Tensor, labels: Tensor, rng: &mut Rng| -> Result<Tensor> {
         let n = x0.size()[0] as usize;
         let t = rng.randint(t_max, n, device);
         let noise = rng.randn(&x0.size(), device);
-        let x_t = tch::no_grad(|| model.q_sample(&x0, &t, &noise))?;
+        let x_t = noised(&model, &x0, &t, &noise, condition)?;
         let logits = net.rho(&x_t, &t)?;
         Ok(logits.f_binary_cross_entropy_with_logits::<Tensor>(&labels, None, None, tch::Reduction::Mean)?)
     };
@@ -626,6 +651,7 @@ pub fn run_discriminator(ctx: &mut JobContext, job: &DiscriminatorJob) -> std::r
         datasets: vec![job.base_dataset.clone(), job.expert_dataset.clone()],
         objective: Objective::Discriminator,
         step_normalization: false,
+        inpaint_condition: job.inpaint_condition,
         final_loss: train.loss,
         eval_loss: train.eval_loss,
     };

@@ -50,6 +50,9 @@ pub struct DiscriminatorJob {
     pub architecture: RewardArchitecture,
     /// The diffusion model whose schedule (for noising) and normalizer it shares.
     pub diffusion_model: String,
+    /// Trained on x_t with the first observation clean, as the reward job's option.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub inpaint_condition: bool,
 }
 
 impl JobKind {
@@ -82,6 +85,10 @@ pub struct RewardJob {
     pub action_weight: f64,
     #[serde(default = "one")]
     pub condition_weight: f64,
+    /// Algorithm 1 on x_t with the first observation clean (trajectory models; see
+    /// `engine::relative_reward::noised`).
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub inpaint_condition: bool,
 }
 
 /// Serde's default for weights that jobs stored before they existed did not carry.
@@ -207,6 +214,11 @@ impl JobSpec {
                         )));
                     }
                     _ => {}
+                }
+                if r.inpaint_condition && matches!(r.algorithm, RewardAlgorithm::ModelsOnly { .. }) {
+                    return Err(Error::invalid(
+                        "spec.reward.inpaint_condition: applies to with_dataset (Algorithm 1) only; models_only draws x_t from the models' own chains",
+                    ));
                 }
                 if let Some(a) = &r.amortised_targets {
                     a.validate()?;

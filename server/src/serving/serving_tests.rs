@@ -36,6 +36,7 @@ fn manifest() -> RewardManifest {
         datasets: vec![],
         objective: Objective::alignment(Target::Mean, EvalPoint::XT, false),
         step_normalization: false,
+        inpaint_condition: false,
         final_loss: 0.0,
         eval_loss: None,
     }

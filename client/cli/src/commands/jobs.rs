@@ -393,6 +393,7 @@ fn reward_json(r: &pb::TrainReward) -> Value {
         "rho_l2": r.rho_l2,
         "action_weight": r.action_weight,
         "condition_weight": r.condition_weight,
+        "inpaint_condition": r.inpaint_condition,
         "amortised_targets": r.amortised_targets.as_ref().map(|a| json!({
             "pool_size": a.pool_size, "reuse": a.reuse, "refresh_fraction": a.refresh_fraction
         })),
@@ -405,6 +406,7 @@ fn discriminator_json(d: &pb::TrainDiscriminator) -> Value {
         "expert_dataset": d.expert_dataset,
         "architecture": reward_architecture_json(d.architecture.as_ref()),
         "diffusion_model": d.diffusion_model,
+        "inpaint_condition": d.inpaint_condition,
     })
 }
 

@@ -161,6 +161,9 @@ class RewardJob:
     #: the first action is served best by ``action_weight`` > 1 and ``condition_weight`` = 0.
     action_weight: float | None = None
     condition_weight: float | None = None
+    #: Trajectory models, Algorithm 1: the first observation kept clean in x_t (None: False, the
+    #: paper's noising of the whole window), as a planner that inpaints its current state sees it.
+    inpaint_condition: bool | None = None
     #: Algorithm 1's amortised targets: a mapping with any of ``pool_size``, ``reuse``,
     #: ``refresh_fraction`` (``{}`` for the server's defaults); None leaves the option off.
     amortised_targets: Mapping[str, Any] | None = None
@@ -187,6 +190,8 @@ class RewardJob:
             r.action_weight = self.action_weight
         if self.condition_weight is not None:
             r.condition_weight = self.condition_weight
+        if self.inpaint_condition is not None:
+            r.inpaint_condition = self.inpaint_condition
         if self.amortised_targets is not None:
             r.amortised_targets.CopyFrom(jobs_pb2.AmortisedTargets(**dict(self.amortised_targets)))
         spec = _base(self.output_model, self.seed, self.optimization)
@@ -204,6 +209,8 @@ class DiscriminatorJob:
     expert_dataset: str
     diffusion_model: str
     architecture: tuple[str, Mapping[str, Any]] | None = None
+    #: Trajectory models: the first observation kept clean in the noised items (as RewardJob's).
+    inpaint_condition: bool | None = None
     seed: int | None = None
     optimization: Optimization | None = None
 
@@ -212,6 +219,8 @@ class DiscriminatorJob:
                                         diffusion_model=self.diffusion_model)
         if (a := _reward_arch(self.architecture)) is not None:
             d.architecture.CopyFrom(a)
+        if self.inpaint_condition is not None:
+            d.inpaint_condition = self.inpaint_condition
         spec = _base(self.output_model, self.seed, self.optimization)
         spec.discriminator.CopyFrom(d)
         return spec

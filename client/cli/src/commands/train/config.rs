@@ -65,6 +65,7 @@ pub struct RewardConfig {
     pub rho_l2: Option<f64>,
     pub action_weight: Option<f64>,
     pub condition_weight: Option<f64>,
+    pub inpaint_condition: Option<bool>,
 }
 
 #[derive(Debug, Clone, Default, PartialEq, Deserialize)]
@@ -74,6 +75,7 @@ pub struct DiscriminatorConfig {
     pub expert_dataset: Option<String>,
     pub architecture: Option<RewardArchitecture>,
     pub diffusion_model: Option<String>,
+    pub inpaint_condition: Option<bool>,
 }
 
 /// The network rho(x, t) of a reward or discriminator job; empty widths are left to the server.

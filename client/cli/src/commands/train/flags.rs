@@ -125,6 +125,10 @@ pub struct TrainRewardArgs {
     /// inpaints (default 1; 0 leaves grad rho there free).
     #[arg(long, value_name = "W")]
     pub condition_weight: Option<f64>,
+    /// Trajectory models, Algorithm 1: keep the first observation clean in x_t, as a planner
+    /// that inpaints its current state sees it [or reward.inpaint_condition in --config].
+    #[arg(long)]
+    pub inpaint_condition: bool,
     #[command(flatten)]
     pub amortised: AmortisedArgs,
     #[command(flatten)]
@@ -187,6 +191,10 @@ pub struct TrainDiscriminatorArgs {
     /// [or discriminator.diffusion_model in --config].
     #[arg(long, value_name = "MODEL")]
     pub diffusion_model: Option<String>,
+    /// Trajectory models: keep the first observation clean in the noised items, as the reward's
+    /// --inpaint-condition [or discriminator.inpaint_condition in --config].
+    #[arg(long)]
+    pub inpaint_condition: bool,
     #[command(flatten)]
     pub arch: ArchArgs,
     #[command(flatten)]

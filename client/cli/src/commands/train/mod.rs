@@ -30,6 +30,7 @@
 //! rho_l2 = 0.0                      # --rho-l2
 //! action_weight = 10.0              # --action-weight (trajectory models; first action)
 //! condition_weight = 0.0            # --condition-weight (first observation)
+//! inpaint_condition = true          # --inpaint-condition (first observation clean in x_t)
 //! architecture = { kind = "windowed_mlp", window = 4, hidden = [128, 64, 32] }
 //! # or { kind = "value_function", widths = [..] }, { kind = "conv_encoder", widths = [..] },
 //! # { kind = "mlp", hidden = [..] }  (--arch, --window, --hidden, --widths)
@@ -38,6 +39,7 @@
 //! base_dataset = "maze-umaze-base"  # --base-dataset
 //! expert_dataset = "maze-expert"    # --expert-dataset
 //! diffusion_model = "maze-base"     # --diffusion-model
+//! inpaint_condition = true          # --inpaint-condition
 //! architecture = { kind = "value_function", widths = [32, 64] }  # as in [reward]
 //! ```
 //!
@@ -353,6 +355,7 @@ mod tests {
                 amortised_targets: None,
                 action_weight: Some(10.0),
                 condition_weight: None,
+                inpaint_condition: None,
             }
         );
         // Algorithm 2 from the file, with its chain count.
@@ -641,6 +644,7 @@ mod tests {
                 expert_dataset: "maze-b".into(),
                 architecture: value_function(&[32, 64]),
                 diffusion_model: "maze-base".into(),
+                inpaint_condition: None,
             }
         );
     }
@@ -651,6 +655,7 @@ mod tests {
             base_dataset: Some("a2".into()),
             expert_dataset: Some("b2".into()),
             diffusion_model: Some("m2".into()),
+            inpaint_condition: true,
             arch: ArchArgs { widths: Some(vec![16]), ..Default::default() },
             job: TrainArgs { name: Some("d2".into()), lr: Some(1e-4), seed: Some(2), ..Default::default() },
         };
@@ -667,6 +672,7 @@ mod tests {
                 expert_dataset: "b2".into(),
                 architecture: value_function(&[16]),
                 diffusion_model: "m2".into(),
+                inpaint_condition: Some(true),
             }
         );
         let args = TrainDiscriminatorArgs {

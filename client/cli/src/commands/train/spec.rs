@@ -78,6 +78,7 @@ pub fn reward_spec(config: TrainConfig, args: &TrainRewardArgs) -> Result<pb::Jo
         rho_l2,
         action_weight,
         condition_weight,
+        inpaint_condition,
     } = config.reward.unwrap_or_default();
     let base_model = required(&args.base, base_model, "no base model", "--base MODEL", "base_model", "reward")?;
     let expert_model =
@@ -106,6 +107,7 @@ pub fn reward_spec(config: TrainConfig, args: &TrainRewardArgs) -> Result<pb::Jo
         amortised_targets: args.amortised.to_proto(),
         action_weight: action_weight.map(|(x, _)| x),
         condition_weight: condition_weight.map(|(x, _)| x),
+        inpaint_condition: args.inpaint_condition.then_some(true).or(inpaint_condition),
     })))
 }
 
@@ -113,7 +115,7 @@ pub fn reward_spec(config: TrainConfig, args: &TrainRewardArgs) -> Result<pb::Jo
 /// model, dataset or diffusion model is a [`UsageError`].
 pub fn discriminator_spec(config: TrainConfig, args: &TrainDiscriminatorArgs) -> Result<pb::JobSpec> {
     let common = Common::new(&config, &args.job, "discriminator")?;
-    let DiscriminatorConfig { base_dataset, expert_dataset, architecture, diffusion_model } =
+    let DiscriminatorConfig { base_dataset, expert_dataset, architecture, diffusion_model, inpaint_condition } =
         config.discriminator.unwrap_or_default();
     let table = "discriminator";
     let base_dataset =
@@ -140,6 +142,7 @@ pub fn discriminator_spec(config: TrainConfig, args: &TrainDiscriminatorArgs) ->
         expert_dataset,
         architecture,
         diffusion_model,
+        inpaint_condition: args.inpaint_condition.then_some(true).or(inpaint_condition),
     })))
 }
 
