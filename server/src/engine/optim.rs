@@ -38,11 +38,15 @@ impl Adam {
         Self { lr, beta1: 0.9, beta2: 0.999, eps: 1e-8, steps: 0, m: zeros(), v: zeros() }
     }
 
-    /// Applies one update from the parameters' gradients, then zeroes them. Returns the global
-    /// gradient norm before clipping, as a float64 scalar on the parameters' device: without
-    /// clipping nothing here waits for the device, so on a GPU the caller reads it once with
-    /// the loss, after the whole step is queued. Parameters without a gradient are left alone.
-    pub fn step(&mut self, params: &[(String, Tensor)], clip: Option<f64>) -> Tensor {
+    /// Applies one update from the parameters' gradients, then zeroes them, and returns the
+    /// global gradient norm before clipping. Parameters without a gradient are left alone.
+    ///
+    /// A gradient that is not finite (an inf or NaN from one batch: Adam's moments would turn
+    /// it into NaN weights for good) applies nothing: the weights, the moments and the step
+    /// count stay as they were, as PyTorch's GradScaler skips such a step; the caller sees the
+    /// non-finite norm. Deciding that reads the norm before the update, one wait for the
+    /// device per step, which the caller's read of the loss costs anyway.
+    pub fn step(&mut self, params: &[(String, Tensor)], clip: Option<f64>) -> f64 {
         let _guard = tch::no_grad_guard();
         let grads: Vec<Option<Tensor>> = params.iter().map(|(_, p)| Some(p.grad()).filter(Tensor::defined)).collect();
         let squares: Vec<Tensor> = grads.iter().flatten().map(|g| g.square().sum(Kind::Double)).collect();
@@ -50,10 +54,14 @@ impl Adam {
             None => Tensor::zeros([], (Kind::Double, params.first().map_or(tch::Device::Cpu, |(_, p)| p.device()))),
             Some(_) => Tensor::stack(&squares, 0).sum(Kind::Double).sqrt(),
         };
-        // torch.nn.utils.clip_grad_norm_: scale by max_norm / (norm + 1e-6) when above (the
-        // one read of the norm that clipping needs).
-        let scale = match clip.map(|c| (c, norm.double_value(&[]))) {
-            Some((c, n)) if n > c => c / (n + 1e-6),
+        let norm = norm.double_value(&[]);
+        if !norm.is_finite() {
+            zero_grads(params);
+            return norm;
+        }
+        // torch.nn.utils.clip_grad_norm_: scale by max_norm / (norm + 1e-6) when above.
+        let scale = match clip {
+            Some(c) if norm > c => c / (norm + 1e-6),
             _ => 1.0,
         };
         self.steps += 1;
@@ -79,12 +87,7 @@ impl Adam {
             let mut p = p.shallow_clone();
             let _ = p.addcdiv_(&(&*m * -step_size), &denom);
         }
-        for (_, p) in params {
-            let mut g = p.grad();
-            if g.defined() {
-                let _ = g.zero_();
-            }
-        }
+        zero_grads(params);
         norm
     }
 
@@ -184,6 +187,15 @@ impl Ema {
     }
 }
 
+fn zero_grads(params: &[(String, Tensor)]) {
+    for (_, p) in params {
+        let mut g = p.grad();
+        if g.defined() {
+            let _ = g.zero_();
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -230,9 +242,35 @@ mod tests {
         loss(&lin).backward();
         let before = grad_norm(&params);
         let mut adam = Adam::new(&params, 0.1);
-        let reported = adam.step(&params, Some(before / 10.0)).double_value(&[]);
+        let reported = adam.step(&params, Some(before / 10.0));
         assert!((reported - before).abs() < 1e-9);
         assert_eq!(grad_norm(&params), 0.0, "gradients are zeroed after the step");
+    }
+
+    /// A step with an infinite or NaN gradient changes nothing (weights, moments, step count),
+    /// so the next finite step is the one an optimizer that never saw it would take.
+    #[test]
+    fn a_non_finite_gradient_is_skipped_whole() {
+        let (vs_a, lin_a) = setup(11);
+        let (mut vs_b, lin_b) = setup(11);
+        vs_b.copy(&vs_a).expect("copy");
+        let (pa, pb) = (named_parameters(&vs_a), named_parameters(&vs_b));
+        let (mut skipping, mut clean) = (Adam::new(&pa, 0.01), Adam::new(&pb, 0.01));
+        for bad in [f64::INFINITY, f64::NAN] {
+            (loss(&lin_a) * bad).backward();
+            let norm = skipping.step(&pa, Some(1.0));
+            assert!(!norm.is_finite(), "{norm}");
+            assert_eq!(grad_norm(&pa), 0.0, "gradients are zeroed after a skipped step");
+        }
+        assert_eq!(skipping.steps, 0);
+        for _ in 0..3 {
+            loss(&lin_a).backward();
+            loss(&lin_b).backward();
+            let _ = (skipping.step(&pa, None), clean.step(&pb, None));
+        }
+        for ((_, a), (_, b)) in pa.iter().zip(&pb) {
+            assert!(a.equal(b), "the skipped steps left a trace");
+        }
     }
 
     #[test]

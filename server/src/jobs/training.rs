@@ -25,6 +25,9 @@ struct TrainState {
     loss: f64,
 }
 
+/// Non-finite steps in a row (each skipped, weights untouched) after which a job has diverged.
+const MAX_NON_FINITE_STEPS: u32 = 10;
+
 pub struct TrainLoop {
     opt: Optimization,
     /// Every variable of the network (parameters and buffers), sharing storage with it.
@@ -116,6 +119,8 @@ impl TrainLoop {
         mut eval_fn: impl FnMut() -> Result<Option<f64>>,
     ) -> std::result::Result<(), Stop> {
         let mut last_checkpoint = self.step;
+        // Steps in a row whose loss or gradient was not finite (skipped by Adam::step).
+        let mut non_finite = 0u32;
         while self.step < self.opt.steps {
             if let Err(stop) = ctx.check_stop() {
                 // A shutdown keeps the job RUNNING: checkpoint first so the restart loses nothing.
@@ -126,22 +131,30 @@ impl TrainLoop {
             }
             self.step += 1;
             let loss = loss_fn(&mut self.rng)?;
-            // The whole step (backward, update, EMA) is queued before the loss and the
-            // gradient norm are read: on a GPU a read waits for the device, which would then
-            // idle while the host queues the rest. A diverged step has updated the weights,
-            // but the job fails there and nothing after its last checkpoint is kept or
-            // registered.
             loss.backward();
+            // Adam::step applies nothing when the gradient is not finite, so one bad batch
+            // (an inf in a double backward) costs one step, not the job; a run of them is a
+            // divergence, and fails the job before anything after its last checkpoint is kept.
             let grad_norm = self.adam.step(&self.params, self.opt.grad_clip);
-            self.ema.after_step(&self.params, self.step);
-            self.loss = loss.double_value(&[]);
-            let grad_norm = grad_norm.double_value(&[]);
-            if !self.loss.is_finite() {
-                return Err(Stop::Failed(Error::FailedPrecondition(format!(
-                    "training diverged at step {} (loss {}); lower spec.optimization.learning_rate or set grad_clip",
-                    self.step, self.loss
-                ))));
+            let loss = loss.double_value(&[]);
+            if !(loss.is_finite() && grad_norm.is_finite()) {
+                non_finite += 1;
+                if non_finite >= MAX_NON_FINITE_STEPS {
+                    return Err(Stop::Failed(Error::FailedPrecondition(format!(
+                        "training diverged at step {} ({non_finite} steps in a row with loss {loss} or gradient norm \
+                         {grad_norm} not finite); lower spec.optimization.learning_rate or set grad_clip",
+                        self.step
+                    ))));
+                }
+                ctx.log(format!(
+                    "step {}: loss {loss}, gradient norm {grad_norm}: not finite, update skipped",
+                    self.step
+                ))?;
+                continue;
             }
+            non_finite = 0;
+            self.ema.after_step(&self.params, self.step);
+            self.loss = loss;
             let eval_loss = if self.step.is_multiple_of(self.opt.eval_every) || self.step == self.opt.steps {
                 eval_fn()?
             } else {
