@@ -120,6 +120,7 @@ class Config:
     # 14) but did not yet turn guidance into a gain on the sweep seeds of Walker2d or HalfCheetah.
     inpaint_condition: bool = False
     batch_size: int = 128
+    learning_rate: float = 2e-4
     # The sweep: omega over `omegas` at t_stopgrads[0], then the other t_stopgrads at the best
     # omega (coordinate-wise: 3 + 1 settings per guided arm). With guidance on the mean, omega 1
     # is the value at which a perfect rho makes the base's step the expert's; 3.0 because
@@ -172,12 +173,12 @@ def prepare(cfg: Config, client: relreward.Client) -> dict:
             architecture=arch, seed=0, action_weight=cfg.reward_action_weight,
             condition_weight=cfg.reward_condition_weight, inpaint_condition=cfg.inpaint_condition,
             optimization=relreward.Optimization(
-                steps=cfg.reward_steps, batch_size=cfg.batch_size, learning_rate=2e-4)))))
+                steps=cfg.reward_steps, batch_size=cfg.batch_size, learning_rate=cfg.learning_rate)))))
     if names["discriminator"] not in have_m:
         jobs.append(("discriminator", client.submit_job(relreward.DiscriminatorJob(
             names["discriminator"], f"{env}-medium-replay", f"{env}-expert", names["medium-replay"],
             architecture=arch, seed=0, inpaint_condition=cfg.inpaint_condition, optimization=relreward.Optimization(
-                steps=cfg.disc_steps, batch_size=cfg.batch_size, learning_rate=2e-4)))))
+                steps=cfg.disc_steps, batch_size=cfg.batch_size, learning_rate=cfg.learning_rate)))))
     for what, job in jobs:
         _finish(client, job, what, cfg.log)
     names["train_seconds"] = time.time() - t0
@@ -467,6 +468,7 @@ def main() -> None:
     p.add_argument("--n-plans", type=int, default=16)
     p.add_argument("--reward-steps", type=int, default=1500)
     p.add_argument("--disc-steps", type=int, default=1500)
+    p.add_argument("--lr", type=float, default=2e-4, help="the reward's and the discriminator's Adam learning rate")
     p.add_argument("--reward-action-weight", type=float, default=10.0,
                    help="the reward's loss weight on the first action (default 10; 1 is the paper's)")
     p.add_argument("--reward-condition-weight", type=float, default=0.0,
@@ -502,7 +504,7 @@ def main() -> None:
                  episodes=a.episodes, seed_base=a.seed_base, sweep_episodes=a.sweep_episodes, max_steps=a.max_steps,
                  n_plans=a.n_plans, reward_steps=a.reward_steps, disc_steps=a.disc_steps,
                  reward_action_weight=a.reward_action_weight, reward_condition_weight=a.reward_condition_weight,
-                 inpaint_condition=a.inpaint_condition,
+                 inpaint_condition=a.inpaint_condition, learning_rate=a.lr,
                  omega=a.omega,
                  t_stopgrad=a.t_stopgrad, disc_omega=a.disc_omega, disc_t_stopgrad=a.disc_t_stopgrad,
                  server_mode_episodes=a.server_mode_episodes, guide_at=a.guide_at, batch_episodes=a.batch_episodes,

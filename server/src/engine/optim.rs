@@ -44,8 +44,9 @@ impl Adam {
     /// A gradient that is not finite (an inf or NaN from one batch: Adam's moments would turn
     /// it into NaN weights for good) applies nothing: the weights, the moments and the step
     /// count stay as they were, as PyTorch's GradScaler skips such a step; the caller sees the
-    /// non-finite norm. Deciding that reads the norm before the update, one wait for the
-    /// device per step, which the caller's read of the loss costs anyway.
+    /// non-finite norm. Deciding that reads the norm before the update is queued: free on the
+    /// CPU, on a GPU the update's launches no longer overlap the end of the backward pass
+    /// (docs/architecture.md, "What keeps a GPU busy").
     pub fn step(&mut self, params: &[(String, Tensor)], clip: Option<f64>) -> f64 {
         let _guard = tch::no_grad_guard();
         let grads: Vec<Option<Tensor>> = params.iter().map(|(_, p)| Some(p.grad()).filter(Tensor::defined)).collect();

@@ -132,9 +132,10 @@ impl TrainLoop {
             self.step += 1;
             let loss = loss_fn(&mut self.rng)?;
             loss.backward();
-            // Adam::step applies nothing when the gradient is not finite, so one bad batch
-            // (an inf in a double backward) costs one step, not the job; a run of them is a
-            // divergence, and fails the job before anything after its last checkpoint is kept.
+            // Adam::step applies nothing when the gradient is not finite (as a non-finite loss
+            // makes it), so one bad batch (an inf in a double backward) costs one step, not the
+            // job; a run of them is a divergence, and fails the job before anything after its
+            // last checkpoint is kept.
             let grad_norm = self.adam.step(&self.params, self.opt.grad_clip);
             let loss = loss.double_value(&[]);
             if !(loss.is_finite() && grad_norm.is_finite()) {
