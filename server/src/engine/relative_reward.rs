@@ -194,12 +194,11 @@ impl ConditionEntries {
         }
     }
 
-    /// `x_t` with these entries copied from `x0` ([B, H, A + O] both).
-    pub fn inpaint(&self, x_t: &Tensor, x0: &Tensor) -> Result<Tensor> {
-        let out = x_t.copy();
+    /// Copies these entries of `x0` into `x_t`, in place ([B, H, A + O] both).
+    pub fn inpaint_(&self, x_t: &Tensor, x0: &Tensor) -> Result<()> {
         let clean = x0.f_narrow(1, 0, 1)?.f_narrow(2, self.offset, self.len)?;
-        out.f_narrow(1, 0, 1)?.f_narrow(2, self.offset, self.len)?.f_copy_(&clean)?;
-        Ok(out)
+        x_t.f_narrow(1, 0, 1)?.f_narrow(2, self.offset, self.len)?.f_copy_(&clean)?;
+        Ok(())
     }
 }
 
@@ -217,11 +216,12 @@ pub fn noised(
     condition: Option<ConditionEntries>,
 ) -> Result<Tensor> {
     let _guard = tch::no_grad_guard();
+    // q_sample's result is a fresh tensor, so the condition is written into it in place.
     let x_t = model.q_sample(x0, t, noise)?;
-    match condition {
-        Some(c) => c.inpaint(&x_t, x0),
-        None => Ok(x_t),
+    if let Some(c) = condition {
+        c.inpaint_(&x_t, x0)?;
     }
+    Ok(x_t)
 }
 
 /// Algorithm 1's batch at given draws: x_t from [`noised`], then [`target_and_point`]. The

@@ -147,30 +147,30 @@ impl TrainLoop {
                         self.step
                     ))));
                 }
-                ctx.log(format!(
-                    "step {}: loss {loss}, gradient norm {grad_norm}: not finite, update skipped",
-                    self.step
-                ))?;
-                continue;
-            }
-            non_finite = 0;
-            self.ema.after_step(&self.params, self.step);
-            self.loss = loss;
-            let eval_loss = if self.step.is_multiple_of(self.opt.eval_every) || self.step == self.opt.steps {
-                eval_fn()?
+                // Adam skipped the update only if the gradient was not finite.
+                let update = if grad_norm.is_finite() { "update applied" } else { "update skipped" };
+                ctx.log(format!("step {}: loss {loss}, gradient norm {grad_norm}: not finite, {update}", self.step))?;
             } else {
-                None
-            };
-            if eval_loss.is_some() {
-                self.eval_loss = eval_loss;
+                non_finite = 0;
+                self.ema.after_step(&self.params, self.step);
+                self.loss = loss;
+                let eval_loss = if self.step.is_multiple_of(self.opt.eval_every) || self.step == self.opt.steps {
+                    eval_fn()?
+                } else {
+                    None
+                };
+                if eval_loss.is_some() {
+                    self.eval_loss = eval_loss;
+                }
+                ctx.progress(StepReport {
+                    step: self.step,
+                    loss: self.loss,
+                    grad_norm,
+                    learning_rate: self.opt.learning_rate,
+                    eval_loss,
+                })?;
             }
-            ctx.progress(StepReport {
-                step: self.step,
-                loss: self.loss,
-                grad_norm,
-                learning_rate: self.opt.learning_rate,
-                eval_loss,
-            })?;
+            // A skipped step still reaches its checkpoint: the schedule is by step number.
             if self.step.is_multiple_of(self.opt.checkpoint_every) && self.step < self.opt.steps {
                 self.checkpoint(ctx)?;
                 last_checkpoint = self.step;
