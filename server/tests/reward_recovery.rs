@@ -23,14 +23,26 @@ use tokio_stream::StreamExt;
 const T: usize = 20;
 const M: [f32; 4] = [1.0, -0.5, 0.75, -1.25];
 
-fn export(dir: &Path, name: &str, mean: &[f32]) -> PathBuf {
+/// The exact model of N(mean, I); with `nan_beyond`, NaN at every item with an entry beyond it
+/// (the script's --nan-beyond).
+fn export(dir: &Path, name: &str, mean: &[f32], nan_beyond: Option<f32>) -> PathBuf {
     let out = dir.join(name);
     let mean = mean.iter().map(f32::to_string).collect::<Vec<_>>().join(",");
-    let status = std::process::Command::new(python())
-        .arg(repo_root().join("tests/python/analytic_gaussian.py"))
-        .args(["--out", out.to_str().expect("utf8"), "--mean", &mean, "--schedule", "cosine", "--T", &T.to_string()])
-        .status()
-        .expect("python");
+    let mut command = std::process::Command::new(python());
+    command.arg(repo_root().join("tests/python/analytic_gaussian.py")).args([
+        "--out",
+        out.to_str().expect("utf8"),
+        "--mean",
+        &mean,
+        "--schedule",
+        "cosine",
+        "--T",
+        &T.to_string(),
+    ]);
+    if let Some(r) = nan_beyond {
+        command.args(["--nan-beyond", &r.to_string()]);
+    }
+    let status = command.status().expect("python");
     assert!(status.success());
     out.join("model.pt")
 }
@@ -74,19 +86,18 @@ async fn upload_samples(client: &Client, name: &str, mean: &[f32], seed: u64) {
     client.upload_dataset(upload, source, Arc::new(UploadProgress::default())).await.expect("dataset");
 }
 
+async fn upload_model(client: &Client, path: &Path, name: &str) {
+    let header =
+        pb::UploadModelHeader { name: name.into(), manifest: Some(manifest()), description: String::new(), format: 0 };
+    client.upload_model(header, path, Arc::new(UploadProgress::default())).await.expect("upload model");
+}
+
 /// Base and expert models plus their sample datasets on a fresh server.
 async fn setup(server: &TestServer) -> Client {
     let client = server.client().await;
     let tmp = tempfile::tempdir().expect("tmp");
     for (name, mean) in [("base", vec![0.0f32; M.len()]), ("expert", M.to_vec())] {
-        let path = export(tmp.path(), name, &mean);
-        let header = pb::UploadModelHeader {
-            name: name.into(),
-            manifest: Some(manifest()),
-            description: String::new(),
-            format: 0,
-        };
-        client.upload_model(header, &path, Arc::new(UploadProgress::default())).await.expect("upload model");
+        upload_model(&client, &export(tmp.path(), name, &mean, None), name).await;
     }
     upload_samples(&client, "base-samples", &[0.0; 4], 1).await;
     upload_samples(&client, "expert-samples", &M, 2).await;
@@ -307,6 +318,60 @@ async fn kill_9_during_a_reward_job_resumes_and_still_recovers_the_reward() {
     let model =
         client.models().get_model(pb::GetModelRequest { name: "r-crash".into() }).await.expect("model").into_inner();
     check_recovery(&load_reward(&server, &model), pb::RewardTarget::Mean);
+}
+
+/// A training batch whose targets are not finite is skipped whole (the weights untouched), and
+/// the job goes on; ten in a row fail it with a message that says what to change. The base
+/// model here is the exact one except that it outputs NaN for items with an entry beyond a
+/// radius (finite at the upload's probe, x = 0): beyond 4.5, about one batch in twenty has such
+/// an item; beyond 0, every batch.
+#[tokio::test(flavor = "multi_thread")]
+async fn batches_with_non_finite_targets_are_skipped_and_a_run_of_them_fails_the_job() {
+    let server = TestServer::start_with_env(&[("RELREWARD__MODELS__ALLOW_TORCHSCRIPT_UPLOAD", "true")]);
+    let client = setup(&server).await;
+    let tmp = tempfile::tempdir().expect("tmp");
+    let skipped = |events: &[pb::JobEvent]| {
+        events
+            .iter()
+            .filter(|e| matches!(&e.event, Some(Event::Log(l)) if l.message.ends_with("not finite, update skipped")))
+            .count()
+    };
+    let with_base = |name: &str, base: &str, steps: u64| {
+        let mut spec = reward_spec(name, pb::RewardTarget::Mean, pb::EvalPoint::XT, steps, 1000);
+        if let Some(pb::job_spec::Kind::Reward(r)) = spec.kind.as_mut() {
+            r.base_model = base.into();
+        }
+        spec
+    };
+
+    upload_model(&client, &export(tmp.path(), "base-rare", &[0.0; 4], Some(4.5)), "base-rare").await;
+    let spec = with_base("r-rare", "base-rare", 1500);
+    client.jobs().submit_job(pb::SubmitJobRequest { spec: Some(spec), job_id: "rare".into() }).await.expect("submit");
+    let events = wait_done(&client, "rare").await;
+    assert!(succeeded(&events), "{events:?}");
+    let n = skipped(&events);
+    assert!((10..=300).contains(&n), "{n} skipped steps of 1500 (about 5% expected)");
+    let model =
+        client.models().get_model(pb::GetModelRequest { name: "r-rare".into() }).await.expect("model").into_inner();
+    check_recovery(&load_reward(&server, &model), pb::RewardTarget::Mean);
+
+    upload_model(&client, &export(tmp.path(), "base-bad", &[0.0; 4], Some(0.0)), "base-bad").await;
+    let spec = with_base("r-bad", "base-bad", 200);
+    client.jobs().submit_job(pb::SubmitJobRequest { spec: Some(spec), job_id: "bad".into() }).await.expect("submit");
+    let events = wait_done(&client, "bad").await;
+    let failed = events.iter().find_map(|e| match &e.event {
+        Some(Event::State(s)) if s.state() == pb::JobState::Failed => Some(s.message.clone()),
+        _ => None,
+    });
+    let failed = failed.unwrap_or_else(|| panic!("not failed: {events:?}"));
+    assert!(
+        failed.contains("training diverged at step 10") && failed.contains("spec.optimization.learning_rate"),
+        "{failed}"
+    );
+    assert_eq!(skipped(&events), 9, "{events:?}");
+    assert!(!events.iter().any(|e| matches!(e.event, Some(Event::Progress(_)))), "a skipped step reported progress");
+    let missing = client.models().get_model(pb::GetModelRequest { name: "r-bad".into() }).await;
+    assert_eq!(missing.expect_err("no model").code(), tonic::Code::NotFound);
 }
 
 /// Amortised targets (issue 21): a pool of 2048 triples, each used about 16 times, still

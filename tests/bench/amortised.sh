@@ -40,15 +40,19 @@
 #    when it recovers the same goals and its mean balanced accuracy is at most 1 point below.
 #    Each recipe's time to that quality is the reward training time of its shortest run that
 #    has it (steps from the grid only: the true time may be shorter than the grid shows).
+# 5. ceiling: the largest speed-up any pool settings can give, per pipeline (the Gaussian pair,
+#    the maze default size): the per-step recipe's steps/s against the amortised recipe's when
+#    its models never run after the first fill (details at the part).
 #
 # Settings (environment): GAUSS_STEPS ("100 200 400 800 1600"), POOL ("4096 4 0.25": pool size,
 # reuse, refresh fraction for the Gaussian pair; MAZE_POOL ("4096 4 0.25", an epoch of 256
 # steps at batch 64, so refreshes fall inside the run) for the maze part), STEPS (600), THREADS (1), OUT (a directory to keep results.jsonl).
-# PARTS ("gaussian maze-speed maze-quality"; maze-unet only when named: which parts run), LAYOUT (umaze), MAZE_SEED (0),
+# PARTS ("gaussian maze-speed maze-quality ceiling"; maze-unet only when named: which parts run), LAYOUT (umaze), MAZE_SEED (0),
 # DEMO_POOL ("16384 4 0.25", the server's defaults), BIN (target/release); part 4: UNET_GOALS
 # ("1,1 3,3"), UNET_CONFIG (the [extract] table's body, "; " between keys: 'diffusion_architecture =
 # { kind = "temporal_unet", dim = 48, dim_mults = [1, 2] }; diffusion_steps = 2000'), UNET_STEPS
-# ("250 500 1000": the shorter runs of both recipes; "" for none).
+# ("250 500 1000": the shorter runs of both recipes; "" for none); part 5 (ceiling):
+# named): CEIL_POOL (4096), CEIL_STEPS (1000, under the pool's epoch at either batch).
 # Prints one JSON line per job and a markdown summary.
 #
 # Builds nothing: expects target/release/{relreward-server,relreward}. Starts its own server on
@@ -61,7 +65,7 @@ MAZE_POOL=${MAZE_POOL:-4096 4 0.25}
 STEPS=${STEPS:-600}
 THREADS=${THREADS:-1}
 OUT=${OUT:-}
-PARTS=${PARTS:-gaussian maze-speed maze-quality}
+PARTS=${PARTS:-gaussian maze-speed maze-quality ceiling}
 LAYOUT=${LAYOUT:-umaze}
 MAZE_SEED=${MAZE_SEED:-0}
 DEMO_POOL=${DEMO_POOL:-16384 4 0.25}
@@ -69,6 +73,8 @@ UNET_GOALS=${UNET_GOALS:-1,1 3,3}
 UNET_ARCH='{ kind = "temporal_unet", dim = 48, dim_mults = [1, 2] }'
 UNET_CONFIG=${UNET_CONFIG:-diffusion_architecture = $UNET_ARCH; diffusion_steps = 2000}
 UNET_STEPS=${UNET_STEPS-250 500 1000}
+CEIL_POOL=${CEIL_POOL:-4096}
+CEIL_STEPS=${CEIL_STEPS:-1000}
 BIN=${BIN:-target/release}
 PY=.venv/bin/python
 for b in relreward-server relreward; do
@@ -115,6 +121,20 @@ print(json.dumps({"steps": last["step"], "seconds": last["step"] / last["steps_p
 PY
 }
 
+# steady_rate EVENTS FROM: a job's steps/s between step FROM and its last progress event, with
+# its first FROM steps' seconds and the whole run's.
+steady_rate() {
+  "$PY" - "$1" "$2" <<'PY'
+import json, sys
+events = [json.loads(l) for l in open(sys.argv[1]) if l.lstrip().startswith("{")]
+rate = {e["step"]: e["steps_per_second"] for e in events if e.get("type") == "progress"}
+a, b = int(sys.argv[2]), max(rate)
+seconds = b / rate[b] - a / rate[a]
+print(json.dumps({"from": a, "to": b, "seconds": seconds, "steps_per_second": (b - a) / seconds,
+                  "first_steps_seconds": a / rate[a], "total_steps": b, "total_seconds": b / rate[b]}))
+PY
+}
+
 pool_flags() { # "P R F" -> flags
   read -r p r f <<<"$1"
   echo "--amortised-pool $p --amortised-reuse $r --amortised-refresh $f"
@@ -123,10 +143,11 @@ pool_flags() { # "P R F" -> flags
 want() { [[ " $PARTS " == *" $1 "* ]]; }
 
 # --- 1. Gaussian pair ----------------------------------------------------------------------------
-if want gaussian; then
+# The Gaussian pair's exact models (base, expert) and samples of each (base-samples,
+# expert-samples), uploaded to the running server.
 M=1.0,-0.5,0.75,-1.25
 T=20
-start_server
+gaussian_pair() {
 for who in base expert; do
   mean=0,0,0,0
   [[ $who == expert ]] && mean=$M
@@ -143,6 +164,11 @@ np.savez(f"{tmp}/expert.npz", samples=(rng.standard_normal((4096, 4)) + m).astyp
 PY
 quiet rr dataset upload "$tmp/base.npz" --name base-samples --kind samples
 quiet rr dataset upload "$tmp/expert.npz" --name expert-samples --kind samples
+}
+
+if want gaussian; then
+start_server
+gaussian_pair
 for steps in $GAUSS_STEPS; do
   for recipe in per-step amortised; do
     extra=()
@@ -186,16 +212,7 @@ for recipe in per-step amortised; do
     "${extra[@]}" --watch >"$tmp/events"
   # Steps/s between step 10 (after the pool's first fill) and the end; the per-step recipe the
   # same way. Refreshes every `epoch` steps are inside the window when STEPS > epoch.
-  rate=$("$PY" - "$tmp/events" <<'PY'
-import json, sys
-events = [json.loads(l) for l in open(sys.argv[1]) if l.lstrip().startswith("{")]
-rate = {e["step"]: e["steps_per_second"] for e in events if e.get("type") == "progress"}
-a, b = 10, max(rate)
-seconds = b / rate[b] - a / rate[a]
-print(json.dumps({"from": a, "to": b, "seconds": seconds, "steps_per_second": (b - a) / seconds,
-                  "first_steps_seconds": a / rate[a], "total_steps": b, "total_seconds": b / rate[b]}))
-PY
-)
+  rate=$(steady_rate "$tmp/events" 10)
   echo "{\"part\": \"maze-speed\", \"recipe\": \"$recipe\", \"pool\": \"$MAZE_POOL\", \"epoch_steps\": $epoch, \"rate\": $rate}" | tee -a "$results"
 done
 stop_server
@@ -266,8 +283,55 @@ done
 stop_server
 fi
 
+# --- 5. ceiling: the most any pool settings can save ----------------------------------------------
+# Amortising saves the frozen models' passes and nothing else, so its speed-up is bounded by
+# (models + reward step) / reward step. Measured directly: the per-step recipe against the
+# amortised recipe with models-free steps (pool CEIL_POOL, reuse 1024, refresh 0.001: the epoch
+# is longer than the run, so after the first fill the models never run again), CEIL_STEPS steps
+# each, steps/s from step 100 to the end (the fill excluded). The ratio is the ceiling of
+# per-step / amortised training time at equal steps for every pool size, reuse and refresh; time
+# to a reward of equal quality cannot beat it either, unless a pool made a reward learn in fewer
+# steps than fresh targets, which parts 1, 3 and 4 do not show. Two pipelines: the Gaussian pair
+# (part 1's job) and the maze default size (`relreward demo`'s reward job: two MLP (256, 256,
+# 256) denoisers over horizon-16 windows, T = 20, trained a few steps since weights do not change
+# the cost; windowed MLP reward h = 4, (128, 64, 32), batch 64, lr 1e-3).
+if want ceiling; then
+start_server
+gaussian_pair
+quiet rr maze generate --layout "$LAYOUT" --action-noise 0.5 --mode base --transitions 100000 --seed "$MAZE_SEED" \
+  --out "$tmp/ceil-base.npz"
+quiet rr maze generate --layout "$LAYOUT" --action-noise 0.5 --mode expert --goal 1,1 --transitions 50000 \
+  --seed $((MAZE_SEED + 1)) --out "$tmp/ceil-expert.npz"
+for who in base expert; do quiet rr dataset upload "$tmp/ceil-$who.npz" --name "ceil-$who"; done
+printf '[diffusion]\narchitecture = { kind = "mlp", hidden = [256, 256, 256] }\nnormalizer_datasets = ["ceil-base", "ceil-expert"]\n' \
+  >"$tmp/ceil-diffusion.toml"
+for who in base expert; do
+  quiet rr train diffusion --name "ceil-m$who" --dataset "ceil-$who" --horizon 16 --n-timesteps 20 --steps 20 \
+    --batch-size 64 --config "$tmp/ceil-diffusion.toml" --watch
+done
+printf '[optimization]\neval_every = 100000\ncheckpoint_every = 100000\n' >"$tmp/opt.toml"
+for pair in gaussian maze-default; do
+  for recipe in per-step models-free; do
+    extra=()
+    [[ $recipe == models-free ]] && extra=(--amortised-pool "$CEIL_POOL" --amortised-reuse 1024 --amortised-refresh 0.001)
+    if [[ $pair == gaussian ]]; then
+      job=(--base base --expert expert --dataset base-samples --dataset expert-samples --arch mlp --hidden 64,64
+        --batch-size 256 --lr 3e-3)
+    else
+      job=(--base ceil-mbase --expert ceil-mexpert --dataset ceil-base --dataset ceil-expert --arch windowed_mlp
+        --window 4 --hidden 128,64,32 --batch-size 64 --lr 1e-3)
+    fi
+    rr --json train reward --name "ceil-$pair-$recipe" "${job[@]}" --steps "$CEIL_STEPS" --seed 11 \
+      --config "$tmp/opt.toml" "${extra[@]}" --watch >"$tmp/events"
+    echo "{\"part\": \"ceiling\", \"pair\": \"$pair\", \"recipe\": \"$recipe\", \"rate\": $(steady_rate "$tmp/events" 100)}" |
+      tee -a "$results"
+  done
+done
+stop_server
+fi
+
 # --- report --------------------------------------------------------------------------------------
-"$PY" - "$results" "$(($(date +%s) - started))" "GAUSS_STEPS='$GAUSS_STEPS' POOL='$POOL' MAZE_POOL='$MAZE_POOL' STEPS=$STEPS THREADS=$THREADS PARTS='$PARTS' LAYOUT=$LAYOUT MAZE_SEED=$MAZE_SEED DEMO_POOL='$DEMO_POOL' UNET_GOALS='$UNET_GOALS' UNET_CONFIG='$UNET_CONFIG' UNET_STEPS='$UNET_STEPS'" <<'PY'
+"$PY" - "$results" "$(($(date +%s) - started))" "GAUSS_STEPS='$GAUSS_STEPS' POOL='$POOL' MAZE_POOL='$MAZE_POOL' STEPS=$STEPS THREADS=$THREADS PARTS='$PARTS' LAYOUT=$LAYOUT MAZE_SEED=$MAZE_SEED DEMO_POOL='$DEMO_POOL' UNET_GOALS='$UNET_GOALS' UNET_CONFIG='$UNET_CONFIG' UNET_STEPS='$UNET_STEPS' CEIL_POOL=$CEIL_POOL CEIL_STEPS=$CEIL_STEPS" <<'PY'
 import json, sys, subprocess, time
 runs = [json.loads(l) for l in open(sys.argv[1])]
 cpu = [l.split(":", 1)[1].strip() for l in subprocess.run(["lscpu"], capture_output=True, text=True).stdout.splitlines()
@@ -395,5 +459,16 @@ if "per-step" in unet and "amortised" in unet:
             print(f"- {recipe}: equal quality first at " + (f"{f[0]} steps, {f[1]:.1f} s" if f else "no run"))
         if len(first) == 2:
             print(f"- time to a reward of equal quality, per-step / amortised: **{first['per-step'][1] / first['amortised'][1]:.2f}x**")
+
+ceil = {(r["pair"], r["recipe"]): r["rate"] for r in runs if r["part"] == "ceiling"}
+if ceil:
+    print()
+    print("| pipeline | per-step steps/s | models-free amortised steps/s | ceiling of per-step / amortised time |")
+    print("|---|---|---|---|")
+    for pair in ("gaussian", "maze-default"):
+        p, f = ceil.get((pair, "per-step")), ceil.get((pair, "models-free"))
+        if p and f:
+            print(f"| {pair} | {p['steps_per_second']:.1f} | {f['steps_per_second']:.1f} | "
+                  f"**{f['steps_per_second'] / p['steps_per_second']:.2f}x** |")
 PY
 if [[ -n $OUT ]]; then mkdir -p "$OUT" && cp "$results" "$OUT/"; fi

@@ -12,6 +12,10 @@ The module's forward(x, t) computes that with the schedule's abar table baked in
 (from check_schedule.py's float64 tables, cast to float32). t is int64 [B] in 0..T, 0-based as
 in Diffuser.
 
+With --nan-beyond R the output is NaN at every item with an entry |x| > R: a model that goes
+bad only on some inputs (finite at the upload's probe, x = 0), for tests of training jobs
+whose targets are not always finite.
+
 Writes OUT/model.pt and OUT/manifest.json.
 
     .venv/bin/python tests/python/analytic_gaussian.py --out DIR --mean 1,-2,0.5 \
@@ -34,8 +38,9 @@ from check_schedule import schedule_tables  # noqa: E402
 
 
 class AnalyticGaussianEps(torch.nn.Module):
-    def __init__(self, alphas_cumprod: torch.Tensor, mean: torch.Tensor):
+    def __init__(self, alphas_cumprod: torch.Tensor, mean: torch.Tensor, nan_beyond: float):
         super().__init__()
+        self.nan_beyond = nan_beyond
         self.register_buffer("sqrt_abar", alphas_cumprod.sqrt().to(torch.float32))
         self.register_buffer("sqrt_one_minus_abar", (1.0 - alphas_cumprod).sqrt().to(torch.float32))
         self.register_buffer("mean", mean.to(torch.float32))
@@ -44,7 +49,9 @@ class AnalyticGaussianEps(torch.nn.Module):
         shape: List[int] = [t.shape[0]] + [1] * (x.dim() - 1)
         sa = self.sqrt_abar.index_select(0, t).reshape(shape)
         s1m = self.sqrt_one_minus_abar.index_select(0, t).reshape(shape)
-        return s1m * (x - sa * self.mean)
+        eps = s1m * (x - sa * self.mean)
+        bad = (x.abs() > self.nan_beyond).flatten(1).any(1).reshape(shape)
+        return torch.where(bad, torch.full_like(eps, float("nan")), eps)
 
 
 def main():
@@ -57,6 +64,8 @@ def main():
     p.add_argument("--space", default="sample", choices=["sample", "trajectory"])
     p.add_argument("--horizon", type=int, default=0, help="trajectory horizon H")
     p.add_argument("--action-dim", type=int, default=0, help="trajectory action_dim")
+    p.add_argument("--nan-beyond", type=float, default=float("inf"),
+                   help="output NaN for items with an entry |x| above this (default: never)")
     args = p.parse_args()
 
     mean = [float(v) for v in args.mean.split(",")]
@@ -73,7 +82,7 @@ def main():
         space = {"kind": "trajectory", "horizon": args.horizon, "action_dim": args.action_dim, "obs_dim": obs_dim}
         mean_t = torch.tensor(mean, dtype=torch.float64).repeat(args.horizon, 1)
 
-    module = torch.jit.script(AnalyticGaussianEps(tables["alphas_cumprod"], mean_t))
+    module = torch.jit.script(AnalyticGaussianEps(tables["alphas_cumprod"], mean_t, args.nan_beyond))
     os.makedirs(args.out, exist_ok=True)
     module.save(os.path.join(args.out, "model.pt"))
     manifest = {
