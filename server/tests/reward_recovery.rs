@@ -473,6 +473,49 @@ async fn amortised_target_settings_are_checked_at_submission() {
     );
 }
 
+/// Options that need a trajectory's first action and observation are refused at submission,
+/// naming the field, for models over fixed-shape samples; nothing is stored for them.
+#[tokio::test(flavor = "multi_thread")]
+async fn trajectory_only_options_are_refused_for_sample_models() {
+    let server = TestServer::start_with_env(&[("RELREWARD__MODELS__ALLOW_TORCHSCRIPT_UPLOAD", "true")]);
+    let client = setup(&server).await;
+    let reward = |edit: fn(&mut pb::TrainReward)| {
+        let mut spec = reward_spec("opt", pb::RewardTarget::Mean, pb::EvalPoint::XT, 10, 100);
+        if let Some(pb::job_spec::Kind::Reward(r)) = spec.kind.as_mut() {
+            edit(r);
+        }
+        spec
+    };
+    let mut discriminator = reward_spec("opt", pb::RewardTarget::Mean, pb::EvalPoint::XT, 10, 100);
+    discriminator.kind = Some(pb::job_spec::Kind::Discriminator(pb::TrainDiscriminator {
+        base_dataset: "base-samples".into(),
+        expert_dataset: "expert-samples".into(),
+        architecture: Some(pb::RewardArchitecture {
+            kind: Some(pb::reward_architecture::Kind::Mlp(pb::Mlp { hidden: vec![64, 64] })),
+        }),
+        diffusion_model: "base".into(),
+        inpaint_condition: Some(true),
+    }));
+    let cases = [
+        (reward(|r| r.inpaint_condition = Some(true)), "spec.reward.inpaint_condition"),
+        (reward(|r| r.action_weight = Some(10.0)), "spec.reward.action_weight"),
+        (reward(|r| r.condition_weight = Some(0.0)), "condition_weight"),
+        (discriminator, "spec.discriminator.inpaint_condition"),
+    ];
+    for (spec, field) in cases {
+        let status = client
+            .jobs()
+            .submit_job(pb::SubmitJobRequest { spec: Some(spec), job_id: String::new() })
+            .await
+            .expect_err("refused");
+        assert_eq!(status.code(), tonic::Code::InvalidArgument, "{}", status.message());
+        assert!(status.message().contains(field), "{} should name {field}", status.message());
+        assert!(status.message().contains("only trajectory models"), "{}", status.message());
+    }
+    let jobs = client.jobs().list_jobs(pb::ListJobsRequest::default()).await.expect("list").into_inner();
+    assert!(jobs.jobs.is_empty(), "refused specs stored jobs: {:?}", jobs.jobs);
+}
+
 #[tokio::test(flavor = "multi_thread")]
 async fn algorithm_2_from_the_models_alone_recovers_the_same_reward() {
     let server = TestServer::start_with_env(&[("RELREWARD__MODELS__ALLOW_TORCHSCRIPT_UPLOAD", "true")]);
