@@ -38,7 +38,7 @@ from check_schedule import schedule_tables  # noqa: E402
 
 
 class AnalyticGaussianEps(torch.nn.Module):
-    def __init__(self, alphas_cumprod: torch.Tensor, mean: torch.Tensor, nan_beyond: float):
+    def __init__(self, alphas_cumprod: torch.Tensor, mean: torch.Tensor, nan_beyond: float = float("inf")):
         super().__init__()
         self.nan_beyond = nan_beyond
         self.register_buffer("sqrt_abar", alphas_cumprod.sqrt().to(torch.float32))

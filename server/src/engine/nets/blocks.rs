@@ -31,9 +31,36 @@ fn torch_default_init(fan_in: i64) -> Init {
 }
 
 /// Mish, x * tanh(softplus(x)): Diffuser's activation everywhere (smooth, as the reward
-/// existence theorem wants).
-pub fn mish(x: &Tensor) -> Result<Tensor> {
-    Ok(x.f_mish()?)
+/// existence theorem wants), in one of two forms with the same values and first derivative.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Mish {
+    /// libtorch's fused op, for networks differentiated once (the diffusion models).
+    Fused,
+    /// For networks trained through their input gradient (rewards: Algorithm 1's loss is a
+    /// function of grad_x rho, so its parameter gradient needs Mish's second derivative).
+    /// libtorch's second derivative of Mish is NaN wherever the input exceeds about 88.7 (its
+    /// double backward multiplies a zero gradient by exp(x), infinite there); a locomotion
+    /// reward's last hidden layer got there after 2528 steps at lr 2e-4 and every later batch's
+    /// gradient was NaN. Here inputs above [`MISH_PASS_THROUGH`] pass through unchanged: there
+    /// mish(x) = x and mish'(x) = 1 exactly in float32, so values and first derivatives are the
+    /// fused op's, bit for bit, and the second derivative is 0 instead of NaN.
+    TwiceDifferentiable,
+}
+
+/// Where [`Mish::TwiceDifferentiable`] passes its input through: tanh(softplus(x)) rounds to 1
+/// in float32 from x = 9 on, and exp(20) is far from overflowing.
+pub const MISH_PASS_THROUGH: f64 = 20.0;
+
+impl Mish {
+    pub fn forward(self, x: &Tensor) -> Result<Tensor> {
+        match self {
+            Self::Fused => Ok(x.f_mish()?),
+            Self::TwiceDifferentiable => {
+                let below = x.f_clamp_max(MISH_PASS_THROUGH)?.f_mish()?;
+                Ok(x.f_where_self(&x.f_gt(MISH_PASS_THROUGH)?, &below)?)
+            }
+        }
+    }
 }
 
 /// `nn.Linear(in, out)`: parameters `weight` [out, in], `bias` [out].
@@ -178,14 +205,16 @@ pub struct TimeMlp {
     emb: SinusoidalPosEmb,
     first: Linear,
     second: Linear,
+    mish: Mish,
 }
 
 impl TimeMlp {
-    pub fn new(p: &Path, dim: i64, hidden: i64, out: i64) -> Result<Self> {
+    pub fn new(p: &Path, dim: i64, hidden: i64, out: i64, mish: Mish) -> Result<Self> {
         Ok(Self {
             emb: SinusoidalPosEmb::new(dim)?,
             first: Linear::new(&(p / "1"), dim, hidden)?,
             second: Linear::new(&(p / "3"), hidden, out)?,
+            mish,
         })
     }
 
@@ -196,7 +225,7 @@ impl TimeMlp {
     /// `t`: float [B] (diffusion step as a float) -> [B, out].
     pub fn forward(&self, t: &Tensor) -> Result<Tensor> {
         let h = self.first.forward(&self.emb.forward(t)?)?;
-        self.second.forward(&mish(&h)?)
+        self.second.forward(&self.mish.forward(&h)?)
     }
 }
 
@@ -206,14 +235,16 @@ impl TimeMlp {
 pub struct Conv1dBlock {
     conv: Conv1d,
     norm: GroupNorm,
+    mish: Mish,
 }
 
 impl Conv1dBlock {
-    pub fn new(p: &Path, in_channels: i64, out_channels: i64, kernel: i64) -> Result<Self> {
+    pub fn new(p: &Path, in_channels: i64, out_channels: i64, kernel: i64, mish: Mish) -> Result<Self> {
         let block = p / "block";
         Ok(Self {
             conv: Conv1d::new(&(&block / "0"), in_channels, out_channels, kernel, 1, kernel / 2)?,
             norm: GroupNorm::new(&(&block / "2"), GROUPS, out_channels)?,
+            mish,
         })
     }
 
@@ -223,7 +254,7 @@ impl Conv1dBlock {
 
     /// `x`: [B, in, L] -> [B, out, L] (odd kernels keep the length).
     pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
-        mish(&self.norm.forward(&self.conv.forward(x)?)?)
+        self.mish.forward(&self.norm.forward(&self.conv.forward(x)?)?)
     }
 }
 
@@ -237,15 +268,16 @@ pub struct ResidualTemporalBlock {
     blocks: [Conv1dBlock; 2],
     time_linear: Linear,
     residual_conv: Option<Conv1d>,
+    mish: Mish,
 }
 
 impl ResidualTemporalBlock {
-    pub fn new(p: &Path, in_channels: i64, out_channels: i64, embed_dim: i64, kernel: i64) -> Result<Self> {
+    pub fn new(p: &Path, in_channels: i64, out_channels: i64, embed_dim: i64, kernel: i64, mish: Mish) -> Result<Self> {
         let blocks = p / "blocks";
         Ok(Self {
             blocks: [
-                Conv1dBlock::new(&(&blocks / "0"), in_channels, out_channels, kernel)?,
-                Conv1dBlock::new(&(&blocks / "1"), out_channels, out_channels, kernel)?,
+                Conv1dBlock::new(&(&blocks / "0"), in_channels, out_channels, kernel, mish)?,
+                Conv1dBlock::new(&(&blocks / "1"), out_channels, out_channels, kernel, mish)?,
             ],
             time_linear: Linear::new(&(p / "time_mlp" / "1"), embed_dim, out_channels)?,
             residual_conv: if in_channels == out_channels {
@@ -253,6 +285,7 @@ impl ResidualTemporalBlock {
             } else {
                 Some(Conv1d::new(&(p / "residual_conv"), in_channels, out_channels, 1, 1, 0)?)
             },
+            mish,
         })
     }
 
@@ -268,7 +301,7 @@ impl ResidualTemporalBlock {
 
     /// `x`: [B, in, L], `t_emb`: [B, embed_dim] -> [B, out, L].
     pub fn forward(&self, x: &Tensor, t_emb: &Tensor) -> Result<Tensor> {
-        let time = self.time_linear.forward(&mish(t_emb)?)?.f_unsqueeze(-1)?;
+        let time = self.time_linear.forward(&self.mish.forward(t_emb)?)?.f_unsqueeze(-1)?;
         let out = self.blocks[0].forward(x)?.f_add(&time)?;
         let out = self.blocks[1].forward(&out)?;
         match &self.residual_conv {
@@ -340,4 +373,41 @@ pub fn linear_params(in_features: i64, out_features: i64) -> u128 {
 /// Parameters of `Conv1d(in, out, k)` (and of `ConvTranspose1d`).
 pub fn conv_params(in_channels: i64, out_channels: i64, kernel: i64) -> u128 {
     n(in_channels).saturating_mul(n(out_channels)).saturating_mul(n(kernel)).saturating_add(n(out_channels))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// (mish(x), mish'(x), mish''(x)) of one form at every x (float32), by double backward.
+    fn derivatives(mish: Mish, x: &[f32]) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
+        let x = Tensor::from_slice(x).set_requires_grad(true);
+        let y = mish.forward(&x).expect("mish");
+        let first = Tensor::run_backward(&[y.sum(Kind::Float)], &[&x], true, true).remove(0);
+        first.sum(Kind::Float).backward();
+        let v = |t: &Tensor| Vec::<f32>::try_from(t.detach().contiguous()).expect("floats");
+        (v(&y), v(&first), v(&x.grad()))
+    }
+
+    #[test]
+    fn the_twice_differentiable_mish_matches_the_fused_op_and_keeps_its_second_derivative_finite() {
+        let x: Vec<f32> =
+            vec![-200.0, -90.0, -20.0, -3.0, -0.5, 0.0, 0.7, 5.0, 19.9, 20.0, 20.1, 60.0, 88.0, 89.0, 96.3, 1e4];
+        let (fused, fused_first, fused_second) = derivatives(Mish::Fused, &x);
+        let (twice, twice_first, twice_second) = derivatives(Mish::TwiceDifferentiable, &x);
+        // Values and first derivatives: the same floats.
+        assert_eq!(fused, twice);
+        assert_eq!(fused_first, twice_first);
+        // libtorch's own second derivative is NaN past exp's overflow (the bug worked around).
+        assert!(fused_second[x.iter().position(|&v| v == 89.0).expect("89")].is_nan(), "{fused_second:?}");
+        for (i, &xi) in x.iter().enumerate() {
+            assert!(twice_second[i].is_finite(), "mish''({xi}) = {}", twice_second[i]);
+            if f64::from(xi) <= MISH_PASS_THROUGH {
+                assert_eq!(twice_second[i], fused_second[i], "mish''({xi})");
+            } else {
+                // The exact second derivative is below 1e-6 there.
+                assert_eq!(twice_second[i], 0.0, "mish''({xi})");
+            }
+        }
+    }
 }

@@ -14,7 +14,7 @@
 use tch::Tensor;
 use tch::nn::Path;
 
-use super::blocks::{Linear, TimeMlp, linear_params, mish, total};
+use super::blocks::{Linear, Mish, TimeMlp, linear_params, total};
 use crate::error::{Error, Result};
 
 /// Width of the MLP denoiser's time embedding.
@@ -63,7 +63,7 @@ impl MlpDenoiser {
     /// `features`: n = the product of the sample shape.
     pub fn new(p: &Path, features: i64, hidden: &[i64]) -> Result<Self> {
         Self::validate(features, hidden)?;
-        let time_mlp = TimeMlp::new(&(p / "time_mlp"), MLP_TIME_DIM, MLP_TIME_HIDDEN, MLP_TIME_DIM)?;
+        let time_mlp = TimeMlp::new(&(p / "time_mlp"), MLP_TIME_DIM, MLP_TIME_HIDDEN, MLP_TIME_DIM, Mish::Fused)?;
         let net = p / "net";
         let mut layers = Vec::with_capacity(hidden.len() + 1);
         let mut width_in = features + MLP_TIME_DIM;
@@ -89,7 +89,7 @@ impl MlpDenoiser {
         for (i, layer) in self.layers.iter().enumerate() {
             h = layer.forward(&h)?;
             if i < last {
-                h = mish(&h)?;
+                h = Mish::Fused.forward(&h)?;
             }
         }
         Ok(h.f_reshape(shape)?)

@@ -47,6 +47,7 @@
 //!   flattened sample (d = 32, `time_mlp`, `net`).
 //!
 //! All forward passes use tch's fallible operations: bad shapes are errors, never panics.
+//! Every Mish is [`Mish::TwiceDifferentiable`] ([`MISH`]): training differentiates rho twice.
 
 use std::fmt;
 use std::path::Path;
@@ -56,14 +57,18 @@ use tch::nn::{self, Init, VarStore};
 use tch::{Device, Kind, Tensor};
 
 use super::blocks::{
-    Downsample1d, GROUPS, GroupNorm, Linear, ResidualTemporalBlock, TEMPORAL_KERNEL, TimeMlp, conv_params,
-    linear_params, mish, total,
+    Downsample1d, GROUPS, GroupNorm, Linear, Mish, ResidualTemporalBlock, TEMPORAL_KERNEL, TimeMlp, conv_params,
+    linear_params, total,
 };
 use super::mlp::{MAX_FEATURES, MAX_HIDDEN, MAX_LAYERS, MLP_TIME_DIM, MLP_TIME_HIDDEN};
 use super::native::MAX_PARAMETERS;
 use super::temporal_unet::{MAX_LEVELS, MAX_WIDTH};
 use super::weights;
 use crate::error::{Error, Result};
+
+/// The Mish of every reward network: Algorithm 1's double backward needs a finite second
+/// derivative at any activation (blocks.rs says why libtorch's fused op does not give one).
+const MISH: Mish = Mish::TwiceDifferentiable;
 
 /// The architecture of a relative reward network (see the module documentation for the exact
 /// layers and parameter names).
@@ -266,7 +271,7 @@ impl MlpHead {
     }
 
     fn new(p: &nn::Path, features: i64, hidden: &[i64]) -> Result<Self> {
-        let time_mlp = TimeMlp::new(&(p / "time_mlp"), MLP_TIME_DIM, MLP_TIME_HIDDEN, MLP_TIME_DIM)?;
+        let time_mlp = TimeMlp::new(&(p / "time_mlp"), MLP_TIME_DIM, MLP_TIME_HIDDEN, MLP_TIME_DIM, MISH)?;
         let net = p / "net";
         let mut layers = Vec::with_capacity(hidden.len() + 1);
         let mut width_in = features + MLP_TIME_DIM;
@@ -296,7 +301,7 @@ impl MlpHead {
         for (i, layer) in self.layers.iter().enumerate() {
             h = layer.forward(&h)?;
             if i < last {
-                h = mish(&h)?;
+                h = MISH.forward(&h)?;
             }
         }
         Ok(h.f_squeeze_dim(-1)?)
@@ -403,9 +408,9 @@ impl ValueFunctionNet {
     fn new(p: &nn::Path, transition_dim: i64, widths: &[i64], final_length: i64) -> Result<Self> {
         let time_dim = widths[0];
         let block = |path: nn::Path, w_in: i64, w_out: i64| {
-            ResidualTemporalBlock::new(&path, w_in, w_out, time_dim, TEMPORAL_KERNEL)
+            ResidualTemporalBlock::new(&path, w_in, w_out, time_dim, TEMPORAL_KERNEL, MISH)
         };
-        let time_mlp = TimeMlp::new(&(p / "time_mlp"), time_dim, 4 * time_dim, time_dim)?;
+        let time_mlp = TimeMlp::new(&(p / "time_mlp"), time_dim, 4 * time_dim, time_dim, MISH)?;
         let mut levels = Vec::with_capacity(widths.len());
         let mut w_in = transition_dim;
         for (i, &w_out) in widths.iter().enumerate() {
@@ -449,7 +454,7 @@ impl ValueFunctionNet {
         x = self.mid_down2.forward(&self.mid_block2.forward(&x, &t_emb)?)?;
         let flat = x.f_reshape([batch, -1])?;
         let h = self.final_first.forward(&Tensor::f_cat(&[&flat, &t_emb], 1)?)?;
-        Ok(self.final_second.forward(&mish(&h)?)?.f_squeeze_dim(1)?)
+        Ok(self.final_second.forward(&MISH.forward(&h)?)?.f_squeeze_dim(1)?)
     }
 }
 
@@ -491,8 +496,8 @@ struct EncoderBlock {
 
 impl EncoderBlock {
     fn forward(&self, x: &Tensor, t_emb: &Tensor) -> Result<Tensor> {
-        let h = mish(&self.norm.forward(&self.conv.forward(x)?)?)?;
-        let time = self.time_linear.forward(&mish(t_emb)?)?.f_unsqueeze(-1)?.f_unsqueeze(-1)?;
+        let h = MISH.forward(&self.norm.forward(&self.conv.forward(x)?)?)?;
+        let time = self.time_linear.forward(&MISH.forward(t_emb)?)?.f_unsqueeze(-1)?.f_unsqueeze(-1)?;
         Ok(h.f_add(&time)?)
     }
 }
@@ -525,7 +530,7 @@ impl ConvEncoderNet {
 
     fn new(p: &nn::Path, channels: i64, widths: &[i64]) -> Result<Self> {
         let time_dim = widths[0];
-        let time_mlp = TimeMlp::new(&(p / "time_mlp"), time_dim, 4 * time_dim, time_dim)?;
+        let time_mlp = TimeMlp::new(&(p / "time_mlp"), time_dim, 4 * time_dim, time_dim, MISH)?;
         let mut blocks = Vec::with_capacity(widths.len());
         let mut w_in = channels;
         for (i, &w_out) in widths.iter().enumerate() {
@@ -555,7 +560,7 @@ impl ConvEncoderNet {
         }
         let pooled = h.f_mean_dim([2i64, 3].as_slice(), false, None::<Kind>)?;
         let out = self.final_first.forward(&Tensor::f_cat(&[&pooled, &t_emb], 1)?)?;
-        Ok(self.final_second.forward(&mish(&out)?)?.f_squeeze_dim(1)?)
+        Ok(self.final_second.forward(&MISH.forward(&out)?)?.f_squeeze_dim(1)?)
     }
 }
 
@@ -1081,6 +1086,34 @@ mod tests {
             }
             // No gradient leaks into the caller's x.
             assert!(!x.grad().defined());
+        }
+    }
+
+    /// Mish inputs past exp's overflow (every bias raised by 100) leave the double backward
+    /// finite: libtorch's fused Mish would make every parameter gradient NaN here.
+    #[test]
+    fn reward_double_backward_stays_finite_for_large_activations() {
+        for (arch, shape) in small_cases() {
+            let net = build(&arch, &shape);
+            perturb(&net);
+            tch::no_grad(|| {
+                for (name, var) in net.var_store().variables() {
+                    if name.ends_with("bias") {
+                        let _ = var.shallow_clone().f_add_scalar_(100.0).expect("raise bias");
+                    }
+                }
+            });
+            let (x, t) = inputs(&net, 3, Kind::Float);
+            let graph_grad = tch::no_grad(|| net.grad_create_graph(&x, &t)).expect("grad_create_graph");
+            let target = pseudo_random(&x.size(), 0.75, Kind::Float);
+            (&graph_grad - &target).square().sum(Kind::Float).backward();
+            for (name, var) in net.var_store().variables() {
+                let g = var.grad();
+                if g.defined() {
+                    let finite = bool::try_from(g.isfinite().all()).expect("bool");
+                    assert!(finite, "{arch}: {name}'s gradient is not finite");
+                }
+            }
         }
     }
 

@@ -21,7 +21,8 @@ use tch::Tensor;
 use tch::nn::Path;
 
 use super::blocks::{
-    Conv1d, Conv1dBlock, Downsample1d, ResidualTemporalBlock, TEMPORAL_KERNEL, TimeMlp, Upsample1d, conv_params, total,
+    Conv1d, Conv1dBlock, Downsample1d, Mish, ResidualTemporalBlock, TEMPORAL_KERNEL, TimeMlp, Upsample1d, conv_params,
+    total,
 };
 use crate::error::{Error, Result};
 
@@ -131,10 +132,11 @@ impl TemporalUnet {
         Self::validate(horizon, transition_dim, dim, dim_mults)?;
         let dims = widths(transition_dim, dim, dim_mults);
         let levels = dims.len() - 1;
-        let block =
-            |path: Path, w_in: i64, w_out: i64| ResidualTemporalBlock::new(&path, w_in, w_out, dim, TEMPORAL_KERNEL);
+        let block = |path: Path, w_in: i64, w_out: i64| {
+            ResidualTemporalBlock::new(&path, w_in, w_out, dim, TEMPORAL_KERNEL, Mish::Fused)
+        };
 
-        let time_mlp = TimeMlp::new(&(p / "time_mlp"), dim, 4 * dim, dim)?;
+        let time_mlp = TimeMlp::new(&(p / "time_mlp"), dim, 4 * dim, dim, Mish::Fused)?;
         let mut downs = Vec::with_capacity(levels);
         for (i, pair) in dims.windows(2).enumerate() {
             let (w_in, w_out) = (pair[0], pair[1]);
@@ -167,7 +169,7 @@ impl TemporalUnet {
             mid_block1,
             mid_block2,
             ups,
-            final_block: Conv1dBlock::new(&(&final_path / "0"), dims[1], dim, TEMPORAL_KERNEL)?,
+            final_block: Conv1dBlock::new(&(&final_path / "0"), dims[1], dim, TEMPORAL_KERNEL, Mish::Fused)?,
             final_conv: Conv1d::new(&(&final_path / "1"), dim, transition_dim, 1, 1, 0)?,
         })
     }
