@@ -145,6 +145,21 @@ fn reward_spec(
     }
 }
 
+/// The discriminator baseline between the two sample datasets, with reward_spec's optimization.
+fn discriminator_spec(output: &str, steps: u64, inpaint_condition: Option<bool>) -> pb::JobSpec {
+    let mut spec = reward_spec(output, pb::RewardTarget::Mean, pb::EvalPoint::XT, steps, 1000);
+    spec.kind = Some(pb::job_spec::Kind::Discriminator(pb::TrainDiscriminator {
+        base_dataset: "base-samples".into(),
+        expert_dataset: "expert-samples".into(),
+        architecture: Some(pb::RewardArchitecture {
+            kind: Some(pb::reward_architecture::Kind::Mlp(pb::Mlp { hidden: vec![64, 64] })),
+        }),
+        diffusion_model: "base".into(),
+        inpaint_condition,
+    }));
+    spec
+}
+
 async fn wait_done(client: &Client, id: &str) -> Vec<pb::JobEvent> {
     let mut stream =
         client.jobs().watch_job(pb::WatchJobRequest { id: id.into(), from_seq: 0 }).await.expect("watch").into_inner();
@@ -486,16 +501,7 @@ async fn trajectory_only_options_are_refused_for_sample_models() {
         }
         spec
     };
-    let mut discriminator = reward_spec("opt", pb::RewardTarget::Mean, pb::EvalPoint::XT, 10, 100);
-    discriminator.kind = Some(pb::job_spec::Kind::Discriminator(pb::TrainDiscriminator {
-        base_dataset: "base-samples".into(),
-        expert_dataset: "expert-samples".into(),
-        architecture: Some(pb::RewardArchitecture {
-            kind: Some(pb::reward_architecture::Kind::Mlp(pb::Mlp { hidden: vec![64, 64] })),
-        }),
-        diffusion_model: "base".into(),
-        inpaint_condition: Some(true),
-    }));
+    let discriminator = discriminator_spec("opt", 10, Some(true));
     let cases = [
         (reward(|r| r.inpaint_condition = Some(true)), "spec.reward.inpaint_condition"),
         (reward(|r| r.action_weight = Some(10.0)), "spec.reward.action_weight"),
@@ -554,16 +560,7 @@ async fn algorithm_2_from_the_models_alone_recovers_the_same_reward() {
 async fn the_discriminator_baseline_separates_base_from_expert() {
     let server = TestServer::start_with_env(&[("RELREWARD__MODELS__ALLOW_TORCHSCRIPT_UPLOAD", "true")]);
     let client = setup(&server).await;
-    let mut spec = reward_spec("disc", pb::RewardTarget::Mean, pb::EvalPoint::XT, 800, 1000);
-    spec.kind = Some(pb::job_spec::Kind::Discriminator(pb::TrainDiscriminator {
-        base_dataset: "base-samples".into(),
-        expert_dataset: "expert-samples".into(),
-        architecture: Some(pb::RewardArchitecture {
-            kind: Some(pb::reward_architecture::Kind::Mlp(pb::Mlp { hidden: vec![64, 64] })),
-        }),
-        diffusion_model: "base".into(),
-        inpaint_condition: None,
-    }));
+    let spec = discriminator_spec("disc", 800, None);
     client.jobs().submit_job(pb::SubmitJobRequest { spec: Some(spec), job_id: "disc".into() }).await.expect("submit");
     let events = wait_done(&client, "disc").await;
     assert!(succeeded(&events), "{events:?}");
