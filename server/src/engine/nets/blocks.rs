@@ -34,14 +34,14 @@ fn torch_default_init(fan_in: i64) -> Init {
 /// existence theorem wants), in one of two forms with the same values and first derivative.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Mish {
-    /// libtorch's fused op, for networks differentiated once (the diffusion models).
+    /// libtorch's fused op, for every pass differentiated at most once.
     Fused,
-    /// For networks trained through their input gradient (rewards: Algorithm 1's loss is a
-    /// function of grad_x rho, so its parameter gradient needs Mish's second derivative).
+    /// For a pass differentiated twice: a reward's input gradient with a graph, whose loss
+    /// (Algorithm 1's, a function of grad_x rho) needs Mish's second derivative.
     /// libtorch's second derivative of Mish is NaN wherever the input exceeds about 88.7 (its
     /// double backward multiplies a zero gradient by exp(x), infinite there); a locomotion
-    /// reward's last hidden layer got there after 2528 steps at lr 2e-4 and every later batch's
-    /// gradient was NaN. Here inputs above [`MISH_PASS_THROUGH`] pass through unchanged: there
+    /// reward's last hidden layer got there after 2528 steps at lr 2e-4 and most later batches'
+    /// gradients were NaN. Here inputs above [`MISH_PASS_THROUGH`] pass through unchanged: there
     /// mish(x) = x and mish'(x) = 1 exactly in float32, so values and first derivatives are the
     /// fused op's, bit for bit, and the second derivative is 0 instead of NaN.
     TwiceDifferentiable,
@@ -205,16 +205,14 @@ pub struct TimeMlp {
     emb: SinusoidalPosEmb,
     first: Linear,
     second: Linear,
-    mish: Mish,
 }
 
 impl TimeMlp {
-    pub fn new(p: &Path, dim: i64, hidden: i64, out: i64, mish: Mish) -> Result<Self> {
+    pub fn new(p: &Path, dim: i64, hidden: i64, out: i64) -> Result<Self> {
         Ok(Self {
             emb: SinusoidalPosEmb::new(dim)?,
             first: Linear::new(&(p / "1"), dim, hidden)?,
             second: Linear::new(&(p / "3"), hidden, out)?,
-            mish,
         })
     }
 
@@ -223,9 +221,9 @@ impl TimeMlp {
     }
 
     /// `t`: float [B] (diffusion step as a float) -> [B, out].
-    pub fn forward(&self, t: &Tensor) -> Result<Tensor> {
+    pub fn forward(&self, t: &Tensor, mish: Mish) -> Result<Tensor> {
         let h = self.first.forward(&self.emb.forward(t)?)?;
-        self.second.forward(&self.mish.forward(&h)?)
+        self.second.forward(&mish.forward(&h)?)
     }
 }
 
@@ -235,16 +233,14 @@ impl TimeMlp {
 pub struct Conv1dBlock {
     conv: Conv1d,
     norm: GroupNorm,
-    mish: Mish,
 }
 
 impl Conv1dBlock {
-    pub fn new(p: &Path, in_channels: i64, out_channels: i64, kernel: i64, mish: Mish) -> Result<Self> {
+    pub fn new(p: &Path, in_channels: i64, out_channels: i64, kernel: i64) -> Result<Self> {
         let block = p / "block";
         Ok(Self {
             conv: Conv1d::new(&(&block / "0"), in_channels, out_channels, kernel, 1, kernel / 2)?,
             norm: GroupNorm::new(&(&block / "2"), GROUPS, out_channels)?,
-            mish,
         })
     }
 
@@ -253,8 +249,8 @@ impl Conv1dBlock {
     }
 
     /// `x`: [B, in, L] -> [B, out, L] (odd kernels keep the length).
-    pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
-        self.mish.forward(&self.norm.forward(&self.conv.forward(x)?)?)
+    pub fn forward(&self, x: &Tensor, mish: Mish) -> Result<Tensor> {
+        mish.forward(&self.norm.forward(&self.conv.forward(x)?)?)
     }
 }
 
@@ -268,16 +264,15 @@ pub struct ResidualTemporalBlock {
     blocks: [Conv1dBlock; 2],
     time_linear: Linear,
     residual_conv: Option<Conv1d>,
-    mish: Mish,
 }
 
 impl ResidualTemporalBlock {
-    pub fn new(p: &Path, in_channels: i64, out_channels: i64, embed_dim: i64, kernel: i64, mish: Mish) -> Result<Self> {
+    pub fn new(p: &Path, in_channels: i64, out_channels: i64, embed_dim: i64, kernel: i64) -> Result<Self> {
         let blocks = p / "blocks";
         Ok(Self {
             blocks: [
-                Conv1dBlock::new(&(&blocks / "0"), in_channels, out_channels, kernel, mish)?,
-                Conv1dBlock::new(&(&blocks / "1"), out_channels, out_channels, kernel, mish)?,
+                Conv1dBlock::new(&(&blocks / "0"), in_channels, out_channels, kernel)?,
+                Conv1dBlock::new(&(&blocks / "1"), out_channels, out_channels, kernel)?,
             ],
             time_linear: Linear::new(&(p / "time_mlp" / "1"), embed_dim, out_channels)?,
             residual_conv: if in_channels == out_channels {
@@ -285,7 +280,6 @@ impl ResidualTemporalBlock {
             } else {
                 Some(Conv1d::new(&(p / "residual_conv"), in_channels, out_channels, 1, 1, 0)?)
             },
-            mish,
         })
     }
 
@@ -300,10 +294,10 @@ impl ResidualTemporalBlock {
     }
 
     /// `x`: [B, in, L], `t_emb`: [B, embed_dim] -> [B, out, L].
-    pub fn forward(&self, x: &Tensor, t_emb: &Tensor) -> Result<Tensor> {
-        let time = self.time_linear.forward(&self.mish.forward(t_emb)?)?.f_unsqueeze(-1)?;
-        let out = self.blocks[0].forward(x)?.f_add(&time)?;
-        let out = self.blocks[1].forward(&out)?;
+    pub fn forward(&self, x: &Tensor, t_emb: &Tensor, mish: Mish) -> Result<Tensor> {
+        let time = self.time_linear.forward(&mish.forward(t_emb)?)?.f_unsqueeze(-1)?;
+        let out = self.blocks[0].forward(x, mish)?.f_add(&time)?;
+        let out = self.blocks[1].forward(&out, mish)?;
         match &self.residual_conv {
             Some(conv) => Ok(out.f_add(&conv.forward(x)?)?),
             None => Ok(out.f_add(x)?),

@@ -63,7 +63,7 @@ impl MlpDenoiser {
     /// `features`: n = the product of the sample shape.
     pub fn new(p: &Path, features: i64, hidden: &[i64]) -> Result<Self> {
         Self::validate(features, hidden)?;
-        let time_mlp = TimeMlp::new(&(p / "time_mlp"), MLP_TIME_DIM, MLP_TIME_HIDDEN, MLP_TIME_DIM, Mish::Fused)?;
+        let time_mlp = TimeMlp::new(&(p / "time_mlp"), MLP_TIME_DIM, MLP_TIME_HIDDEN, MLP_TIME_DIM)?;
         let net = p / "net";
         let mut layers = Vec::with_capacity(hidden.len() + 1);
         let mut width_in = features + MLP_TIME_DIM;
@@ -84,7 +84,7 @@ impl MlpDenoiser {
         let shape = x.size();
         let batch = shape.first().copied().unwrap_or(0);
         let flat = x.f_reshape([batch, self.features])?;
-        let mut h = Tensor::f_cat(&[&flat, &self.time_mlp.forward(t)?], 1)?;
+        let mut h = Tensor::f_cat(&[&flat, &self.time_mlp.forward(t, Mish::Fused)?], 1)?;
         let last = self.layers.len().saturating_sub(1);
         for (i, layer) in self.layers.iter().enumerate() {
             h = layer.forward(&h)?;

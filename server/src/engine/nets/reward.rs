@@ -47,7 +47,8 @@
 //!   flattened sample (d = 32, `time_mlp`, `net`).
 //!
 //! All forward passes use tch's fallible operations: bad shapes are errors, never panics.
-//! Every Mish is [`Mish::TwiceDifferentiable`] ([`MISH`]): training differentiates rho twice.
+//! Mish is libtorch's fused op except in `grad_create_graph`, the pass Algorithm 1
+//! differentiates twice ([`Mish::TwiceDifferentiable`]).
 
 use std::fmt;
 use std::path::Path;
@@ -65,10 +66,6 @@ use super::native::MAX_PARAMETERS;
 use super::temporal_unet::{MAX_LEVELS, MAX_WIDTH};
 use super::weights;
 use crate::error::{Error, Result};
-
-/// The Mish of every reward network: Algorithm 1's double backward needs a finite second
-/// derivative at any activation (blocks.rs says why libtorch's fused op does not give one).
-const MISH: Mish = Mish::TwiceDifferentiable;
 
 /// The architecture of a relative reward network (see the module documentation for the exact
 /// layers and parameter names).
@@ -271,7 +268,7 @@ impl MlpHead {
     }
 
     fn new(p: &nn::Path, features: i64, hidden: &[i64]) -> Result<Self> {
-        let time_mlp = TimeMlp::new(&(p / "time_mlp"), MLP_TIME_DIM, MLP_TIME_HIDDEN, MLP_TIME_DIM, MISH)?;
+        let time_mlp = TimeMlp::new(&(p / "time_mlp"), MLP_TIME_DIM, MLP_TIME_HIDDEN, MLP_TIME_DIM)?;
         let net = p / "net";
         let mut layers = Vec::with_capacity(hidden.len() + 1);
         let mut width_in = features + MLP_TIME_DIM;
@@ -289,19 +286,19 @@ impl MlpHead {
 
     /// `features`: [B, N, F], `t`: float [B] -> [B, N] (one score per row, all rows of an item
     /// sharing its time embedding).
-    fn forward(&self, features: &Tensor, t: &Tensor) -> Result<Tensor> {
+    fn forward(&self, features: &Tensor, t: &Tensor, mish: Mish) -> Result<Tensor> {
         let size = features.size();
         let (batch, rows) = match size.as_slice() {
             &[batch, rows, _] => (batch, rows),
             other => return Err(Error::internal("reward MLP", format!("features of shape {other:?}"))),
         };
-        let t_emb = self.time_mlp.forward(t)?.f_unsqueeze(1)?.f_expand([batch, rows, MLP_TIME_DIM], false)?;
+        let t_emb = self.time_mlp.forward(t, mish)?.f_unsqueeze(1)?.f_expand([batch, rows, MLP_TIME_DIM], false)?;
         let mut h = Tensor::f_cat(&[features, &t_emb], 2)?;
         let last = self.layers.len().saturating_sub(1);
         for (i, layer) in self.layers.iter().enumerate() {
             h = layer.forward(&h)?;
             if i < last {
-                h = MISH.forward(&h)?;
+                h = mish.forward(&h)?;
             }
         }
         Ok(h.f_squeeze_dim(-1)?)
@@ -319,15 +316,15 @@ struct WindowedMlpNet {
 
 impl WindowedMlpNet {
     /// [B, H / h]: one value per non-overlapping window.
-    fn per_window(&self, x: &Tensor, t: &Tensor) -> Result<Tensor> {
+    fn per_window(&self, x: &Tensor, t: &Tensor, mish: Mish) -> Result<Tensor> {
         let batch = x.size().first().copied().unwrap_or(0);
         let windows = x.f_reshape([batch, self.horizon / self.window, self.window * self.transition_dim])?;
-        self.head.forward(&windows, t)
+        self.head.forward(&windows, t, mish)
     }
 
     /// [B, H]: one value per stride-1 window starting at each step, the end padded by
     /// repeating the last row.
-    fn per_step(&self, x: &Tensor, t: &Tensor) -> Result<Tensor> {
+    fn per_step(&self, x: &Tensor, t: &Tensor, mish: Mish) -> Result<Tensor> {
         let batch = x.size().first().copied().unwrap_or(0);
         let padded = if self.window > 1 {
             let last =
@@ -342,7 +339,7 @@ impl WindowedMlpNet {
             self.horizon,
             self.window * self.transition_dim,
         ])?;
-        self.head.forward(&windows, t)
+        self.head.forward(&windows, t, mish)
     }
 }
 
@@ -354,10 +351,10 @@ struct MlpNet {
 }
 
 impl MlpNet {
-    fn forward(&self, x: &Tensor, t: &Tensor) -> Result<Tensor> {
+    fn forward(&self, x: &Tensor, t: &Tensor, mish: Mish) -> Result<Tensor> {
         let batch = x.size().first().copied().unwrap_or(0);
         let flat = x.f_reshape([batch, 1, self.features])?;
-        Ok(self.head.forward(&flat, t)?.f_squeeze_dim(1)?)
+        Ok(self.head.forward(&flat, t, mish)?.f_squeeze_dim(1)?)
     }
 }
 
@@ -408,9 +405,9 @@ impl ValueFunctionNet {
     fn new(p: &nn::Path, transition_dim: i64, widths: &[i64], final_length: i64) -> Result<Self> {
         let time_dim = widths[0];
         let block = |path: nn::Path, w_in: i64, w_out: i64| {
-            ResidualTemporalBlock::new(&path, w_in, w_out, time_dim, TEMPORAL_KERNEL, MISH)
+            ResidualTemporalBlock::new(&path, w_in, w_out, time_dim, TEMPORAL_KERNEL)
         };
-        let time_mlp = TimeMlp::new(&(p / "time_mlp"), time_dim, 4 * time_dim, time_dim, MISH)?;
+        let time_mlp = TimeMlp::new(&(p / "time_mlp"), time_dim, 4 * time_dim, time_dim)?;
         let mut levels = Vec::with_capacity(widths.len());
         let mut w_in = transition_dim;
         for (i, &w_out) in widths.iter().enumerate() {
@@ -441,20 +438,20 @@ impl ValueFunctionNet {
     }
 
     /// `x`: [B, H, D], `t`: float [B] -> [B].
-    fn forward(&self, x: &Tensor, t: &Tensor) -> Result<Tensor> {
+    fn forward(&self, x: &Tensor, t: &Tensor, mish: Mish) -> Result<Tensor> {
         let batch = x.size().first().copied().unwrap_or(0);
         let mut x = x.f_permute([0, 2, 1])?;
-        let t_emb = self.time_mlp.forward(t)?;
+        let t_emb = self.time_mlp.forward(t, mish)?;
         for level in &self.levels {
-            x = level.first.forward(&x, &t_emb)?;
-            x = level.second.forward(&x, &t_emb)?;
+            x = level.first.forward(&x, &t_emb, mish)?;
+            x = level.second.forward(&x, &t_emb, mish)?;
             x = level.downsample.forward(&x)?;
         }
-        x = self.mid_down1.forward(&self.mid_block1.forward(&x, &t_emb)?)?;
-        x = self.mid_down2.forward(&self.mid_block2.forward(&x, &t_emb)?)?;
+        x = self.mid_down1.forward(&self.mid_block1.forward(&x, &t_emb, mish)?)?;
+        x = self.mid_down2.forward(&self.mid_block2.forward(&x, &t_emb, mish)?)?;
         let flat = x.f_reshape([batch, -1])?;
         let h = self.final_first.forward(&Tensor::f_cat(&[&flat, &t_emb], 1)?)?;
-        Ok(self.final_second.forward(&MISH.forward(&h)?)?.f_squeeze_dim(1)?)
+        Ok(self.final_second.forward(&mish.forward(&h)?)?.f_squeeze_dim(1)?)
     }
 }
 
@@ -495,9 +492,9 @@ struct EncoderBlock {
 }
 
 impl EncoderBlock {
-    fn forward(&self, x: &Tensor, t_emb: &Tensor) -> Result<Tensor> {
-        let h = MISH.forward(&self.norm.forward(&self.conv.forward(x)?)?)?;
-        let time = self.time_linear.forward(&MISH.forward(t_emb)?)?.f_unsqueeze(-1)?.f_unsqueeze(-1)?;
+    fn forward(&self, x: &Tensor, t_emb: &Tensor, mish: Mish) -> Result<Tensor> {
+        let h = mish.forward(&self.norm.forward(&self.conv.forward(x)?)?)?;
+        let time = self.time_linear.forward(&mish.forward(t_emb)?)?.f_unsqueeze(-1)?.f_unsqueeze(-1)?;
         Ok(h.f_add(&time)?)
     }
 }
@@ -530,7 +527,7 @@ impl ConvEncoderNet {
 
     fn new(p: &nn::Path, channels: i64, widths: &[i64]) -> Result<Self> {
         let time_dim = widths[0];
-        let time_mlp = TimeMlp::new(&(p / "time_mlp"), time_dim, 4 * time_dim, time_dim, MISH)?;
+        let time_mlp = TimeMlp::new(&(p / "time_mlp"), time_dim, 4 * time_dim, time_dim)?;
         let mut blocks = Vec::with_capacity(widths.len());
         let mut w_in = channels;
         for (i, &w_out) in widths.iter().enumerate() {
@@ -552,15 +549,15 @@ impl ConvEncoderNet {
     }
 
     /// `x`: [B, C, H, W], `t`: float [B] -> [B].
-    fn forward(&self, x: &Tensor, t: &Tensor) -> Result<Tensor> {
-        let t_emb = self.time_mlp.forward(t)?;
+    fn forward(&self, x: &Tensor, t: &Tensor, mish: Mish) -> Result<Tensor> {
+        let t_emb = self.time_mlp.forward(t, mish)?;
         let mut h = x.shallow_clone();
         for block in &self.blocks {
-            h = block.forward(&h, &t_emb)?;
+            h = block.forward(&h, &t_emb, mish)?;
         }
         let pooled = h.f_mean_dim([2i64, 3].as_slice(), false, None::<Kind>)?;
         let out = self.final_first.forward(&Tensor::f_cat(&[&pooled, &t_emb], 1)?)?;
-        Ok(self.final_second.forward(&MISH.forward(&out)?)?.f_squeeze_dim(1)?)
+        Ok(self.final_second.forward(&mish.forward(&out)?)?.f_squeeze_dim(1)?)
     }
 }
 
@@ -706,7 +703,7 @@ impl RewardNet {
     /// Differentiable with respect to `x` and the parameters when grad mode is on.
     pub fn rho(&self, x: &Tensor, t: &Tensor) -> Result<Tensor> {
         let t = self.check_inputs(x, t)?;
-        self.rho_unchecked(x, &t)
+        self.rho_unchecked(x, &t, Mish::Fused)
     }
 
     /// Per-window values: [B, H / h] for the windowed MLP (rho is their mean); [B, 1] = rho
@@ -714,8 +711,8 @@ impl RewardNet {
     pub fn per_window(&self, x: &Tensor, t: &Tensor) -> Result<Tensor> {
         let t = self.check_inputs(x, t)?;
         match &self.network {
-            Network::WindowedMlp(net) => net.per_window(x, &t),
-            _ => Ok(self.rho_unchecked(x, &t)?.f_unsqueeze(1)?),
+            Network::WindowedMlp(net) => net.per_window(x, &t, Mish::Fused),
+            _ => Ok(self.rho_unchecked(x, &t, Mish::Fused)?.f_unsqueeze(1)?),
         }
     }
 
@@ -729,7 +726,7 @@ impl RewardNet {
             )));
         };
         let t = self.check_inputs(x, t)?;
-        net.per_step(x, &t)
+        net.per_step(x, &t, Mish::Fused)
     }
 
     /// (rho [B], grad_x of sum(rho), the shape of `x`), both without autograd history. Works
@@ -739,7 +736,7 @@ impl RewardNet {
         let t = self.check_inputs(x, t)?;
         tch::with_grad(|| {
             let x_req = x.f_detach_copy()?.f_set_requires_grad(true)?;
-            let rho = self.rho_unchecked(&x_req, &t)?;
+            let rho = self.rho_unchecked(&x_req, &t, Mish::Fused)?;
             let grad_x = input_gradient(&rho, &x_req, false)?;
             Ok((rho.f_detach()?, grad_x))
         })
@@ -747,24 +744,26 @@ impl RewardNet {
 
     /// grad_x of sum(rho) WITH its graph (create_graph): a loss computed from it (with grad mode
     /// on) backpropagates to the parameters through the double backward of Algorithm 1. The
-    /// graph is built from a detached copy of `x`, so no gradient flows back into `x`.
+    /// graph is built from a detached copy of `x`, so no gradient flows back into `x`. The one
+    /// pass differentiated twice, hence [`Mish::TwiceDifferentiable`] (the fused op's second
+    /// derivative is NaN for inputs above about 88.7; blocks.rs).
     pub fn grad_create_graph(&self, x: &Tensor, t: &Tensor) -> Result<Tensor> {
         let t = self.check_inputs(x, t)?;
         tch::with_grad(|| {
             let x_req = x.f_detach_copy()?.f_set_requires_grad(true)?;
-            let rho = self.rho_unchecked(&x_req, &t)?;
+            let rho = self.rho_unchecked(&x_req, &t, Mish::TwiceDifferentiable)?;
             input_gradient(&rho, &x_req, true)
         })
     }
 
-    fn rho_unchecked(&self, x: &Tensor, t: &Tensor) -> Result<Tensor> {
+    fn rho_unchecked(&self, x: &Tensor, t: &Tensor, mish: Mish) -> Result<Tensor> {
         match &self.network {
             Network::WindowedMlp(net) => {
-                Ok(net.per_window(x, t)?.f_mean_dim([1i64].as_slice(), false, None::<Kind>)?)
+                Ok(net.per_window(x, t, mish)?.f_mean_dim([1i64].as_slice(), false, None::<Kind>)?)
             }
-            Network::Mlp(net) => net.forward(x, t),
-            Network::ValueFunction(net) => net.forward(x, t),
-            Network::ConvEncoder(net) => net.forward(x, t),
+            Network::Mlp(net) => net.forward(x, t, mish),
+            Network::ValueFunction(net) => net.forward(x, t, mish),
+            Network::ConvEncoder(net) => net.forward(x, t, mish),
         }
     }
 

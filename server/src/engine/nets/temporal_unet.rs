@@ -132,11 +132,10 @@ impl TemporalUnet {
         Self::validate(horizon, transition_dim, dim, dim_mults)?;
         let dims = widths(transition_dim, dim, dim_mults);
         let levels = dims.len() - 1;
-        let block = |path: Path, w_in: i64, w_out: i64| {
-            ResidualTemporalBlock::new(&path, w_in, w_out, dim, TEMPORAL_KERNEL, Mish::Fused)
-        };
+        let block =
+            |path: Path, w_in: i64, w_out: i64| ResidualTemporalBlock::new(&path, w_in, w_out, dim, TEMPORAL_KERNEL);
 
-        let time_mlp = TimeMlp::new(&(p / "time_mlp"), dim, 4 * dim, dim, Mish::Fused)?;
+        let time_mlp = TimeMlp::new(&(p / "time_mlp"), dim, 4 * dim, dim)?;
         let mut downs = Vec::with_capacity(levels);
         for (i, pair) in dims.windows(2).enumerate() {
             let (w_in, w_out) = (pair[0], pair[1]);
@@ -169,7 +168,7 @@ impl TemporalUnet {
             mid_block1,
             mid_block2,
             ups,
-            final_block: Conv1dBlock::new(&(&final_path / "0"), dims[1], dim, TEMPORAL_KERNEL, Mish::Fused)?,
+            final_block: Conv1dBlock::new(&(&final_path / "0"), dims[1], dim, TEMPORAL_KERNEL)?,
             final_conv: Conv1d::new(&(&final_path / "1"), dim, transition_dim, 1, 1, 0)?,
         })
     }
@@ -186,27 +185,27 @@ impl TemporalUnet {
     /// sinusoidal embedding). Returns [B, H, D].
     pub fn forward(&self, x: &Tensor, t: &Tensor) -> Result<Tensor> {
         let mut x = x.f_permute([0, 2, 1])?;
-        let t_emb = self.time_mlp.forward(t)?;
+        let t_emb = self.time_mlp.forward(t, Mish::Fused)?;
         let mut skips = Vec::with_capacity(self.downs.len());
         for level in &self.downs {
-            x = level.first.forward(&x, &t_emb)?;
-            x = level.second.forward(&x, &t_emb)?;
+            x = level.first.forward(&x, &t_emb, Mish::Fused)?;
+            x = level.second.forward(&x, &t_emb, Mish::Fused)?;
             skips.push(x.shallow_clone());
             if let Some(down) = &level.downsample {
                 x = down.forward(&x)?;
             }
         }
-        x = self.mid_block1.forward(&x, &t_emb)?;
-        x = self.mid_block2.forward(&x, &t_emb)?;
+        x = self.mid_block1.forward(&x, &t_emb, Mish::Fused)?;
+        x = self.mid_block2.forward(&x, &t_emb, Mish::Fused)?;
         for level in &self.ups {
             let skip =
                 skips.pop().ok_or_else(|| Error::internal("TemporalUnet", "more up levels than skip connections"))?;
             x = Tensor::f_cat(&[&x, &skip], 1)?;
-            x = level.first.forward(&x, &t_emb)?;
-            x = level.second.forward(&x, &t_emb)?;
+            x = level.first.forward(&x, &t_emb, Mish::Fused)?;
+            x = level.second.forward(&x, &t_emb, Mish::Fused)?;
             x = level.upsample.forward(&x)?;
         }
-        let x = self.final_conv.forward(&self.final_block.forward(&x)?)?;
+        let x = self.final_conv.forward(&self.final_block.forward(&x, Mish::Fused)?)?;
         Ok(x.f_permute([0, 2, 1])?)
     }
 }
