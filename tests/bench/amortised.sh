@@ -52,7 +52,7 @@
 # ("1,1 3,3"), UNET_CONFIG (the [extract] table's body, "; " between keys: 'diffusion_architecture =
 # { kind = "temporal_unet", dim = 48, dim_mults = [1, 2] }; diffusion_steps = 2000'), UNET_STEPS
 # ("250 500 1000": the shorter runs of both recipes; "" for none); part 5 (ceiling):
-# named): CEIL_POOL (4096), CEIL_STEPS (1000, under the pool's epoch at either batch).
+# CEIL_POOL (4096), CEIL_STEPS (1000, under the pool's epoch at either batch).
 # Prints one JSON line per job and a markdown summary.
 #
 # Builds nothing: expects target/release/{relreward-server,relreward}. Starts its own server on
