@@ -296,6 +296,10 @@ fi
 # 256) denoisers over horizon-16 windows, T = 20, trained a few steps since weights do not change
 # the cost; windowed MLP reward h = 4, (128, 64, 32), batch 64, lr 1e-3).
 if want ceiling; then
+# Models-free only while no refresh falls inside the run: an epoch is CEIL_POOL x 1024 / batch
+# steps, shortest at the Gaussian pair's batch of 256.
+(( CEIL_STEPS < CEIL_POOL * 1024 / 256 )) ||
+  { echo "amortised.sh: CEIL_STEPS=$CEIL_STEPS must stay under CEIL_POOL x 4 = $((CEIL_POOL * 4)) (an epoch)" >&2; exit 2; }
 start_server
 gaussian_pair
 quiet rr maze generate --layout "$LAYOUT" --action-noise 0.5 --mode base --transitions 100000 --seed "$MAZE_SEED" \

@@ -27,6 +27,7 @@ Writes OUT/model.pt and OUT/manifest.json.
 
 import argparse
 import json
+import math
 import os
 import sys
 from typing import List
@@ -50,6 +51,9 @@ class AnalyticGaussianEps(torch.nn.Module):
         sa = self.sqrt_abar.index_select(0, t).reshape(shape)
         s1m = self.sqrt_one_minus_abar.index_select(0, t).reshape(shape)
         eps = s1m * (x - sa * self.mean)
+        if math.isinf(self.nan_beyond):
+            # The exact model, without the test-only mask's ops (benchmarks time these models).
+            return eps
         bad = (x.abs() > self.nan_beyond).flatten(1).any(1).reshape(shape)
         return torch.where(bad, torch.full_like(eps, float("nan")), eps)
 
