@@ -15,6 +15,11 @@ SETUP_STAMP := $(VENV)/.relreward-setup
 PY_CLIENT_STAMP := $(VENV)/.relreward-python-client
 PY_CLIENT_SOURCES := client/python/pyproject.toml client/python/setup.py client/python/MANIFEST.in \
 	$(wildcard client/python/src/relreward/*.py client/python/src/relreward/_proto/__init__.py proto/relreward/v1/*.proto)
+# The development package (dev/python: relreward_dev, the server launcher and the PyTorch
+# reference nets that tests, experiments and benchmarks import), installed into .venv the same
+# way; built from a copy in a temporary directory so that no build/ is left in the checkout.
+PY_DEV_STAMP := $(VENV)/.relreward-dev
+PY_DEV_SOURCES := dev/python/pyproject.toml $(wildcard dev/python/src/relreward_dev/*.py)
 CARGO := cargo
 CARGO_PROFILE := --release
 BIN := target/release
@@ -37,9 +42,10 @@ help:
 	@echo "make lint   rustfmt check and clippy"
 	@echo "make clean  remove build outputs (keeps .venv and data/)"
 
-## setup: the Python venv carrying libtorch (PyTorch 2.13.0), the test scripts' packages and
-## the relreward Python package (client/python; its stubs are compiled from proto/ as it builds).
-setup: $(SETUP_STAMP) $(PY_CLIENT_STAMP)
+## setup: the Python venv carrying libtorch (PyTorch 2.13.0), the test scripts' packages,
+## the relreward Python package (client/python; its stubs are compiled from proto/ as it builds)
+## and the development package (dev/python).
+setup: $(SETUP_STAMP) $(PY_CLIENT_STAMP) $(PY_DEV_STAMP)
 
 $(SETUP_STAMP): $(REQUIREMENTS)
 	@command -v $(CARGO) >/dev/null || { echo "cargo not found: install the Rust toolchain (rustup)"; exit 1; }
@@ -58,6 +64,13 @@ $(SETUP_STAMP): $(REQUIREMENTS)
 $(PY_CLIENT_STAMP): $(SETUP_STAMP) $(PY_CLIENT_SOURCES)
 	$(VENV)/bin/python -m pip install --quiet --disable-pip-version-check --no-cache-dir --no-build-isolation --no-deps \
 	  --force-reinstall ./client/python
+	@touch $@
+
+$(PY_DEV_STAMP): $(SETUP_STAMP) $(PY_DEV_SOURCES)
+	@tmp=$$(mktemp -d); trap 'rm -rf "$$tmp"' EXIT; \
+	  cp -R dev/python/pyproject.toml dev/python/src "$$tmp"/; \
+	  $(VENV)/bin/python -m pip install --quiet --disable-pip-version-check --no-cache-dir --no-build-isolation \
+	    --no-deps --force-reinstall "$$tmp"
 	@touch $@
 
 build: setup

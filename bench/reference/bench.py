@@ -1,13 +1,14 @@
 """Times the PyTorch references (reference.py) on the work relreward does in
 tests/bench/training.sh, and prints one JSON line per run.
 
-    bench.py alg1   --data-dir DIR --base B --expert E --dataset maze.npz [--steps S --warmup W ...]
-    bench.py ddpm   --dataset maze.npz --manifest-of B --data-dir DIR [--steps S --warmup W ...]
-    bench.py sample --data-dir DIR --base B --reward R --n N [--repeats K ...]
+    bench.py alg1   --models-dir DIR --base B --expert E --dataset maze.npz [--steps S --warmup W ...]
+    bench.py ddpm   --dataset maze.npz --manifest-of B --models-dir DIR [--steps S --warmup W ...]
+    bench.py sample --models-dir DIR --base B --reward R --n N [--repeats K ...]
 
-Models are read from a relreward data directory (the `models` table of metadata.sqlite3,
-opened read-only, and the weights at blobs/<blob_key>/<file>), so the reference runs the same
-diffusion models, with the same weights, manifests and normalizer, as relreward. Trained
+Models are read as relreward's API hands them out: DIR/NAME per model, as
+`relreward model download NAME --out DIR/NAME` writes it (weights.safetensors and
+manifest.json), so the reference runs the same diffusion models, with the same weights,
+manifests and normalizer, as relreward. Trained
 networks start from PyTorch's default initialisation (relreward's tch initialisation follows
 the same scheme); their values do not change the cost of a step.
 
@@ -32,7 +33,7 @@ process's peak RSS.
 
 import argparse
 import json
-import sqlite3
+import pathlib
 import sys
 import time
 
@@ -43,30 +44,28 @@ from reference import (
     Ema,
     Windows,
     alg1_step,
-    build_denoiser,
-    build_reward,
     count_macs,
     ddpm_step,
     guided_sample,
     guided_step,
-    item_shape,
     peak_rss_mib,
-    read_safetensors,
 )
+from relreward_dev.nets import build as build_denoiser
+from relreward_dev.nets import item_shape
+from relreward_dev.reward_nets import build as build_reward
+from relreward_dev.safetensors import read_safetensors
 
 
-def stored_model(data_dir, name):
-    """(manifest, weights path) of a model in a relreward data directory."""
-    with sqlite3.connect(f"file:{data_dir}/metadata.sqlite3?mode=ro", uri=True) as db:
-        row = db.execute("SELECT record FROM models WHERE name = ?", (name,)).fetchone()
-    if row is None:
-        sys.exit(f"bench.py: no model '{name}' in {data_dir}")
-    record = json.loads(row[0])
-    return record["manifest"], f"{data_dir}/blobs/{record['blob_key']}/{record['file']}"
+def stored_model(models_dir, name):
+    """(manifest, weights path) of a model downloaded into models_dir/name."""
+    d = pathlib.Path(models_dir) / name
+    if not (d / "manifest.json").is_file():
+        sys.exit(f"bench.py: no model '{name}' in {models_dir} (relreward model download {name} --out {d})")
+    return json.loads((d / "manifest.json").read_text()), d / "weights.safetensors"
 
 
-def load_diffusion(data_dir, name):
-    manifest, weights = stored_model(data_dir, name)
+def load_diffusion(models_dir, name):
+    manifest, weights = stored_model(models_dir, name)
     net = build_denoiser(manifest["architecture"], manifest["space"])
     net.load_state_dict(read_safetensors(weights), strict=True)
     for p in net.parameters():
@@ -104,7 +103,7 @@ def maybe_compile(module, args):
 
 
 def run_alg1(args):
-    base, expert = load_diffusion(args.data_dir, args.base), load_diffusion(args.data_dir, args.expert)
+    base, expert = load_diffusion(args.models_dir, args.base), load_diffusion(args.models_dir, args.expert)
     eager_net = base.net
     base.net, expert.net = maybe_compile(base.net, args), maybe_compile(expert.net, args)
     shape = item_shape(base.manifest["space"])
@@ -134,7 +133,7 @@ def run_alg1(args):
 def run_ddpm(args):
     # The architecture, schedule, parametrization and normalizer of a relreward model trained
     # with the benchmark's config; fresh weights (this is the model being trained).
-    manifest, _ = stored_model(args.data_dir, args.manifest_of)
+    manifest, _ = stored_model(args.models_dir, args.manifest_of)
     torch.manual_seed(args.seed)
     net = build_denoiser(manifest["architecture"], manifest["space"])
     # Diffusion reads the network through .net; the compiled wrapper shares its parameters.
@@ -159,8 +158,8 @@ def run_ddpm(args):
 
 
 def run_sample(args):
-    model = load_diffusion(args.data_dir, args.base)
-    manifest, weights = stored_model(args.data_dir, args.reward)
+    model = load_diffusion(args.models_dir, args.base)
+    manifest, weights = stored_model(args.models_dir, args.reward)
     shape = item_shape(manifest["space"])
     reward = build_reward(manifest["architecture"], shape)
     reward.load_state_dict(read_safetensors(weights), strict=True)
@@ -198,7 +197,8 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="benchmark", required=True)
     common = argparse.ArgumentParser(add_help=False)
-    common.add_argument("--data-dir", required=True, help="relreward data directory holding the models")
+    common.add_argument("--models-dir", required=True,
+                        help="the models, downloaded: DIR/NAME each (relreward model download NAME --out DIR/NAME)")
     common.add_argument("--threads", type=int, required=True, help="torch.set_num_threads (relreward's intra-op threads)")
     common.add_argument("--seed", type=int, default=0)
     training = argparse.ArgumentParser(add_help=False)

@@ -32,14 +32,13 @@ from reference import (
     alg1_step,
     apply_conditioning,
     entry_weights,
-    build_denoiser,
-    build_reward,
     ddpm_step,
     guided_sample,
     guided_step,
-    read_safetensors,
-    write_safetensors,
 )
+from relreward_dev.nets import build as build_denoiser
+from relreward_dev.reward_nets import build as build_reward
+from relreward_dev.safetensors import read_safetensors, write_safetensors
 
 
 def load_diffusion(spec):

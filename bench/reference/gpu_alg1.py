@@ -24,7 +24,9 @@ import time
 
 import torch
 
-from reference import Diffusion, Ema, alg1_step, build_denoiser, build_reward
+from reference import Diffusion, Ema, alg1_step
+from relreward_dev.nets import build as build_denoiser
+from relreward_dev.reward_nets import build as build_reward
 
 
 def on_device(diffusion, device):

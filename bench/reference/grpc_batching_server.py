@@ -3,7 +3,7 @@
 GradientStream: the strongest Python peer of the serving benchmark (tests/bench/serving.sh),
 written the way a competent engineer would serve a small PyTorch model today.
 
-    .venv/bin/python bench/reference/grpc_batching_server.py --data-dir DATA --model maze-reward
+    .venv/bin/python bench/reference/grpc_batching_server.py --models-dir MODELS --model maze-reward
 
 Same models, weights, request checks and numbers as bench/reference/grpc_server.py (it
 imports that file's loading and `make_request_handling`), served differently:
@@ -27,25 +27,14 @@ Prints `reference grpc_batching_server listening on HOST:PORT` as its first stdo
 
 import argparse
 import asyncio
-import json
-import pathlib
 import signal
 import sys
-import tempfile
 from concurrent import futures
 
 import torch
 
-sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
-
-from grpc_server import (  # noqa: E402
-    ROOT,
-    BadRequest,
-    RewardModel,
-    load_stubs,
-    make_request_handling,
-    models_from_data_dir,
-)
+# The sibling script (this folder is sys.path[0] when a script here runs).
+from grpc_server import BadRequest, add_model_flags, announce, load_stubs, make_request_handling, models_from_flags
 
 
 class Batcher:
@@ -184,18 +173,12 @@ async def serve(args, models, reward_pb2, reward_pb2_grpc, tensor_pb2):
     reward_pb2_grpc.add_RewardServiceServicer_to_server(
         make_servicer(models, batchers, prepare, finish, reward_pb2, reward_pb2_grpc), server
     )
-    host = args.listen.rsplit(":", 1)[0]
     port = server.add_insecure_port(args.listen)
     if port == 0:
         sys.exit(f"grpc_batching_server.py: cannot listen on {args.listen}")
     await server.start()
-    print(f"reference grpc_batching_server listening on {host}:{port}", flush=True)
-    print(
-        f"reference grpc_batching_server: {len(models)} model(s), torch intra-op threads {torch.get_num_threads()}, "
-        f"max_batch {args.max_batch}, max_delay_ms {args.max_delay_ms}",
-        file=sys.stderr,
-        flush=True,
-    )
+    announce("grpc_batching_server", args.listen, port, models,
+             f"max_batch {args.max_batch}, max_delay_ms {args.max_delay_ms}")
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGTERM, signal.SIGINT):
@@ -207,33 +190,16 @@ async def serve(args, models, reward_pb2, reward_pb2_grpc, tensor_pb2):
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--listen", default="127.0.0.1:0", help="HOST:PORT (port 0: any free port)")
-    ap.add_argument("--data-dir", type=pathlib.Path, help="a relreward data directory")
-    ap.add_argument("--model", action="append", required=True, help="reward model name (repeatable)")
-    ap.add_argument("--weights", type=pathlib.Path, help="safetensors weights (with --manifest, one --model)")
-    ap.add_argument("--manifest", type=pathlib.Path, help="reward manifest JSON (with --weights)")
+    add_model_flags(ap)
     ap.add_argument("--max-batch", type=int, default=256, help="most items per pass (relreward's default)")
     ap.add_argument("--max-delay-ms", type=float, default=0.0, help="wait for company after the first request")
     ap.add_argument("--queue-capacity", type=int, default=4096, help="items waiting per model before refusing")
-    ap.add_argument("--threads", type=int, default=0, help="torch intra-op threads (0: torch's default)")
-    ap.add_argument("--proto-dir", type=pathlib.Path, default=ROOT / "proto")
     args = ap.parse_args()
-    if (args.weights is None) != (args.manifest is None) or (args.weights is None) == (args.data_dir is None):
-        ap.error("give either --data-dir, or --weights with --manifest")
-    if args.weights is not None and len(args.model) != 1:
-        ap.error("--weights serves exactly one --model")
     if args.max_batch < 1 or args.max_delay_ms < 0 or args.queue_capacity < 1:
         ap.error("--max-batch and --queue-capacity must be positive, --max-delay-ms at least 0")
-    if args.threads > 0:
-        torch.set_num_threads(args.threads)
-    with tempfile.TemporaryDirectory() as tmp:
-        reward_pb2, reward_pb2_grpc, tensor_pb2 = load_stubs(args.proto_dir, pathlib.Path(tmp))
-        if args.data_dir is not None:
-            models = models_from_data_dir(args.data_dir, args.model)
-        else:
-            manifest = json.loads(args.manifest.read_text())
-            models = {args.model[0]: RewardModel(args.model[0], manifest, args.weights)}
-        asyncio.run(serve(args, models, reward_pb2, reward_pb2_grpc, tensor_pb2))
+    models = models_from_flags(ap, args)
+    reward_pb2, reward_pb2_grpc, tensor_pb2 = load_stubs()
+    asyncio.run(serve(args, models, reward_pb2, reward_pb2_grpc, tensor_pb2))
 
 
 if __name__ == "__main__":

@@ -1,19 +1,21 @@
 #!/usr/bin/env python3
 """A Python gRPC server for relreward.v1 RewardService.Gradient and GradientStream, written the
 way a researcher would wrap the paper's PyTorch code: grpcio's thread-pool server, stubs
-from relreward's own .proto files (the relreward package's, or generated at start), the reward
-network from the PyTorch reference (tests/python/reward_nets_reference.py, which loads
+from relreward's own .proto files (the relreward package's), the reward network from the
+PyTorch reference (relreward_dev.reward_nets, the development package's, which loads
 relreward's safetensors weights strictly), and one forward/backward pass per request. It is
 the baseline of the serving benchmark (tests/bench/serving.sh) and is cross-checked against
 relreward by tests/tests/reference_server.rs, so both compute the same numbers on the same
 weights.
 
-    .venv/bin/python bench/reference/grpc_server.py --data-dir DATA --model maze-reward
+    .venv/bin/python bench/reference/grpc_server.py --models-dir MODELS --model maze-reward
     .venv/bin/python bench/reference/grpc_server.py --weights W.safetensors --manifest M.json --model NAME
 
-Models come from a relreward data directory (the `models` table of `metadata.sqlite3`, opened
-read-only, and the weights at `blobs/<blob_key>/<file>`), or from a weights file and a reward
-manifest (JSON, as relreward stores it) given on the command line. Prints
+Models come from relreward's API: each `--model NAME` from `MODELS/NAME`, as
+`relreward model download NAME --out MODELS/NAME` (or the Python client's `download_model`)
+writes it (weights.safetensors, manifest.json, and an Algorithm 2 reward's
+step_norm.safetensors); or from a weights file and a reward manifest (JSON, as relreward
+stores it) given on the command line. Prints
 `reference grpc_server listening on HOST:PORT` as its first stdout line once serving.
 
 What it answers, as relreward does (proto/relreward/v1/reward.proto):
@@ -37,20 +39,16 @@ import argparse
 import json
 import pathlib
 import signal
-import sqlite3
 import sys
-import tempfile
 import threading
 from concurrent import futures
 
 import numpy as np
 import torch
 
-ROOT = pathlib.Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(ROOT / "tests" / "python"))
-
-from nets_reference import read_safetensors  # noqa: E402
-from reward_nets_reference import build  # noqa: E402
+from relreward_dev.nets import item_shape
+from relreward_dev.reward_nets import build
+from relreward_dev.safetensors import read_safetensors
 
 STEP_NORM_FILE = "step_norm.safetensors"
 # relreward's threshold (server/src/engine/normalizer.rs): narrower ranges are constant
@@ -58,36 +56,12 @@ STEP_NORM_FILE = "step_norm.safetensors"
 MIN_RANGE = 1e-12
 
 
-def load_stubs(proto_dir: pathlib.Path, out: pathlib.Path):
+def load_stubs():
     """The relreward.v1 Python stubs: the `relreward` package's (client/python, which `make
-    setup` installs, built from the same proto/), else generated into `out` and imported.
-
-    Stubs generated at run time are imported as `relreward.v1`, which an installed `relreward`
-    package shadows (a regular package wins over the generated namespace directory), hence the
-    package first."""
-    try:
-        from relreward._proto import reward_pb2, reward_pb2_grpc, tensor_pb2
-
-        return reward_pb2, reward_pb2_grpc, tensor_pb2
-    except ImportError:
-        pass
-    from grpc_tools import protoc
-
-    files = sorted(str(p.relative_to(proto_dir)) for p in (proto_dir / "relreward" / "v1").glob("*.proto"))
-    include = pathlib.Path(protoc.__file__).parent / "_proto"
-    args = ["protoc", f"-I{proto_dir}", f"-I{include}", f"--python_out={out}", f"--grpc_python_out={out}", *files]
-    if protoc.main(args) != 0:
-        sys.exit("grpc_server.py: could not generate the Python stubs from " + str(proto_dir))
-    sys.path.insert(0, str(out))
-    from relreward.v1 import reward_pb2, reward_pb2_grpc, tensor_pb2
+    setup` installs, built from the same proto/)."""
+    from relreward._proto import reward_pb2, reward_pb2_grpc, tensor_pb2
 
     return reward_pb2, reward_pb2_grpc, tensor_pb2
-
-
-def item_shape(space):
-    if space["kind"] == "trajectory":
-        return [space["horizon"], space["action_dim"] + space["obs_dim"]]
-    return list(space["shape"])
 
 
 class BadRequest(Exception):
@@ -147,21 +121,19 @@ def affine(normalizer: dict, space: dict):
     )
 
 
-def models_from_data_dir(data_dir: pathlib.Path, names):
-    uri = f"file:{data_dir / 'metadata.sqlite3'}?mode=ro"
-    with sqlite3.connect(uri, uri=True) as db:
-        rows = {}
-        for name in names:
-            row = db.execute("SELECT record FROM models WHERE name = ?", (name,)).fetchone()
-            if row is None:
-                sys.exit(f"grpc_server.py: no model '{name}' in {data_dir}")
-            rows[name] = json.loads(row[0])
+def models_from_downloads(models_dir: pathlib.Path, names):
+    """Each reward model NAME from MODELS/NAME, as relreward's download writes it."""
     models = {}
-    for name, record in rows.items():
-        if record["kind"] not in ("reward", "discriminator"):
-            sys.exit(f"grpc_server.py: model '{name}' is a {record['kind']} model, not a reward model")
-        weights = data_dir / "blobs" / record["blob_key"] / record["file"]
-        models[name] = RewardModel(name, record["manifest"], weights)
+    for name in names:
+        d = models_dir / name
+        if not (d / "manifest.json").is_file():
+            sys.exit(f"grpc_server.py: no model '{name}' in {models_dir} "
+                     f"(download it first: relreward model download {name} --out {d})")
+        manifest = json.loads((d / "manifest.json").read_text())
+        if "objective" not in manifest:
+            sys.exit(f"grpc_server.py: model '{name}' is not a reward or discriminator model (its manifest has no "
+                     "objective)")
+        models[name] = RewardModel(name, manifest, d / "weights.safetensors")
     return models
 
 
@@ -261,57 +233,69 @@ def make_servicer(models, reward_pb2, reward_pb2_grpc, tensor_pb2):
     return Servicer()
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+def add_model_flags(ap: argparse.ArgumentParser) -> None:
+    """The flags both reference servers take: where to listen, which reward models to serve
+    and where to read them, torch's intra-op threads (checked by `models_from_flags`)."""
     ap.add_argument("--listen", default="127.0.0.1:0", help="HOST:PORT (port 0: any free port)")
-    ap.add_argument("--data-dir", type=pathlib.Path, help="a relreward data directory")
+    ap.add_argument("--models-dir", type=pathlib.Path,
+                    help="downloaded models: MODELS/NAME per --model (relreward model download NAME --out MODELS/NAME)")
     ap.add_argument("--model", action="append", required=True, help="reward model name (repeatable)")
     ap.add_argument("--weights", type=pathlib.Path, help="safetensors weights (with --manifest, one --model)")
     ap.add_argument("--manifest", type=pathlib.Path, help="reward manifest JSON (with --weights)")
-    ap.add_argument("--workers", type=int, default=128, help="grpcio thread-pool size")
     ap.add_argument("--threads", type=int, default=0, help="torch intra-op threads (0: torch's default)")
-    ap.add_argument("--proto-dir", type=pathlib.Path, default=ROOT / "proto")
-    args = ap.parse_args()
-    if (args.weights is None) != (args.manifest is None) or (args.weights is None) == (args.data_dir is None):
-        ap.error("give either --data-dir, or --weights with --manifest")
+
+
+def models_from_flags(ap: argparse.ArgumentParser, args: argparse.Namespace) -> dict:
+    """Checks `add_model_flags`' flags (ap.error on a bad combination), sets torch's threads,
+    and loads the models they name: {name: RewardModel}."""
+    if (args.weights is None) != (args.manifest is None) or (args.weights is None) == (args.models_dir is None):
+        ap.error("give either --models-dir, or --weights with --manifest")
     if args.weights is not None and len(args.model) != 1:
         ap.error("--weights serves exactly one --model")
     if args.threads > 0:
         torch.set_num_threads(args.threads)
+    if args.models_dir is not None:
+        return models_from_downloads(args.models_dir, args.model)
+    manifest = json.loads(args.manifest.read_text())
+    return {args.model[0]: RewardModel(args.model[0], manifest, args.weights)}
+
+
+def announce(name: str, listen: str, port: int, models: dict, detail: str) -> None:
+    """The first stdout line, `reference NAME listening on HOST:PORT`, which tests/bench/serving.sh
+    and tests/tests/reference_server.rs wait for; then what is served, on stderr."""
+    host = listen.rsplit(":", 1)[0]
+    print(f"reference {name} listening on {host}:{port}", flush=True)
+    print(f"reference {name}: {len(models)} model(s), torch intra-op threads {torch.get_num_threads()}, {detail}",
+          file=sys.stderr, flush=True)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    add_model_flags(ap)
+    ap.add_argument("--workers", type=int, default=128, help="grpcio thread-pool size")
+    args = ap.parse_args()
+    models = models_from_flags(ap, args)
 
     import grpc
 
-    with tempfile.TemporaryDirectory() as tmp:
-        reward_pb2, reward_pb2_grpc, tensor_pb2 = load_stubs(args.proto_dir, pathlib.Path(tmp))
-        if args.data_dir is not None:
-            models = models_from_data_dir(args.data_dir, args.model)
-        else:
-            manifest = json.loads(args.manifest.read_text())
-            models = {args.model[0]: RewardModel(args.model[0], manifest, args.weights)}
-        server = grpc.server(
-            futures.ThreadPoolExecutor(max_workers=args.workers),
-            options=[("grpc.max_receive_message_length", 16 << 20), ("grpc.max_send_message_length", 16 << 20)],
-        )
-        reward_pb2_grpc.add_RewardServiceServicer_to_server(
-            make_servicer(models, reward_pb2, reward_pb2_grpc, tensor_pb2), server
-        )
-        host = args.listen.rsplit(":", 1)[0]
-        port = server.add_insecure_port(args.listen)
-        if port == 0:
-            sys.exit(f"grpc_server.py: cannot listen on {args.listen}")
-        server.start()
-        print(f"reference grpc_server listening on {host}:{port}", flush=True)
-        print(
-            f"reference grpc_server: {len(models)} model(s), torch intra-op threads {torch.get_num_threads()}, "
-            f"{args.workers} pool threads",
-            file=sys.stderr,
-            flush=True,
-        )
-        stop = threading.Event()
-        for sig in (signal.SIGTERM, signal.SIGINT):
-            signal.signal(sig, lambda *_: stop.set())
-        stop.wait()
-        server.stop(grace=1).wait()
+    reward_pb2, reward_pb2_grpc, tensor_pb2 = load_stubs()
+    server = grpc.server(
+        futures.ThreadPoolExecutor(max_workers=args.workers),
+        options=[("grpc.max_receive_message_length", 16 << 20), ("grpc.max_send_message_length", 16 << 20)],
+    )
+    reward_pb2_grpc.add_RewardServiceServicer_to_server(
+        make_servicer(models, reward_pb2, reward_pb2_grpc, tensor_pb2), server
+    )
+    port = server.add_insecure_port(args.listen)
+    if port == 0:
+        sys.exit(f"grpc_server.py: cannot listen on {args.listen}")
+    server.start()
+    announce("grpc_server", args.listen, port, models, f"{args.workers} pool threads")
+    stop = threading.Event()
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(sig, lambda *_: stop.set())
+    stop.wait()
+    server.stop(grace=1).wait()
 
 
 if __name__ == "__main__":

@@ -14,30 +14,23 @@ Trainer, the authors' relative-reward trainer) writes it.
 - `count_macs`: multiply-accumulates of a module's forward pass (Linear, Conv1d,
   ConvTranspose1d, Conv2d), counted with forward hooks on the real modules and shapes.
 
-The networks are not redefined here: they are the cross-checked reference nets of
-tests/python (`nets_reference.py`: TemporalUnet, MLP denoiser; `reward_nets_reference.py`:
-windowed MLP, ValueFunction, conv encoder, MLP), which load relreward's safetensors strictly.
-The schedule tables come from tests/python/check_schedule.py (float64, cast to float32 as
-Diffuser registers its buffers).
+The networks are not redefined here: they are the cross-checked reference nets of the
+development package, dev/python (`relreward_dev.nets`: TemporalUnet, MLP denoiser;
+`relreward_dev.reward_nets`: windowed MLP, ValueFunction, conv encoder, MLP), which load
+relreward's safetensors strictly. The schedule tables come from `relreward_dev.schedule`
+(float64, cast to float32 as Diffuser registers its buffers).
 
 Used by bench/reference/crosscheck.py (server/tests/training_vs_pytorch.rs: same numbers as
 relreward on the same weights and inputs) and bench/reference/bench.py (timings).
 """
 
 import copy
-import pathlib
-import sys
 
 import numpy as np
 import torch
 
-ROOT = pathlib.Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(ROOT / "tests" / "python"))
-
-from check_schedule import schedule_tables  # noqa: E402
-from nets_reference import build as build_denoiser  # noqa: E402,F401  (re-exported)
-from nets_reference import item_shape, read_safetensors, write_safetensors  # noqa: E402,F401
-from reward_nets_reference import build as build_reward  # noqa: E402,F401
+from relreward_dev.nets import item_shape
+from relreward_dev.schedule import schedule_tables
 
 # relreward's threshold (server/src/engine/normalizer.rs): narrower ranges are constant
 # coordinates and normalize to 0.

@@ -33,23 +33,21 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import pathlib
 import subprocess
 import sys
 import tempfile
-import threading
 import time
 
 import numpy as np
 
+from relreward import Client
+from relreward.specs import DiffusionJob, DiscriminatorJob, Optimization, RewardJob
+from relreward_dev.digits import load_digits_split
+from relreward_dev.launcher import Binaries, Server, ServerStartError
+
 REPO = pathlib.Path(__file__).resolve().parents[2]
-
-from relreward import Client  # noqa: E402
-from relreward.specs import DiffusionJob, DiscriminatorJob, Optimization, RewardJob  # noqa: E402
-
-SERVER_BIN = pathlib.Path(os.environ.get("RELREWARD_SERVER_BIN", REPO / "target/release/relreward-server"))
-CLI_BIN = pathlib.Path(os.environ.get("RELREWARD_CLI_BIN", REPO / "target/release/relreward"))
+BINARIES = Binaries.of_checkout(REPO)
 
 # The default run (chosen before any result was seen, then changed on development seeds
 # 100 and 101 only; see docs/results.md, "Images") and --tiny, the end-to-end test's
@@ -57,7 +55,7 @@ CLI_BIN = pathlib.Path(os.environ.get("RELREWARD_CLI_BIN", REPO / "target/releas
 # - attention=False: with attention at the 4x4 level (and in the mid block) the DDPM pair
 #   separated held-out digits far worse at small t (seed 100, 800 steps: AUC 0.88 against 0.97
 #   at t = 0) at the same training loss; 0.63M parameters instead of 0.70M. A plain conv UNet
-#   is also what the independent PyTorch anchor used (REFERENCE.md section 10).
+#   is also what the independent PyTorch anchor used (docs/method.md section 10).
 # - omega=1.0: on seed 100 omega 1 already brings the base model's samples into the subset as
 #   often as the expert's (0.98-0.99) with the expert's class mix; omega 2 overshot onto 0s and
 #   1s on the pair without EMA.
@@ -86,43 +84,14 @@ T = 50
 SCORE_T = 10
 
 
-class Server:
-    """relreward-server on 127.0.0.1:0 with its data in a temporary directory."""
-
-    def __init__(self, data_dir: pathlib.Path):
-        if not SERVER_BIN.exists():
-            sys.exit(f"{SERVER_BIN} not found: build it first (make build)")
-        env = dict(os.environ, RELREWARD__METRICS__LISTEN="", RELREWARD__SERVER__SHUTDOWN_DRAIN_SECS="0",
-                   RELREWARD__JOBS__MAX_CONCURRENT="2")
-        self.log_path = data_dir.parent / "server.log"
-        self._log = open(self.log_path, "ab")
-        self.proc = subprocess.Popen([str(SERVER_BIN), "--listen", "127.0.0.1:0", "--data-dir", str(data_dir)],
-                                     stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=self._log, env=env)
-        line = self.proc.stdout.readline().decode()
-        prefix = "relreward-server listening on "
-        if not line.startswith(prefix):
-            self.stop()
-            sys.exit(f"server did not start: {line!r}\n{self.log_path.read_text(errors='replace')}")
-        self.addr = line[len(prefix):].strip()
-        threading.Thread(target=lambda: [None for _ in self.proc.stdout], daemon=True).start()
-
-    def stop(self):
-        if self.proc.poll() is None:
-            self.proc.terminate()
-            try:
-                self.proc.wait(20)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait()
-
-
-def load_digits_split(seed: int):
-    from sklearn.datasets import load_digits
-    from sklearn.model_selection import train_test_split
-
-    d = load_digits()
-    x = (d.images.astype(np.float32) / 8.0 - 1.0)[:, None, :, :]
-    return train_test_split(x, d.target, test_size=0.25, stratify=d.target, random_state=seed)
+def start_server(data_dir: pathlib.Path) -> Server:
+    """relreward-server on 127.0.0.1:0 with its data in data_dir (a temporary directory),
+    two jobs at a time, its log beside it (server.log)."""
+    try:
+        return Server(BINARIES, data_dir, env={"RELREWARD__JOBS__MAX_CONCURRENT": "2"},
+                      log_path=data_dir.parent / "server.log")
+    except ServerStartError as e:
+        sys.exit(f"server did not start: {e}")
 
 
 def run_jobs(client: Client, specs: dict[str, object]) -> dict[str, float]:
@@ -139,7 +108,7 @@ def run_jobs(client: Client, specs: dict[str, object]) -> dict[str, float]:
 
 
 def cli_json(endpoint: str, *args: str) -> dict:
-    p = subprocess.run([str(CLI_BIN), "--endpoint", endpoint, "--json", *args], capture_output=True, text=True,
+    p = subprocess.run([str(BINARIES.cli), "--endpoint", endpoint, "--json", *args], capture_output=True, text=True,
                        stdin=subprocess.DEVNULL)
     if p.returncode != 0:
         sys.exit(f"relreward {' '.join(args)} failed:\n{p.stdout}\n{p.stderr}")
@@ -223,14 +192,14 @@ def main() -> None:
             endpoint = args.endpoint
         else:
             (tmp / "data").mkdir()
-            server = Server(tmp / "data")
+            server = start_server(tmp / "data")
             endpoint = f"http://{server.addr}"
         try:
             summary = experiment(Client(endpoint.removeprefix("http://")), endpoint, cfg, args, subset, tmp,
                                  x_train, x_test, y_train, y_test, in_train, in_test)
         finally:
             if server is not None:
-                server.stop()
+                server.stop(grace=20)
     summary["wall_seconds"] = round(time.monotonic() - t_start, 1)
     (args.out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     print(json.dumps(summary, indent=2))

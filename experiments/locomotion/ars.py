@@ -6,7 +6,7 @@ ARS loop; every `snapshot_every` iterations a copy of the policy is kept, so the
 `medium-replay`-like data can later be regenerated deterministically from the snapshots of
 training up to a medium policy, see data.py), `main` (CLI).
 
-Why ARS: it trains a Hopper expert on one core in ~15 minutes (REFERENCE.md section 10),
+Why ARS: it trains a Hopper expert on one core in ~15 minutes (docs/method.md section 10),
 which no gradient-based RL method does on this machine.
 
     python experiments/locomotion/ars.py --env Hopper-v5 --seed 0 --out experiments/locomotion/policies
@@ -23,7 +23,7 @@ import gymnasium as gym
 import numpy as np
 
 # Per-environment ARS hyper-parameters (step size, exploration noise, directions, top-b),
-# from REFERENCE.md section 10 / the ARS paper; `survival` is the per-step healthy reward
+# from docs/method.md section 10 / the ARS paper; `survival` is the per-step healthy reward
 # removed while training (ARS's trick against standing still), 0 where none.
 HYPER = {
     "Hopper-v5": dict(step=0.01, noise=0.025, dirs=8, top=4, survival=1.0),

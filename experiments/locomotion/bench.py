@@ -1,9 +1,9 @@
 """External-planner cost: time per environment step and the share spent waiting for the service,
 against the same loop with the reward computed in this process by PyTorch.
 
-Module map: `torch_reward` (the stored reward rebuilt in PyTorch from a relreward data directory:
-its record in metadata.sqlite3 read-only, its safetensors weights, the architecture of
-tests/python/reward_nets_reference.py), `main` (checks that both gradient sources agree on
+Module map: `torch_reward` (the stored reward rebuilt in PyTorch from what the service's
+DownloadModel hands out: its safetensors weights and manifest, the architecture of
+relreward_dev.reward_nets), `main` (checks that both gradient sources agree on
 random plans, then runs the reward-steered arm with each on the same seeds, one episode at a
 time and all in lockstep (`--batch-episodes`), and prints JSON).
 
@@ -16,32 +16,26 @@ from __future__ import annotations
 
 import argparse
 import json
-import sqlite3
-import sys
+import tempfile
 from pathlib import Path
 
 import numpy as np
 import torch
 
 import relreward
-from steer import REPO, Config, Server, run_arm
 from planner import Planner
+from relreward_dev.reward_nets import build
+from relreward_dev.safetensors import read_safetensors
+from steer import Config, run_arm, start_server
 
-sys.path.insert(0, str(REPO / "tests" / "python"))
-from nets_reference import read_safetensors  # noqa: E402
-from reward_nets_reference import build  # noqa: E402
 
-
-def torch_reward(data_dir: Path, name: str) -> torch.nn.Module:
-    with sqlite3.connect(f"file:{data_dir}/metadata.sqlite3?mode=ro", uri=True) as db:
-        row = db.execute("SELECT record FROM models WHERE name = ?", (name,)).fetchone()
-    if row is None:
-        sys.exit(f"bench.py: no model {name!r} in {data_dir}")
-    rec = json.loads(row[0])
-    man = rec["manifest"]
-    sp = man["space"]
-    net = build(man["architecture"], [sp["horizon"], sp["action_dim"] + sp["obs_dim"]])
-    net.load_state_dict(read_safetensors(f"{data_dir}/blobs/{rec['blob_key']}/{rec['file']}"), strict=True)
+def torch_reward(client: relreward.Client, name: str) -> torch.nn.Module:
+    with tempfile.TemporaryDirectory(prefix="relreward-bench-") as tmp:
+        got = client.download_model(name, tmp)
+        man = got.manifest
+        sp = man["space"]
+        net = build(man["architecture"], [sp["horizon"], sp["action_dim"] + sp["obs_dim"]])
+        net.load_state_dict(read_safetensors(got.path), strict=True)
     net.eval()
     for p in net.parameters():
         p.requires_grad_(False)
@@ -64,7 +58,6 @@ def main() -> None:
     # The reward arm's rule as steer.py chose or was told it ("mean" in results from before it
     # was recorded).
     names, omega, ts, rule = res["names"], res["omega"], res["t_stopgrad"], res.get("guide_at", "mean")
-    net = torch_reward(a.work / "server-data", names["reward"])
 
     def torch_source(model):
         def grad_fn(x, t):
@@ -78,9 +71,10 @@ def main() -> None:
                 return net(torch.tensor(x, dtype=torch.float32), torch.zeros(x.shape[0], dtype=torch.int64)).numpy()
         return grad_fn, score_fn
 
-    server = Server(None, a.work / "server-data")
+    server = start_server(a.work / "server-data")
     try:
         client = relreward.Client(server.addr)
+        net = torch_reward(client, names["reward"])
         planner = Planner.load(a.planners / f"{a.env}-medium-replay")
         # Both sources compute the same gradient (float32 on both sides).
         x = np.random.default_rng(0).uniform(-1, 1, (16, planner.horizon, planner.act_dim + planner.obs_dim))
@@ -102,7 +96,7 @@ def main() -> None:
                     steps=steps, returns=[round(e["ret"], 3) for e in eps])
         print(json.dumps(out, indent=1))
     finally:
-        server.stop()
+        server.stop(grace=30)
 
 
 if __name__ == "__main__":

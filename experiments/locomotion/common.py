@@ -17,7 +17,7 @@ HERE = Path(__file__).resolve().parent
 POLICIES = HERE / "policies"
 PLANNERS = HERE / "planners"
 
-# D4RL's reference returns (REFERENCE.md section 7): score = 100 (R - random) / (expert - random).
+# D4RL's reference returns (docs/method.md section 7): score = 100 (R - random) / (expert - random).
 ENVS = {
     "hopper": dict(id="Hopper-v5", random=-20.27, expert=3234.3),
     "halfcheetah": dict(id="HalfCheetah-v5", random=-280.18, expert=12135.0),

@@ -28,9 +28,11 @@ import gymnasium as gym
 import numpy as np
 import torch
 
+import relreward
 from bench import torch_reward
 from common import ENVS, PLANNERS, normalized_score
 from planner import GUIDE_AT, Planner, _denoise, act_many, run_episodes, sample
+from steer import start_server
 
 
 def load(a):
@@ -39,7 +41,13 @@ def load(a):
     # steer.py's results when it has finished; its reward is stored under this name from the start.
     path = a.work / f"{a.env}-results.json"
     res = json.loads(path.read_text()) if path.exists() else dict(omega=1.0, t_stopgrad=0)
-    rho = torch_reward(a.work / "server-data", a.reward or f"{a.env}-reward")
+    # The stored reward, downloaded from a server started on steer.py's data directory.
+    server = start_server(a.work / "server-data")
+    try:
+        with relreward.Client(server.addr) as client:
+            rho = torch_reward(client, a.reward or f"{a.env}-reward")
+    finally:
+        server.stop(grace=30)
     return base, expert, rho, res
 
 

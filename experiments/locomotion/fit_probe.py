@@ -1,7 +1,7 @@
 """How Algorithm 1's choice of x_t changes the reward's fit and the closed loop: a PyTorch probe.
 
 Trains a relative reward the way the service's reward job does (the ValueFunction encoder of
-tests/python/reward_nets_reference.py, Adam, the alignment loss weighted 10 on the first action and
+relreward_dev.reward_nets, Adam, the alignment loss weighted 10 on the first action and
 0 on the first observation, the unclipped target mu_expert - mu_base of the committed planners) on
 the union of the medium-replay and expert windows, either on the paper's x_t (the whole window
 noised, `--x-t noised`) or with the current state kept clean (`--x-t inpainted`, the service's
@@ -27,9 +27,7 @@ import torch
 import diagnose
 from common import ENVS, PLANNERS, normalized_score
 from planner import Planner, act_many, run_episodes
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "tests" / "python"))
-from reward_nets_reference import build  # noqa: E402
+from relreward_dev.reward_nets import build
 
 
 def train(base: Planner, expert: Planner, win: torch.Tensor, inpainted: bool, steps: int, seed: int, log) -> torch.nn.Module:

@@ -1,6 +1,6 @@
 """Diffuser-style planners over state-action windows, and the receding-horizon control loop.
 
-Module map: `Schedule` (cosine betas and the posterior coefficients of REFERENCE.md section 2,
+Module map: `Schedule` (cosine betas and the posterior coefficients of docs/method.md section 2,
 the same numbers the server uses because the manifest carries the betas explicitly),
 `Denoiser` (MLP over a flattened [H, A + O] window plus a time embedding, predicting x0),
 `Planner` (normaliser + schedule + denoiser: `windows`, `train`, `export` to TorchScript and a

@@ -1,7 +1,8 @@
 """Closed-loop steering of a Diffuser-style planner with a relative reward (paper section 5.2).
 
-Module map: `Server` (connect to RELREWARD_ENDPOINT, or start target/release/relreward-server
-on a loopback port with TorchScript uploads allowed), `prepare` (upload the data sets and both
+Module map: `start_server` (target/release/relreward-server on a loopback port with
+TorchScript uploads allowed, through relreward_dev.launcher; `--endpoint` or RELREWARD_ENDPOINT
+names a running server instead), `prepare` (upload the data sets and both
 planners, train the relative reward (Algorithm 1, ValueFunction encoder) and the discriminator
 of the same architecture), `Arm` / `decider` (one arm of the experiment: how plans are guided
 and chosen, in the external-planner mode (this process's sampling loop over the base planner,
@@ -33,10 +34,8 @@ import argparse
 import json
 import os
 import signal
-import subprocess
 import sys
 import tempfile
-import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -48,6 +47,7 @@ import torch
 import relreward
 from common import ENVS, PLANNERS, episodes, normalized_score, paired, welch
 from planner import GUIDE_AT, Planner, act_many, run_episodes
+from relreward_dev.launcher import Binaries, Server, ServerStartError
 
 REPO = Path(__file__).resolve().parents[2]
 ARMS = ("unsteered", "reward", "discriminator", "select-reward", "select-disc")
@@ -55,37 +55,16 @@ ARMS = ("unsteered", "reward", "discriminator", "select-reward", "select-disc")
 PAPER = {"halfcheetah": (30.38, 30.41, 31.65), "hopper": (24.67, 25.12, 27.04), "walker2d": (28.20, 27.98, 38.40)}
 
 
-class Server:
-    """A relreward server: the one at `endpoint`, or a fresh loopback one with its own data dir."""
-
-    def __init__(self, endpoint: str | None, data_dir: Path):
-        self.proc, self.data_dir = None, None
-        if endpoint:
-            self.addr = endpoint
-            return
-        binary = Path(os.environ.get("RELREWARD_SERVER_BIN", REPO / "target/release/relreward-server"))
-        if not binary.exists():
-            sys.exit(f"steer.py: {binary} not found: run `make build` or pass --endpoint")
-        self.data_dir = data_dir
-        env = dict(os.environ, RELREWARD__MODELS__ALLOW_TORCHSCRIPT_UPLOAD="true", RELREWARD__METRICS__LISTEN="",
-                   RELREWARD__JOBS__MAX_CONCURRENT="2",
-                   RELREWARD__SERVER__SHUTDOWN_DRAIN_SECS="0")
-        env.setdefault("RELREWARD__ENGINE__INTRA_OP_THREADS", "1")
-        self.log = open(data_dir.parent / "server.log", "ab")
-        self.proc = subprocess.Popen([str(binary), "--listen", "127.0.0.1:0", "--data-dir", str(data_dir)],
-                                     stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=self.log, env=env)
-        line = self.proc.stdout.readline().decode()
-        prefix = "relreward-server listening on "
-        if not line.startswith(prefix):
-            self.stop()
-            sys.exit(f"steer.py: the server did not start (first line {line!r}); see {data_dir.parent}/server.log")
-        self.addr = line[len(prefix):].strip()
-        threading.Thread(target=lambda: [None for _ in self.proc.stdout], daemon=True).start()
-
-    def stop(self) -> None:
-        if self.proc is not None and self.proc.poll() is None:
-            self.proc.terminate()
-            self.proc.wait(30)
+def start_server(data_dir: Path) -> Server:
+    """relreward-server on a loopback port with its data in data_dir and its log beside it
+    (server.log): TorchScript uploads on (the planners are TorchScript modules), two jobs at
+    a time, one intra-op thread unless RELREWARD__ENGINE__INTRA_OP_THREADS says otherwise."""
+    env = {"RELREWARD__MODELS__ALLOW_TORCHSCRIPT_UPLOAD": "true", "RELREWARD__JOBS__MAX_CONCURRENT": "2",
+           "RELREWARD__ENGINE__INTRA_OP_THREADS": os.environ.get("RELREWARD__ENGINE__INTRA_OP_THREADS", "1")}
+    try:
+        return Server(Binaries.of_checkout(REPO), data_dir, env=env, log_path=data_dir.parent / "server.log")
+    except ServerStartError as e:
+        sys.exit(f"steer.py: the server did not start ({e}); run `make build` or pass --endpoint")
 
 
 @dataclass
@@ -404,9 +383,9 @@ def experiment(cfg: Config) -> dict:
     cfg.work.mkdir(parents=True, exist_ok=True)
     data_dir = cfg.work / "server-data"
     data_dir.mkdir(exist_ok=True)
-    server = Server(cfg.endpoint, data_dir)
+    server = None if cfg.endpoint else start_server(data_dir)
     try:
-        client = relreward.Client(server.addr)
+        client = relreward.Client(cfg.endpoint or server.addr)
         t0 = time.time()
         names = prepare(cfg, client)
         planner = Planner.load(cfg.planners / f"{cfg.env}-medium-replay")
@@ -448,7 +427,8 @@ def experiment(cfg: Config) -> dict:
         cfg.log(table(cfg.env, summary))
         return result
     finally:
-        server.stop()
+        if server is not None:
+            server.stop(grace=30)
 
 
 def main() -> None:

@@ -1,7 +1,7 @@
 """MuJoCo PointMaze data (gymnasium-robotics) the D4RL way, for validating `relreward extract`.
 
 The simulator is gymnasium-robotics' PointMaze (MuJoCo point mass, one env step = one row);
-the controller is D4RL's maze2d waypoint controller (REFERENCE.md section 5): a shortest path
+the controller is D4RL's maze2d waypoint controller (docs/method.md section 5): a shortest path
 over free cells, waypoints at cell centres, a = 10 (waypoint - pos) - 1 vel clipped to
 [-1, 1], plus N(0, noise^2) action noise (D4RL's --noisy: 0.5), clipped again.
 

@@ -11,12 +11,15 @@
 //! - [`tensor`]: the codec of `relreward.v1.Tensor` (dtype names and sizes, byte lengths,
 //!   little-endian encode/decode). It is part of the wire contract: the server validates with
 //!   it what the client encodes with it, so it lives here and neither end depends on the other.
+//! - [`upload`]: [`upload::UploadSource`], where a dataset upload's array bytes come from (the
+//!   toolkit's file readers produce one, the client sends one), and [`upload::MemorySource`].
 //! - [`error_chain`]: an error with its causes, for messages at both ends.
 //!
 //! Everything else about a message (the server's checks of its fields, the client's helpers)
 //! lives with its users.
 
 pub mod tensor;
+pub mod upload;
 
 /// Package `relreward.v1`.
 pub mod v1 {

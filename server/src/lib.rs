@@ -1,19 +1,29 @@
 //! relreward-server: hosts base and expert diffusion models, extracts relative rewards from
 //! them and serves those rewards over gRPC.
 //!
-//! Module map (each may import the ones below it, never above):
+//! Module map, a layering: each module may import the ones below it, never one above:
 //! - [`security`]: who may call what (bearer tokens, scopes, one tower layer in front of
 //!   every service) and TLS; sits above [`api`], which it never imports.
 //! - [`api`]: tonic services (relreward.v1 and the Open Inference Protocol); validate and
 //!   convert at the door, nothing else.
+//! - [`limits`]: server-wide limits: connections, call deadlines (read with [`serving`]'s
+//!   `grpc-timeout` parser), the data directory's disk budget; layers at the door, above
+//!   what they guard.
+//! - [`sampling`]: Sample runs behind their own workers: one validation, a bounded queue, a
+//!   stream of host rows back to the door.
 //! - [`serving`]: Score and Gradient queries: validation, units, the per-model dynamic batcher.
-//! - [`engine`]: tensor math on libtorch (tch). Knows nothing of gRPC.
-//! - [`jobs`]: the job system (queue, threads, events, checkpoints) and the training runners.
+//! - [`jobs`]: the job system (queue, threads, events, checkpoints) and the training runners,
+//!   which drive the engine's trainers (e.g. [`engine::reward_trainer`]).
+//! - [`registry`]: stored models loaded on demand and cached: where the store's records and
+//!   files become engine types.
+//! - [`engine`]: tensor math on libtorch (tch): networks, diffusion, Algorithms 1 and 2.
+//!   Knows nothing of gRPC, jobs or the store; of the configuration, only `engine.*`.
 //! - [`store`]: metadata ([`store::MetadataStore`]) and files ([`store::BlobStore`]),
 //!   dataset ingestion and crash recovery.
 //! - [`fields`]: one rule per kind of request field (names, enums, page tokens, diffusion
 //!   times, guidance scales), used at the door of every RPC.
-//! - [`limits`]: server-wide limits: connections, call deadlines, the data directory's disk budget.
+//! - [`tasks`]: groups of background work (tokio tasks, blocking tasks, worker threads) that
+//!   shutdown stops and waits for.
 //! - [`fault`]: the test-only fault-injection hook (`RELREWARD_FAULT`), a no-op when unset.
 //! - [`config`]: layered configuration and its validation.
 //! - [`metrics`]: Prometheus metrics, the per-call recording layer and the `/metrics` endpoint.
@@ -51,9 +61,12 @@ pub mod fields;
 pub mod jobs;
 pub mod limits;
 pub mod metrics;
+pub mod registry;
+pub mod sampling;
 pub mod security;
 pub mod serving;
 pub mod store;
+pub mod tasks;
 
 use std::future::Future;
 use std::time::Duration;
@@ -98,23 +111,39 @@ pub async fn run(
     let device = engine::init(&config.engine)?;
     let store = store::Store::open(&config).await?;
     let role = config.role();
+    // The server's shutdown token. Every background task, blocking task and worker thread
+    // belongs to one group (`tasks::Tasks`) whose token is a child of it; each group is
+    // stopped and waited for at its point of the shutdown order below, and whatever is left
+    // is cancelled when `run` returns (early returns included: the guard).
+    let server_token = CancellationToken::new();
+    let _stop_everything = server_token.clone().drop_guard();
+    let group = |name| tasks::Tasks::new(name, server_token.child_token());
+    // GradientStream calls: stopped when the listener closes (they answer what is in flight,
+    // then end UNAVAILABLE), since a stream has no end of its own for the grace to wait for.
+    let streams = group("streams");
     // On shutdown, jobs stop at their next step (checkpointing first) and resume on the next
     // worker to claim them (this process after a restart, with the embedded store).
-    let job_manager =
-        jobs::JobManager::start(store.clone(), config.jobs.clone(), role.works(), CancellationToken::new()).await?;
+    let job_manager = jobs::JobManager::start(store.clone(), config.jobs.clone(), role.works(), group("jobs")).await?;
     // Diffusion models, loaded from the store on demand and cached (models.cache_bytes).
-    let registry = engine::registry::ModelRegistry::new(store.clone(), &config.models, device);
+    let registry = registry::ModelRegistry::new(store.clone(), &config.models, device);
     // Inference compute (batched Score/Gradient passes and sampling runs) at once.
     let slots = std::sync::Arc::new(tokio::sync::Semaphore::new(config.engine.inference_workers));
     let metrics = metrics::Metrics::new();
-    let serving = serving::Serving::new(registry.clone(), config.serving.clone(), slots.clone(), metrics.clone());
-    // Stopped after the gRPC drain, or by the guard when `run` returns early.
-    let stop_metrics = CancellationToken::new();
-    let _stop_metrics_guard = stop_metrics.clone().drop_guard();
-    let metrics_endpoint = metrics_listener.map(|listener| {
+    let serving = serving::Serving::new(
+        registry.clone(),
+        config.serving.clone(),
+        slots.clone(),
+        metrics.clone(),
+        group("serving"),
+    );
+    let sampling =
+        sampling::Sampling::start(registry.clone(), slots, config.engine.inference_workers, group("sampling"));
+    // Stopped after the gRPC drain (last, so the shutdown can be watched), or by the guard.
+    let metrics_tasks = group("metrics");
+    if let Some(listener) = metrics_listener {
         let refresh = scrape_refresh(metrics.clone(), store.clone(), registry.clone());
-        tokio::spawn(metrics::serve_http(listener, metrics.clone(), refresh, stop_metrics.clone()))
-    });
+        metrics_tasks.spawn(metrics::serve_http(listener, metrics.clone(), refresh, metrics_tasks.token().clone()));
+    }
 
     // A worker ("work") answers health checks only, for its orchestrator's probes.
     let served_services: &[&str] = if role.serves() { api::SERVICE_NAMES } else { &[] };
@@ -162,7 +191,7 @@ pub async fn run(
         builder = builder.tls_config(tls)?;
     }
     let routes = if role.serves() {
-        api::routes(&config, store, job_manager.clone(), serving, slots)
+        api::routes(&config, store, job_manager.clone(), serving.clone(), sampling.clone(), streams.clone())
     } else {
         tonic::service::Routes::default()
     };
@@ -211,23 +240,34 @@ pub async fn run(
     }
     tracing::info!("closing the listener and draining in-flight calls");
     stop_accepting.cancel();
+    streams.token().cancel();
     let grace = Duration::from_secs(config.server.shutdown_grace_secs);
     job_manager.shutdown(grace).await;
-    match tokio::time::timeout(grace, server).await {
-        Ok(result) => result?,
+    let served = match tokio::time::timeout(grace, server).await {
+        Ok(result) => result,
         Err(_) => {
-            tracing::warn!(grace_secs = grace.as_secs(), "in-flight calls did not finish in time; exiting anyway")
+            tracing::warn!(grace_secs = grace.as_secs(), "in-flight calls did not finish in time; exiting anyway");
+            Ok(())
         }
-    }
-    stop_metrics.cancel();
-    if let Some(endpoint) = metrics_endpoint
-        && let Err(e) = endpoint.await
-    {
-        tracing::warn!(error = %e, "metrics endpoint task failed");
-    }
+    };
+    // After the grace, what still runs is stopped: streams (ended already, unless a client
+    // never read its answers), sampling runs (at their next denoising step; queued ones are
+    // answered UNAVAILABLE), then the serving threads (which may wait for a slot a sampling
+    // run held), then the metrics endpoint.
+    streams.stop(STOP_BOUND).await;
+    sampling.stop(STOP_BOUND).await;
+    serving.stop(STOP_BOUND).await;
+    metrics_tasks.stop(STOP_BOUND).await;
+    server_token.cancel();
+    served?;
     tracing::info!("stopped");
     Ok(())
 }
+
+/// How long the shutdown waits for each group of background work once it is told to stop:
+/// each checks its token at least once per step (a denoising step, a served batch, a stream
+/// message), so this is a bound for a stuck task, not a pause.
+const STOP_BOUND: Duration = Duration::from_secs(5);
 
 /// Binds `metrics.listen` (None when empty: disabled) and announces the address.
 async fn bind_metrics(config: &Config) -> anyhow::Result<Option<TcpListener>> {
@@ -249,7 +289,7 @@ async fn bind_metrics(config: &Config) -> anyhow::Result<Option<TcpListener>> {
 fn scrape_refresh(
     metrics: metrics::Metrics,
     store: store::Store,
-    registry: engine::registry::ModelRegistry,
+    registry: registry::ModelRegistry,
 ) -> impl Fn() -> std::pin::Pin<Box<dyn Future<Output = ()> + Send>> + Clone + Send + Sync + 'static {
     move || {
         let (metrics, store, registry) = (metrics.clone(), store.clone(), registry.clone());
@@ -265,5 +305,59 @@ fn scrape_refresh(
             }
             metrics.set_loaded_models(registry.cached_names().len());
         })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use std::collections::HashMap;
+    use std::time::Instant;
+
+    use relreward_proto::v1::{self as pb, reward_service_client::RewardServiceClient};
+    use tokio_stream::wrappers::ReceiverStream;
+
+    use super::*;
+
+    /// At shutdown an open GradientStream (whose client never closes its side) answers what
+    /// it had in flight and ends UNAVAILABLE when the listener closes, and `run` returns well
+    /// within the grace: no task of the server is left that nobody stops.
+    #[tokio::test(flavor = "multi_thread")]
+    async fn an_open_gradient_stream_ends_unavailable_at_shutdown_and_run_returns() {
+        let tmp = tempfile::tempdir().expect("tempdir");
+        let overrides = config::Overrides { data_dir: Some(tmp.path().join("data")), ..Default::default() };
+        let env = ::config::Environment::with_prefix("RELREWARD").source(Some(HashMap::from([
+            ("RELREWARD__METRICS__LISTEN".to_owned(), "127.0.0.1:0".to_owned()),
+            ("RELREWARD__SERVER__SHUTDOWN_DRAIN_SECS".to_owned(), "0".to_owned()),
+        ])));
+        let config = Config::load_with_env(None, &overrides, env).expect("config");
+        let grace = Duration::from_secs(config.server.shutdown_grace_secs);
+        let listener = TcpListener::bind("127.0.0.1:0").await.expect("bind");
+        let addr = listener.local_addr().expect("address");
+        let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
+        let shutdown = async move {
+            let _ = stopped.await;
+        };
+        let server = tokio::spawn(run(config, listener, shutdown, std::future::pending()));
+
+        let mut client = RewardServiceClient::connect(format!("http://{addr}")).await.expect("connect");
+        let (requests, outbound) = tokio::sync::mpsc::channel(4);
+        // Refused in-stream (no x), and the stream goes on.
+        let request = pb::GradientRequest { model: "absent".into(), request_id: 7, ..Default::default() };
+        requests.send(request).await.expect("queue a request");
+        let mut responses =
+            client.gradient_stream(ReceiverStream::new(outbound)).await.expect("open the stream").into_inner();
+        let first = responses.message().await.expect("an answer").expect("one response");
+        assert_eq!(first.request_id, 7);
+        let error = first.error.expect("an in-stream error");
+        assert_eq!((error.code, error.message.as_str()), (tonic::Code::InvalidArgument as i32, "x: missing"));
+
+        let signalled = Instant::now();
+        stop.send(()).expect("signal");
+        let end = responses.message().await.expect_err("the stream ends with a status");
+        assert_eq!(end.code(), tonic::Code::Unavailable, "{end:?}");
+        assert!(end.message().contains("shutting down"), "{}", end.message());
+        server.await.expect("join").expect("run");
+        assert!(signalled.elapsed() < grace / 2, "run returned after {:?}", signalled.elapsed());
+        drop(requests);
     }
 }

@@ -55,7 +55,7 @@ fn nets_match_pytorch_in_both_directions() {
     let mut expected = Vec::new();
     for (i, case) in cases.iter().enumerate() {
         let d = NativeDenoiser::new(&case.architecture, &case.space, Device::Cpu).expect("build");
-        randomize(d.var_store(), &mut rng);
+        randomize(d.weights().var_store(), &mut rng);
         let weights = dir.path().join(format!("weights-{i}.safetensors"));
         d.save(&weights).expect("save weights");
 

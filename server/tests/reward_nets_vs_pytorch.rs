@@ -28,7 +28,7 @@ const TOLERANCE: f64 = 1e-4;
 /// compares the same networks (the var store's map has no fixed order, and libtorch's normal
 /// draws depend on the CPU's vector unit).
 fn perturb(net: &RewardNet, rng: &mut Rng) {
-    let mut vars: Vec<(String, Tensor)> = net.var_store().variables().into_iter().collect();
+    let mut vars: Vec<(String, Tensor)> = net.weights().var_store().variables().into_iter().collect();
     vars.sort_by(|a, b| a.0.cmp(&b.0));
     tch::no_grad(|| {
         for (_, mut var) in vars {
@@ -114,6 +114,7 @@ fn reward_nets_match_pytorch_including_the_double_backward() {
         let loss = (&graph_grad - &target).square().sum(Kind::Float) / batch;
         loss.backward();
         let param_grads: BTreeMap<String, Tensor> = net
+            .weights()
             .var_store()
             .variables()
             .into_iter()

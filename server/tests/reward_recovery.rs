@@ -330,6 +330,13 @@ async fn kill_9_during_a_reward_job_resumes_and_still_recovers_the_reward() {
     let at: u64 =
         resumed["resumed at step ".len()..].split_whitespace().next().and_then(|n| n.parse().ok()).expect("step");
     assert!(at >= 300, "resumed at {at}");
+    // Issue 34, item 3: the state event names the step training resumes from (its checkpoint's,
+    // as the runner's own log says), not the last progress step before the kill.
+    let restored = events.iter().find_map(|e| match &e.event {
+        Some(Event::Log(l)) => l.message.strip_prefix("resumed from the checkpoint at step ")?.parse::<u64>().ok(),
+        _ => None,
+    });
+    assert_eq!(Some(at), restored, "{resumed}");
     let model =
         client.models().get_model(pb::GetModelRequest { name: "r-crash".into() }).await.expect("model").into_inner();
     check_recovery(&load_reward(&server, &model), pb::RewardTarget::Mean);

@@ -84,10 +84,10 @@ fn diffusion(
 ) -> (DiffusionModel, Vec<(String, Tensor)>, serde_json::Value) {
     let arch = m.architecture.clone().expect("native");
     let denoiser = NativeDenoiser::new(&arch, &m.space, Device::Cpu).expect("denoiser");
-    randomize(denoiser.var_store(), rng);
+    randomize(denoiser.weights().var_store(), rng);
     denoiser.save(path).expect("save denoiser");
     // Shares storage with the network: what jobs/diffusion.rs hands its TrainLoop.
-    let params = named_parameters(denoiser.var_store());
+    let params = named_parameters(denoiser.weights().var_store());
     let spec = json!({ "manifest": m, "weights": path });
     (DiffusionModel::new(m.clone(), Box::new(denoiser)).expect("model"), params, spec)
 }
@@ -99,7 +99,7 @@ fn reward_net(
     rng: &mut Rng,
 ) -> (RewardNet, serde_json::Value) {
     let net = RewardNet::new(arch, item_shape, Device::Cpu).expect("reward net");
-    randomize(net.var_store(), rng);
+    randomize(net.weights().var_store(), rng);
     net.save(path).expect("save reward");
     (net, json!({ "architecture": arch, "item_shape": item_shape, "weights": path }))
 }
@@ -275,7 +275,7 @@ fn algorithm_1_steps_match_pytorch() {
         let paths: Vec<PathBuf> =
             (0..STEPS).map(|k| dir.path().join(format!("alg1-{i}-batch-{k}.safetensors"))).collect();
         let batches: Vec<_> = paths.iter().map(|p| batch(&mut rng, n, &item, big_t as u64, p)).collect();
-        let params = named_parameters(reward.var_store());
+        let params = named_parameters(reward.weights().var_store());
         let (aw, cw) = case.entry_weights;
         let weights = entry_weights(&m.space, aw, cw, tch::Device::Cpu, "case").expect("weights");
         assert_eq!(weights.is_some(), case.entry_weights != (1.0, 1.0));

@@ -79,10 +79,10 @@ fn unet2d_matches_diffusers_forward_and_training_step() {
     for (i, case) in cases.iter().enumerate() {
         let space = Space::Sample { shape: case.shape.clone() };
         let d = NativeDenoiser::new(&case.architecture, &space, Device::Cpu).expect("build");
-        randomize(d.var_store(), &mut rng);
+        randomize(d.weights().var_store(), &mut rng);
         let weights = dir.path().join(format!("weights-{i}.safetensors"));
         d.save(&weights).expect("save weights");
-        let params = named_parameters(d.var_store());
+        let params = named_parameters(d.weights().var_store());
 
         let mut shape = vec![3i64];
         shape.extend(case.shape.iter().map(|&s| s as i64));

@@ -74,5 +74,8 @@ if [[ -x $BIN/relreward-loadgen ]]; then
 fi
 kill $server; wait $server 2>/dev/null || true
 
+# The reference nets come from the development package (dev/python); that machine has no
+# `make setup`, so it is read from the checkout.
+export PYTHONPATH="$PWD/dev/python/src${PYTHONPATH:+:$PYTHONPATH}"
 (cd bench/reference && "$PY" gpu_alg1.py --device cuda --steps "$STEPS" --warmup 5) | sed 's/^/{"side": "pytorch-eager", "result": /; s/$/}/'
 (cd bench/reference && "$PY" gpu_alg1.py --device cuda --steps "$STEPS" --warmup 5 --compile) | sed 's/^/{"side": "pytorch-compile", "result": /; s/$/}/'

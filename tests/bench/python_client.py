@@ -35,17 +35,17 @@ import time
 
 import numpy as np
 
-REPO = pathlib.Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(REPO / "client/python/tests"))
-from conftest import CLI_BIN, SERVER_BIN, Server  # noqa: E402
+import relreward
+from relreward._proto import reward_pb2, reward_pb2_grpc, tensor_pb2
+from relreward_dev.launcher import Binaries, Server
 
-import relreward  # noqa: E402
-from relreward._proto import reward_pb2, reward_pb2_grpc, tensor_pb2  # noqa: E402
+REPO = pathlib.Path(__file__).resolve().parents[2]
+BINARIES = Binaries.of_checkout(REPO)
 
 
 def train(server: Server, d: pathlib.Path) -> str:
     data = d / "maze.npz"
-    subprocess.run([str(CLI_BIN), "maze", "generate", "--layout", "umaze", "--mode", "base", "--transitions", "5000",
+    subprocess.run([str(BINARIES.cli), "maze", "generate", "--layout", "umaze", "--mode", "base", "--transitions", "5000",
                     "--seed", "1", "--out", str(data)], check=True, capture_output=True)
     server.cli("dataset", "upload", str(data), "--name", "maze")
     cfg = d / "d.toml"
@@ -77,7 +77,8 @@ def main() -> None:
     started = time.time()
     with tempfile.TemporaryDirectory() as tmp:
         d = pathlib.Path(tmp)
-        server = Server(d / "data")
+        # As the Python package's tests start it (client/python/tests/conftest.py).
+        server = Server(BINARIES, d / "data", env={"RELREWARD__ENGINE__INTRA_OP_THREADS": "1"})
         try:
             model = train(server, d)
             rows = run(server.addr, model, args.calls, args.reps)

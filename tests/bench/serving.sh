@@ -93,21 +93,22 @@ start_server() {
   export RELREWARD_ENDPOINT=$endpoint
 }
 
-# start_reference MODEL...: the Python server over the same data directory.
+# start_reference MODEL...: the Python server over the same models, as downloaded through the
+# API into $tmp/models (see the download after training).
 start_reference() {
   local models=()
   for m in "$@"; do models+=(--model "$m"); done
-  "$PY" bench/reference/grpc_server.py --listen 127.0.0.1:0 --data-dir "$tmp/data" --threads "$THREADS" \
+  "$PY" bench/reference/grpc_server.py --listen 127.0.0.1:0 --models-dir "$tmp/models" --threads "$THREADS" \
     "${models[@]}" >"$tmp/reference.out" 2>>"$tmp/reference.log" &
   reference=$!
   ref_endpoint="http://$(wait_line "$tmp/reference.out" 'reference grpc_server listening on ' "$reference" grpc_server.py)"
 }
 
-# start_batching MODEL...: the dynamic-batching Python server over the same data directory.
+# start_batching MODEL...: the dynamic-batching Python server over the same downloaded models.
 start_batching() {
   local models=()
   for m in "$@"; do models+=(--model "$m"); done
-  "$PY" bench/reference/grpc_batching_server.py --listen 127.0.0.1:0 --data-dir "$tmp/data" --threads "$THREADS" \
+  "$PY" bench/reference/grpc_batching_server.py --listen 127.0.0.1:0 --models-dir "$tmp/models" --threads "$THREADS" \
     "${models[@]}" >"$tmp/batching.out" 2>>"$tmp/batching.log" &
   batching=$!
   batch_endpoint="http://$(wait_line "$tmp/batching.out" 'reference grpc_batching_server listening on ' "$batching" grpc_batching_server.py)"
@@ -169,6 +170,8 @@ for i in 2 3 4 5; do
   ten+=("maze-reward-$i" "loco-reward-$i")
 done
 declare -A shape=([maze-reward]=64,6 [loco-reward]=32,14)
+# The Python references read the same weights, fetched through the API (DownloadModel).
+for m in "${ten[@]}"; do quiet rr model download "$m" --out "$tmp/models/$m"; done
 for i in 2 3 4 5; do shape[maze-reward-$i]=64,6; shape[loco-reward-$i]=32,14; done
 
 # ---------------------------------------------------------------------------------------------

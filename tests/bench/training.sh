@@ -138,10 +138,12 @@ rr dataset upload "$tmp/maze.npz" --name maze >/dev/null
 # The frozen models' weights do not change the cost of a step: one step each suffices.
 for m in base expert; do
   rr train diffusion --name "$m" --dataset maze --config "$tmp/unet.toml" --steps 1 --batch-size 2 --watch >/dev/null
+  # The reference reads the same weights, fetched through the API.
+  rr model download "$m" --out "$tmp/models/$m" >/dev/null
 done
 stop_server
 
-reference() { "$PY" bench/reference/bench.py "$@" --data-dir "$tmp/data" --threads "$THREADS"; }
+reference() { "$PY" bench/reference/bench.py "$@" --models-dir "$tmp/models" --threads "$THREADS"; }
 
 # wanted BENCHMARK: whether ONLY names it (ONLY="alg1 ddpm" skips sampling, for quick reruns).
 wanted() { [[ " $ONLY " == *" $1 "* ]]; }
@@ -196,6 +198,7 @@ if ! wanted alg1; then
   rr --json train reward --name reward-1 --base base --expert expert --dataset maze --arch windowed_mlp \
     --window 4 --hidden 128,64,32 --steps "$LOG_EVERY" --batch-size 64 --watch >/dev/null
 fi
+rr model download reward-1 --out "$tmp/models/reward-1" --force >/dev/null
 sample() { rr --json sample --base base --reward reward-1 --scale 0.1 "${guide[@]}" "${conditions[@]}" --n "$SAMPLE_N" --seed "$1" >/dev/null; }
 sample 0 # warm-up: loads both models into the server's cache
 for rep in $(seq "$REPS"); do

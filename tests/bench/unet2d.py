@@ -16,8 +16,8 @@ relreward: steps per second from the job's own progress events (every 10 steps) 
 WARMUP and WARMUP + STEPS, so start-up and the final held-out evaluation are excluded.
 Reference: torch eager, the same loss (DDPMScheduler.add_noise, mean squared error), backward,
 torch.optim.Adam step and zero_grad, timed over STEPS steps after WARMUP untimed ones, starting
-from the weights relreward's job ended with (read from the server's data directory and loaded
-with load_state_dict(strict=True)). The two alternate REPS times; medians are reported with the
+from the weights relreward's job ended with (downloaded through the API, DownloadModel, and
+loaded with load_state_dict(strict=True)). The two alternate REPS times; medians are reported with the
 ratio relreward / reference (> 1: relreward is faster).
 """
 
@@ -33,12 +33,13 @@ import time
 import numpy as np
 import torch
 
-REPO = pathlib.Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(REPO / "experiments/images"))
-sys.path.insert(0, str(REPO / "tests/python"))
+from relreward import Client
+from relreward.specs import DiffusionJob, Optimization
+from relreward_dev.digits import load_digits_split
+from relreward_dev.launcher import Binaries, Server
+from relreward_dev.safetensors import read_safetensors
 
-from relreward import Client  # noqa: E402
-from relreward.specs import DiffusionJob, Optimization  # noqa: E402
+REPO = pathlib.Path(__file__).resolve().parents[2]
 
 CONFIG = dict(channels=1, height=8, width=8, block_out_channels=[32, 64], layers_per_block=1, attention=True,
               norm_num_groups=8, attention_head_dim=8)
@@ -68,7 +69,7 @@ def relreward_rate(client, steps, warmup, rep, data):
 
 def reference_rate(steps, warmup, data, weights=None):
     from diffusers import DDPMScheduler
-    from unet2d_reference import build, scheduler
+    from relreward_dev.unet2d import build, scheduler
 
     model = build(CONFIG)
     if weights is not None:
@@ -110,12 +111,9 @@ def main():
         sys.exit("--steps and --warmup must be multiples of 10 (the job's progress interval)")
     torch.set_num_threads(args.threads)
     os.environ["RELREWARD__ENGINE__INTRA_OP_THREADS"] = str(args.threads)
-    from digits import Server, load_digits_split
-    from nets_reference import read_safetensors
 
-    def latest_weights(data_dir):
-        files = sorted(data_dir.glob("blobs/models/*/weights.safetensors"), key=lambda p: p.stat().st_mtime)
-        return read_safetensors(files[-1])
+    def trained_weights(client, name, tmp):
+        return read_safetensors(client.download_model(name, pathlib.Path(tmp) / "models" / name).path)
 
     x_train = load_digits_split(0)[0]
     # The job normalizes with the pooled mean and std; the reference trains on the same values.
@@ -123,24 +121,29 @@ def main():
     ours, theirs = [], []
     with tempfile.TemporaryDirectory(prefix="relreward-bench-unet2d-") as tmp:
         (pathlib.Path(tmp) / "data").mkdir()
-        server = Server(pathlib.Path(tmp) / "data")
+        # As the digits experiment starts its server (experiments/images/digits.py).
+        server = Server(Binaries.of_checkout(REPO), pathlib.Path(tmp) / "data",
+                        env={"RELREWARD__JOBS__MAX_CONCURRENT": "2"}, log_path=pathlib.Path(tmp) / "server.log")
         try:
             client = Client(server.addr)
             client.upload_dataset("bench-digits", x_train, kind="samples")
             for rep in range(args.reps):
-                rate, _ = relreward_rate(client, args.steps, args.warmup, rep, data)
+                rate, name = relreward_rate(client, args.steps, args.warmup, rep, data)
                 ours.append(rate)
-                weights = latest_weights(pathlib.Path(tmp) / "data")
+                weights = trained_weights(client, name, tmp)
                 theirs.append(reference_rate(args.steps, args.warmup, data, weights))
                 print(f"rep {rep}: relreward {ours[-1]:.2f} steps/s, PyTorch eager {theirs[-1]:.2f} steps/s",
                       flush=True)
         finally:
-            server.stop()
+            server.stop(grace=20)
     a, b = statistics.median(ours), statistics.median(theirs)
+    from relreward_dev.unet2d import build
+
+    parameters = sum(p.numel() for p in build(CONFIG).parameters())
     print(json.dumps({"config": CONFIG, "batch": BATCH, "threads": args.threads, "steps": args.steps,
                       "warmup": args.warmup, "reps": args.reps, "relreward_steps_per_s": ours,
                       "pytorch_eager_steps_per_s": theirs, "median_relreward": a, "median_pytorch": b,
-                      "ratio": a / b, "parameters": sum(p.numel() for p in __import__("unet2d_reference").build(CONFIG).parameters())},
+                      "ratio": a / b, "parameters": parameters},
                      indent=2))
 
 

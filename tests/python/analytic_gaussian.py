@@ -8,8 +8,9 @@ prediction is
 
     eps(x_t, t) = sqrt(1 - abar_t) (x_t - sqrt(abar_t) m).
 
-The module's forward(x, t) computes that with the schedule's abar table baked in as a buffer
-(from check_schedule.py's float64 tables, cast to float32). t is int64 [B] in 0..T, 0-based as
+The module (relreward_dev.analytic.AnalyticGaussianEps, the development package, dev/python)
+computes that in forward(x, t) with the schedule's abar table baked in as a buffer (from
+relreward_dev.schedule's float64 tables, cast to float32). t is int64 [B] in 0..T, 0-based as
 in Diffuser.
 
 With --nan-beyond R the output is NaN at every item with an entry |x| > R: a model that goes
@@ -27,35 +28,12 @@ Writes OUT/model.pt and OUT/manifest.json.
 
 import argparse
 import json
-import math
 import os
-import sys
-from typing import List
 
 import torch
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from check_schedule import schedule_tables  # noqa: E402
-
-
-class AnalyticGaussianEps(torch.nn.Module):
-    def __init__(self, alphas_cumprod: torch.Tensor, mean: torch.Tensor, nan_beyond: float = float("inf")):
-        super().__init__()
-        self.nan_beyond = nan_beyond
-        self.register_buffer("sqrt_abar", alphas_cumprod.sqrt().to(torch.float32))
-        self.register_buffer("sqrt_one_minus_abar", (1.0 - alphas_cumprod).sqrt().to(torch.float32))
-        self.register_buffer("mean", mean.to(torch.float32))
-
-    def forward(self, x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
-        shape: List[int] = [t.shape[0]] + [1] * (x.dim() - 1)
-        sa = self.sqrt_abar.index_select(0, t).reshape(shape)
-        s1m = self.sqrt_one_minus_abar.index_select(0, t).reshape(shape)
-        eps = s1m * (x - sa * self.mean)
-        if math.isinf(self.nan_beyond):
-            # The exact model, without the test-only mask's ops (benchmarks time these models).
-            return eps
-        bad = (x.abs() > self.nan_beyond).flatten(1).any(1).reshape(shape)
-        return torch.where(bad, torch.full_like(eps, float("nan")), eps)
+from relreward_dev.analytic import AnalyticGaussianEps
+from relreward_dev.schedule import schedule_tables
 
 
 def main():

@@ -4,10 +4,10 @@
                                        [--transition-dim 5] [--seed 0]
 
 Builds Diffuser's `GaussianDiffusion(TemporalUnet(...))` layout in PyTorch (the TemporalUnet of
-nets_reference.py, which follows `diffuser/models/temporal.py` module by module, wrapped as
-Diffuser's `GaussianDiffusion` holds it: the network under `model.`, schedule buffers beside
-it), draws every parameter at random (GroupNorm affines included, so that none is at its
-default), and writes to OUTDIR:
+relreward_dev.nets, the development package's, which follows `diffuser/models/temporal.py`
+module by module, wrapped as Diffuser's `GaussianDiffusion` holds it: the network under
+`model.`, schedule buffers beside it), draws every parameter at random (GroupNorm affines
+included, so that none is at its default), and writes to OUTDIR:
 
 - `state_dict.npz`: the export step of the documented recipe, i.e. what a user runs on a
   Diffuser checkpoint (`torch.load(path)["ema"]` for a trained one):
@@ -17,7 +17,7 @@ default), and writes to OUTDIR:
 - `check.safetensors`: inputs `x` [B, H, D] float32, `t` [B] int64 and the network's output
   `y` (PyTorch, eval mode) for the Rust side to compare with.
 
-Needs only torch and numpy.
+Needs only torch, numpy and relreward_dev.
 """
 
 import argparse
@@ -27,7 +27,8 @@ import numpy as np
 import torch
 from torch import nn
 
-from nets_reference import TemporalUnet, write_safetensors
+from relreward_dev.nets import TemporalUnet
+from relreward_dev.safetensors import write_safetensors
 
 
 class GaussianDiffusion(nn.Module):

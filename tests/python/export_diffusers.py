@@ -36,8 +36,6 @@ import torch
 from diffusers import DDPMScheduler, UNet2DModel
 from diffusers.schedulers import scheduling_ddpm
 
-from nets_reference import write_safetensors
-
 
 class Denoiser(torch.nn.Module):
     def __init__(self, unet):
@@ -107,6 +105,10 @@ def main():
     (args.out / "manifest.json").write_text(json.dumps(manifest, indent=1) + "\n")
 
     if args.check:
+        # The test's side only (the development package, dev/python): the recipe itself needs
+        # torch and diffusers alone.
+        from relreward_dev.safetensors import write_safetensors
+
         g = torch.Generator().manual_seed(1)
         n = 5
         x = torch.randn(n, *shape, generator=g) * 1.5

@@ -4,7 +4,7 @@
 Writes into OUT:
 
 - ``gaussian.pt`` + ``gaussian.json``: the exact eps-model for data N(m, I) from
-  ``analytic_gaussian.py`` (eps = sqrt(1 - abar_t) (x_t - sqrt(abar_t) m), the schedule's abar
+  ``relreward_dev.analytic``, as ``analytic_gaussian.py`` exports it (eps = sqrt(1 - abar_t) (x_t - sqrt(abar_t) m), the schedule's abar
   table baked in as a buffer) over samples of shape [len(m)]. No parameters, three buffers.
 - ``linear.pt``: eps = W x + b with one ``nn.Linear(D, D)`` over the last dimension (D
   parameters squared plus D), for checking the parameter count; any item shape ending in D.
@@ -22,13 +22,11 @@ DiffusionManifest on their side and compare against ``gaussian.json``.
 import argparse
 import json
 import os
-import sys
 
 import torch
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from analytic_gaussian import AnalyticGaussianEps  # noqa: E402
-from check_schedule import schedule_tables  # noqa: E402
+from relreward_dev.analytic import AnalyticGaussianEps
+from relreward_dev.schedule import schedule_tables
 
 RAISE_MESSAGE = "deliberate failure: this module always raises"
 

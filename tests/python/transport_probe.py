@@ -19,7 +19,7 @@ grpcio-tools' protoc (grpcio ships no reflection stubs; grpcio-reflection is not
 """
 
 import argparse
-import importlib
+import importlib.util
 import json
 import queue
 import sys
@@ -133,9 +133,12 @@ def reflection_modules(workdir):
         status = protoc.main(["protoc", f"-I{workdir}", f"--python_out={workdir}", f"{workdir}/{name}.proto"])
         if status != 0:
             sys.exit(f"protoc failed on {name}.proto")
-    sys.path.insert(0, workdir)
     for version in ("v1", "v1alpha"):
-        modules[version] = importlib.import_module(f"relreward_probe_reflection_{version}_pb2")
+        # Loaded from its file: each generated module stands alone (it imports only protobuf).
+        name = f"relreward_probe_reflection_{version}_pb2"
+        spec = importlib.util.spec_from_file_location(name, Path(workdir) / f"{name}.py")
+        modules[version] = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(modules[version])
     return modules
 
 

@@ -1,5 +1,6 @@
 """diffusers' own UNet2DModel as the independent reference for relreward's native Unet2d
-(server/src/engine/nets/unet2d.rs), driven by server/tests/unet2d_vs_diffusers.rs.
+(server/src/engine/nets/unet2d.rs), driven by server/tests/unet2d_vs_diffusers.rs; the model
+and scheduler are configured by relreward_dev.unet2d (the development package, dev/python).
 
     python unet2d_reference.py CASES.json
 
@@ -23,34 +24,9 @@ import json
 import sys
 
 import torch
-from diffusers import DDPMScheduler, UNet2DModel
 
-from nets_reference import read_safetensors, write_safetensors
-
-
-def build(config):
-    levels = len(config["block_out_channels"])
-    attention = config["attention"]
-    down = ["DownBlock2D"] * (levels - 1) + ["AttnDownBlock2D" if attention else "DownBlock2D"]
-    up = ["AttnUpBlock2D" if attention else "UpBlock2D"] + ["UpBlock2D"] * (levels - 1)
-    return UNet2DModel(
-        sample_size=(config["height"], config["width"]),
-        in_channels=config["channels"],
-        out_channels=config["channels"],
-        block_out_channels=tuple(config["block_out_channels"]),
-        layers_per_block=config["layers_per_block"],
-        down_block_types=tuple(down),
-        up_block_types=tuple(up),
-        norm_num_groups=config["norm_num_groups"],
-        attention_head_dim=config["attention_head_dim"],
-        add_attention=attention,
-    )
-
-
-def scheduler(n_timesteps):
-    scale = 1000.0 / n_timesteps
-    return DDPMScheduler(num_train_timesteps=n_timesteps, beta_schedule="linear",
-                         beta_start=1e-4 * scale, beta_end=0.02 * scale)
+from relreward_dev.safetensors import read_safetensors, write_safetensors
+from relreward_dev.unet2d import build, scheduler
 
 
 def main():

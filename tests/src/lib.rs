@@ -5,6 +5,9 @@
 //! Binaries are taken from the same target directory as the test executable (`make test`
 //! builds them first; `cargo build --release --bins` does too).
 
+pub mod dataset_upload;
+pub mod model_upload;
+
 use std::io::{BufRead, BufReader};
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
@@ -215,11 +218,6 @@ impl TestServer {
     /// Files in the staging area (unfinished uploads).
     pub fn staging_entries(&self) -> usize {
         std::fs::read_dir(self.data_dir.join("staging")).map(|d| d.count()).unwrap_or(0)
-    }
-
-    /// Published blob directories of datasets.
-    pub fn dataset_blobs(&self) -> usize {
-        std::fs::read_dir(self.data_dir.join("blobs/datasets")).map(|d| d.count()).unwrap_or(0)
     }
 
     /// Runs the `relreward` CLI against this server.
@@ -521,31 +519,6 @@ impl TestServer {
             std::thread::sleep(Duration::from_millis(50));
         }
         false
-    }
-
-    /// Every published file under `blobs/<namespace>/`, as "namespace/key/file" -> (sha256,
-    /// size).
-    pub fn blob_files(&self, namespace: &str) -> std::collections::BTreeMap<String, (String, u64)> {
-        use sha2::{Digest, Sha256};
-        let mut out = std::collections::BTreeMap::new();
-        let root = self.data_dir.join("blobs").join(namespace);
-        for blob in std::fs::read_dir(&root).into_iter().flatten().flatten() {
-            for file in std::fs::read_dir(blob.path()).into_iter().flatten().flatten() {
-                let bytes = std::fs::read(file.path()).expect("read stored file");
-                let name = format!(
-                    "{namespace}/{}/{}",
-                    blob.file_name().to_string_lossy(),
-                    file.file_name().to_string_lossy()
-                );
-                out.insert(name, (hex::encode(Sha256::digest(&bytes)), bytes.len() as u64));
-            }
-        }
-        out
-    }
-
-    /// Published blob directories under `blobs/<namespace>/`.
-    pub fn blob_count(&self, namespace: &str) -> usize {
-        std::fs::read_dir(self.data_dir.join("blobs").join(namespace)).map(|d| d.count()).unwrap_or(0)
     }
 }
 

@@ -1,52 +1,14 @@
-//! Server-wide limits, end to end: the data directory's disk budget (`storage.max_bytes`),
-//! connections (`server.max_connections`), calls per connection
-//! (`server.max_concurrent_streams`) and deadlines (`serving.default_deadline_ms`, and
-//! DEADLINE_EXCEEDED when a call's own deadline passes).
+//! Server-wide limits, end to end: connections (`server.max_connections`), calls per connection
+//! (`server.max_concurrent_streams`) and deadlines (`serving.default_deadline_ms`). The limits
+//! whose test also checks what is left on disk (the disk budget, the per-upload quota, an
+//! upload whose deadline passes) are in server/tests/stored_files.rs.
 
 use std::time::Duration;
 
 use relreward_client::tensor::encode_f32;
 use relreward_client::{Client, pb};
-use relreward_tests::{Lines, TestServer, status_code, train_tiny_reward, try_upload_lines};
-use tokio_stream::wrappers::ReceiverStream;
+use relreward_tests::{TestServer, status_code, train_tiny_reward};
 use tonic::Code;
-
-/// 7000 episodes of 24 rows x (2 + 2 float32 + 1 bool) = 2 856 000 payload bytes.
-const BIG: Lines =
-    Lines { episodes: 7000, seed: 1, start: [(1.0, 0.0), (1.0, 0.0)], velocity: [(0.1, 0.0), (0.1, 0.0)] };
-
-#[tokio::test(flavor = "multi_thread")]
-async fn disk_budget_refuses_uploads_beyond_it_and_leaves_nothing_behind() {
-    // Room for two BIG uploads and the metadata database, not three.
-    let server = TestServer::start_with_env(&[("RELREWARD__STORAGE__MAX_BYTES", "7500000")]);
-    let client = server.client().await;
-    try_upload_lines(&client, "one", &BIG).await.expect("first upload fits");
-    try_upload_lines(&client, "two", &BIG).await.expect("second upload fits");
-    let err = try_upload_lines(&client, "three", &BIG).await.expect_err("third is beyond the budget");
-    assert_eq!(status_code(&err), Some(Code::ResourceExhausted), "{err}");
-    let msg = err.to_string();
-    assert!(msg.contains("storage.max_bytes") && msg.contains("'three'"), "names the limit and the upload: {msg}");
-    assert_eq!(server.staging_entries(), 0, "the refused upload left staging files");
-    assert_eq!(server.dataset_blobs(), 2, "only the two stored datasets are on disk");
-    let err = client.get_dataset("three").await.expect_err("not stored");
-    assert_eq!(status_code(&err), Some(Code::NotFound));
-
-    // Deleting one gives its room back.
-    client.delete_dataset("one").await.expect("delete");
-    try_upload_lines(&client, "three", &BIG).await.expect("fits after a delete");
-    assert_eq!(server.dataset_blobs(), 2);
-}
-
-#[tokio::test(flavor = "multi_thread")]
-async fn the_per_upload_quota_names_its_key() {
-    let server = TestServer::start_with_env(&[("RELREWARD__DATASETS__MAX_UPLOAD_BYTES", "100000")]);
-    let client = server.client().await;
-    let err = try_upload_lines(&client, "big", &BIG).await.expect_err("beyond the quota");
-    assert_eq!(status_code(&err), Some(Code::ResourceExhausted), "{err}");
-    assert!(err.to_string().contains("datasets.max_upload_bytes"), "{err}");
-    assert_eq!(server.staging_entries(), 0);
-    assert_eq!(server.dataset_blobs(), 0);
-}
 
 /// Whether a fresh connection gets a ListDatasets answered. The raw RPC, one attempt: the
 /// client's own retry of reads would hide how soon the server refuses.
@@ -105,33 +67,6 @@ async fn calls_beyond_the_stream_limit_wait_for_a_free_stream() {
         .await
         .expect("served once the stream ended")
         .expect("list");
-}
-
-#[tokio::test(flavor = "multi_thread")]
-async fn a_passed_deadline_is_deadline_exceeded_and_an_upload_leaves_nothing() {
-    let server = TestServer::start();
-    let client = server.client().await;
-    // Connected before the timed call: the client's own timer for the deadline also runs
-    // while it connects, which the server cannot see.
-    client.list_datasets().await.expect("warm-up call");
-    let (tx, rx) = tokio::sync::mpsc::channel(4);
-    let header = pb::UploadHeader {
-        name: "stalled".into(),
-        kind: pb::DatasetKind::Samples as i32,
-        arrays: vec![pb::ArraySpec { name: "samples".into(), dtype: pb::Dtype::Float32 as i32, shape: vec![4, 2] }],
-        description: String::new(),
-    };
-    tx.send(pb::UploadDatasetRequest { message: Some(pb::upload_dataset_request::Message::Header(header)) })
-        .await
-        .expect("queue header");
-    let mut request = tonic::Request::new(ReceiverStream::new(rx));
-    request.set_timeout(Duration::from_millis(400));
-    // The client then stalls (keeps `tx` open and sends nothing more).
-    let err = client.datasets().upload_dataset(request).await.expect_err("the deadline passes");
-    assert_eq!(err.code(), Code::DeadlineExceeded, "{err:?}");
-    drop(tx);
-    assert!(relreward_tests::eventually(5, || server.staging_entries() == 0).await, "staging left behind");
-    assert_eq!(server.dataset_blobs(), 0);
 }
 
 #[tokio::test(flavor = "multi_thread")]

@@ -2,398 +2,16 @@
 //! against fixtures exported by `tests/python/export_models.py` (an exact Gaussian eps-model, a
 //! linear model with known parameters, and modules that break their manifest in each way).
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::Command;
-use std::sync::Arc;
 
 use relreward_client::Client;
-use relreward_client::client::UploadProgress;
 use relreward_client::pb::{self, upload_model_request::Message};
-use relreward_tests::{TestServer, eventually, python, repo_root, stderr};
-use sha2::{Digest, Sha256};
+use relreward_tests::model_upload::{
+    ENABLE, fixtures, header, names, raw_upload, read, sample_manifest, sha, upload_messages,
+};
+use relreward_tests::{TestServer, python, repo_root, stderr, train_tiny_reward};
 use tonic::Code;
-
-const ENABLE: (&str, &str) = ("RELREWARD__MODELS__ALLOW_TORCHSCRIPT_UPLOAD", "true");
-/// The Gaussian fixture: data N(MEAN, I), cosine schedule, T = 50.
-const MEAN: &str = "1,-2,0.5";
-const T: u32 = 50;
-
-/// Exports the fixtures into a fresh directory.
-fn fixtures() -> tempfile::TempDir {
-    let dir = tempfile::tempdir().expect("tempdir");
-    let out = Command::new(python())
-        .arg(repo_root().join("tests/python/export_models.py"))
-        .args(["--out", dir.path().to_str().expect("utf-8 path"), "--mean", MEAN, "--T", &T.to_string()])
-        .output()
-        .expect("run export_models.py");
-    assert!(out.status.success(), "export_models.py failed: {}", String::from_utf8_lossy(&out.stderr));
-    dir
-}
-
-fn read(dir: &Path, name: &str) -> Vec<u8> {
-    std::fs::read(dir.join(name)).unwrap_or_else(|e| panic!("{name}: {e}"))
-}
-
-fn sha(bytes: &[u8]) -> String {
-    hex::encode(Sha256::digest(bytes))
-}
-
-/// The manifest of the Gaussian fixture: eps, cosine (s = 0.008), T = 50, samples [3], identity.
-fn sample_manifest(shape: &[u64]) -> pb::DiffusionManifest {
-    pb::DiffusionManifest {
-        parametrization: pb::Parametrization::Epsilon as i32,
-        schedule: Some(pb::Schedule { kind: Some(pb::schedule::Kind::Cosine(pb::schedule::Cosine { s: 0.008 })) }),
-        n_timesteps: T,
-        clip_denoised: false,
-        space: Some(pb::diffusion_manifest::Space::Sample(pb::diffusion_manifest::Sample { shape: shape.to_vec() })),
-        normalizer: Some(pb::Normalizer { kind: Some(pb::normalizer::Kind::Identity(pb::normalizer::Identity {})) }),
-        architecture: None,
-    }
-}
-
-fn header(name: &str, manifest: Option<pb::DiffusionManifest>) -> pb::UploadModelHeader {
-    pb::UploadModelHeader { name: name.into(), manifest, description: format!("fixture {name}"), format: 0 }
-}
-
-fn msg(m: Message) -> pb::UploadModelRequest {
-    pb::UploadModelRequest { message: Some(m) }
-}
-
-/// Header, the bytes in 1000-byte chunks, and a commit with `digest` (the bytes' sha256 when
-/// `None`).
-fn upload_messages(header: pb::UploadModelHeader, bytes: &[u8], digest: Option<&str>) -> Vec<pb::UploadModelRequest> {
-    let mut msgs = vec![msg(Message::Header(header))];
-    msgs.extend(bytes.chunks(1000).map(|c| msg(Message::Chunk(c.to_vec()))));
-    let digest = digest.map_or_else(|| sha(bytes), str::to_owned);
-    msgs.push(msg(Message::Commit(pb::UploadCommit { sha256: digest })));
-    msgs
-}
-
-async fn raw_upload(client: &Client, msgs: Vec<pb::UploadModelRequest>) -> Result<pb::Model, tonic::Status> {
-    client.models().upload_model(tokio_stream::iter(msgs)).await.map(|r| r.into_inner())
-}
-
-async fn names(client: &Client) -> Vec<String> {
-    client.list_models(pb::ModelKind::Unspecified).await.expect("list").into_iter().map(|m| m.name).collect()
-}
-
-fn model_blobs(server: &TestServer) -> usize {
-    std::fs::read_dir(server.data_dir.join("blobs/models")).map(|d| d.count()).unwrap_or(0)
-}
-
-fn model_dirs(server: &TestServer) -> Vec<PathBuf> {
-    let mut dirs: Vec<PathBuf> = std::fs::read_dir(server.data_dir.join("blobs/models"))
-        .map(|d| d.map(|e| e.expect("entry").path()).collect())
-        .unwrap_or_default();
-    dirs.sort();
-    dirs
-}
-
-#[tokio::test(flavor = "multi_thread")]
-async fn upload_get_list_delete_and_restart() {
-    let fx = fixtures();
-    let mut server = TestServer::start_with_env(&[ENABLE]);
-    let client = server.client().await;
-    let gaussian = read(fx.path(), "gaussian.pt");
-
-    let model = raw_upload(&client, upload_messages(header("gauss", Some(sample_manifest(&[3]))), &gaussian, None))
-        .await
-        .expect("upload");
-    assert_eq!(model.name, "gauss");
-    assert_eq!(model.kind, pb::ModelKind::Diffusion as i32);
-    assert_eq!(model.format, pb::ModelFormat::Torchscript as i32);
-    assert_eq!(model.manifest, Some(sample_manifest(&[3])), "the manifest comes back as sent");
-    assert_eq!(model.sha256, sha(&gaussian));
-    assert_eq!(model.size_bytes, gaussian.len() as u64);
-    assert_eq!(model.parameter_count, 0, "the analytic model has buffers only");
-    assert_eq!(model.description, "fixture gauss");
-    assert!(matches!(
-        model.provenance.as_ref().and_then(|p| p.source.as_ref()),
-        Some(pb::provenance::Source::Uploaded(_))
-    ));
-    assert!(model.created_at.as_ref().is_some_and(|t| t.seconds > 1_600_000_000));
-    assert!(model.reward.is_none());
-    assert_eq!(client.get_model("gauss").await.expect("get"), model, "GetModel returns what the upload returned");
-
-    // Stored beside the module: the manifest in the engine's JSON form, equal to what the
-    // Python exporter wrote for the same model.
-    let dirs = model_dirs(&server);
-    assert_eq!(dirs.len(), 1);
-    assert_eq!(std::fs::read(dirs[0].join("module.pt")).expect("module"), gaussian);
-    let stored: serde_json::Value =
-        serde_json::from_slice(&std::fs::read(dirs[0].join("manifest.json")).expect("manifest")).expect("json");
-    let exported: serde_json::Value = serde_json::from_slice(&read(fx.path(), "gaussian.json")).expect("json");
-    assert_eq!(stored, exported);
-
-    // A second model through the client library's own uploader: a trajectory model with an
-    // nn.Linear(3, 3), i.e. 12 parameters, and a limits normalizer.
-    let mut manifest = sample_manifest(&[]);
-    manifest.parametrization = pb::Parametrization::X0 as i32;
-    manifest.clip_denoised = true;
-    manifest.schedule = Some(pb::Schedule {
-        kind: Some(pb::schedule::Kind::Betas(pb::schedule::ExplicitBetas { betas: vec![0.02; T as usize] })),
-    });
-    manifest.space = Some(pb::diffusion_manifest::Space::Trajectory(pb::diffusion_manifest::Trajectory {
-        horizon: 4,
-        action_dim: 1,
-        obs_dim: 2,
-    }));
-    manifest.normalizer = Some(pb::Normalizer {
-        kind: Some(pb::normalizer::Kind::Limits(pb::normalizer::Limits {
-            min: vec![-1.0, 0.0, 2.0],
-            max: vec![1.0, 5.0, 3.0],
-        })),
-    });
-    let progress = Arc::new(UploadProgress::default());
-    let linear = client
-        .upload_model(header("a-linear", Some(manifest.clone())), &fx.path().join("linear.pt"), progress)
-        .await
-        .expect("client upload");
-    assert_eq!(linear.parameter_count, 12);
-    assert_eq!(linear.manifest, Some(manifest));
-    assert_eq!(linear.sha256, sha(&read(fx.path(), "linear.pt")));
-
-    // Listing: by name, paged, filtered by kind.
-    assert_eq!(names(&client).await, ["a-linear", "gauss"]);
-    let first = client
-        .models()
-        .list_models(pb::ListModelsRequest {
-            page: Some(pb::PageRequest { page_size: 1, page_token: String::new() }),
-            kind: 0,
-        })
-        .await
-        .expect("page 1")
-        .into_inner();
-    assert_eq!((first.models.len(), first.next_page_token.as_str()), (1, "after:a-linear"));
-    let second = client
-        .models()
-        .list_models(pb::ListModelsRequest {
-            page: Some(pb::PageRequest { page_size: 1, page_token: first.next_page_token }),
-            kind: 0,
-        })
-        .await
-        .expect("page 2")
-        .into_inner();
-    assert_eq!(second.models.iter().map(|m| m.name.as_str()).collect::<Vec<_>>(), ["gauss"]);
-    assert!(second.next_page_token.is_empty());
-    assert_eq!(client.list_models(pb::ModelKind::Diffusion).await.expect("diffusion").len(), 2);
-    assert!(client.list_models(pb::ModelKind::Reward).await.expect("reward").is_empty());
-    let err = client.models().list_models(pb::ListModelsRequest { page: None, kind: 42 }).await.expect_err("kind");
-    assert_eq!(err.code(), Code::InvalidArgument);
-
-    // Models survive a restart, byte for byte.
-    server.restart();
-    let client = server.client().await;
-    assert_eq!(client.get_model("gauss").await.expect("after restart"), model);
-
-    // Delete: gone from Get, List and disk; a second delete and unknown names are NOT_FOUND.
-    client.delete_model("gauss").await.expect("delete");
-    let err = client.models().get_model(pb::GetModelRequest { name: "gauss".into() }).await.expect_err("gone");
-    assert_eq!(err.code(), Code::NotFound);
-    let err = client.models().delete_model(pb::DeleteModelRequest { name: "gauss".into() }).await.expect_err("twice");
-    assert_eq!(err.code(), Code::NotFound);
-    assert_eq!(names(&client).await, ["a-linear"]);
-    assert_eq!(model_blobs(&server), 1);
-    let err = client.models().get_model(pb::GetModelRequest { name: "Not/A/Name".into() }).await.expect_err("bad name");
-    assert_eq!(err.code(), Code::InvalidArgument);
-    assert!(err.message().starts_with("name:"), "{}", err.message());
-
-    // The name is free again.
-    raw_upload(&client, upload_messages(header("gauss", Some(sample_manifest(&[3]))), &gaussian, None))
-        .await
-        .expect("upload under a freed name");
-}
-
-#[tokio::test(flavor = "multi_thread")]
-async fn bad_uploads_get_their_status_and_store_nothing() {
-    let fx = fixtures();
-    let server = TestServer::start_with_env(&[ENABLE]);
-    let client = server.client().await;
-    let gaussian = read(fx.path(), "gaussian.pt");
-    raw_upload(&client, upload_messages(header("good", Some(sample_manifest(&[3]))), &gaussian, None))
-        .await
-        .expect("baseline upload");
-    assert_eq!(model_blobs(&server), 1);
-
-    let ok = || Some(sample_manifest(&[3]));
-    let edit = |f: &dyn Fn(&mut pb::DiffusionManifest)| {
-        let mut m = sample_manifest(&[3]);
-        f(&mut m);
-        Some(m)
-    };
-    let upload = |name: &str, manifest: Option<pb::DiffusionManifest>, file: &str| {
-        upload_messages(header(name, manifest), &read(fx.path(), file), None)
-    };
-    let mut no_commit = upload("fresh", ok(), "gaussian.pt");
-    no_commit.pop();
-    let mut chunk_first = upload("fresh", ok(), "gaussian.pt");
-    chunk_first.swap(0, 1);
-    let mut after_commit = upload("fresh", ok(), "gaussian.pt");
-    after_commit.push(msg(Message::Chunk(vec![0; 10])));
-    let truncated = upload_messages(header("fresh", ok()), &gaussian[..gaussian.len() / 2], None);
-    let garbage = upload_messages(header("fresh", ok()), b"this is not a TorchScript archive", None);
-    let betas = |n: usize| {
-        Some(pb::Schedule {
-            kind: Some(pb::schedule::Kind::Betas(pb::schedule::ExplicitBetas { betas: vec![0.01; n] })),
-        })
-    };
-
-    let cases: Vec<(&str, Vec<pb::UploadModelRequest>, Code, Vec<&str>)> = vec![
-        (
-            "wrong output shape",
-            upload("fresh", ok(), "wrong_shape.pt"),
-            Code::InvalidArgument,
-            vec!["[2, 2]", "[2, 3]"],
-        ),
-        ("NaN output", upload("fresh", ok(), "nan.pt"), Code::InvalidArgument, vec!["module:", "NaN"]),
-        (
-            "module raises",
-            upload("fresh", ok(), "raises.pt"),
-            Code::InvalidArgument,
-            vec!["module:", "deliberate failure: this module always raises"],
-        ),
-        (
-            "manifest shape the module cannot handle",
-            upload("fresh", Some(sample_manifest(&[4])), "gaussian.pt"),
-            Code::InvalidArgument,
-            vec!["module:", "[2, 4]"],
-        ),
-        ("truncated file", truncated, Code::InvalidArgument, vec!["module: not a loadable TorchScript file"]),
-        ("not a TorchScript file", garbage, Code::InvalidArgument, vec!["module: not a loadable TorchScript file"]),
-        (
-            "unknown schedule kind",
-            upload("fresh", edit(&|m| m.schedule = Some(pb::Schedule { kind: None })), "gaussian.pt"),
-            Code::InvalidArgument,
-            vec!["header.manifest.schedule:"],
-        ),
-        (
-            "missing schedule",
-            upload("fresh", edit(&|m| m.schedule = None), "gaussian.pt"),
-            Code::InvalidArgument,
-            vec!["header.manifest.schedule: missing"],
-        ),
-        (
-            "missing parametrization",
-            upload("fresh", edit(&|m| m.parametrization = 0), "gaussian.pt"),
-            Code::InvalidArgument,
-            vec!["header.manifest.parametrization"],
-        ),
-        (
-            "missing n_timesteps",
-            upload("fresh", edit(&|m| m.n_timesteps = 0), "gaussian.pt"),
-            Code::InvalidArgument,
-            vec!["header.manifest.n_timesteps"],
-        ),
-        (
-            "missing space",
-            upload("fresh", edit(&|m| m.space = None), "gaussian.pt"),
-            Code::InvalidArgument,
-            vec!["header.manifest.space: missing"],
-        ),
-        (
-            "missing normalizer",
-            upload("fresh", edit(&|m| m.normalizer = None), "gaussian.pt"),
-            Code::InvalidArgument,
-            vec!["header.manifest.normalizer: missing"],
-        ),
-        (
-            "missing manifest",
-            upload("fresh", None, "gaussian.pt"),
-            Code::InvalidArgument,
-            vec!["header.manifest: missing"],
-        ),
-        (
-            "betas length mismatch",
-            upload("fresh", edit(&|m| m.schedule = betas(7)), "gaussian.pt"),
-            Code::InvalidArgument,
-            vec!["header.manifest.schedule.betas: 7 values but n_timesteps is 50"],
-        ),
-        (
-            "normalizer length mismatch",
-            upload(
-                "fresh",
-                edit(&|m| {
-                    m.normalizer = Some(pb::Normalizer {
-                        kind: Some(pb::normalizer::Kind::Gaussian(pb::normalizer::Gaussian {
-                            mean: vec![0.0],
-                            std: vec![1.0],
-                        })),
-                    })
-                }),
-                "gaussian.pt",
-            ),
-            Code::InvalidArgument,
-            vec!["header.manifest.normalizer.mean"],
-        ),
-        (
-            "digest mismatch",
-            upload_messages(header("fresh", ok()), &gaussian, Some(&sha(b"something else"))),
-            Code::InvalidArgument,
-            vec!["commit.sha256"],
-        ),
-        ("duplicate name", upload("good", ok(), "gaussian.pt"), Code::AlreadyExists, vec!["header.name", "'good'"]),
-        ("bad name", upload("Bad/Name", ok(), "gaussian.pt"), Code::InvalidArgument, vec!["header.name:"]),
-        ("no commit", no_commit, Code::InvalidArgument, vec!["without a commit"]),
-        ("chunk before header", chunk_first, Code::InvalidArgument, vec!["must be a header"]),
-        ("message after commit", after_commit, Code::InvalidArgument, vec!["commit: must be the last message"]),
-        ("empty stream", Vec::new(), Code::InvalidArgument, vec!["empty"]),
-    ];
-    for (what, msgs, code, needles) in cases {
-        let err = raw_upload(&client, msgs).await.expect_err(what);
-        eprintln!("{what}: {:?} {}", err.code(), err.message());
-        assert_eq!(err.code(), code, "{what}: {}", err.message());
-        for needle in needles {
-            assert!(err.message().contains(needle), "{what}: '{}' should contain '{needle}'", err.message());
-        }
-        assert!(!err.message().contains(&server.data_dir.display().to_string()), "{what}: leaks a path");
-        assert_eq!(names(&client).await, ["good"], "{what}: nothing registered");
-        assert!(eventually(5, || server.staging_entries() == 0).await, "{what}: staging left behind");
-        assert_eq!(model_blobs(&server), 1, "{what}: no model files published");
-    }
-}
-
-#[tokio::test(flavor = "multi_thread")]
-async fn uploads_are_off_by_default_and_bounded_in_size() {
-    let fx = fixtures();
-    let gaussian = read(fx.path(), "gaussian.pt");
-    let msgs = || upload_messages(header("gauss", Some(sample_manifest(&[3]))), &gaussian, None);
-
-    let server = TestServer::start();
-    let client = server.client().await;
-    let err = raw_upload(&client, msgs()).await.expect_err("disabled");
-    assert_eq!(err.code(), Code::FailedPrecondition);
-    assert!(err.message().contains("models.allow_torchscript_upload"), "{}", err.message());
-    assert!(err.message().contains("RELREWARD__MODELS__ALLOW_TORCHSCRIPT_UPLOAD"), "{}", err.message());
-    assert!(names(&client).await.is_empty());
-    assert_eq!((server.staging_entries(), model_blobs(&server)), (0, 0));
-    drop(server);
-
-    let limit = (gaussian.len() / 2).to_string();
-    let server = TestServer::start_with_env(&[ENABLE, ("RELREWARD__MODELS__MAX_UPLOAD_BYTES", &limit)]);
-    let client = server.client().await;
-    let err = raw_upload(&client, msgs()).await.expect_err("too large");
-    assert_eq!(err.code(), Code::ResourceExhausted);
-    assert!(err.message().contains("models.max_upload_bytes"), "{}", err.message());
-    assert!(names(&client).await.is_empty());
-    assert!(eventually(5, || server.staging_entries() == 0).await);
-    assert_eq!(model_blobs(&server), 0);
-}
-
-#[tokio::test(flavor = "multi_thread")]
-async fn uploads_count_against_the_disk_budget() {
-    // A budget the metadata database alone nearly fills: a 2 MB module does not fit.
-    let server = TestServer::start_with_env(&[ENABLE, ("RELREWARD__STORAGE__MAX_BYTES", "1000000")]);
-    let client = server.client().await;
-    let bytes = vec![7u8; 2_000_000];
-    let err = raw_upload(&client, upload_messages(header("huge", Some(sample_manifest(&[3]))), &bytes, None))
-        .await
-        .expect_err("beyond the disk budget");
-    assert_eq!(err.code(), Code::ResourceExhausted, "{}", err.message());
-    assert!(err.message().contains("storage.max_bytes") && err.message().contains("'huge'"), "{}", err.message());
-    assert!(names(&client).await.is_empty());
-    assert!(eventually(5, || server.staging_entries() == 0).await, "the refused upload left staging files");
-    assert_eq!(model_blobs(&server), 0);
-}
 
 /// Native weights: a Diffuser TemporalUnet built in PyTorch (`export_diffuser_temporal.py`),
 /// converted and registered in one command by `relreward model import --name` on a server that
@@ -450,8 +68,8 @@ async fn native_weights_register_through_model_import() {
     assert_eq!(model.parameter_count, report["parameters"].as_u64().expect("parameters"));
     let weights = std::fs::read(d.join("weights.safetensors")).expect("weights");
     assert_eq!(model.sha256, sha(&weights));
-    let dirs = model_dirs(&server);
-    assert_eq!(std::fs::read(dirs[0].join("weights.safetensors")).expect("stored"), weights);
+    let stored = client.download_model("diffuser-native", &d.join("stored"), false).await.expect("download");
+    assert_eq!(std::fs::read(stored.weights()).expect("stored"), weights);
 
     let sample = |client: Client| async move {
         let req = pb::SampleRequest { model: "diffuser-native".into(), n: 2, seed: Some(3), ..Default::default() };
@@ -561,4 +179,91 @@ async fn native_weights_register_through_model_import() {
         "{}",
         stderr(&out)
     );
+}
+
+/// Names of the files in `dir`, sorted.
+fn file_names(dir: &Path) -> Vec<String> {
+    let mut names: Vec<String> = std::fs::read_dir(dir)
+        .expect("read dir")
+        .map(|e| e.expect("entry").file_name().to_string_lossy().into_owned())
+        .collect();
+    names.sort();
+    names
+}
+
+/// DownloadModel hands out what the store holds, checked: an uploaded module byte for byte
+/// with its manifest, a trained reward's native weights with its manifest (what a PyTorch user
+/// rebuilds the net from); through the client library and the CLI, which refuses to overwrite
+/// without --force. An unknown name is NOT_FOUND naming the model, a malformed one
+/// INVALID_ARGUMENT naming `name`.
+#[tokio::test(flavor = "multi_thread")]
+async fn download_returns_the_stored_files() {
+    let fx = fixtures();
+    let server = TestServer::start_with_env(&[ENABLE]);
+    let client = server.client().await;
+    let gaussian = read(fx.path(), "gaussian.pt");
+    let uploaded = raw_upload(&client, upload_messages(header("gauss", Some(sample_manifest(&[3]))), &gaussian, None))
+        .await
+        .expect("upload");
+    let out = tempfile::tempdir().expect("tempdir");
+
+    // The uploaded module: the same bytes and digest, the record GetModel returns, the manifest.
+    let dir = out.path().join("gauss");
+    let got = client.download_model("gauss", &dir, false).await.expect("download");
+    assert_eq!(got.model, uploaded);
+    assert_eq!(got.weights(), dir.join("module.pt"));
+    let bytes = std::fs::read(got.weights()).expect("module");
+    assert_eq!((sha(&bytes), bytes.len() as u64), (uploaded.sha256.clone(), uploaded.size_bytes));
+    assert_eq!(bytes, gaussian);
+    let exported: serde_json::Value = serde_json::from_slice(&read(fx.path(), "gaussian.json")).expect("json");
+    assert_eq!(serde_json::from_str::<serde_json::Value>(&got.manifest_json).expect("json"), exported);
+    assert_eq!(file_names(&dir), ["manifest.json", "module.pt"], "the files and nothing else (no part files)");
+
+    // An existing file is kept unless overwriting is asked for.
+    std::fs::write(dir.join("module.pt"), b"mine").expect("write");
+    let err = client.download_model("gauss", &dir, false).await.expect_err("exists");
+    assert!(err.to_string().contains("module.pt: exists"), "{err}");
+    assert_eq!(std::fs::read(dir.join("module.pt")).expect("kept"), b"mine");
+    client.download_model("gauss", &dir, true).await.expect("overwrite");
+    assert_eq!(std::fs::read(dir.join("module.pt")).expect("module"), gaussian);
+
+    // Unknown and malformed names.
+    let req = |name: &str| pb::DownloadModelRequest { name: name.into() };
+    let err = client.models().download_model(req("no-such-model")).await.expect_err("unknown");
+    assert_eq!(err.code(), Code::NotFound);
+    assert!(err.message().starts_with("name:") && err.message().contains("'no-such-model'"), "{}", err.message());
+    let err = client.models().download_model(req("Not A Name")).await.expect_err("malformed");
+    assert_eq!(err.code(), Code::InvalidArgument);
+    assert!(err.message().starts_with("name:"), "{}", err.message());
+    assert!(client.download_model("no-such-model", &out.path().join("none"), false).await.is_err());
+    assert!(!out.path().join("none").exists(), "a failed download leaves nothing behind");
+
+    // The CLI writes the same files; again only with --force.
+    let cli_dir = out.path().join("cli");
+    let cli_dir_arg = cli_dir.to_str().expect("utf-8 path");
+    let run = server.cli(&["--json", "model", "download", "gauss", "--out", cli_dir_arg]);
+    assert!(run.status.success(), "model download failed:\n{}", stderr(&run));
+    let report: serde_json::Value = serde_json::from_slice(&run.stdout).expect("json");
+    assert_eq!(report["model"]["sha256"], uploaded.sha256);
+    assert_eq!(report["weights"], cli_dir.join("module.pt").to_str().expect("utf-8"));
+    assert_eq!(std::fs::read(cli_dir.join("module.pt")).expect("module"), gaussian);
+    assert_eq!(file_names(&cli_dir), ["manifest.json", "module.pt"]);
+    let again = server.cli(&["model", "download", "gauss", "--out", cli_dir_arg]);
+    assert!(!again.status.success() && stderr(&again).contains("--force"), "{}", stderr(&again));
+    let forced = server.cli(&["model", "download", "gauss", "--out", cli_dir_arg, "--force"]);
+    assert!(forced.status.success(), "{}", stderr(&forced));
+
+    // A trained reward: its native weights and the manifest that rebuilds the net.
+    let tiny = train_tiny_reward(&server, out.path());
+    let reward = client.get_model(&tiny.reward).await.expect("reward");
+    let got = client.download_model(&tiny.reward, &out.path().join("reward"), false).await.expect("download reward");
+    assert_eq!(got.model, reward);
+    assert_eq!(got.weights(), out.path().join("reward").join("weights.safetensors"));
+    let bytes = std::fs::read(got.weights()).expect("weights");
+    assert_eq!((sha(&bytes), bytes.len() as u64), (reward.sha256.clone(), reward.size_bytes));
+    let manifest: serde_json::Value = serde_json::from_str(&got.manifest_json).expect("json");
+    assert_eq!(manifest["architecture"], serde_json::json!({"kind": "windowed_mlp", "window": 4, "hidden": [16, 16]}));
+    assert_eq!(manifest["space"]["horizon"], tiny.horizon);
+    assert_eq!(manifest["n_timesteps"], tiny.n_timesteps);
+    assert!(manifest["normalizer"]["kind"].is_string(), "{manifest}");
 }

@@ -27,12 +27,17 @@ struct ReferenceServer {
 }
 
 impl ReferenceServer {
-    /// Serves `models` from relreward's data directory on a free loopback port.
-    fn start(data_dir: &std::path::Path, models: &[&str]) -> Self {
+    /// Serves `models` on a free loopback port, from the same weights relreward serves,
+    /// downloaded through its API (`DownloadModel`) into `dir/NAME`.
+    async fn start(server: &TestServer, dir: &std::path::Path, models: &[&str]) -> Self {
+        let client = server.client().await;
+        for m in models {
+            client.download_model(m, &dir.join(m), false).await.expect("download the reward");
+        }
         let mut cmd = Command::new(python());
         cmd.arg(repo_root().join("bench/reference/grpc_server.py"))
-            .args(["--listen", "127.0.0.1:0", "--threads", "1", "--data-dir"])
-            .arg(data_dir)
+            .args(["--listen", "127.0.0.1:0", "--threads", "1", "--models-dir"])
+            .arg(dir)
             .stdin(Stdio::null())
             .stdout(Stdio::piped())
             .stderr(Stdio::piped());
@@ -152,7 +157,7 @@ async fn unary_gradients_match_relreward() {
     let server = TestServer::start();
     let tmp = tempfile::tempdir().expect("tmp");
     let models = train_tiny_reward(&server, tmp.path());
-    let reference = ReferenceServer::start(&server.data_dir, &[&models.reward]);
+    let reference = ReferenceServer::start(&server, &tmp.path().join("models"), &[&models.reward]).await;
     let mut ours = server.client().await.rewards();
     let mut theirs = connect(&reference.endpoint).await.rewards();
     let all = requests(&models);
@@ -208,7 +213,7 @@ async fn streamed_gradients_match_relreward_and_errors_stay_in_the_stream() {
     let server = TestServer::start();
     let tmp = tempfile::tempdir().expect("tmp");
     let models = train_tiny_reward(&server, tmp.path());
-    let reference = ReferenceServer::start(&server.data_dir, &[&models.reward]);
+    let reference = ReferenceServer::start(&server, &tmp.path().join("models"), &[&models.reward]).await;
     let mut reqs = requests(&models);
     // A wrong item shape in the middle of the stream: answered with its error, the requests
     // after it still answered.

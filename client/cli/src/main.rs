@@ -1,9 +1,11 @@
 //! `relreward`: the command-line client of a relreward server.
 //!
 //! Module map: this file holds the top-level flags, the dispatch and the exit status;
-//! [`commands`] one module per command family. The crate parses arguments and prints results
-//! only: the connection is `relreward-client`, file formats, the maze generator and the
-//! evaluation are `relreward-toolkit`.
+//! [`commands`] one thin module per command family, which parses flags and prints results.
+//! What the commands do is the library's ([`relreward_cli`]: `ops`, the operations with typed
+//! inputs and results; `train` and `manifest`, the spec and manifest files; `output`); the
+//! connection is `relreward-client`; file formats, the maze generator and the evaluation's math
+//! are `relreward-toolkit`.
 //!
 //! Commands (each family lives in `commands/`; `relreward COMMAND --help` lists every flag, from
 //! the flags' own doc comments, so they are not repeated here):
@@ -23,7 +25,7 @@
 //! - `maze generate`: Maze2D datasets with D4RL's keys from the built-in generator (no server).
 //! - `demo`: the paper's Maze2D pipeline (data, diffusion models, rewards, heatmaps,
 //!   discriminability, steering); `extract`: recordings to rewards with their evaluation,
-//!   `demo` being its maze-generating front end.
+//!   `demo` being its maze-generating front end (both call `ops::extract::pipeline`).
 //!
 //! Global options: `--endpoint URL` (env `RELREWARD_ENDPOINT`, default
 //! `http://127.0.0.1:50051`; `https://` for TLS; a bare `host:port` means `http://host:port`)
@@ -83,11 +85,11 @@ enum Command {
     #[command(subcommand)]
     Job(commands::jobs::JobCommand),
     /// Score items with a reward model: rho per item (and per window, per step).
-    Score(commands::rewards::ScoreArgs),
+    Score(commands::score::ScoreArgs),
     /// Gradients of a reward model: grad_x rho(x_t, t) per item.
-    Grad(commands::rewards::GradArgs),
+    Grad(commands::grad::GradArgs),
     /// Sample from a diffusion model, optionally guided by a reward model.
-    Sample(commands::rewards::SampleArgs),
+    Sample(commands::sample::SampleArgs),
     /// Evaluate a reward: discriminability of base vs expert, reward heatmaps and goal recovery.
     #[command(subcommand)]
     Eval(commands::eval::EvalCommand),
@@ -151,9 +153,9 @@ async fn run(cli: Cli) -> Result<Report> {
         Command::Model(command) => commands::models::run(&ctx, command).await,
         Command::Train(command) => commands::jobs::run_train(&ctx, command).await,
         Command::Job(command) => commands::jobs::run(&ctx, command).await,
-        Command::Score(args) => commands::rewards::score(&ctx, args).await,
-        Command::Grad(args) => commands::rewards::grad(&ctx, args).await,
-        Command::Sample(args) => commands::rewards::sample(&ctx, args).await,
+        Command::Score(args) => commands::score::score(&ctx, args).await,
+        Command::Grad(args) => commands::grad::grad(&ctx, args).await,
+        Command::Sample(args) => commands::sample::sample(&ctx, args).await,
         Command::Eval(command) => commands::eval::run(&ctx, command).await,
         Command::Maze(command) => commands::maze::run(&ctx, command).await,
         Command::Demo(args) => commands::demo::run(&ctx, args).await,

@@ -2,28 +2,32 @@
 
 Binaries: $RELREWARD_SERVER_BIN and $RELREWARD_CLI_BIN, defaulting to the repository's
 target/release/relreward-server and target/release/relreward (what `make test` builds). The
-server is started as tests/src/lib.rs does (`--listen 127.0.0.1:0`, a temporary data dir, no
-metrics port, no shutdown drain, one intra-op thread) and its address read from the first line
-of its stdout.
+server is started by the development package's launcher (relreward_dev.launcher, dev/python)
+as tests/src/lib.rs does (`--listen 127.0.0.1:0`, a temporary data dir, no metrics port, no
+shutdown drain, one intra-op thread) and its address read from the first line of its stdout.
+
+The tests of the locomotion experiment and of examples/ import those folders' scripts as
+modules: both folders are put on sys.path here, the one place that does it.
 """
 
 from __future__ import annotations
 
-import json
-import os
 import pathlib
-import subprocess
 import sys
-import threading
-import time
 from dataclasses import dataclass
 
 import numpy as np
 import pytest
 
+from relreward_dev.launcher import Binaries, Server
+
 REPO = pathlib.Path(__file__).resolve().parents[3]
-SERVER_BIN = pathlib.Path(os.environ.get("RELREWARD_SERVER_BIN", REPO / "target/release/relreward-server"))
-CLI_BIN = pathlib.Path(os.environ.get("RELREWARD_CLI_BIN", REPO / "target/release/relreward"))
+BINARIES = Binaries.of_checkout(REPO)
+SERVER_BIN = BINARIES.server
+# Scripts the tests import: experiments/locomotion's (steer, planner, data, common, diagnose;
+# they import each other as siblings, as when run by path) and examples/'.
+for folder in ("experiments/locomotion", "examples"):
+    sys.path.insert(0, str(REPO / folder))
 
 TINY_DIFFUSION_CONFIG = """[optimization]
 steps = 12
@@ -36,65 +40,17 @@ architecture = { kind = "temporal_unet", dim = 8, dim_mults = [1, 2] }
 """
 
 
-class Server:
-    """A running relreward-server; ``addr`` is host:port, ``cli(...)`` runs the CLI against it."""
-
-    def __init__(self, data_dir: pathlib.Path, env: dict[str, str] | None = None, args: list[str] | None = None,
-                 listen: str = "127.0.0.1:0"):
-        assert SERVER_BIN.exists(), f"{SERVER_BIN} not found: build it (make test) or set RELREWARD_SERVER_BIN"
-        self.data_dir = data_dir
-        self.log_path = data_dir.parent / f"{data_dir.name}-server.log"
-        full_env = dict(os.environ, RELREWARD__ENGINE__INTRA_OP_THREADS="1", RELREWARD__METRICS__LISTEN="",
-                        RELREWARD__SERVER__SHUTDOWN_DRAIN_SECS="0", **(env or {}))
-        self._log = open(self.log_path, "ab")
-        self.proc = subprocess.Popen([str(SERVER_BIN), *(args or []), "--listen", listen, "--data-dir",
-                                      str(data_dir)], stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
-                                     stderr=self._log, env=full_env)
-        line = self._first_line(60)
-        prefix = "relreward-server listening on "
-        if not line.startswith(prefix):
-            self.stop()
-            raise RuntimeError(f"unexpected first line {line!r}; log:\n{self.log()}")
-        self.addr = line[len(prefix):].strip()
-        # Keep draining stdout so the server never blocks on a full pipe.
-        threading.Thread(target=lambda: [None for _ in self.proc.stdout], daemon=True).start()
-
-    def _first_line(self, secs: float) -> str:
-        out: list[str] = []
-        t = threading.Thread(target=lambda: out.append(self.proc.stdout.readline().decode()), daemon=True)
-        t.start()
-        t.join(secs)
-        if not out:
-            self.stop()
-            raise RuntimeError(f"server did not report its address; log:\n{self.log()}")
-        return out[0]
-
-    def log(self) -> str:
-        return self.log_path.read_text(errors="replace") if self.log_path.exists() else ""
-
-    def cli(self, *args: str, check: bool = True) -> subprocess.CompletedProcess:
-        """Runs ``relreward --endpoint http://ADDR ARGS``."""
-        assert CLI_BIN.exists(), f"{CLI_BIN} not found: build it (make test) or set RELREWARD_CLI_BIN"
-        p = subprocess.run([str(CLI_BIN), "--endpoint", f"http://{self.addr}", *args], capture_output=True,
-                           text=True, stdin=subprocess.DEVNULL)
-        if check and p.returncode != 0:
-            raise AssertionError(f"relreward {args} failed ({p.returncode}):\n{p.stdout}\n{p.stderr}\nlog:\n{self.log()}")
-        return p
-
-    def cli_json(self, *args: str) -> dict:
-        return json.loads(self.cli("--json", *args).stdout)
-
-    def stop(self) -> None:
-        if self.proc.poll() is None:
-            self.proc.kill()
-            self.proc.wait()
-        self._log.close()
+def start_server(data_dir: pathlib.Path, env: dict[str, str] | None = None, **kwargs) -> Server:
+    """relreward-server as tests/src/lib.rs starts it (one intra-op thread); ``env``, ``args``
+    and ``listen`` as relreward_dev.launcher.Server takes them. ``stop()`` kills it."""
+    return Server(BINARIES, data_dir, env={"RELREWARD__ENGINE__INTRA_OP_THREADS": "1", **(env or {})}, **kwargs)
 
 
 @pytest.fixture(scope="session")
 def server(tmp_path_factory: pytest.TempPathFactory):
     # TorchScript upload is off by default (a TorchScript file is a program); on for the tests.
-    s = Server(tmp_path_factory.mktemp("server") / "data", env={"RELREWARD__MODELS__ALLOW_TORCHSCRIPT_UPLOAD": "true"})
+    s = start_server(tmp_path_factory.mktemp("server") / "data",
+                     env={"RELREWARD__MODELS__ALLOW_TORCHSCRIPT_UPLOAD": "true"})
     yield s
     s.stop()
 

@@ -333,3 +333,29 @@ def test_minari_integer_and_float16_values_and_flag_values(tmp_path):
     minari_file(tmp_path / "bad_flags.hdf5", h5py, {0: (o, ep["actions"], np.zeros(t, bool), np.array([0, 0, 2, 0]))})
     with pytest.raises(ValueError, match=r"'episode_0/truncations' holds 2 at row 2"):
         datasets.source_of(tmp_path / "bad_flags.hdf5")
+
+
+# Issue 34, items 1 and 6: a root member the Minari reader does not take is refused by name (the
+# Rust reader's rule, tests/minari_root.rs there), never left out of the upload without a word.
+@pytest.mark.parametrize(
+    "fixture, message",
+    [
+        ("minari_bad_group.hdf5", r"group 'episode_abc' that is not an episode group 'episode_<id>'"),
+        ("minari_dup_id.hdf5", r"'episode_01' and 'episode_1' are both episode 1"),
+    ],
+)
+def test_minari_root_members_not_taken_are_refused(fixture, message):
+    pytest.importorskip("h5py")
+    with pytest.raises(ValueError, match=message):
+        datasets.source_of(DATA / "rules" / fixture)
+
+
+def test_a_directory_that_is_not_a_minari_dataset_says_what_it_holds(tmp_path):
+    (tmp_path / "data" / "main_data.hdf5").mkdir(parents=True)
+    with pytest.raises(ValueError, match="main_data.hdf5: is a directory, not Minari's main_data.hdf5 file"):
+        datasets.source_of(tmp_path)
+    looped = tmp_path / "looped"
+    looped.mkdir()
+    (looped / "main_data.hdf5").symlink_to(looped / "main_data.hdf5")
+    with pytest.raises(ValueError, match="symlink loop"):
+        datasets.source_of(looped)

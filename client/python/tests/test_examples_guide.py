@@ -23,11 +23,7 @@ def run_example(name: str, *args: str) -> dict:
 
 
 def test_guide_in_a_numpy_ddpm_loop_moves_samples_toward_the_reward(client, tiny):
-    sys.path.insert(0, str(REPO / "examples"))
-    try:
-        from diffuser_guide import guided_sample
-    finally:
-        sys.path.pop(0)
+    from diffuser_guide import guided_sample  # examples/, on sys.path through conftest.py
     shape = (16, tiny.horizon, tiny.transition_dim)
     with RewardGuide(client, tiny.reward) as guide:
         plain = guided_sample(None, shape, tiny.n_timesteps, scale=2.0, scale_grad_by_std=False, seed=3)

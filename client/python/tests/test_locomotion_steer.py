@@ -12,16 +12,13 @@ from __future__ import annotations
 
 import json
 import math
-import sqlite3
-import sys
 
 import numpy as np
 import pytest
+import relreward
 
-from conftest import REPO
-
-sys.path.insert(0, str(REPO / "experiments" / "locomotion"))
-
+# experiments/locomotion's modules (common, data, planner, steer, diagnose) are on sys.path
+# through conftest.py.
 
 
 def test_tiny_steering_experiment_runs_both_planner_modes(tmp_path):
@@ -75,11 +72,17 @@ def test_tiny_steering_experiment_runs_both_planner_modes(tmp_path):
     saved = json.loads((cfg.work / "hopper-results.json").read_text())
     assert len(saved["episodes"]) == len(eps)
     assert saved["summary"]["arms"]["reward"]["welch"]["p"] <= 1.0
-    # Both networks were trained on x_t with the current state clean, and their manifests say so.
-    with sqlite3.connect(f"file:{cfg.work}/server-data/metadata.sqlite3?mode=ro", uri=True) as db:
-        for name in ("hopper-reward", "hopper-discriminator"):
-            (record,) = db.execute("SELECT record FROM models WHERE name = ?", (name,)).fetchone()
-            assert json.loads(record)["manifest"]["inpaint_condition"] is True, name
+    # Both networks were trained on x_t with the current state clean, and their manifests (as
+    # the API hands them out) say so.
+    server = steer.start_server(cfg.work / "server-data")
+    try:
+        with relreward.Client(server.addr) as client:
+            for name in ("hopper-reward", "hopper-discriminator"):
+                got = client.download_model(name, tmp_path / "downloads" / name)
+                assert got.manifest["inpaint_condition"] is True, name
+                assert json.loads(got.manifest_path.read_text()) == got.manifest
+    finally:
+        server.stop(grace=30)
     table = (cfg.work / "hopper-table.md").read_text()
     assert all(f"| {arm} |" in table for arm in steer.ARMS)
     with Image.open(cfg.work / "hopper-steer.png") as img:
@@ -128,14 +131,14 @@ def test_external_sampler_and_server_sample_draw_the_same_plans(tmp_path):
     ext = pl.unnormalize(planner_mod.sample(pl, state[None, :], n, seed=1))
     data = tmp_path / "server-data"
     data.mkdir()
-    server = steer.Server(None, data)
+    server = steer.start_server(data)
     try:
         client = relreward.Client(server.addr)
         client.upload_model(tmp_path / "pl" / "denoiser.torchscript.pt", "pl",
                             json.loads((tmp_path / "pl" / "manifest.json").read_text()))
         srv = client.sample("pl", n=n, seed=2, conditions={0: obs.astype(np.float32)}).x
     finally:
-        server.stop()
+        server.stop(grace=30)
     assert np.allclose(srv[:, 0, 3:], obs, atol=1e-4) and np.allclose(ext[:, 0, 3:], obs, atol=1e-6)
     free = np.ones((4, 14), bool)
     free[0, 3:] = False  # the inpainted state: equal on both sides, no spread to compare with

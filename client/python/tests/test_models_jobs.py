@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 import relreward
-from conftest import Server, tiny_trajectories
+from conftest import start_server, tiny_trajectories
 
 
 def test_models_list_show(client, tiny):
@@ -115,7 +115,7 @@ def test_watch_resumes_after_a_server_restart(tmp_path):
     port = free_port()
     listen = f"127.0.0.1:{port}"
     data = tmp_path / "data"
-    s1 = Server(data, listen=listen)
+    s1 = start_server(data, listen=listen)
     client = relreward.Client(listen)
     client.upload_dataset("d", tiny_trajectories())
     job = client.submit_job(relreward.DiffusionJob(
@@ -128,7 +128,7 @@ def test_watch_resumes_after_a_server_restart(tmp_path):
         events.append(event)
         if len(servers) == 1 and event.kind == "checkpoint":
             s1.stop()  # SIGKILL mid-job
-            threading.Timer(1.0, lambda: servers.append(Server(data, listen=listen))).start()
+            threading.Timer(1.0, lambda: servers.append(start_server(data, listen=listen))).start()
     try:
         assert len(servers) == 2, "the server was restarted"
         seqs = [e.seq for e in events]
@@ -149,7 +149,7 @@ def test_reads_are_retried_until_the_server_comes_writes_are_not(tmp_path):
             client.delete_dataset("x")  # a write: one attempt
         assert time.monotonic() - started < 1.0
         box = []
-        threading.Timer(0.6, lambda: box.append(Server(tmp_path / "data", listen=listen))).start()
+        threading.Timer(0.6, lambda: box.append(start_server(tmp_path / "data", listen=listen))).start()
         try:
             started = time.monotonic()
             assert client.list_datasets() == []  # a read: retried while the server starts
@@ -196,18 +196,19 @@ def test_discriminator_job(client, tiny):
     assert client.score("py-disc", x).rewards.shape == (2,)
 
 
-def test_native_weights_upload_round_trips_a_trained_model(client, server, tiny):
-    """A trained native model's own weights file, uploaded as native weights with the manifest
-    GetModel returns (which names the architecture), is the same model: same digest, same
-    samples for the same seed. Needs no models.allow_torchscript_upload (weights are data)."""
+def test_native_weights_upload_round_trips_a_trained_model(client, tiny, tmp_path):
+    """A trained native model's own weights file (downloaded), uploaded as native weights with
+    the manifest GetModel returns (which names the architecture), is the same model: same
+    digest, same samples for the same seed. Needs no models.allow_torchscript_upload (weights
+    are data)."""
     import hashlib
 
     base = client.get_model(tiny.base)
     assert base.format == relreward.pb.models.MODEL_FORMAT_NATIVE
     assert base.manifest.WhichOneof("architecture") is not None, "a native model's manifest names its architecture"
-    files = [p for p in (server.data_dir / "blobs" / "models").rglob("weights.safetensors")
-             if hashlib.sha256(p.read_bytes()).hexdigest() == base.sha256]
-    assert files, "the trained model's weights file is in the server's blob store"
+    got = client.download_model(tiny.base, tmp_path / "base")
+    files = [got.path]
+    assert hashlib.sha256(got.path.read_bytes()).hexdigest() == base.sha256
     m = client.upload_model(files[0], "py-native", base.manifest, description="re-uploaded")
     assert m.format == relreward.pb.models.MODEL_FORMAT_NATIVE and m.sha256 == base.sha256
     assert m.parameter_count == base.parameter_count

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import relreward
-from conftest import SERVER_BIN, Server
+from conftest import SERVER_BIN, start_server
 
 
 def make_token(scopes: str) -> tuple[str, str]:
@@ -24,7 +24,7 @@ def test_tokens_and_scopes(tmp_path):
     token, line = make_token("read")
     config = tmp_path / "config.toml"
     config.write_text(f"[security]\n{line}\n")
-    server = Server(tmp_path / "data", args=["--config", str(config)])
+    server = start_server(tmp_path / "data", args=["--config", str(config)])
     try:
         with relreward.Client(server.addr) as anonymous:
             with pytest.raises(relreward.Unauthenticated) as e:

@@ -52,19 +52,33 @@ pub struct Hdf5Error {
 
 pub type Result<T, E = Hdf5Error> = std::result::Result<T, E>;
 
-/// Whether a path looks like HDF5 (by its signature) or a Minari dataset directory.
+/// Whether a path is for this module's readers: a file with HDF5's signature, or a directory
+/// (the only directory form a dataset takes is Minari's, so [`read_hdf5`] says what is wrong
+/// with one that is not a Minari dataset, rather than another reader failing to open it).
 pub fn is_hdf5(path: &Path) -> bool {
     if path.is_dir() {
-        return minari_file(path).is_some();
+        return true;
+    }
+    if std::fs::metadata(path).is_err() && path.symlink_metadata().is_ok() {
+        return true; // a link that cannot be followed: read_hdf5 names it
     }
     let mut magic = [0u8; 8];
     std::fs::File::open(path).and_then(|mut f| std::io::Read::read_exact(&mut f, &mut magic)).is_ok()
         && magic == *b"\x89HDF\r\n\x1a\n"
 }
 
-/// `dir/data/main_data.hdf5` or `dir/main_data.hdf5`, whichever exists.
-fn minari_file(dir: &Path) -> Option<PathBuf> {
-    [dir.join("data").join("main_data.hdf5"), dir.join("main_data.hdf5")].into_iter().find(|p| p.is_file())
+/// `dir/data/main_data.hdf5` or `dir/main_data.hdf5`, the first that exists; one that exists
+/// but is no readable file (a directory, a dangling link, a symlink loop) is named as such.
+fn minari_file(dir: &Path) -> Result<PathBuf> {
+    for p in [dir.join("data").join("main_data.hdf5"), dir.join("main_data.hdf5")] {
+        match std::fs::metadata(&p) {
+            Ok(m) if m.is_file() => return Ok(p),
+            Ok(_) => return Err(err(&p, "is a directory, not Minari's main_data.hdf5 file")),
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound && p.symlink_metadata().is_err() => {}
+            Err(e) => return Err(unreadable(&p, &e)),
+        }
+    }
+    Err(err(dir, "a directory without data/main_data.hdf5 (not a Minari dataset)"))
 }
 
 /// A D4RL file or a Minari dataset: Minari when the root holds `episode_*` groups and no
@@ -73,7 +87,7 @@ pub fn read_hdf5(path: &Path) -> Result<Trajectories> {
     let file_path = data_file(path)?;
     let (root, groups, datasets) = read_root(&file_path)?;
     if !datasets.iter().any(|d| d == "observations") && groups.iter().any(|g| g.starts_with("episode_")) {
-        minari_from(&file_path, &root, &groups)
+        minari_from(&file_path, &root, &groups, &datasets)
     } else {
         d4rl_from(&file_path, &root, &groups, &datasets)
     }
@@ -88,14 +102,16 @@ pub fn read_d4rl(path: &Path) -> Result<Trajectories> {
 /// A Minari dataset: its `main_data.hdf5` or its directory (module docs).
 pub fn read_minari(path: &Path) -> Result<Trajectories> {
     let file_path = data_file(path)?;
-    let (root, groups, _) = read_root(&file_path)?;
-    minari_from(&file_path, &root, &groups)
+    let (root, groups, datasets) = read_root(&file_path)?;
+    minari_from(&file_path, &root, &groups, &datasets)
 }
 
 /// The HDF5 file a path names: the path itself, or a Minari directory's `main_data.hdf5`.
 fn data_file(path: &Path) -> Result<PathBuf> {
     if path.is_dir() {
-        minari_file(path).ok_or_else(|| err(path, "a directory without data/main_data.hdf5 (not a Minari dataset)"))
+        minari_file(path)
+    } else if let Err(e) = std::fs::metadata(path) {
+        Err(unreadable(path, &e))
     } else {
         Ok(path.to_owned())
     }
@@ -107,6 +123,14 @@ fn read_root(path: &Path) -> Result<(Group, Vec<String>, Vec<String>)> {
     let root = file.root_group().map_err(|e| err(path, format!("reading the root group: {e}")))?;
     let (groups, datasets) = root.member_names().map_err(|e| err(path, format!("listing the root: {e}")))?;
     Ok((root, groups, datasets))
+}
+
+/// A path that exists (at least as a link) but cannot be opened: the OS's reason, and the two
+/// usual causes, which its message does not name.
+fn unreadable(path: &Path, e: &std::io::Error) -> Hdf5Error {
+    let link = path.symlink_metadata().is_ok_and(|m| m.file_type().is_symlink());
+    let cause = if link { " (a dangling link or a symlink loop)" } else { "" };
+    err(path, format!("cannot be opened: {e}{cause}"))
 }
 
 fn err(path: &Path, message: impl Into<String>) -> Hdf5Error {
@@ -321,21 +345,23 @@ fn flattened(
     Ok((rows, width, values))
 }
 
-fn minari_from(path: &Path, root: &Group, groups: &[String]) -> Result<Trajectories> {
+fn minari_from(path: &Path, root: &Group, groups: &[String], datasets: &[String]) -> Result<Trajectories> {
     let e = |m: String| err(path, m);
-    let mut episodes: Vec<(u64, &String)> = groups
-        .iter()
-        .filter_map(|g| g.strip_prefix("episode_").and_then(|id| id.parse::<u64>().ok()).map(|id| (id, g)))
-        .collect();
-    episodes.sort();
-    if episodes.is_empty() {
-        return Err(err(path, "no 'episode_<id>' groups (not a Minari main_data.hdf5)"));
-    }
+    let episodes = episode_groups(groups, datasets).map_err(e)?;
     let mut t = Trajectories::default();
     let mut skipped = Vec::new();
+    let mut ignored: Vec<String> = Vec::new();
     for (_, name) in &episodes {
         let ep = root.group(name).map_err(|x| err(path, format!("group '{name}': {x}")))?;
-        let (_, ep_datasets) = ep.member_names().map_err(|x| err(path, format!("group '{name}': {x}")))?;
+        let (ep_groups, ep_datasets) = ep.member_names().map_err(|x| err(path, format!("group '{name}': {x}")))?;
+        // Members the layout does not take (Minari's `rewards`, `infos/`, ...) are named, once each.
+        for key in ep_datasets.iter().cloned().chain(ep_groups.iter().map(|g| format!("{g}/"))) {
+            let taken =
+                matches!(key.as_str(), "observations" | "observations/" | "actions" | "terminations" | "truncations");
+            if !taken && !ignored.contains(&key) {
+                ignored.push(key);
+            }
+        }
         if !ep_datasets.iter().any(|d| d == "actions") {
             return Err(err(path, format!("'{name}/actions' is missing or a group (dict actions are not supported)")));
         }
@@ -385,8 +411,46 @@ fn minari_from(path: &Path, root: &Group, groups: &[String]) -> Result<Trajector
     if !skipped.is_empty() {
         t.notes.push(format!("skipped {} empty episode(s) (no steps): {}", skipped.len(), skipped.join(", ")));
     }
-    t.ignored = vec!["rewards".to_owned(), "infos".to_owned()];
+    ignored.sort();
+    t.ignored = ignored;
     Ok(t)
+}
+
+/// The root's episode groups `episode_<id>` in id order. Minari's root holds nothing else, so
+/// any other member (a group whose id is not a decimal number, such as `episode_abc`, a second
+/// spelling of an id, such as `episode_01` beside `episode_1`, or a dataset) is refused, naming
+/// it: leaving it out would upload part of the recording without a word.
+fn episode_groups<'a>(
+    groups: &'a [String],
+    datasets: &[String],
+) -> std::result::Result<Vec<(u64, &'a String)>, String> {
+    let mut episodes: Vec<(u64, &String)> = Vec::with_capacity(groups.len());
+    let mut others = Vec::new();
+    for g in groups {
+        let id = g.strip_prefix("episode_").filter(|id| !id.is_empty() && id.bytes().all(|b| b.is_ascii_digit()));
+        match id.and_then(|id| id.parse::<u64>().ok()) {
+            Some(id) => episodes.push((id, g)),
+            None => others.push(format!("group '{g}'")),
+        }
+    }
+    others.extend(datasets.iter().map(|d| format!("dataset '{d}'")));
+    if episodes.is_empty() {
+        return Err("no 'episode_<id>' groups (not a Minari main_data.hdf5)".to_owned());
+    }
+    if !others.is_empty() {
+        return Err(format!(
+            "the root holds {} that {} not an episode group 'episode_<id>' (id in decimal digits); a Minari \
+             main_data.hdf5 holds only episode groups, so the file is refused rather than uploaded without {}",
+            others.join(", "),
+            if others.len() == 1 { "is" } else { "are" },
+            if others.len() == 1 { "it" } else { "them" },
+        ));
+    }
+    episodes.sort();
+    if let Some(pair) = episodes.windows(2).find(|w| w[0].0 == w[1].0) {
+        return Err(format!("groups '{}' and '{}' are both episode {}", pair[0].1, pair[1].1, pair[0].0));
+    }
+    Ok(episodes)
 }
 
 #[cfg(test)]

@@ -1,10 +1,12 @@
 //! The relreward research toolkit: what the `relreward` CLI and the end-to-end tests (and
-//! benchmarks, as they need it) share besides the client itself. It opens no connection and never links libtorch;
-//! it uses the client library only for [`relreward_client::UploadSource`].
+//! benchmarks, as they need it) share besides the client itself. It opens no connection, never
+//! links libtorch and does not depend on the client library: its readers produce the wire
+//! contract's [`relreward_proto::upload::UploadSource`], and its evaluation asks for rewards
+//! through [`eval::scorer::Scorer`], which the CLI's operations implement over a connection.
 //!
 //! Module map:
 //! - [`npz`]: reads `.npz`/`.npy` files (D4RL-style trajectories, sample arrays) into an
-//!   [`relreward_client::UploadSource`].
+//!   [`relreward_proto::upload::UploadSource`].
 //! - [`episodes`]: the rules every reader applies to episode boundaries (flags, start indices,
 //!   lengths) and maze walls (`walls` / `wall_map` / `maze_map`).
 //! - [`values`]: the rules every reader applies to values: element types (any integer or

@@ -7,7 +7,8 @@
 //! write never leaves a half-written file under the requested name.
 //!
 //! The zip writer is the one `npyz` re-exports (already used to read archives), so no second
-//! zip implementation enters the build.
+//! zip implementation enters the build; the npy header is written by the reader's own
+//! [`crate::npz`] writer, so the two agree on the format by construction.
 
 use std::fs::File;
 use std::io::{self, BufWriter, Write};
@@ -15,6 +16,8 @@ use std::path::{Path, PathBuf};
 
 use npyz::zip::write::FileOptions;
 use npyz::zip::{CompressionMethod, ZipWriter};
+
+use crate::npz::write_npy_header;
 
 /// Entries larger than this need zip64 records.
 const ZIP32_LIMIT: u64 = u32::MAX as u64;
@@ -48,24 +51,12 @@ impl NpzWriter {
 
     /// Adds a float32 array `name` of `shape` (`values` in row-major order).
     pub fn add_f32(&mut self, name: &str, shape: &[u64], values: &[f32]) -> io::Result<()> {
-        self.add(name, "<f4", shape, values.len(), |w| {
-            for chunk in values.chunks(1 << 14) {
-                let bytes: Vec<u8> = chunk.iter().flat_map(|v| v.to_le_bytes()).collect();
-                w.write_all(&bytes)?;
-            }
-            Ok(())
-        })
+        self.add_le(name, "<f4", shape, values, f32::to_le_bytes)
     }
 
     /// Adds an int64 array `name` of `shape`.
     pub fn add_i64(&mut self, name: &str, shape: &[u64], values: &[i64]) -> io::Result<()> {
-        self.add(name, "<i8", shape, values.len(), |w| {
-            for chunk in values.chunks(1 << 14) {
-                let bytes: Vec<u8> = chunk.iter().flat_map(|v| v.to_le_bytes()).collect();
-                w.write_all(&bytes)?;
-            }
-            Ok(())
-        })
+        self.add_le(name, "<i8", shape, values, i64::to_le_bytes)
     }
 
     /// Adds a bool array `name` of `shape` (episode flags).
@@ -73,6 +64,25 @@ impl NpzWriter {
         self.add(name, "|b1", shape, values.len(), |w| {
             let bytes: Vec<u8> = values.iter().map(|&b| u8::from(b)).collect();
             w.write_all(&bytes)
+        })
+    }
+
+    /// Adds an array of numbers written little-endian by `to_le`, in blocks so that a large
+    /// array is never copied whole.
+    fn add_le<T: Copy, const N: usize>(
+        &mut self,
+        name: &str,
+        descr: &str,
+        shape: &[u64],
+        values: &[T],
+        to_le: fn(T) -> [u8; N],
+    ) -> io::Result<()> {
+        self.add(name, descr, shape, values.len(), |w| {
+            for chunk in values.chunks(1 << 14) {
+                let bytes: Vec<u8> = chunk.iter().flat_map(|&v| to_le(v)).collect();
+                w.write_all(&bytes)?;
+            }
+            Ok(())
         })
     }
 
@@ -92,7 +102,7 @@ impl NpzWriter {
         if numel != Some(len as u64) {
             return Err(invalid(format!("array '{name}': {len} values do not fill shape {shape:?}")));
         }
-        let header = npy_header(descr, shape);
+        let header = write_npy_header(descr, false, shape);
         let size = header.len() as u64 + (len as u64) * 8;
         let options = FileOptions::default()
             .compression_method(CompressionMethod::Stored)
@@ -130,32 +140,12 @@ impl Drop for NpzWriter {
     }
 }
 
-/// The npy 1.0 header for a little-endian C-order array: magic, version, length and the
-/// dictionary, space-padded so that the data starts at a multiple of 64 bytes.
-fn npy_header(descr: &str, shape: &[u64]) -> Vec<u8> {
-    let dims: Vec<String> = shape.iter().map(u64::to_string).collect();
-    let shape_text = match dims.as_slice() {
-        [one] => format!("({one},)"),
-        _ => format!("({})", dims.join(", ")),
-    };
-    let mut text = format!("{{'descr': '{descr}', 'fortran_order': False, 'shape': {shape_text}, }}");
-    // magic (6) + version (2) + length (2) + text + '\n'
-    let unpadded = 10 + text.len() + 1;
-    text.push_str(&" ".repeat((64 - unpadded % 64) % 64));
-    text.push('\n');
-    let mut out = b"\x93NUMPY\x01\x00".to_vec();
-    // Shapes of any realistic rank keep the text far below u16::MAX.
-    out.extend_from_slice(&(text.len().min(usize::from(u16::MAX)) as u16).to_le_bytes());
-    out.extend_from_slice(text.as_bytes());
-    out
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::npz::{npz_keys, read_npy_header, samples_from_npz_or_npy};
-    use relreward_client::UploadSource;
     use relreward_proto::tensor;
+    use relreward_proto::upload::UploadSource;
     use relreward_proto::v1::Dtype;
 
     #[test]
@@ -222,16 +212,5 @@ mod tests {
         assert_eq!(std::fs::read_dir(dir.path()).expect("dir").count(), 0, "temporary file removed");
         // A directory that does not exist is an error at create.
         assert!(NpzWriter::create(dir.path().join("missing/out.npz")).is_err());
-    }
-
-    #[test]
-    fn headers_are_padded_like_numpy() {
-        for shape in [vec![], vec![7], vec![3, 4, 2], vec![1 << 40, 1]] {
-            let h = npy_header("<f4", &shape);
-            assert_eq!(h.len() % 64, 0, "{shape:?}");
-            assert_eq!(*h.last().expect("newline"), b'\n');
-            let info = read_npy_header(&mut h.as_slice()).expect("parses");
-            assert_eq!(info.shape, shape);
-        }
     }
 }

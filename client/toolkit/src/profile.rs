@@ -4,8 +4,8 @@
 //!
 //! Why: a horizon tuned to one simulator's time scale is wrong for another's. The demo's
 //! horizon of 16 rows was tuned on relreward's maze generator; MuJoCo's PointMaze moves about
-//! half as far per row (REFERENCE.md, issue 19), so the same 16 rows see half the motion. The
-//! rule keeps the motion a window sees constant instead of its row count: `H` is the power of
+//! half as far per row (docs/results.md, "The maze generator against MuJoCo", issue 19), so the
+//! same 16 rows see half the motion. The rule keeps the motion a window sees constant instead of its row count: `H` is the power of
 //! two nearest to [`MOTION_PER_WINDOW`] / (mean per-row displacement), the displacement measured
 //! in the limits normalizer's units (each observation coordinate scaled by its range over the
 //! data, as the diffusion model sees it). It is clamped to `[8, 64]` and to the shortest

@@ -7,8 +7,8 @@
 use std::io;
 use std::path::{Path, PathBuf};
 
-use relreward_client::tensor;
-use relreward_client::upload::MemorySource;
+use relreward_proto::tensor;
+use relreward_proto::upload::MemorySource;
 
 use crate::episodes::Walls;
 use crate::npz_write::NpzWriter;
@@ -183,7 +183,7 @@ impl Trajectories {
     /// with the same rules) plus its walls.
     pub fn from_npz(path: &Path) -> io::Result<Self> {
         let mut source = crate::npz::trajectories_from_npz(path).map_err(io::Error::other)?;
-        let specs = relreward_client::UploadSource::arrays(&source).to_vec();
+        let specs = relreward_proto::upload::UploadSource::arrays(&source).to_vec();
         let bad = |name: &str, e: String| {
             io::Error::new(io::ErrorKind::InvalidData, format!("{}: '{name}': {e}", path.display()))
         };

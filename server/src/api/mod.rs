@@ -19,13 +19,11 @@ use relreward_proto::v1::{
 use tonic::service::Routes;
 
 use crate::config::Config;
-use std::sync::Arc;
-
-use tokio::sync::Semaphore;
-
 use crate::jobs::JobManager;
+use crate::sampling::Sampling;
 use crate::serving::Serving;
 use crate::store::Store;
+use crate::tasks::Tasks;
 
 /// Page size when a request leaves it at 0, and the cap on any page.
 const DEFAULT_PAGE: usize = 100;
@@ -62,12 +60,14 @@ pub(crate) fn timestamp(ms: i64) -> prost_types::Timestamp {
 /// Every relreward.v1 service, and the Open Inference Protocol's, with the configured message
 /// limits and compression (gzip and deflate requests accepted; responses per
 /// `server.response_compression`; a decompressed message is bounded by max_request_bytes too).
+/// `streams`: the group GradientStream's tasks belong to.
 pub fn routes(
     config: &Config,
     store: Store,
     job_manager: JobManager,
     serving: Serving,
-    slots: Arc<Semaphore>,
+    sampling: Sampling,
+    streams: Tasks,
 ) -> Routes {
     let registry = serving.registry().clone();
     let (max_in, max_out) = (config.server.max_request_bytes, config.server.max_response_bytes);
@@ -80,8 +80,14 @@ pub fn routes(
     ))
     .max_decoding_message_size(max_in)
     .max_encoding_message_size(max_out);
-    let model_service =
-        models::Models::new(store.clone(), registry.clone(), job_manager.clone(), config.models.clone(), budget);
+    let model_service = models::Models::new(
+        store.clone(),
+        registry.clone(),
+        job_manager.clone(),
+        config.models.clone(),
+        budget,
+        max_out,
+    );
     let models =
         ModelServiceServer::new(model_service).max_decoding_message_size(max_in).max_encoding_message_size(max_out);
     let jobs = JobServiceServer::new(jobs::Jobs::new(store.clone(), job_manager))
@@ -90,7 +96,7 @@ pub fn routes(
     let inference = GrpcInferenceServiceServer::new(oip::Inference::new(serving.clone()))
         .max_decoding_message_size(max_in)
         .max_encoding_message_size(max_out);
-    let rewards = RewardServiceServer::new(rewards::Rewards::new(serving, slots))
+    let rewards = RewardServiceServer::new(rewards::Rewards::new(serving, sampling, streams))
         .max_decoding_message_size(max_in)
         .max_encoding_message_size(max_out);
     Routes::new(with_compression!(datasets, config))

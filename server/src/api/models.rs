@@ -19,19 +19,32 @@
 //!    inserted (`Store::commit_model`).
 //!
 //! Any error, or a stream that ends early, drops the `Staging` guard, which removes the files.
+//!
+//! Download (`DownloadModel`, server streaming, the mirror of upload): the record, its blob's
+//! files checked against their digests on a blocking thread (a corrupt model is `DataLoss`
+//! before a byte leaves), then one `header` (the record, the stored manifest as JSON, each
+//! file's name, size and sha256) and the files' bytes in chunks bounded by
+//! `server.max_response_bytes`. The files are opened before the header is sent, so a model
+//! deleted meanwhile still streams whole (its blob is immutable until removed).
 
+use std::path::Path;
+use std::pin::Pin;
+
+use futures::Stream;
 use relreward_proto::v1::{self as pb, model_service_server::ModelService, upload_model_request::Message};
 use sha2::{Digest, Sha256};
+use tokio::io::AsyncReadExt;
 use tonic::{Request, Response, Status, Streaming};
 
 use super::convert::{diffusion_manifest_from_proto, model_kind_filter_from_proto, model_to_proto};
 use super::{next_upload, page_limit};
 use crate::config::ModelsConfig;
-use crate::engine::registry::ModelRegistry;
 use crate::error::{Error, Result};
 use crate::fields::{self, validate_name};
 use crate::jobs::JobManager;
 use crate::limits::DiskBudget;
+use crate::registry::ModelRegistry;
+use crate::store::digests::{self, DIGEST_FILE, Verified};
 use crate::store::ingest::now_ms;
 use crate::store::{ModelFormat, ModelKind, ModelRecord, Provenance, Store};
 
@@ -47,23 +60,37 @@ const MAX_DESCRIPTION_BYTES: usize = 4096;
 /// An upload of unknown size reserves disk budget in steps of this many bytes as it grows.
 const BUDGET_STEP: u64 = 64 << 20;
 
+/// Largest file chunk of a download (the clients' upload chunk too).
+const DOWNLOAD_CHUNK_BYTES: usize = 1 << 20;
+/// What a chunk message adds to its bytes (oneof tag and length), with room to spare.
+const CHUNK_FRAMING_BYTES: usize = 64;
+
+type DownloadStream = Pin<Box<dyn Stream<Item = Result<pb::DownloadModelResponse, Status>> + Send + 'static>>;
+
 pub struct Models {
     store: Store,
     registry: ModelRegistry,
     jobs: JobManager,
     config: ModelsConfig,
     budget: DiskBudget,
+    /// Bytes per download chunk: [`DOWNLOAD_CHUNK_BYTES`], less where `server.max_response_bytes`
+    /// would not fit it.
+    chunk_bytes: usize,
 }
 
 impl Models {
+    /// `max_response_bytes`: the server's `server.max_response_bytes`, which every streamed
+    /// download chunk must fit.
     pub fn new(
         store: Store,
         registry: ModelRegistry,
         jobs: JobManager,
         config: ModelsConfig,
         budget: DiskBudget,
+        max_response_bytes: usize,
     ) -> Self {
-        Self { store, registry, jobs, config, budget }
+        let chunk_bytes = DOWNLOAD_CHUNK_BYTES.min(max_response_bytes.saturating_sub(CHUNK_FRAMING_BYTES)).max(1);
+        Self { store, registry, jobs, config, budget, chunk_bytes }
     }
 
     async fn upload(&self, mut stream: Streaming<pb::UploadModelRequest>) -> Result<pb::Model> {
@@ -237,6 +264,28 @@ impl Models {
         Ok(pb::ListModelsResponse { models, next_page_token })
     }
 
+    /// The header of a download and its files, opened (see the module doc).
+    async fn download(&self, name: &str) -> Result<(pb::DownloadModelHeader, Vec<(std::fs::File, u64)>)> {
+        validate_name("name", name)?;
+        let not_found = || Error::NotFound(format!("name: model '{name}' not found"));
+        let record = self.store.meta.get_model(name).await?.ok_or_else(not_found)?;
+        let dir = self.store.blobs.local_dir(&record.blob_key).await?;
+        let files = tokio::task::block_in_place(|| stored_files(&record, &dir))?;
+        let mut opened = Vec::with_capacity(files.len());
+        for file in &files {
+            match std::fs::File::open(dir.join(&file.name)) {
+                Ok(f) => opened.push((f, file.size_bytes)),
+                // Deleted between the check and here: as if a moment later.
+                Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Err(not_found()),
+                Err(e) => return Err(e.into()),
+            }
+        }
+        let manifest_json = serde_json::to_string_pretty(&record.manifest)
+            .map_err(|e| Error::internal("encoding the stored manifest", e))?;
+        let header = pb::DownloadModelHeader { model: Some(model_to_proto(&record)?), manifest_json, files };
+        Ok((header, opened))
+    }
+
     async fn delete(&self, name: &str) -> Result<()> {
         validate_name("name", name)?;
         if self.store.meta.get_model(name).await?.is_none() {
@@ -254,8 +303,99 @@ impl Models {
     }
 }
 
+/// The files of a stored model, checked, in download order: the record's file first, then
+/// the others of its blob by name (e.g. a reward's step tables), without the digest list and
+/// `manifest.json` (the header carries the manifest). Blocking: hashes every file once. A
+/// blob with a digest list is checked against it; one from before digest lists existed is
+/// hashed here, and its model file checked against the record. `DataLoss` naming the model
+/// when anything disagrees.
+fn stored_files(record: &ModelRecord, dir: &Path) -> Result<Vec<pb::ModelFile>> {
+    let what = format!("model '{}'", record.name);
+    let sums = match digests::verify_dir(dir, &what)? {
+        Verified::Intact(sums) => sums,
+        Verified::NoList => {
+            let mut sums = std::collections::BTreeMap::new();
+            for entry in std::fs::read_dir(dir)? {
+                let entry = entry?;
+                if entry.file_type()?.is_file() {
+                    let name = entry.file_name().to_string_lossy().into_owned();
+                    sums.insert(name, digests::sha256_file(&entry.path())?.0);
+                }
+            }
+            sums
+        }
+    };
+    match sums.get(&record.file) {
+        Some(sum) if *sum == record.sha256 => {}
+        Some(sum) => {
+            return Err(Error::DataLoss(format!(
+                "{what} is corrupt: stored file {} fails its integrity check (sha256 {sum}, recorded {})",
+                record.file, record.sha256
+            )));
+        }
+        None => return Err(Error::DataLoss(format!("{what} is corrupt: stored file {} is missing", record.file))),
+    }
+    let others = sums.keys().filter(|n| **n != record.file && *n != DIGEST_FILE && *n != MANIFEST_FILE);
+    std::iter::once(&record.file)
+        .chain(others)
+        .map(|name| {
+            let size_bytes = std::fs::metadata(dir.join(name))?.len();
+            Ok(pb::ModelFile { name: name.clone(), size_bytes, sha256: sums[name].clone() })
+        })
+        .collect()
+}
+
+/// The header, then each file's bytes in chunks of at most `chunk_bytes`, read as the client
+/// takes them (the stream is polled by tonic, so a slow client holds no more than a chunk).
+fn download_stream(
+    header: pb::DownloadModelHeader,
+    files: Vec<(std::fs::File, u64)>,
+    chunk_bytes: usize,
+) -> DownloadStream {
+    use pb::download_model_response::Message as Out;
+    struct State {
+        files: std::vec::IntoIter<(std::fs::File, u64)>,
+        current: Option<(tokio::fs::File, u64)>,
+        failed: bool,
+    }
+    let first =
+        futures::stream::once(async move { Ok(pb::DownloadModelResponse { message: Some(Out::Header(header)) }) });
+    let state = State { files: files.into_iter(), current: None, failed: false };
+    let chunks = futures::stream::unfold(state, move |mut st| async move {
+        if st.failed {
+            return None;
+        }
+        // Skip to the next file with bytes left (an empty file sends no chunk).
+        let (file, left) = loop {
+            match st.current.take() {
+                Some((file, left)) if left > 0 => break (file, left),
+                _ => {
+                    let (file, size) = st.files.next()?;
+                    st.current = Some((tokio::fs::File::from_std(file), size));
+                }
+            }
+        };
+        let n = (chunk_bytes as u64).min(left) as usize;
+        let mut buf = vec![0u8; n];
+        let mut file = file;
+        match file.read_exact(&mut buf).await {
+            Ok(_) => {
+                st.current = Some((file, left - n as u64));
+                Some((Ok(pb::DownloadModelResponse { message: Some(Out::Chunk(buf)) }), st))
+            }
+            Err(e) => {
+                st.failed = true;
+                Some((Err(Status::from(Error::internal("reading a stored model file", e))), st))
+            }
+        }
+    });
+    Box::pin(futures::StreamExt::chain(first, chunks))
+}
+
 #[tonic::async_trait]
 impl ModelService for Models {
+    type DownloadModelStream = DownloadStream;
+
     async fn upload_model(
         &self,
         request: Request<Streaming<pb::UploadModelRequest>>,
@@ -289,17 +429,24 @@ impl ModelService for Models {
         self.delete(&request.into_inner().name).await?;
         Ok(Response::new(pb::DeleteModelResponse {}))
     }
+
+    async fn download_model(
+        &self,
+        request: Request<pb::DownloadModelRequest>,
+    ) -> Result<Response<Self::DownloadModelStream>, Status> {
+        let (header, files) = self.download(&request.into_inner().name).await?;
+        Ok(Response::new(download_stream(header, files, self.chunk_bytes)))
+    }
 }
 
 #[cfg(test)]
 mod tests {
     use std::collections::HashMap;
 
-    use tokio_util::sync::CancellationToken;
-
     use super::*;
     use crate::config::{Config, Overrides};
     use crate::store::{JobRecord, JobState};
+    use crate::tasks::Tasks;
 
     #[tokio::test(flavor = "multi_thread")]
     async fn delete_is_refused_while_a_job_uses_the_model() {
@@ -308,8 +455,9 @@ mod tests {
         let env = config::Environment::with_prefix("RELREWARD").source(Some(HashMap::new()));
         let config = Config::load_with_env(None, &overrides, env).expect("config");
         let store = Store::open(&config).await.expect("store");
-        let jobs =
-            JobManager::start(store.clone(), config.jobs.clone(), true, CancellationToken::new()).await.expect("jobs");
+        let jobs = JobManager::start(store.clone(), config.jobs.clone(), true, Tasks::detached_for_tests("jobs"))
+            .await
+            .expect("jobs");
         let registry = ModelRegistry::new(store.clone(), &config.models, tch::Device::Cpu);
         let models = Models::new(
             store.clone(),
@@ -317,6 +465,7 @@ mod tests {
             jobs,
             config.models.clone(),
             DiskBudget::new(&config.storage.data_dir, 0),
+            config.server.max_response_bytes,
         );
 
         let staging = store.blobs.staging().expect("staging");

@@ -2,7 +2,7 @@
 //! DDPM quantities built from its output: x0_hat, eps_hat, the posterior mean mu and variance,
 //! the score, the forward process and the training loss.
 //!
-//! Conventions (REFERENCE section 2, Diffuser's): inputs are in normalized units, `x` is float32
+//! Conventions (docs/method.md section 2, Diffuser's): inputs are in normalized units, `x` is float32
 //! `[B, *item_shape]` and `t` int64 `[B]` in `0..T` (`t = 0` is the last denoising step). Every
 //! entry point validates shapes and `t` and answers `InvalidArgument` naming what was expected
 //! and what was given, so no libtorch op downstream can fail on a caller's shape.
@@ -442,7 +442,7 @@ mod tests {
 
     #[test]
     fn mean_difference_is_score_difference_times_beta_over_sqrt_alpha() {
-        // REFERENCE section 1: mu_expert - mu_base = beta_t / sqrt(alpha_t) (s_expert - s_base).
+        // docs/method.md section 1: mu_expert - mu_base = beta_t / sqrt(alpha_t) (s_expert - s_base).
         let base = model(Parametrization::Epsilon, &[0.0; 12], false);
         let expert = model(Parametrization::Epsilon, &MEAN, false);
         let (x, t) = inputs(5);

@@ -12,6 +12,9 @@
 //! - [`sampling`]: ancestral sampling with inpainting conditions and classifier guidance.
 //! - [`optim`]: Adam and EMA whose state checkpoints can hold.
 //! - [`relative_reward`]: the gradient-alignment objective of Algorithm 1.
+//! - [`reward_trainer`]: [`reward_trainer::RelativeRewardTrainer`], Algorithms 1 and 2 as one
+//!   type a job drives: rho, the frozen models, the training pairs, a step's loss and the
+//!   held-out error.
 //! - [`target_pool`]: Algorithm 1's amortised targets: a pool of (t, target, point) computed
 //!   in big passes, each reused several times, refreshed a fraction per epoch.
 //! - [`threads`]: two independent computations (Algorithm 1's base and expert passes) side
@@ -21,8 +24,6 @@
 //!   denoiser, validated against its manifest by one forward pass.
 //! - [`reward_model`]: [`reward_model::RewardModel`], a stored reward as served: rho over
 //!   normalized inputs (with Algorithm 2's per-step standardisation), its gradient.
-//! - [`registry`]: [`registry::ModelRegistry`], stored diffusion and reward models loaded on
-//!   demand, integrity-checked (sha256) and cached in memory up to `models.cache_bytes` (LRU).
 
 pub mod data;
 pub mod denoiser;
@@ -31,9 +32,9 @@ pub mod manifest;
 pub mod nets;
 pub mod normalizer;
 pub mod optim;
-pub mod registry;
 pub mod relative_reward;
 pub mod reward_model;
+pub mod reward_trainer;
 pub mod rng;
 pub mod sampling;
 pub mod schedule;

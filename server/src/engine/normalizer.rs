@@ -109,6 +109,21 @@ impl Normalizer {
         }
     }
 
+    /// Raw → normalized on host float32 values, in place, without a tensor (per-request work
+    /// that stays off libtorch). `values` holds whole items row-major, so element k is
+    /// coordinate k mod [`Self::coordinates`]. The same float32 arithmetic as [`Self::normalize`]
+    /// ((x - offset) * scale, each step rounded to float32), so the same numbers.
+    pub fn normalize_values(&self, values: &mut [f32]) {
+        let Some((offset, scale)) = self.affine() else { return };
+        let offset: Vec<f32> = offset.iter().map(|&o| o as f32).collect();
+        let scale: Vec<f32> = scale.iter().map(|&s| s as f32).collect();
+        for item in values.chunks_mut(offset.len().max(1)) {
+            for ((v, o), s) in item.iter_mut().zip(&offset).zip(&scale) {
+                *v = (*v - o) * s;
+            }
+        }
+    }
+
     /// Normalized → raw. Constant coordinates come back as their constant.
     pub fn unnormalize(&self, x: &Tensor, item_dims: usize) -> Tensor {
         match self.affine() {
@@ -168,6 +183,27 @@ mod tests {
         let w = t(&[1.0, -2.0, 0.5, 3.0, 1.0, -1.0], &[2, 3]);
         let g = Tensor::run_backward(&[(&y * &w).sum(Kind::Float)], &[&x], false, false);
         assert!(close(&g[0], &(&w * n.jacobian(&x, 1))));
+    }
+
+    #[test]
+    fn host_values_normalize_to_the_tensor_path_bit_for_bit() {
+        let x: Vec<f32> = (0..24).map(|i| (i as f32 * 0.731).sin() * 7.0 + 0.1).collect();
+        for (n, item_dims) in [
+            (Normalizer::Limits { min: vec![-3.3, 0.0, 1e-13], max: vec![9.1, 1.0, 1e-13] }, 1),
+            (Normalizer::Gaussian { mean: (0..6).map(|i| i as f64 * 0.37).collect(), std: vec![0.3; 6] }, 2),
+        ] {
+            let shape: &[i64] = if item_dims == 1 { &[2, 4, 3] } else { &[4, 2, 3] };
+            let want = Vec::<f32>::try_from(&n.normalize(&t(&x, shape), item_dims).view(-1)).expect("f32");
+            let mut got = x.clone();
+            n.normalize_values(&mut got);
+            assert_eq!(
+                got.iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
+                want.iter().map(|v| v.to_bits()).collect::<Vec<_>>()
+            );
+        }
+        let mut same = x.clone();
+        Normalizer::Identity.normalize_values(&mut same);
+        assert_eq!(same, x);
     }
 
     #[test]

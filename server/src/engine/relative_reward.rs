@@ -16,7 +16,7 @@
 //! (experiments/locomotion/diagnose.py measures both the asymmetry and the split).
 //!
 //! with x_eval = x_t (the paper's formula, default) or mu_base(x_t, t) (the authors' code).
-//! Expert minus base, so grad rho points from base toward expert (REFERENCE section 1). Both
+//! Expert minus base, so grad rho points from base toward expert (docs/method.md section 1). Both
 //! diffusion models are frozen and evaluated under no-grad; the loss reaches rho's parameters
 //! through a double backward (grad_x computed with create_graph).
 //!
@@ -281,7 +281,7 @@ pub struct RewardManifest {
     /// `input_mean[t]` and `input_std[t]` tables stored beside the weights
     /// (`step_norm.safetensors`), and its gradient targets were divided by `target_std[t]`.
     /// New rewards' scale tables hold one value per step, broadcast over the item (see
-    /// `jobs/reward.rs`, `step_stats`); rewards stored with per-element scales load unchanged.
+    /// `engine/reward_trainer.rs`, `step_stats`); rewards stored with per-element scales load unchanged.
     #[serde(default)]
     pub step_normalization: bool,
     /// Trained on x_t with the first observation clean (the job's `inpaint_condition`).

@@ -16,6 +16,7 @@ use tch::{CModule, Device, Kind, TchError, Tensor};
 
 use super::denoiser::{Denoiser, ValidationProbe};
 use super::manifest::DiffusionManifest;
+use super::nets::inputs::check_inputs;
 use crate::error::{Error, Result};
 
 /// Longest module message passed on to the client.
@@ -114,24 +115,8 @@ impl TorchScriptDenoiser {
 
 impl Denoiser for TorchScriptDenoiser {
     fn forward(&self, x: &Tensor, t: &Tensor) -> Result<Tensor> {
+        check_inputs("denoiser", x, t, &self.item_shape, Kind::Float)?;
         let size = x.size();
-        let batch = size.first().copied().unwrap_or(0);
-        if size.len() != self.item_shape.len() + 1 || batch < 1 || size[1..] != self.item_shape[..] {
-            return Err(Error::invalid(format!(
-                "denoiser input x: shape {size:?} does not match [B >= 1, {}]",
-                self.item_shape.iter().map(i64::to_string).collect::<Vec<_>>().join(", ")
-            )));
-        }
-        let (x_kind, t_kind) = (x.f_kind()?, t.f_kind()?);
-        if x_kind != Kind::Float {
-            return Err(Error::invalid(format!("denoiser input x: dtype {x_kind:?}, expected float32")));
-        }
-        if t.size() != [batch] || t_kind != Kind::Int64 {
-            return Err(Error::invalid(format!(
-                "denoiser input t: shape {:?} and dtype {t_kind:?}, expected int64 [{batch}]",
-                t.size()
-            )));
-        }
         // The module passed validation at registration, so a failure now depends on the input
         // (or the module's own code): the model cannot serve this request.
         self.module.forward_ts(&[x, t]).map_err(|e| {

@@ -24,14 +24,27 @@ use super::{MAX_MESSAGE_BYTES, bounded};
 /// tonic's messages for a message over its limits (`tonic::codec`), and the settings behind them.
 const DECODE_PREFIX: &str = "Error, decoded message length too large: found ";
 const ENCODE_PREFIX: &str = "Error, encoded message length too large: found ";
+/// tonic's RESOURCE_EXHAUSTED for a compressed (gzip, deflate) request that inflates past the
+/// same limit: "Error decompressing: size limit, of N bytes, exceeded while decompressing message".
+const INFLATE_PREFIX: &str = "Error decompressing: size limit, of ";
 
 /// The RESOURCE_EXHAUSTED message for tonic's status about a message over a size limit, or
 /// `None` when `status` is not one.
 pub fn message_too_large(status: &Status) -> Option<String> {
+    let message = status.message();
+    if status.code() == Code::ResourceExhausted
+        && let Some(rest) = message.strip_prefix(INFLATE_PREFIX)
+    {
+        // tonic stops inflating at the limit, so the whole size is unknown.
+        let limit = rest.split(|c: char| !c.is_ascii_digit()).find(|s| !s.is_empty())?;
+        return Some(format!(
+            "the request message, decompressed, is over the server's limit of {limit} bytes \
+             (server.max_request_bytes); send less per message (fewer items per call, smaller upload chunks)"
+        ));
+    }
     if status.code() != Code::OutOfRange {
         return None;
     }
-    let message = status.message();
     let (rest, what, setting, advice) = if let Some(rest) = message.strip_prefix(DECODE_PREFIX) {
         (
             rest,
@@ -70,7 +83,8 @@ fn rewrite(headers: &mut HeaderMap, path: Option<&str>) {
     let message = headers.get(Status::GRPC_MESSAGE);
     let long = message.is_some_and(|m| m.len() > MAX_MESSAGE_BYTES);
     let unnamed = code.as_bytes() == b"12" && message.is_none_or(|m| m.is_empty());
-    if !long && !unnamed && code.as_bytes() != b"11" {
+    // 11: OUT_OF_RANGE (a message over a limit); 8: RESOURCE_EXHAUSTED (one that inflates past it).
+    if !long && !unnamed && code.as_bytes() != b"11" && code.as_bytes() != b"8" {
         return;
     }
     let Some(status) = Status::from_header_map(headers) else { return };
@@ -188,6 +202,36 @@ mod tests {
         let s = Status::from_header_map(&headers).expect("status");
         assert_eq!(s.code(), Code::ResourceExhausted);
         assert!(s.message().contains("server.max_request_bytes"), "{}", s.message());
+    }
+
+    /// Issue 34, item 2: a gzip/deflate request that inflates past the limit gets the same code
+    /// and the same setting named as an uncompressed one, in every RPC kind (unary through
+    /// [`rewrite`], streams through `Error::from_inbound`).
+    #[test]
+    fn a_message_that_inflates_past_the_limit_names_the_setting_too() {
+        let inflated = Status::resource_exhausted(
+            "Error decompressing: size limit, of 1048576 bytes, exceeded while decompressing message",
+        );
+        let m = message_too_large(&inflated).expect("recognised");
+        assert!(m.contains("1048576") && m.contains("server.max_request_bytes") && m.contains("decompressed"), "{m}");
+        assert_eq!(message_too_large(&Status::resource_exhausted("queue full")), None);
+        let e = crate::error::Error::from_inbound("upload stream", &inflated);
+        assert!(
+            matches!(&e, crate::error::Error::ResourceExhausted(m) if m.contains("server.max_request_bytes")),
+            "{e:?}"
+        );
+
+        let mut headers = HeaderMap::new();
+        inflated.add_header(&mut headers).expect("header");
+        rewrite(&mut headers, None);
+        let s = Status::from_header_map(&headers).expect("status");
+        assert_eq!(s.code(), Code::ResourceExhausted);
+        assert!(s.message().contains("server.max_request_bytes"), "{}", s.message());
+        // The server's own RESOURCE_EXHAUSTED statuses pass untouched.
+        let mut headers = HeaderMap::new();
+        Status::resource_exhausted("the queue is full").add_header(&mut headers).expect("header");
+        rewrite(&mut headers, None);
+        assert_eq!(Status::from_header_map(&headers).expect("status").message(), "the queue is full");
     }
 
     #[test]

@@ -235,7 +235,7 @@ pub fn run(ctx: &mut JobContext, job: &DiffusionJob) -> std::result::Result<Stri
     let arch = manifest.architecture.clone().ok_or_else(|| Error::internal("diffusion job", "no architecture"))?;
     tch::manual_seed(spec.seed as i64); // initialization only; every later draw uses the loop's Rng
     let denoiser = NativeDenoiser::new(&arch, &manifest.space, device)?;
-    let mut train = TrainLoop::new(denoiser.var_store(), opt, spec.seed);
+    let mut train = TrainLoop::new(denoiser.weights().var_store(), opt, spec.seed);
     let model = DiffusionModel::new(manifest.clone(), Box::new(denoiser))?;
     if train.resume(ctx)?.is_none() {
         ctx.log(format!(

@@ -46,6 +46,7 @@ use crate::error::{Error, Result};
 use crate::fields::validate_name;
 use crate::store::ingest::now_ms;
 use crate::store::{JobEvent, JobEventKind, JobRecord, JobState, Lease, Store};
+use crate::tasks::Tasks;
 
 /// Live-event buffer per job; a watcher further behind re-reads from the store.
 const LIVE_BUFFER: usize = 256;
@@ -68,6 +69,9 @@ struct Inner {
     /// Jobs running in this process: their cancel token and live event channel.
     live: Mutex<HashMap<String, Live>>,
     running: Mutex<HashMap<String, std::thread::JoinHandle<()>>>,
+    /// The job system's group of the server's background work: its token is the shutdown
+    /// signal every job, watcher and dispatcher sees; its tracker counts them all.
+    tasks: Tasks,
     shutdown: CancellationToken,
 }
 
@@ -88,7 +92,7 @@ impl JobManager {
     /// queued jobs, and jobs interrupted by a previous process are resumed (with the embedded
     /// store at once, its leases broken by `Store::open`; with the shared store once their
     /// leases lapse).
-    pub async fn start(store: Store, config: JobsConfig, work: bool, shutdown: CancellationToken) -> Result<Self> {
+    pub async fn start(store: Store, config: JobsConfig, work: bool, tasks: Tasks) -> Result<Self> {
         let inner = Arc::new(Inner {
             store,
             config,
@@ -97,7 +101,8 @@ impl JobManager {
             wake: Notify::new(),
             live: Mutex::new(HashMap::new()),
             running: Mutex::new(HashMap::new()),
-            shutdown,
+            shutdown: tasks.token().clone(),
+            tasks,
         });
         let manager = Self { inner };
         if work {
@@ -107,7 +112,7 @@ impl JobManager {
                 "running jobs"
             );
             let dispatcher = manager.clone();
-            tokio::spawn(async move { dispatcher.dispatch().await });
+            manager.inner.tasks.spawn(async move { dispatcher.dispatch().await });
         }
         Ok(manager)
     }
@@ -170,10 +175,12 @@ impl JobManager {
         );
         lock(&self.inner.live).insert(id.clone(), live.clone());
         let finished = CancellationToken::new();
-        tokio::spawn(self.clone().keep_lease(id.clone(), live.cancel.clone(), lost, finished.clone()));
+        self.inner.tasks.spawn(self.clone().keep_lease(id.clone(), live.cancel.clone(), lost, finished.clone()));
         let manager = self.clone();
         let job_id = id.clone();
+        let tracked = self.inner.tasks.enlist();
         let spawned = std::thread::Builder::new().name(format!("job-{}", &id[..id.len().min(11)])).spawn(move || {
+            let _tracked = tracked;
             let released = run_job(ctx);
             finished.cancel();
             if released {
@@ -405,7 +412,7 @@ impl JobManager {
         let manager = self.clone();
         let id = id.to_owned();
         let (tx, rx) = tokio::sync::mpsc::channel(64);
-        tokio::spawn(async move {
+        self.inner.tasks.spawn(async move {
             if let Err(e) = manager.follow(&id, from_seq, &tx).await {
                 let _ = tx.send(Err(e)).await;
             }
@@ -483,6 +490,8 @@ impl JobManager {
                 tracing::warn!(job = id, "job did not stop within the grace period");
             }
         }
+        // The dispatcher, lease keepers and watchers end with their jobs or at the token.
+        self.inner.tasks.stop(deadline.saturating_duration_since(tokio::time::Instant::now())).await;
     }
 }
 
@@ -507,7 +516,19 @@ fn run_job(mut ctx: JobContext) -> bool {
     let resumed = ctx.record().state == JobState::Running;
     let worker = ctx.owner().to_owned();
     let message = if resumed {
-        format!("resumed at step {} on {worker}", ctx.record().step)
+        // The step training goes on from is its latest recorded checkpoint's (0 without one),
+        // not the last progress before the interruption: the steps after the checkpoint are
+        // trained again. (Should that checkpoint prove corrupt, the runner falls back to the
+        // previous one and its log says so: "resumed from the checkpoint at step N".)
+        let progress = ctx.record().step;
+        match ctx.record().checkpoint.as_ref().map(|c| c.step) {
+            Some(step) => format!(
+                "resumed at step {step} on {worker} (its latest checkpoint; progress had reached step {progress})"
+            ),
+            None => format!(
+                "resumed at step 0 on {worker} (no checkpoint was recorded; progress had reached step {progress})"
+            ),
+        }
     } else {
         format!("started on {worker}")
     };

@@ -72,17 +72,22 @@ fn method_name(path: &str) -> String {
 }
 
 fn authenticate(table: &TokenTable, headers: &HeaderMap, now: SystemTime) -> Result<Principal, Status> {
-    let Some(value) = headers.get(AUTHORIZATION) else {
+    let mut values = headers.get_all(AUTHORIZATION).iter();
+    let Some(value) = values.next() else {
         return Err(Status::unauthenticated(format!(
             "authorization: missing; this server requires a token: {HOW_TO_SEND}"
         )));
     };
-    let token = value
-        .to_str()
-        .ok()
-        .and_then(|v| v.split_once(' '))
-        .filter(|(scheme, _)| scheme.eq_ignore_ascii_case("bearer"))
-        .map(|(_, token)| token.trim())
+    // Two credentials are ambiguous (which one did the caller mean?): refused, not resolved by
+    // taking either.
+    let more = values.count();
+    if more > 0 {
+        return Err(Status::unauthenticated(format!(
+            "authorization: sent {} times; send it once: {HOW_TO_SEND}",
+            more + 1
+        )));
+    }
+    let token = bearer_token(value)
         .ok_or_else(|| Status::unauthenticated(format!("authorization: not a bearer token; {HOW_TO_SEND}")))?;
     match table.verify(token, now) {
         Verdict::Valid(principal) => Ok(principal),
@@ -93,6 +98,22 @@ fn authenticate(table: &TokenTable, headers: &HeaderMap, now: SystemTime) -> Res
             Err(Status::unauthenticated("authorization: the bearer token is not valid for this server"))
         }
     }
+}
+
+/// The token of a well-formed `Bearer <token>` value: the scheme in any case, exactly one
+/// space, then a token holding no whitespace. Anything looser (`Bearer  TOKEN`, a trailing
+/// space, a tab) is refused rather than repaired, so that one credential has one spelling.
+fn bearer_token(value: &http::HeaderValue) -> Option<&str> {
+    let (scheme, token) = value.to_str().ok()?.split_once(' ')?;
+    let well_formed =
+        scheme.eq_ignore_ascii_case("bearer") && !token.is_empty() && !token.contains(char::is_whitespace);
+    well_formed.then_some(token)
+}
+
+/// Whether an admitted call to `path` goes to the audit log: calls to methods that need
+/// `train` or `admin` (changes), whatever the caller's token could do; reads are too many to log.
+fn audited(path: &str) -> bool {
+    matches!(access(path), Some(Access::Needs(scope)) if scope > Scope::Read)
 }
 
 /// The remote address of the connection a request arrived on (plain TCP or TLS), for logs.
@@ -154,8 +175,7 @@ where
         match self.policy.authorize(path, request.headers(), SystemTime::now()) {
             Ok(principal) => {
                 if let Some(principal) = principal {
-                    if principal.scope > Scope::Read {
-                        // An audit trail of who changed what; reads are too many to log.
+                    if audited(path) {
                         tracing::info!(token = &*principal.name, method = path, "authorized call");
                     }
                     // Handlers never see the secret (nothing can log it by accident).
@@ -279,6 +299,38 @@ mod tests {
         assert!(err.message().contains("'old' expired at 2001-01-01T00:00:00Z"), "{}", err.message());
         // The scheme is case-insensitive.
         assert_eq!(code(&f.policy, score, Some(&format!("bearer {}", f.read))), Code::Ok);
+    }
+
+    /// Issue 34, item 8: one credential, one spelling. A second `authorization` header and a
+    /// value with extra whitespace are refused (today's main took the first header and trimmed).
+    #[test]
+    fn duplicate_and_loosely_spelled_credentials_are_refused() {
+        let f = fixture();
+        let score = "/relreward.v1.RewardService/Score";
+        for auth in [
+            format!("Bearer  {}", f.read),
+            format!("Bearer {} ", f.read),
+            format!("Bearer\t{}", f.read),
+            format!("Bearer {} {}", f.read, f.read),
+        ] {
+            let err = f.policy.authorize(score, &headers(Some(&auth)), SystemTime::now()).expect_err("loose");
+            assert_eq!(err.code(), Code::Unauthenticated, "{auth:?}");
+            assert!(err.message().starts_with("authorization: not a bearer token"), "{}", err.message());
+        }
+        let mut twice = headers(Some(&format!("Bearer {}", f.read)));
+        twice.append(AUTHORIZATION, HeaderValue::from_str(&format!("Bearer {}", f.admin)).expect("header"));
+        let err = f.policy.authorize(score, &twice, SystemTime::now()).expect_err("two headers");
+        assert_eq!(err.code(), Code::Unauthenticated);
+        assert!(err.message().starts_with("authorization: sent 2 times; send it once"), "{}", err.message());
+    }
+
+    #[test]
+    fn only_calls_that_need_train_or_admin_are_audited() {
+        assert!(audited("/relreward.v1.DatasetService/UploadDataset"));
+        assert!(audited("/relreward.v1.ModelService/DeleteModel"));
+        for read in ["/relreward.v1.RewardService/Score", "/relreward.v1.DatasetService/ListDatasets", "/x"] {
+            assert!(!audited(read), "{read}");
+        }
     }
 
     #[test]

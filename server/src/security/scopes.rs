@@ -69,6 +69,8 @@ pub const METHOD_ACCESS: &[(&str, Access)] = &[
     ("/relreward.v1.ModelService/UploadModel", Needs(Admin)),
     ("/relreward.v1.ModelService/GetModel", Needs(Read)),
     ("/relreward.v1.ModelService/ListModels", Needs(Read)),
+    // A model's weights are what Score and Gradient already answer from: reading them is a read.
+    ("/relreward.v1.ModelService/DownloadModel", Needs(Read)),
     // Models are the product of training jobs and the input of serving: removing one can
     // take a trained reward away from every planner that uses it.
     ("/relreward.v1.ModelService/DeleteModel", Needs(Admin)),
@@ -153,6 +155,7 @@ mod tests {
         assert_eq!(needs("/relreward.v1.RewardService/GradientStream"), Some(Read));
         assert_eq!(needs("/inference.GRPCInferenceService/ModelInfer"), Some(Read));
         assert_eq!(needs("/relreward.v1.JobService/WatchJob"), Some(Read));
+        assert_eq!(needs("/relreward.v1.ModelService/DownloadModel"), Some(Read));
         assert_eq!(needs("/relreward.v1.DatasetService/UploadDataset"), Some(Train));
         assert_eq!(needs("/relreward.v1.DatasetService/DeleteDataset"), Some(Train));
         assert_eq!(needs("/relreward.v1.JobService/SubmitJob"), Some(Train));

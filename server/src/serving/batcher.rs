@@ -2,7 +2,8 @@
 //!
 //! One [`ModelQueue`] per loaded reward model (keyed by its blob key, so a re-registered model
 //! gets a fresh queue), each drained by its own serving thread, started on first use and
-//! stopped after [`IDLE`] without work. The thread:
+//! stopped after [`IDLE`] without work, or at shutdown once its queue is empty (the threads
+//! are the `serving` group of [`crate::tasks`], woken by `Serving::stop`). The thread:
 //!
 //! 1. waits for a query, then up to `max_delay_us` after its arrival (or until `max_batch`
 //!    items of the same [`BatchKind`] are queued);
@@ -23,8 +24,8 @@ use tch::Tensor;
 use tokio::sync::oneshot;
 
 use super::{Answer, HostTensor, Inner, Prepared};
-use crate::engine::registry::SharedReward;
 use crate::error::{Error, Result};
+use crate::registry::SharedReward;
 
 /// A serving thread with nothing to do for this long exits (the next query starts another).
 const IDLE: Duration = Duration::from_secs(30);
@@ -68,7 +69,7 @@ fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
 }
 
 /// Queues `query` with its model's thread (starting one if needed). RESOURCE_EXHAUSTED when
-/// the model's queue is full.
+/// the model's queue is full, UNAVAILABLE once serving is stopping.
 pub(super) fn submit(inner: &Arc<Inner>, query: Prepared) -> Result<oneshot::Receiver<Result<Answer>>> {
     let (reply, answer) = oneshot::channel();
     let mut pending = Some(Pending { query, reply, arrived: Instant::now() });
@@ -109,15 +110,22 @@ fn queue_for(inner: &Arc<Inner>, model: &SharedReward) -> Result<Arc<ModelQueue>
     if let Some(q) = map.get(&model.blob_key) {
         return Ok(Arc::clone(q));
     }
+    if inner.tasks.token().is_cancelled() {
+        return Err(Error::Unavailable("the server is shutting down".into()));
+    }
     let queue = Arc::new(ModelQueue {
         model: Arc::clone(model),
         state: Mutex::new(QueueState::default()),
         arrived: Condvar::new(),
     });
     let (thread_queue, thread_inner) = (Arc::clone(&queue), Arc::clone(inner));
+    let tracked = inner.tasks.enlist();
     std::thread::Builder::new()
         .name(format!("serve-{}", model.name))
-        .spawn(move || serve(&thread_inner, &thread_queue))
+        .spawn(move || {
+            let _tracked = tracked;
+            serve(&thread_inner, &thread_queue);
+        })
         .map_err(|e| Error::internal("starting a serving thread", e))?;
     map.insert(model.blob_key.clone(), Arc::clone(&queue));
     Ok(queue)
@@ -164,14 +172,20 @@ fn serve(inner: &Arc<Inner>, queue: &Arc<ModelQueue>) {
     tracing::debug!(model = name, "serving thread idle: stopped");
 }
 
-/// Waits for work and returns the next batch, or `None` after [`IDLE`] without work (the queue
-/// is then closed).
+/// Waits for work and returns the next batch, or `None` after [`IDLE`] without work or, at
+/// shutdown, once nothing is queued (the queue is then closed).
 fn next_batch(inner: &Inner, queue: &ModelQueue) -> Option<(BatchKind, Vec<Pending>)> {
     let max_batch = inner.config.max_batch as i64;
     let max_delay = Duration::from_micros(inner.config.max_delay_us);
     let mut state = lock(&queue.state);
     loop {
         while state.pending.is_empty() {
+            // Checked under the queue's lock, which `stop` takes to wake the thread: a stop
+            // is never missed between this check and the wait.
+            if inner.tasks.token().is_cancelled() {
+                state.closed = true;
+                return None;
+            }
             let (s, timeout) = queue.arrived.wait_timeout(state, IDLE).unwrap_or_else(PoisonError::into_inner);
             state = s;
             if timeout.timed_out() && state.pending.is_empty() {
@@ -232,6 +246,16 @@ fn keep(inner: &Inner, model: &str, p: Pending, now: Instant) -> Option<Pending>
         return None;
     }
     Some(p)
+}
+
+/// Wakes every serving thread after the serving group's token was cancelled: each serves
+/// what its queue still holds, then exits.
+pub(super) fn wake_all(inner: &Inner) {
+    let queues: Vec<Arc<ModelQueue>> = lock(&inner.queues.by_key).values().cloned().collect();
+    for queue in queues {
+        let _state = lock(&queue.state);
+        queue.arrived.notify_all();
+    }
 }
 
 fn drop_expired(inner: &Inner, model: &str, batch: Vec<Pending>, now: Instant) -> Vec<Pending> {

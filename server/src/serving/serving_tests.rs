@@ -15,10 +15,11 @@ use crate::config::{Config, Overrides};
 use crate::engine::manifest::Space;
 use crate::engine::nets::{RewardArchitecture, RewardNet};
 use crate::engine::normalizer::Normalizer;
-use crate::engine::registry::sha256_file;
 use crate::engine::relative_reward::{EvalPoint, Objective, RewardManifest, Target};
 use crate::engine::reward_model::RewardModel;
+use crate::store::digests::sha256_file;
 use crate::store::{ModelFormat, ModelKind, ModelRecord, Provenance, Store};
+use crate::tasks::Tasks;
 
 const H: i64 = 8;
 const D: i64 = 3;
@@ -77,7 +78,9 @@ async fn fixture(tune: impl FnOnce(&mut ServingConfig)) -> Fixture {
 
     let registry = ModelRegistry::new(store.clone(), &config.models, Device::Cpu);
     let metrics = Metrics::new();
-    let serving = Serving::new(registry, config.serving.clone(), Arc::new(Semaphore::new(2)), metrics.clone());
+    let slots = Arc::new(Semaphore::new(2));
+    let serving =
+        Serving::new(registry, config.serving.clone(), slots, metrics.clone(), Tasks::detached_for_tests("serving"));
     let reference = RewardModel::load(m, &weights, tmp.path(), Device::Cpu).expect("reference");
     Fixture { _tmp: tmp, serving, metrics, reference }
 }

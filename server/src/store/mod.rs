@@ -45,6 +45,7 @@ use std::time::Duration;
 use async_trait::async_trait;
 use serde::{Deserialize, Serialize};
 
+pub use self::records::{Named, NamedRecords};
 use crate::config::Config;
 use crate::error::{Error, Result};
 
@@ -253,22 +254,42 @@ pub enum Lease {
 /// Metadata records. Implementations must make each call atomic.
 #[async_trait]
 pub trait MetadataStore: Send + Sync {
+    /// The backend's dataset and model tables, from which the methods up to `delete_model`
+    /// are provided.
+    fn named_records(&self) -> &dyn NamedRecords;
+
     /// Inserts a new dataset; `Error::AlreadyExists` if the name is taken.
-    async fn insert_dataset(&self, record: &DatasetRecord) -> Result<()>;
-    async fn get_dataset(&self, name: &str) -> Result<Option<DatasetRecord>>;
+    async fn insert_dataset(&self, record: &DatasetRecord) -> Result<()> {
+        self.named_records().insert_record(Named::Datasets, &record.name, &record.blob_key, record).await
+    }
+    async fn get_dataset(&self, name: &str) -> Result<Option<DatasetRecord>> {
+        self.named_records().get_record(Named::Datasets, name).await
+    }
     /// Datasets with names strictly after `after`, in name order, at most `limit`.
-    async fn list_datasets(&self, after: &str, limit: usize) -> Result<Vec<DatasetRecord>>;
+    async fn list_datasets(&self, after: &str, limit: usize) -> Result<Vec<DatasetRecord>> {
+        self.named_records().list_records(Named::Datasets, after, limit).await
+    }
     /// Removes the record and returns it, or `None` if there was none.
-    async fn delete_dataset(&self, name: &str) -> Result<Option<DatasetRecord>>;
+    async fn delete_dataset(&self, name: &str) -> Result<Option<DatasetRecord>> {
+        self.named_records().delete_record(Named::Datasets, name).await
+    }
     /// Every blob key some record refers to (for garbage collection).
     async fn referenced_blob_keys(&self) -> Result<HashSet<String>>;
 
     /// Inserts a new model; `Error::AlreadyExists` if the name is taken.
-    async fn insert_model(&self, record: &ModelRecord) -> Result<()>;
-    async fn get_model(&self, name: &str) -> Result<Option<ModelRecord>>;
+    async fn insert_model(&self, record: &ModelRecord) -> Result<()> {
+        self.named_records().insert_record(Named::Models, &record.name, &record.blob_key, record).await
+    }
+    async fn get_model(&self, name: &str) -> Result<Option<ModelRecord>> {
+        self.named_records().get_record(Named::Models, name).await
+    }
     /// Models with names strictly after `after`, in name order, at most `limit`.
-    async fn list_models(&self, after: &str, limit: usize) -> Result<Vec<ModelRecord>>;
-    async fn delete_model(&self, name: &str) -> Result<Option<ModelRecord>>;
+    async fn list_models(&self, after: &str, limit: usize) -> Result<Vec<ModelRecord>> {
+        self.named_records().list_records(Named::Models, after, limit).await
+    }
+    async fn delete_model(&self, name: &str) -> Result<Option<ModelRecord>> {
+        self.named_records().delete_record(Named::Models, name).await
+    }
 
     /// Inserts a new job with its first events, in one transaction; `Error::AlreadyExists` if
     /// the id is taken.

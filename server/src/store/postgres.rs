@@ -25,8 +25,8 @@ use tokio_postgres::config::SslMode;
 use tokio_postgres::error::SqlState;
 use tokio_postgres_rustls::MakeRustlsConnect;
 
-use super::records::{Named, check_transition, checkpoint_keys, decode, encode, seq_i64};
-use super::{DatasetRecord, JobEvent, JobRecord, JobState, Lease, MetadataStore, ModelRecord};
+use super::records::{Named, NamedRecords, check_transition, checkpoint_keys, decode, encode, seq_i64};
+use super::{JobEvent, JobRecord, JobState, Lease, MetadataStore};
 use crate::config::PostgresConfig;
 use crate::error::{Error, Result, error_chain};
 
@@ -256,7 +256,8 @@ async fn bump_counter(kind: Named, tx: &Transaction<'_>) -> Result<()> {
     Ok(())
 }
 
-impl PostgresMetadata {
+#[async_trait]
+impl NamedRecords for PostgresMetadata {
     async fn insert_named(&self, kind: Named, name: &str, blob_key: &str, json: String) -> Result<()> {
         let mut client = self.client().await?;
         let tx = client.transaction().await?;
@@ -273,19 +274,14 @@ impl PostgresMetadata {
         Ok(())
     }
 
-    async fn get_named<T: serde::de::DeserializeOwned>(&self, kind: Named, name: &str) -> Result<Option<T>> {
+    async fn get_named(&self, kind: Named, name: &str) -> Result<Option<String>> {
         let client = self.client().await?;
         let sql = format!("SELECT record FROM {} WHERE name = $1", kind.table());
         let row = client.query_opt(&sql, &[&name]).await?;
-        row.map(|r| decode(r.get::<_, &str>(0))).transpose()
+        Ok(row.map(|r| r.get::<_, String>(0)))
     }
 
-    async fn list_named<T: serde::de::DeserializeOwned>(
-        &self,
-        kind: Named,
-        after: &str,
-        limit: usize,
-    ) -> Result<Vec<T>> {
+    async fn list_named(&self, kind: Named, after: &str, limit: usize) -> Result<Vec<String>> {
         let client = self.client().await?;
         // COLLATE "C": byte order, the order names sort in with the embedded store too.
         let sql = format!(
@@ -294,17 +290,18 @@ impl PostgresMetadata {
         );
         let limit = i64::try_from(limit).unwrap_or(i64::MAX);
         let rows = client.query(&sql, &[&after, &limit]).await?;
-        rows.iter().map(|r| decode(r.get::<_, &str>(0))).collect()
+        Ok(rows.iter().map(|r| r.get::<_, String>(0)).collect())
     }
 
-    async fn delete_named<T: serde::de::DeserializeOwned>(&self, kind: Named, name: &str) -> Result<Option<T>> {
+    async fn delete_named(&self, kind: Named, name: &str) -> Result<Option<String>> {
         let mut client = self.client().await?;
         let tx = client.transaction().await?;
         let sql = format!("DELETE FROM {} WHERE name = $1 RETURNING record", kind.table());
         let Some(row) = tx.query_opt(&sql, &[&name]).await? else { return Ok(None) };
+        let json = row.get::<_, String>(0);
         bump_counter(kind, &tx).await?;
         tx.commit().await?;
-        decode(row.get::<_, &str>(0)).map(Some)
+        Ok(Some(json))
     }
 }
 
@@ -321,20 +318,8 @@ async fn insert_events(tx: &Transaction<'_>, id: &str, events: &[JobEvent]) -> R
 
 #[async_trait]
 impl MetadataStore for PostgresMetadata {
-    async fn insert_dataset(&self, record: &DatasetRecord) -> Result<()> {
-        self.insert_named(Named::Datasets, &record.name, &record.blob_key, encode(record)?).await
-    }
-
-    async fn get_dataset(&self, name: &str) -> Result<Option<DatasetRecord>> {
-        self.get_named(Named::Datasets, name).await
-    }
-
-    async fn list_datasets(&self, after: &str, limit: usize) -> Result<Vec<DatasetRecord>> {
-        self.list_named(Named::Datasets, after, limit).await
-    }
-
-    async fn delete_dataset(&self, name: &str) -> Result<Option<DatasetRecord>> {
-        self.delete_named(Named::Datasets, name).await
+    fn named_records(&self) -> &dyn NamedRecords {
+        self
     }
 
     async fn referenced_blob_keys(&self) -> Result<HashSet<String>> {
@@ -348,22 +333,6 @@ impl MetadataStore for PostgresMetadata {
             )
             .await?;
         Ok(rows.iter().map(|r| r.get::<_, String>(0)).collect())
-    }
-
-    async fn insert_model(&self, record: &ModelRecord) -> Result<()> {
-        self.insert_named(Named::Models, &record.name, &record.blob_key, encode(record)?).await
-    }
-
-    async fn get_model(&self, name: &str) -> Result<Option<ModelRecord>> {
-        self.get_named(Named::Models, name).await
-    }
-
-    async fn list_models(&self, after: &str, limit: usize) -> Result<Vec<ModelRecord>> {
-        self.list_named(Named::Models, after, limit).await
-    }
-
-    async fn delete_model(&self, name: &str) -> Result<Option<ModelRecord>> {
-        self.delete_named(Named::Models, name).await
     }
 
     async fn insert_job(&self, record: &JobRecord, events: &[JobEvent]) -> Result<()> {

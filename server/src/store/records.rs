@@ -1,6 +1,10 @@
 //! What both metadata backends share ([`super::sqlite`], [`super::postgres`]): the JSON record
-//! format, the named-record tables, the indexed checkpoint keys, and the rules of a job record
-//! write (terminal states, lease fencing), so the two stores cannot drift apart.
+//! format, the named-record tables ([`Named`], and [`NamedRecords`], the four operations a
+//! backend implements once for datasets and models alike), the indexed checkpoint keys, and
+//! the rules of a job record write (terminal states, lease fencing), so the two stores cannot
+//! drift apart.
+
+use async_trait::async_trait;
 
 use super::{JobRecord, JobState};
 use crate::error::{Error, Result};
@@ -22,21 +26,21 @@ pub(crate) fn encode<T: serde::Serialize>(value: &T) -> Result<String> {
 
 /// The tables of named records (name, blob_key, record): datasets and models share their
 /// insert, get, list and delete.
-#[derive(Clone, Copy)]
-pub(crate) enum Named {
+#[derive(Debug, Clone, Copy)]
+pub enum Named {
     Datasets,
     Models,
 }
 
 impl Named {
-    pub(crate) fn table(self) -> &'static str {
+    pub fn table(self) -> &'static str {
         match self {
             Self::Datasets => "datasets",
             Self::Models => "models",
         }
     }
 
-    pub(crate) fn what(self) -> &'static str {
+    pub fn what(self) -> &'static str {
         match self {
             Self::Datasets => "dataset",
             Self::Models => "model",
@@ -44,8 +48,54 @@ impl Named {
     }
 
     /// Model changes are counted (`MetadataStore::models_version`).
-    pub(crate) fn counts_changes(self) -> bool {
+    pub fn counts_changes(self) -> bool {
         matches!(self, Self::Models)
+    }
+}
+
+/// A backend's named-record tables, over encoded records (JSON text): each operation is one
+/// transaction, and inserts and deletes of models bump the models counter in it
+/// ([`Named::counts_changes`]). [`super::MetadataStore`]'s dataset and model methods are
+/// provided from these (encoding and decoding the records), so the backends write them once.
+#[async_trait]
+pub trait NamedRecords: Send + Sync {
+    /// Inserts a record; `Error::AlreadyExists` (naming [`Named::what`]) if the name is taken.
+    async fn insert_named(&self, kind: Named, name: &str, blob_key: &str, json: String) -> Result<()>;
+    async fn get_named(&self, kind: Named, name: &str) -> Result<Option<String>>;
+    /// Records with names strictly after `after`, in byte order of the names, at most `limit`.
+    async fn list_named(&self, kind: Named, after: &str, limit: usize) -> Result<Vec<String>>;
+    /// Removes the record and returns it, or `None` if there was none.
+    async fn delete_named(&self, kind: Named, name: &str) -> Result<Option<String>>;
+}
+
+/// The named-record operations on records rather than their JSON text.
+impl dyn NamedRecords + '_ {
+    pub async fn insert_record<T: serde::Serialize>(
+        &self,
+        kind: Named,
+        name: &str,
+        blob_key: &str,
+        record: &T,
+    ) -> Result<()> {
+        let json = encode(record)?;
+        self.insert_named(kind, name, blob_key, json).await
+    }
+
+    pub async fn get_record<T: serde::de::DeserializeOwned>(&self, kind: Named, name: &str) -> Result<Option<T>> {
+        self.get_named(kind, name).await?.as_deref().map(decode).transpose()
+    }
+
+    pub async fn list_records<T: serde::de::DeserializeOwned>(
+        &self,
+        kind: Named,
+        after: &str,
+        limit: usize,
+    ) -> Result<Vec<T>> {
+        self.list_named(kind, after, limit).await?.iter().map(|json| decode(json)).collect()
+    }
+
+    pub async fn delete_record<T: serde::de::DeserializeOwned>(&self, kind: Named, name: &str) -> Result<Option<T>> {
+        self.delete_named(kind, name).await?.as_deref().map(decode).transpose()
     }
 }
 

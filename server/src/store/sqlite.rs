@@ -12,8 +12,8 @@ use std::time::Duration;
 use async_trait::async_trait;
 use rusqlite::{Connection, OptionalExtension, params};
 
-use super::records::{Named, check_transition, checkpoint_keys, decode, encode, seq_i64};
-use super::{DatasetRecord, JobEvent, JobRecord, JobState, Lease, MetadataStore, ModelRecord};
+use super::records::{Named, NamedRecords, check_transition, checkpoint_keys, decode, encode, seq_i64};
+use super::{JobEvent, JobRecord, JobState, Lease, MetadataStore};
 use crate::error::{Error, Result};
 use crate::store::ingest::now_ms;
 
@@ -119,7 +119,8 @@ fn bump_counter(kind: Named, tx: &rusqlite::Transaction<'_>) -> Result<()> {
     Ok(())
 }
 
-impl SqliteMetadata {
+#[async_trait]
+impl NamedRecords for SqliteMetadata {
     async fn insert_named(&self, kind: Named, name: &str, blob_key: &str, json: String) -> Result<()> {
         let (name, key) = (name.to_owned(), blob_key.to_owned());
         self.with_conn(move |c| {
@@ -139,41 +140,27 @@ impl SqliteMetadata {
         .await
     }
 
-    async fn get_named<T: serde::de::DeserializeOwned + Send + 'static>(
-        &self,
-        kind: Named,
-        name: &str,
-    ) -> Result<Option<T>> {
+    async fn get_named(&self, kind: Named, name: &str) -> Result<Option<String>> {
         let name = name.to_owned();
         self.with_conn(move |c| {
             let sql = format!("SELECT record FROM {} WHERE name = ?1", kind.table());
-            let json: Option<String> = c.query_row(&sql, [name], |r| r.get(0)).optional()?;
-            json.as_deref().map(decode).transpose()
+            Ok(c.query_row(&sql, [name], |r| r.get(0)).optional()?)
         })
         .await
     }
 
-    async fn list_named<T: serde::de::DeserializeOwned + Send + 'static>(
-        &self,
-        kind: Named,
-        after: &str,
-        limit: usize,
-    ) -> Result<Vec<T>> {
+    async fn list_named(&self, kind: Named, after: &str, limit: usize) -> Result<Vec<String>> {
         let after = after.to_owned();
         self.with_conn(move |c| {
             let sql = format!("SELECT record FROM {} WHERE name > ?1 ORDER BY name LIMIT ?2", kind.table());
             let mut stmt = c.prepare(&sql)?;
             let rows = stmt.query_map(params![after, limit as i64], |r| r.get::<_, String>(0))?;
-            rows.map(|r| decode(&r?)).collect()
+            Ok(rows.collect::<Result<Vec<_>, _>>()?)
         })
         .await
     }
 
-    async fn delete_named<T: serde::de::DeserializeOwned + Send + 'static>(
-        &self,
-        kind: Named,
-        name: &str,
-    ) -> Result<Option<T>> {
+    async fn delete_named(&self, kind: Named, name: &str) -> Result<Option<String>> {
         let name = name.to_owned();
         self.with_conn(move |c| {
             let tx = c.transaction()?;
@@ -183,7 +170,7 @@ impl SqliteMetadata {
             tx.execute(&format!("DELETE FROM {} WHERE name = ?1", kind.table()), [&name])?;
             bump_counter(kind, &tx)?;
             tx.commit()?;
-            decode(&json).map(Some)
+            Ok(Some(json))
         })
         .await
     }
@@ -199,20 +186,8 @@ fn is_constraint(e: &rusqlite::Error) -> bool {
 
 #[async_trait]
 impl MetadataStore for SqliteMetadata {
-    async fn insert_dataset(&self, record: &DatasetRecord) -> Result<()> {
-        self.insert_named(Named::Datasets, &record.name, &record.blob_key, encode(record)?).await
-    }
-
-    async fn get_dataset(&self, name: &str) -> Result<Option<DatasetRecord>> {
-        self.get_named(Named::Datasets, name).await
-    }
-
-    async fn list_datasets(&self, after: &str, limit: usize) -> Result<Vec<DatasetRecord>> {
-        self.list_named(Named::Datasets, after, limit).await
-    }
-
-    async fn delete_dataset(&self, name: &str) -> Result<Option<DatasetRecord>> {
-        self.delete_named(Named::Datasets, name).await
+    fn named_records(&self) -> &dyn NamedRecords {
+        self
     }
 
     async fn referenced_blob_keys(&self) -> Result<HashSet<String>> {
@@ -226,22 +201,6 @@ impl MetadataStore for SqliteMetadata {
             Ok(keys.collect::<Result<HashSet<_>, _>>()?)
         })
         .await
-    }
-
-    async fn insert_model(&self, record: &ModelRecord) -> Result<()> {
-        self.insert_named(Named::Models, &record.name, &record.blob_key, encode(record)?).await
-    }
-
-    async fn get_model(&self, name: &str) -> Result<Option<ModelRecord>> {
-        self.get_named(Named::Models, name).await
-    }
-
-    async fn list_models(&self, after: &str, limit: usize) -> Result<Vec<ModelRecord>> {
-        self.list_named(Named::Models, after, limit).await
-    }
-
-    async fn delete_model(&self, name: &str) -> Result<Option<ModelRecord>> {
-        self.delete_named(Named::Models, name).await
     }
 
     async fn insert_job(&self, record: &JobRecord, events: &[JobEvent]) -> Result<()> {

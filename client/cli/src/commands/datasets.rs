@@ -1,15 +1,15 @@
 //! `relreward dataset upload|list|show|delete`.
 
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::sync::Arc;
 use std::sync::atomic::Ordering;
 use std::time::Instant;
 
-use anyhow::{Context, Result, bail};
+use anyhow::{Context, Result};
 use clap::{Args, Subcommand, ValueEnum};
-use relreward_client::client::{DatasetUpload, MAX_MESSAGE_BYTES, UploadProgress};
+use relreward_cli::ops::datasets::{self, OpenedFile, kind_name};
+use relreward_client::client::{MAX_MESSAGE_BYTES, UploadProgress};
 use relreward_client::{Client, pb, tensor};
-use relreward_toolkit::npz::{self, NpzSource};
 use serde_json::{Value, json};
 use tokio::sync::oneshot;
 
@@ -82,42 +82,29 @@ pub async fn run(ctx: &Ctx, command: DatasetCommand) -> Result<Report> {
 
 async fn upload(ctx: &Ctx, args: UploadArgs) -> Result<Report> {
     let UploadArgs { file, name, kind, key, description, chunk_bytes } = args;
-    if relreward_toolkit::hdf5::is_hdf5(&file) {
-        if kind == Some(KindArg::Samples) || key.is_some() {
-            bail!("--kind samples / --key: an HDF5 file or Minari dataset uploads as trajectories");
-        }
-        let shown = file.display().to_string();
-        let t = tokio::task::spawn_blocking(move || relreward_toolkit::hdf5::read_hdf5(&file))
-            .await
-            .context("reading the file crashed")??;
-        if !t.ignored.is_empty() {
-            let keys = t.ignored.iter().map(|k| format!("'{k}'")).collect::<Vec<_>>().join(", ");
-            eprint_line(&format!("note: {shown}: not uploading {keys} (not part of a trajectories dataset)"));
-        }
-        for note in &t.notes {
-            eprint_line(&format!("note: {shown}: {note}"));
-        }
-        let request = DatasetUpload { name, kind: pb::DatasetKind::Trajectories, description, chunk_bytes };
-        return send(ctx, request, t.upload_source()).await;
-    }
-    // Reading headers touches the disk (and decompresses entries): keep it off the runtime.
-    let source = tokio::task::spawn_blocking(move || open_upload_source(&file, kind, key.as_deref()))
+    let kind = kind.map(|k| match k {
+        KindArg::Trajectories => pb::DatasetKind::Trajectories,
+        KindArg::Samples => pb::DatasetKind::Samples,
+    });
+    // Reading headers (or a whole HDF5 file) touches the disk: keep it off the runtime.
+    let opened = tokio::task::spawn_blocking(move || datasets::open_file(&file, kind, key.as_deref()))
         .await
         .context("reading the file crashed")??;
-    print_source_notes(&source);
-    let request = DatasetUpload { name, kind: source.kind(), description, chunk_bytes };
-    send(ctx, request, source).await
+    for note in &opened.notes {
+        eprint_line(&format!("note: {note}"));
+    }
+    send(ctx, &name, opened, &description, chunk_bytes).await
 }
 
 /// Sends one upload with a progress bar and reports the stored dataset.
-async fn send<S: relreward_client::UploadSource>(ctx: &Ctx, request: DatasetUpload, source: S) -> Result<Report> {
+async fn send(ctx: &Ctx, name: &str, file: OpenedFile, description: &str, chunk_bytes: u64) -> Result<Report> {
     let client = ctx.connect().await?;
     let progress = Arc::new(UploadProgress::default());
     let bar = byte_progress_bar(ctx.json);
     let (done_tx, done_rx) = oneshot::channel();
     let ticker = tokio::spawn(drive_progress(bar.clone(), Arc::clone(&progress), done_rx));
     let started = Instant::now();
-    let result = client.upload_dataset(request, source, Arc::clone(&progress)).await;
+    let result = datasets::upload(&client, name, file, description, chunk_bytes, Arc::clone(&progress)).await;
     let _ = done_tx.send(());
     let _ = ticker.await;
     bar.finish_and_clear();
@@ -148,41 +135,6 @@ async fn delete(ctx: &Ctx, name: &str) -> Result<Report> {
 
 // ---------------------------------------------------------------------------------------------
 // Upload helpers
-
-/// Opens `file` as the requested kind (or the detected one: a `--key` means samples).
-fn open_upload_source(file: &Path, kind: Option<KindArg>, key: Option<&str>) -> Result<NpzSource> {
-    let kind = match (kind, key) {
-        (Some(kind), _) => kind,
-        (None, Some(_)) => KindArg::Samples,
-        (None, None) => match npz::detect_kind(file)? {
-            pb::DatasetKind::Trajectories => KindArg::Trajectories,
-            _ => KindArg::Samples,
-        },
-    };
-    match (kind, key) {
-        (KindArg::Trajectories, Some(key)) => bail!(
-            "--key {key}: --key selects the array of a samples upload; trajectories always use \
-             'observations' and 'actions'"
-        ),
-        (KindArg::Trajectories, None) => Ok(npz::trajectories_from_npz(file)?),
-        (KindArg::Samples, key) => Ok(npz::samples_from_npz_or_npy(file, key)?),
-    }
-}
-
-/// Tells the user which arrays of the file are left out or renamed.
-fn print_source_notes(source: &NpzSource) {
-    let ignored = source.ignored_keys();
-    if !ignored.is_empty() {
-        let kind = kind_name(source.kind());
-        let keys = ignored.iter().map(|k| format!("'{k}'")).collect::<Vec<_>>().join(", ");
-        eprint_line(&format!("note: not uploading {keys} (not part of a {kind} dataset)"));
-    }
-    for (from, to) in source.renamed() {
-        if source.kind() == pb::DatasetKind::Trajectories {
-            eprint_line(&format!("note: uploading '{from}' as '{to}'"));
-        }
-    }
-}
 
 /// The dataset with statistics: an upload's answer may leave them out, so fetch the full view
 /// then (keeping the answer if that fails).
@@ -267,14 +219,6 @@ fn array_json(a: &pb::ArrayInfo) -> Value {
 
 // ---------------------------------------------------------------------------------------------
 // Output: text
-
-fn kind_name(kind: pb::DatasetKind) -> &'static str {
-    match kind {
-        pb::DatasetKind::Trajectories => "trajectories",
-        pb::DatasetKind::Samples => "samples",
-        pb::DatasetKind::Unspecified => "unspecified",
-    }
-}
 
 fn dtype_of(spec: &pb::ArraySpec) -> &'static str {
     tensor::dtype_name(pb::Dtype::try_from(spec.dtype).unwrap_or(pb::Dtype::Unspecified))
@@ -511,13 +455,5 @@ mod tests {
         assert!(parse_byte_size("1GiB").is_err());
         assert!(parse_byte_size("lots").is_err());
         assert!(parse_byte_size("99999999999999999999M").is_err());
-    }
-
-    #[test]
-    fn key_implies_samples_and_conflicts_with_trajectories() {
-        let dir = tempfile::tempdir().expect("tempdir");
-        let missing = dir.path().join("missing.npz");
-        let err = open_upload_source(&missing, Some(KindArg::Trajectories), Some("k")).expect_err("must fail");
-        assert!(err.to_string().contains("--key"), "{err}");
     }
 }

@@ -13,10 +13,10 @@
 //!   on another, so the reported fraction is not the one it was selected on.
 //!
 //! The demo is the maze-generating front end of `relreward extract`: it writes the datasets,
-//! then runs the same pipeline ([`super::extract::pipeline`]: upload or reuse, diffusion
-//! models, rewards, evaluation, report) with its fixed sizes, and adds steering. Every step
-//! runs the same code as the corresponding CLI command (parsed from argument lists and
-//! dispatched in process), so it is also a script of commands a user can run one by one.
+//! then calls the same operation ([`relreward_cli::ops::extract::pipeline`]: upload or reuse,
+//! diffusion models, rewards, evaluation, report) with its fixed sizes, and adds steering
+//! ([`relreward_cli::ops::steer`]). Each step is the library function behind the CLI command
+//! of the same name (`dataset upload`, `train`, `eval`, `job plot`, `sample`).
 //! Outputs in `--out`: the datasets, heatmaps, histograms, loss curves, `report.md` /
 //! `report.json` (the pipeline's) and `summary.md` / `summary.json` (with steering).
 //!
@@ -30,14 +30,17 @@ use std::time::Instant;
 
 use anyhow::{Context, Result};
 use clap::Args;
-use relreward_client::pb;
+use relreward_cli::ops::Progress;
+use relreward_cli::ops::extract::report::{mean_balanced_accuracy, write_report};
+use relreward_cli::ops::extract::sizes::{Size, Sizes, Sizing};
+use relreward_cli::ops::extract::{ExpertResult, Inputs, path_str, pipeline};
+use relreward_cli::ops::steer::{Steering, steer};
 use relreward_toolkit::maze::{self, GenerateConfig, Layout, LayoutName, Mode};
-use serde_json::{Value, json};
-use tokio_stream::StreamExt;
+use serde::Serialize;
+use serde_json::json;
 
-pub use super::extract::Size;
-use super::extract::{Inputs, Sizes, Sizing, path_str, pipeline, stage, write_report};
 use super::train::flags::AlgorithmArg;
+use super::watch::JobView;
 use super::{Ctx, Report, UsageError};
 
 /// `relreward demo` flags.
@@ -194,7 +197,8 @@ pub async fn run(ctx: &Ctx, args: DemoArgs) -> Result<Report> {
     std::fs::create_dir_all(&data_dir).with_context(|| format!("--out: cannot create {}", data_dir.display()))?;
 
     // ---- 1. data (the demo's own part); everything after it is `extract`'s pipeline.
-    stage(ctx, &format!("generating {} data: base and {} expert datasets", name.as_str(), goals.len()));
+    let progress = JobView::new(ctx.json, false);
+    progress.stage(&format!("generating {} data: base and {} expert datasets", name.as_str(), goals.len()));
     let base_path = data_dir.join("base.npz");
     let mut config = GenerateConfig::new(layout.clone(), Mode::Base, plan.base_transitions, args.seed);
     config.action_noise = plan.action_noise;
@@ -222,152 +226,111 @@ pub async fn run(ctx: &Ctx, args: DemoArgs) -> Result<Report> {
         algorithm: AlgorithmArg::WithDataset,
         discriminator: false,
         seed: args.seed,
-        amortised: args.amortised.to_argv(),
+        amortised: args.amortised.clone(),
     };
-    let extracted = pipeline(ctx, &inputs, Sizing::Fixed(plan.sizes.clone())).await?;
+    let client = ctx.connect().await?;
+    let extracted = pipeline(&progress, &client, &inputs, Sizing::Fixed(plan.sizes.clone())).await?;
 
     // ---- steering (the demo's own part): guided vs unguided sampling from the base model.
-    let client = ctx.connect().await?;
     let mut rows = Vec::new();
     for (k, goal) in goals.iter().enumerate() {
-        stage(ctx, &format!("steering with reward {} of {} (goal cell {},{})", k + 1, goals.len(), goal.0, goal.1));
-        let steering = steer(&client, &extracted.base_model, &extracted.rewards[k], *goal, &plan, args.seed).await?;
-        let mut row = extracted.rows[k].clone();
-        row["goal_cell"] = json!([goal.0, goal.1]);
-        row["reward_model"] = row["model"].clone();
-        row["steering"] = steering;
-        rows.push(row);
+        progress.stage(&format!("steering with reward {} of {} (goal cell {},{})", k + 1, goals.len(), goal.0, goal.1));
+        let (base, reward) = (&extracted.base_model, &extracted.rewards[k]);
+        let steering = steer(&client, base, reward, *goal, plan.omegas, plan.samples, args.seed).await?;
+        let expert = &extracted.experts[k];
+        rows.push(GoalRow { expert, goal_cell: *goal, reward_model: &expert.reward.model, steering });
     }
 
-    let recovered = rows.iter().filter(|r| r["goal_recovered"] == true).count();
-    let accuracies: Vec<f64> = rows.iter().filter_map(|r| r["balanced_accuracy"].as_f64()).collect();
-    let mean_accuracy = accuracies.iter().sum::<f64>() / accuracies.len().max(1) as f64;
-    let steered = rows
-        .iter()
-        .filter(|r| r["steering"]["guided_near_goal"].as_f64() > r["steering"]["unguided_near_goal"].as_f64())
-        .count();
-    let summary = json!({
-        "layout": name.as_str(),
-        "size": format!("{size:?}").to_lowercase(),
-        "seed": args.seed,
+    let recovered = rows.iter().filter(|r| r.expert.goal_recovered() == Some(true)).count();
+    let steered = rows.iter().filter(|r| r.steering.steered()).count();
+    let summary = Summary {
+        layout: name.as_str(),
+        size: format!("{size:?}").to_lowercase(),
+        seed: args.seed,
+        elapsed_seconds: started.elapsed().as_secs_f64(),
+        goals_recovered: recovered,
+        mean_balanced_accuracy: mean_balanced_accuracy(&extracted),
+        goals_steered: steered,
+    };
+    let json = json!({
+        "layout": summary.layout,
+        "size": summary.size,
+        "seed": summary.seed,
         "action_noise": plan.action_noise,
         "diffusion_steps": plan.sizes.diffusion_steps,
         "reward_steps": plan.sizes.reward_steps,
         "amortised_targets": args.amortised.to_argv().join(" "),
         "goals": rows,
-        "goals_recovered": recovered,
+        "goals_recovered": summary.goals_recovered,
         "goals_total": goals.len(),
-        "mean_balanced_accuracy": mean_accuracy,
-        "goals_steered": steered,
+        "mean_balanced_accuracy": summary.mean_balanced_accuracy,
+        "goals_steered": summary.goals_steered,
         "models": {"base": extracted.base_model, "experts": extracted.expert_models, "rewards": extracted.rewards},
-        "elapsed_seconds": started.elapsed().as_secs_f64(),
+        "elapsed_seconds": summary.elapsed_seconds,
         "out": path_str(&out),
     });
     // The pipeline's report (report.md / report.json), and the demo's summary with steering.
-    write_report(&inputs, &extracted, started.elapsed().as_secs_f64(), json!({"demo": {"layout": name.as_str()}}))?;
-    let table = summary_table(&summary);
+    write_report(&inputs, &extracted, started.elapsed().as_secs_f64(), Some(name.as_str()))?;
+    let table = summary_table(&summary, &rows);
     std::fs::write(out.join("summary.md"), &table)?;
-    std::fs::write(out.join("summary.json"), serde_json::to_string_pretty(&summary)?)?;
-    Ok(Report::ok(table, summary))
+    std::fs::write(out.join("summary.json"), serde_json::to_string_pretty(&json)?)?;
+    Ok(Report::ok(table, json))
 }
 
-/// Final states of `n` samples within one cell (Euclidean, cell units) of `goal`.
-const NEAR_GOAL: f64 = 1.0;
-
-/// Fraction of `n` sampled trajectories whose last state lies near the goal.
-async fn near_goal_fraction(
-    client: &relreward_client::Client,
-    base: &str,
-    reward: &str,
-    omega: f64,
-    goal: (usize, usize),
-    n: u32,
-    seed: u64,
-) -> Result<f64> {
-    let request = pb::SampleRequest {
-        model: base.into(),
-        reward_model: if omega == 0.0 { String::new() } else { reward.into() },
-        omega,
-        n,
-        seed: Some(seed),
-        ..Default::default()
-    };
-    let mut stream = client.sample(request).await?;
-    let (mut near, mut count) = (0usize, 0usize);
-    while let Some(item) = stream.next().await {
-        let item = item?;
-        let x = item.x.as_ref().context("a sample without x")?;
-        let values = relreward_client::tensor::decode_finite_f32(x)?;
-        let d = *x.shape.last().context("a scalar sample")? as usize;
-        // Rows are [action (2) | x, y, vx, vy]: the last row's position.
-        let last = &values[values.len() - d..];
-        let (px, py) = (f64::from(last[2]), f64::from(last[3]));
-        if (px - goal.0 as f64).hypot(py - goal.1 as f64) <= NEAR_GOAL {
-            near += 1;
-        }
-        count += 1;
-    }
-    Ok(near as f64 / count.max(1) as f64)
+/// One goal of the summary: its reward's evaluation (a row of report.json), the goal cell and
+/// the steering.
+#[derive(Debug, Serialize)]
+struct GoalRow<'a> {
+    #[serde(flatten)]
+    expert: &'a ExpertResult,
+    goal_cell: (usize, usize),
+    reward_model: &'a str,
+    steering: Steering,
 }
 
-/// Steering: unguided vs guided sampling from the base model. Omega is picked on one seed (the
-/// sweep) and the fractions are reported on another.
-async fn steer(
-    client: &relreward_client::Client,
-    base: &str,
-    reward: &str,
-    goal: (usize, usize),
-    plan: &Plan,
+/// What the summary table says besides its rows.
+struct Summary {
+    layout: &'static str,
+    size: String,
     seed: u64,
-) -> Result<Value> {
-    let (sweep_seed, report_seed) = (seed.wrapping_add(1000), seed.wrapping_add(2000));
-    let mut sweep = Vec::new();
-    for &omega in plan.omegas {
-        let f = near_goal_fraction(client, base, reward, omega, goal, plan.samples / 2 + 1, sweep_seed).await?;
-        sweep.push((omega, f));
-    }
-    let best = sweep.iter().copied().max_by(|a, b| a.1.total_cmp(&b.1)).map_or(0.0, |(o, _)| o);
-    let unguided = near_goal_fraction(client, base, reward, 0.0, goal, plan.samples, report_seed).await?;
-    let guided = near_goal_fraction(client, base, reward, best, goal, plan.samples, report_seed).await?;
-    Ok(json!({
-        "omega": best,
-        "sweep": sweep.iter().map(|(o, f)| json!({"omega": o, "near_goal": f})).collect::<Vec<_>>(),
-        "samples": plan.samples,
-        "near_goal_radius_cells": NEAR_GOAL,
-        "unguided_near_goal": unguided,
-        "guided_near_goal": guided,
-    }))
+    elapsed_seconds: f64,
+    goals_recovered: usize,
+    mean_balanced_accuracy: f64,
+    goals_steered: usize,
+}
+
+/// A number as report.json holds it: non-finite numbers are null, which the table shows as NaN.
+fn finite_or_nan(v: f64) -> f64 {
+    if v.is_finite() { v } else { f64::NAN }
 }
 
 /// The summary as a Markdown table.
-fn summary_table(s: &Value) -> String {
+fn summary_table(s: &Summary, rows: &[GoalRow<'_>]) -> String {
     let mut t = format!(
         "relreward demo: {} ({} size, seed {}), {:.0} s\n\n| goal cell | reward max at | recovered | balanced accuracy | near goal unguided | near goal guided (omega) |\n|---|---|---|---|---|---|\n",
-        s["layout"].as_str().unwrap_or(""),
-        s["size"].as_str().unwrap_or(""),
-        s["seed"],
-        s["elapsed_seconds"].as_f64().unwrap_or(0.0)
+        s.layout, s.size, s.seed, s.elapsed_seconds
     );
-    for g in s["goals"].as_array().map(Vec::as_slice).unwrap_or(&[]) {
-        let cell = |v: &Value| format!("{},{}", v[0], v[1]);
+    for g in rows {
+        // A missing maximum reads as JSON's null, as the table always showed it.
+        let argmax = g.expert.argmax_cell().map_or("null,null".to_owned(), |(i, j)| format!("{i},{j}"));
         t.push_str(&format!(
-            "| {} | {} | {} | {:.3} | {:.3} | {:.3} ({}) |\n",
-            cell(&g["goal_cell"]),
-            cell(&g["argmax_cell"]),
-            if g["goal_recovered"] == true { "yes" } else { "no" },
-            g["balanced_accuracy"].as_f64().unwrap_or(f64::NAN),
-            g["steering"]["unguided_near_goal"].as_f64().unwrap_or(f64::NAN),
-            g["steering"]["guided_near_goal"].as_f64().unwrap_or(f64::NAN),
-            g["steering"]["omega"],
+            "| {},{} | {argmax} | {} | {:.3} | {:.3} | {:.3} ({}) |\n",
+            g.goal_cell.0,
+            g.goal_cell.1,
+            if g.expert.goal_recovered() == Some(true) { "yes" } else { "no" },
+            finite_or_nan(g.expert.reward.balanced_accuracy),
+            finite_or_nan(g.steering.unguided_near_goal),
+            finite_or_nan(g.steering.guided_near_goal),
+            json!(g.steering.omega),
         ));
     }
     t.push_str(&format!(
         "\ngoals recovered: {} of {}; mean balanced accuracy {:.3}; guidance moved more final states near the goal for {} of {} goals\n",
-        s["goals_recovered"],
-        s["goals_total"],
-        s["mean_balanced_accuracy"].as_f64().unwrap_or(f64::NAN),
-        s["goals_steered"],
-        s["goals_total"]
+        s.goals_recovered,
+        rows.len(),
+        finite_or_nan(s.mean_balanced_accuracy),
+        s.goals_steered,
+        rows.len()
     ));
     t
 }

@@ -1,38 +1,45 @@
-//! The commands of the `relreward` binary, one family per module. The top-level `Cli`, the
-//! dispatch and the exit status are in `main.rs`.
+//! The commands of the `relreward` binary, one family per module, each parsing its flags into
+//! the inputs of an operation of the library ([`relreward_cli::ops`]) and printing its typed
+//! result as text or JSON. No command runs another command: those that compose others
+//! (`extract`, `demo`) call the operations. The top-level `Cli`, the dispatch and the exit
+//! status are in `main.rs`; this file holds what every command gets ([`Ctx`], [`Report`]).
 //!
 //! - [`datasets`]: `dataset upload|list|show|delete`;
-//! - [`models`]: `model upload|import|list|show|delete`, with [`manifest`] (the manifest file format);
-//! - [`jobs`]: `train diffusion|reward|discriminator` (specs built by [`train`]) and
+//! - [`models`]: `model upload|import|list|show|delete` (the manifest file: [`manifest`]);
+//! - [`jobs`]: `train diffusion|reward|discriminator` (specs from [`train`]) and
 //!   `job list|show|cancel|watch`;
-//! - [`rewards`]: `score`, `grad` and `sample` (the RewardService: inputs from `.npz` files,
-//!   trajectories cut into windows, results written as `.npz`), one module per command;
-//! - [`extract`]: `extract` (recordings to rewards: convert, profile, upload or reuse, train,
-//!   evaluate; composed of the other commands, run in process);
-//! - [`demo`]: `demo` (the whole Maze2D pipeline: generated data, then `extract`'s steps and steering);
-//! - [`eval`]: `eval discriminate|heatmap` and `job plot` (the paper's evaluation and its
-//!   pictures, over scores of local trajectory files);
-//! - [`maze`]: `maze generate` (Maze2D datasets from the built-in generator, no server);
-//! - [`output`]: JSON and text formatting (job state names included), progress bars, terminal
-//!   I/O.
+//! - [`watch`]: how a job being waited for is shown ([`watch::JobView`]), by `job watch` and by
+//!   the commands that train (`extract`, `demo`);
+//! - [`score`], [`grad`], [`sample`]: the RewardService over `.npz` files, with what they share
+//!   in [`rewards`] (input flags, the request loop, the `--out` archive);
+//! - [`eval`]: `eval discriminate|heatmap` and `job plot`;
+//! - [`extract`]: `extract` (recordings to rewards and their report);
+//! - [`demo`]: `demo` (generated Maze2D data, then `extract`'s pipeline, and steering);
+//! - [`maze`]: `maze generate` (Maze2D datasets from the built-in generator, no server).
+//!
+//! [`manifest`], [`output`], [`train`] and [`UsageError`] are the library's, re-exported here
+//! for the commands.
 
 pub mod datasets;
 pub mod demo;
 pub mod eval;
 pub mod extract;
+pub mod grad;
 pub mod jobs;
-pub mod manifest;
 pub mod maze;
 pub mod models;
-pub mod output;
 pub mod rewards;
-pub mod train;
+pub mod sample;
+pub mod score;
+pub mod watch;
 
-use std::fmt;
+pub use relreward_cli::{UsageError, manifest, output, train};
+
 use std::path::PathBuf;
 use std::time::Duration;
 
 use anyhow::{Context as _, Result, bail};
+use relreward_cli::ops::Progress;
 use relreward_client::Client;
 use relreward_client::client::{ConnectOptions, TlsOptions};
 use serde_json::{Value, json};
@@ -114,6 +121,19 @@ impl Ctx {
     }
 }
 
+/// The commands' own progress: stages on stderr, bars unless `--json`.
+impl Progress for Ctx {
+    fn quiet(&self) -> bool {
+        self.json
+    }
+
+    fn stage(&self, text: &str) {
+        if !self.json {
+            output::eprint_line(&format!("==> {text}"));
+        }
+    }
+}
+
 /// What a command prints when it is done: `text`, or with `--json` the `json` document (none
 /// for commands that already streamed their output); `success: false` exits with status 1.
 #[derive(Debug)]
@@ -133,18 +153,6 @@ impl Report {
         Self { text, json: None, success: true }
     }
 }
-
-/// A command line that parses but cannot be run as given (exit status 2, like clap's errors).
-#[derive(Debug)]
-pub struct UsageError(pub String);
-
-impl fmt::Display for UsageError {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        f.write_str(&self.0)
-    }
-}
-
-impl std::error::Error for UsageError {}
 
 /// `relreward health`.
 pub async fn health(ctx: &Ctx) -> Result<Report> {

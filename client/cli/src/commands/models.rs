@@ -1,4 +1,4 @@
-//! `relreward model upload|import|list|show|delete`.
+//! `relreward model upload|import|list|show|download|delete`.
 
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -34,6 +34,9 @@ pub enum ModelCommand {
     },
     /// Show a model: kind, format, digest, provenance and manifest.
     Show { name: String },
+    /// Download a model's files (TorchScript module or safetensors weights, and any that
+    /// belong with them) and its manifest as manifest.json, each checked against its sha256.
+    Download(ModelDownloadArgs),
     /// Delete a model (refused while a job uses it).
     Delete { name: String },
 }
@@ -85,6 +88,17 @@ pub struct ModelImportArgs {
     description: String,
 }
 
+#[derive(Debug, Args)]
+pub struct ModelDownloadArgs {
+    name: String,
+    /// The directory to write into (created if missing).
+    #[arg(long, value_name = "DIR")]
+    out: PathBuf,
+    /// Replace files of the same names already in DIR.
+    #[arg(long)]
+    force: bool,
+}
+
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
 pub enum ModelKindArg {
     Diffusion,
@@ -108,6 +122,7 @@ pub async fn run(ctx: &Ctx, command: ModelCommand) -> Result<Report> {
         ModelCommand::Import(args) => import(ctx, args).await,
         ModelCommand::List { kind } => list(ctx, kind).await,
         ModelCommand::Show { name } => show(ctx, &name).await,
+        ModelCommand::Download(args) => download(ctx, args).await,
         ModelCommand::Delete { name } => delete(ctx, &name).await,
     }
 }
@@ -236,6 +251,27 @@ async fn list(ctx: &Ctx, kind: Option<ModelKindArg>) -> Result<Report> {
 async fn show(ctx: &Ctx, name: &str) -> Result<Report> {
     let model = ctx.connect().await?.get_model(name).await?;
     Ok(Report::ok(format_model(&model), model_json(&model)))
+}
+
+async fn download(ctx: &Ctx, args: ModelDownloadArgs) -> Result<Report> {
+    let ModelDownloadArgs { name, out, force } = args;
+    let got = ctx.connect().await?.download_model(&name, &out, force).await?;
+    let paths: Vec<String> = got.files.iter().chain([&got.manifest_path]).map(|p| p.display().to_string()).collect();
+    let text = format!(
+        "downloaded {} ({}, sha256 {}) into {}\n{}\n",
+        got.model.name,
+        human_bytes(got.model.size_bytes),
+        got.model.sha256,
+        out.display(),
+        paths.iter().map(|p| format!("  {p}")).collect::<Vec<_>>().join("\n")
+    );
+    let json = json!({
+        "model": model_json(&got.model),
+        "weights": got.weights().display().to_string(),
+        "manifest": got.manifest_path.display().to_string(),
+        "files": paths,
+    });
+    Ok(Report::ok(text, json))
 }
 
 async fn delete(ctx: &Ctx, name: &str) -> Result<Report> {

@@ -10,6 +10,7 @@ value guide for Diffuser-style planners, and docs/python.md.
 
 from relreward._common import (GradientResult, JobEvent, Sample, SampleBatch, ScoreResult, TLS, DEFAULT_CHUNK_BYTES,
                                MAX_MESSAGE_BYTES)
+from relreward._download import DownloadedModel
 from relreward._proto import datasets_pb2, jobs_pb2, models_pb2, reward_pb2, tensor_pb2
 from relreward.aio import AsyncClient, AsyncGradientStream
 from relreward.client import Client, GradientStream, PendingGradient
@@ -35,7 +36,7 @@ class pb:
 
 __all__ = [
     "Client", "AsyncClient", "GradientStream", "AsyncGradientStream", "PendingGradient", "TLS",
-    "ScoreResult", "GradientResult", "Sample", "SampleBatch", "JobEvent",
+    "ScoreResult", "GradientResult", "Sample", "SampleBatch", "JobEvent", "DownloadedModel",
     "DiffusionJob", "RewardJob", "DiscriminatorJob", "Optimization", "from_minari_episodes",
     "RelrewardError", "Cancelled", "Unknown", "InvalidArgument", "DeadlineExceeded", "NotFound", "AlreadyExists",
     "PermissionDenied", "ResourceExhausted", "FailedPrecondition", "Aborted", "OutOfRange", "Unimplemented",

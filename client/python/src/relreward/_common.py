@@ -5,6 +5,7 @@ from __future__ import annotations
 import datetime as _dt
 import hashlib
 import pathlib
+import time
 from dataclasses import dataclass
 from typing import Any, Callable, Iterator, Sequence
 
@@ -14,6 +15,7 @@ import numpy as np
 from relreward import _tensor
 from relreward._proto import datasets_pb2, jobs_pb2, models_pb2, reward_pb2, tensor_pb2
 from relreward.datasets import UploadSource, row_chunks
+from relreward.errors import RelrewardError, Unavailable, error_for, is_retryable
 
 #: Largest message either way (tensors in requests and responses can be large), as the Rust client.
 MAX_MESSAGE_BYTES = 64 << 20
@@ -215,6 +217,55 @@ def state_name(state: int) -> str:
 
 def is_terminal(state: int) -> bool:
     return state in _TERMINAL
+
+
+class WatchCursor:
+    """The bookkeeping of ``watch_job``, shared by the sync and asyncio clients (which differ
+    only in how they wait): where to resume, which events are replays, and how long to back
+    off after a failure.
+
+    Each pass of a client's loop opens ``WatchJob(request())``, yields ``accept(raw)`` for every
+    event that is not None (a replay after a reconnect is None), and on a failure (or a stream
+    that ended while the job still runs: ``ended()``) sleeps ``retry_delay(failure)``, which
+    raises instead once the failure is not worth a retry or the budget is spent.
+    """
+
+    def __init__(self, job_id: str, from_seq: int, reconnect_budget: float) -> None:
+        self.job_id = job_id
+        self.cursor = max(from_seq, 1)
+        self.budget = reconnect_budget
+        self._attempt = 0
+        self._down_since: float | None = None
+
+    def request(self) -> jobs_pb2.WatchJobRequest:
+        return jobs_pb2.WatchJobRequest(id=self.job_id, from_seq=self.cursor)
+
+    def accept(self, raw: jobs_pb2.JobEvent) -> JobEvent | None:
+        """The event to yield, or None for one already yielded before a reconnect."""
+        self._down_since, self._attempt = None, 0
+        if raw.seq < self.cursor:
+            return None
+        self.cursor = raw.seq + 1
+        return JobEvent.from_proto(raw)
+
+    @staticmethod
+    def ended() -> RelrewardError:
+        """The failure of a stream that ended while the job was not finished."""
+        return Unavailable("the event stream ended before the job finished")
+
+    def retry_delay(self, failure: RelrewardError) -> float:
+        """Seconds to wait before reconnecting after ``failure``; raises it (or, once the budget
+        is spent, an error saying so) when there is no point in trying again."""
+        if not is_retryable(failure):
+            raise failure
+        now = time.monotonic()
+        self._down_since = self._down_since if self._down_since is not None else now
+        delay = backoff_delay(self._attempt, WATCH_INITIAL_S, WATCH_MAX_S, self.budget - (now - self._down_since))
+        if delay is None:
+            raise error_for(failure.code, f"{failure.message} (gave up reconnecting after "
+                                          f"{now - self._down_since:.0f} s; events from {self.cursor} on were not seen)")
+        self._attempt += 1
+        return delay
 
 
 # --------------------------------------------------------------------------------------------

@@ -17,6 +17,7 @@ import numpy as np
 from relreward import _common as c
 from relreward._proto import (datasets_pb2, datasets_pb2_grpc, jobs_pb2, jobs_pb2_grpc, models_pb2,
                               models_pb2_grpc, reward_pb2, reward_pb2_grpc, tensor_pb2)
+from relreward._download import DownloadedModel, ModelDownload
 from relreward.client import _KINDS, _STATES
 from relreward.datasets import source_of
 from relreward.errors import RelrewardError, Unavailable, error_for, from_rpc_error, is_retryable
@@ -152,6 +153,23 @@ class AsyncClient:
     async def delete_model(self, name: str) -> None:
         await self._once(self._models.DeleteModel, models_pb2.DeleteModelRequest(name=name))
 
+    async def download_model(self, name: str, out_dir: str | pathlib.Path, *, overwrite: bool = False
+                             ) -> DownloadedModel:
+        """See :meth:`relreward.Client.download_model` (files are written on the event loop's
+        thread as chunks arrive)."""
+        download = ModelDownload(name, out_dir, overwrite)
+        call = self._models.DownloadModel(models_pb2.DownloadModelRequest(name=name), metadata=self._metadata,
+                                          timeout=self.timeout)
+        try:
+            async for message in call:
+                download.feed(message)
+            return download.finish()
+        except grpc.RpcError as e:
+            raise from_rpc_error(e) from None
+        finally:
+            download.close()
+            call.cancel()
+
     # jobs
     async def submit_job(self, spec: Any, job_id: str | None = None) -> jobs_pb2.Job:
         return await self._once(self._jobs.SubmitJob,
@@ -171,41 +189,26 @@ class AsyncClient:
     async def watch_job(self, job_id: str, from_seq: int = 0, *, reconnect_budget: float = c.WATCH_BUDGET_S
                         ) -> AsyncIterator[c.JobEvent]:
         """See :meth:`relreward.Client.watch_job`: every event once, resuming after a drop."""
-        cursor = max(from_seq, 1)
-        attempt = 0
-        down_since: float | None = None
+        watch = c.WatchCursor(job_id, from_seq, reconnect_budget)
         while True:
             call = None
             try:
-                call = self._jobs.WatchJob(jobs_pb2.WatchJobRequest(id=job_id, from_seq=cursor), metadata=self._metadata)
+                call = self._jobs.WatchJob(watch.request(), metadata=self._metadata)
                 async for raw in call:
-                    down_since, attempt = None, 0
-                    if raw.seq < cursor:
-                        continue
-                    cursor = raw.seq + 1
-                    event = c.JobEvent.from_proto(raw)
-                    yield event
-                    if event.terminal:
-                        return
-                job = await self.get_job(job_id)
-                if c.is_terminal(job.state):
+                    event = watch.accept(raw)
+                    if event is not None:
+                        yield event
+                        if event.terminal:
+                            return
+                if c.is_terminal((await self.get_job(job_id)).state):
                     return
-                failure: RelrewardError = Unavailable("the event stream ended before the job finished")
+                failure = watch.ended()
             except grpc.RpcError as e:
                 failure = from_rpc_error(e)
             finally:
                 if call is not None:
                     call.cancel()
-            if not is_retryable(failure):
-                raise failure
-            now = time.monotonic()
-            down_since = down_since if down_since is not None else now
-            delay = c.backoff_delay(attempt, c.WATCH_INITIAL_S, c.WATCH_MAX_S, reconnect_budget - (now - down_since))
-            if delay is None:
-                raise error_for(failure.code, f"{failure.message} (gave up reconnecting after {now - down_since:.0f} s;"
-                                              f" events from {cursor} on were not seen)")
-            attempt += 1
-            await asyncio.sleep(delay)
+            await asyncio.sleep(watch.retry_delay(failure))
 
     async def wait_job(self, job_id: str) -> jobs_pb2.Job:
         async for _ in self.watch_job(job_id):

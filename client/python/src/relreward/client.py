@@ -14,6 +14,7 @@ import numpy as np
 from relreward import _common as c
 from relreward._proto import (datasets_pb2, datasets_pb2_grpc, jobs_pb2, jobs_pb2_grpc, models_pb2,
                               models_pb2_grpc, reward_pb2, reward_pb2_grpc, tensor_pb2)
+from relreward._download import DownloadedModel, ModelDownload
 from relreward.datasets import source_of
 from relreward.errors import RelrewardError, Unavailable, error_for, from_rpc_error, is_retryable
 from relreward.specs import job_spec, manifest as manifest_of
@@ -213,6 +214,36 @@ class Client:
         """Deletes a model (FAILED_PRECONDITION while a job uses it; never retried)."""
         self._once(self._models.DeleteModel, models_pb2.DeleteModelRequest(name=name))
 
+    def download_model(self, name: str, out_dir: str | pathlib.Path, *, overwrite: bool = False
+                       ) -> DownloadedModel:
+        """Downloads model ``name`` (any kind) into ``out_dir`` (created if missing) and returns
+        a :class:`relreward.DownloadedModel`: ``path`` (the model file: ``weights.safetensors``,
+        native weights under PyTorch tensor names, or ``module.pt``, a TorchScript module),
+        ``model`` (the record) and ``manifest`` (the stored manifest as a dict: architecture
+        and sizes, space, normalizer, n_timesteps, ...), also written as ``manifest.json``.
+        An Algorithm 2 reward's ``step_norm.safetensors`` comes with it (``files``).
+
+        Every file is checked against the size and sha256 the server declared before any is
+        put in place; a failed download leaves no file behind. Without ``overwrite``, raises
+        ``FileExistsError`` when a file of the same name is in ``out_dir``. NOT_FOUND for an
+        unknown model. Not retried (a long stream; call again).
+
+            got = client.download_model("maze-reward", "out/maze-reward")
+            state = safetensors.torch.load_file(got.path)
+        """
+        download = ModelDownload(name, out_dir, overwrite)
+        stream = self._models.DownloadModel(models_pb2.DownloadModelRequest(name=name), metadata=self._metadata,
+                                            timeout=self.timeout)
+        try:
+            for message in stream:
+                download.feed(message)
+            return download.finish()
+        except grpc.RpcError as e:
+            raise from_rpc_error(e) from None
+        finally:
+            download.close()
+            stream.cancel()
+
     # ----------------------------------------------------------------------------------------
     # jobs
 
@@ -248,42 +279,26 @@ class Client:
         250 ms to 5 s and give up (raising the last error) after ``reconnect_budget`` seconds
         without an event. Breaking out of the loop cancels the stream.
         """
-        cursor = max(from_seq, 1)
-        attempt = 0
-        down_since: float | None = None
+        watch = c.WatchCursor(job_id, from_seq, reconnect_budget)
         while True:
             stream = None
             try:
-                stream = self._jobs.WatchJob(jobs_pb2.WatchJobRequest(id=job_id, from_seq=cursor),
-                                             metadata=self._metadata)
+                stream = self._jobs.WatchJob(watch.request(), metadata=self._metadata)
                 for raw in stream:
-                    down_since, attempt = None, 0
-                    if raw.seq < cursor:
-                        continue  # a replay of an event already yielded
-                    cursor = raw.seq + 1
-                    event = c.JobEvent.from_proto(raw)
-                    yield event
-                    if event.terminal:
-                        return
-                job = self.get_job(job_id)
-                if c.is_terminal(job.state):
+                    event = watch.accept(raw)
+                    if event is not None:
+                        yield event
+                        if event.terminal:
+                            return
+                if c.is_terminal(self.get_job(job_id).state):
                     return
-                failure: RelrewardError = Unavailable("the event stream ended before the job finished")
+                failure = watch.ended()
             except grpc.RpcError as e:
                 failure = from_rpc_error(e)
             finally:
                 if stream is not None:
                     stream.cancel()
-            if not is_retryable(failure):
-                raise failure
-            now = time.monotonic()
-            down_since = down_since if down_since is not None else now
-            delay = c.backoff_delay(attempt, c.WATCH_INITIAL_S, c.WATCH_MAX_S, reconnect_budget - (now - down_since))
-            if delay is None:
-                raise error_for(failure.code, f"{failure.message} (gave up reconnecting after {now - down_since:.0f} s;"
-                                              f" events from {cursor} on were not seen)")
-            attempt += 1
-            time.sleep(delay)
+            time.sleep(watch.retry_delay(failure))
 
     def wait_job(self, job_id: str, on_event: Callable[[c.JobEvent], None] | None = None) -> jobs_pb2.Job:
         """Follows the job (:meth:`watch_job`) until it finishes and returns it; ``on_event``

@@ -51,6 +51,7 @@ from __future__ import annotations
 
 import os
 import pathlib
+import stat
 from dataclasses import dataclass, field
 from typing import Any, Iterable, Mapping, Sequence
 
@@ -425,11 +426,48 @@ def _flatten_dict(value: Any, where: str) -> np.ndarray:
 
 
 def _minari_file(path: pathlib.Path) -> pathlib.Path | None:
-    """``dir/data/main_data.hdf5`` or ``dir/main_data.hdf5``, whichever exists."""
+    """``dir/data/main_data.hdf5`` or ``dir/main_data.hdf5``, the first that exists; None when
+    neither does. One that exists but is no readable file (a directory, a dangling link, a
+    symlink loop) raises ValueError naming it."""
     for cand in (path / "data" / "main_data.hdf5", path / "main_data.hdf5"):
-        if cand.is_file():
-            return cand
+        try:
+            st = cand.stat()
+        except FileNotFoundError:
+            if cand.is_symlink():
+                raise ValueError(f"{cand}: cannot be opened (a dangling link)") from None
+            continue
+        except OSError as e:
+            raise ValueError(f"{cand}: cannot be opened: {e.strerror} (a dangling link or a symlink loop)") from None
+        if stat.S_ISDIR(st.st_mode):
+            raise ValueError(f"{cand}: is a directory, not Minari's main_data.hdf5 file")
+        return cand
     return None
+
+
+def _episode_groups(root: Any) -> list[tuple[int, str]]:
+    """The root's episode groups ``episode_<id>`` as ``(id, name)`` in id order. Minari's root
+    holds nothing else, so any other member (``episode_abc``, a second spelling of an id such
+    as ``episode_01`` beside ``episode_1``, a dataset) is refused, naming it, rather than left
+    out of the upload without a word (the Rust reader's rule; docs/data-formats.md)."""
+    episodes, others = [], []
+    for name in root.keys():
+        digits = name[len("episode_"):] if name.startswith("episode_") else ""
+        if digits and digits.isascii() and digits.isdigit() and _is_group(root[name]):
+            episodes.append((int(digits), name))
+        else:
+            others.append(f"{'group' if _is_group(root[name]) else 'dataset'} '{name}'")
+    if not episodes:
+        raise ValueError("no 'episode_<id>' groups (not a Minari main_data.hdf5)")
+    if others:
+        one = len(others) == 1
+        raise ValueError(f"the root holds {', '.join(others)} that {'is' if one else 'are'} not an episode group "
+                         f"'episode_<id>' (id in decimal digits); a Minari main_data.hdf5 holds only episode groups, "
+                         f"so the file is refused rather than uploaded without {'it' if one else 'them'}")
+    episodes.sort()
+    for (a, na), (b, nb) in zip(episodes, episodes[1:]):
+        if a == b:
+            raise ValueError(f"groups '{na}' and '{nb}' are both episode {a}")
+    return episodes
 
 
 def from_minari_hdf5(path: str | os.PathLike) -> dict[str, np.ndarray]:
@@ -446,20 +484,21 @@ def from_minari_hdf5(path: str | os.PathLike) -> dict[str, np.ndarray]:
             raise ValueError(f"{path}: a directory without data/main_data.hdf5 (not a Minari dataset)")
         p = found
     with h5py.File(p, "r") as f:
-        ids = sorted(int(k[len("episode_"):]) for k in f.keys() if k.startswith("episode_") and k[8:].isdigit())
-        if not ids:
-            raise ValueError(f"{p}: no 'episode_<id>' groups (not a Minari main_data.hdf5)")
+        try:
+            names = _episode_groups(f)
+        except ValueError as e:
+            raise ValueError(f"{p}: {e}") from None
         episodes = []
         try:
-            for i in ids:
-                g = f[f"episode_{i}"]
+            for i, name in names:
+                g = f[name]
                 if "actions" not in g or not hasattr(g["actions"], "shape"):
-                    raise ValueError(f"'episode_{i}/actions' is missing or a group (dict actions are not supported)")
+                    raise ValueError(f"'{name}/actions' is missing or a group (dict actions are not supported)")
                 for key in ("observations", "terminations", "truncations"):
                     if key not in g:
-                        raise ValueError(f"no 'episode_{i}/{key}'")
-                episodes.append((f"episode_{i}", {
-                    "observations": _flatten_dict(g["observations"], f"episode_{i}/observations"),
+                        raise ValueError(f"no '{name}/{key}'")
+                episodes.append((name, {
+                    "observations": _flatten_dict(g["observations"], f"{name}/observations"),
                     "actions": np.asarray(g["actions"][()]),
                     "terminations": np.asarray(g["terminations"][()]),
                     "truncations": np.asarray(g["truncations"][()]),

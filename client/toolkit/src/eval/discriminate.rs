@@ -8,7 +8,7 @@
 //!    ([`balanced_subsets`]); the windows are chosen before scoring so that no score is wasted.
 //! 2. Scores at diffusion time t = 0 (clean trajectories), by the caller.
 //! 3. Winsorization of the pooled scores at the 1st and 99th percentiles (the authors' code, as
-//!    REFERENCE.md section 4 records: "The authors winsorize scores at 1%"), so a few extreme
+//!    docs/method.md section 4 records: "The authors winsorize scores at 1%"), so a few extreme
 //!    rewards cannot dominate the standardisation and the fit.
 //! 4. A stratified, seeded 80/20 train/test split of each class.
 //! 5. "using only the predicted reward as input": a one-feature logistic regression

@@ -7,7 +7,7 @@
 //!   min-max scaled) reward ONCE to every bin that one of its states lies in
 //!   ([`Accumulator::add`]), and a bin's value is the mean over the sub-trajectories that
 //!   passed through it. A bin crossed by fewer than `min_count` of them is masked
-//!   ([`Accumulator::means`]; REFERENCE.md section 4: 10 bins per cell, fewer than 5 samples
+//!   ([`Accumulator::means`]; docs/method.md section 4: 10 bins per cell, fewer than 5 samples
 //!   masked).
 //! - Cells follow D4RL: cell (row i, column j) is the unit square centred at (x, y) = (i, j),
 //!   so x runs along rows and y along columns ([`Grid`]).

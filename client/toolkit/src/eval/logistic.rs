@@ -4,7 +4,7 @@
 //! The model is `P(expert | r) = sigmoid(w z + b)` with `z = (r - mean) / std` standardised on
 //! the training set. The objective is the class-weighted mean log-loss plus `l2 / 2 * w^2`
 //! (the intercept is not penalised), with scikit-learn's `class_weight = "balanced"` weights
-//! `n / (2 n_class)`: what the authors used (REFERENCE.md section 4). The tiny penalty keeps
+//! `n / (2 n_class)`: what the authors used (docs/method.md section 4). The tiny penalty keeps
 //! the optimum finite on separable data, where the unpenalised weight would grow without
 //! bound; the objective is then strictly convex and Newton converges in a few dozen steps.
 

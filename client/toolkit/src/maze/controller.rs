@@ -1,5 +1,5 @@
 //! The data-generating controller: [`Planner`] (shortest paths over free cells) and
-//! [`Controller`] (waypoints followed with a clipped PD law), as REFERENCE.md section 5
+//! [`Controller`] (waypoints followed with a clipped PD law), as docs/method.md section 5
 //! describes D4RL's.
 
 use super::{D_GAIN, Layout, P_GAIN, WAYPOINT_RADIUS, cell_of};

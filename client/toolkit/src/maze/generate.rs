@@ -554,7 +554,7 @@ mod tests {
         use std::io::Read;
 
         use crate::npz::trajectories_from_npz;
-        use relreward_client::UploadSource;
+        use relreward_proto::upload::UploadSource;
 
         let dir = tempfile::tempdir().expect("tempdir");
         let data = generate(&config(LayoutName::Umaze, Mode::Expert, 2_000, 6)).expect("generate");

@@ -16,7 +16,7 @@
 //! # Conventions
 //!
 //! **Layouts.** A layout is a grid of cells, `#` a wall and `O` free, rows listed top to bottom
-//! (REFERENCE.md section 5). Cells outside the grid count as walls. The four built-in layouts
+//! (docs/method.md section 5). Cells outside the grid count as walls. The four built-in layouts
 //! and their episode length caps are `open` (5 x 7, cap 150), `umaze` (5 x 5, cap 300),
 //! `medium` (8 x 8, cap 600) and `large` (9 x 12, cap 800).
 //!
@@ -183,7 +183,7 @@ impl LayoutName {
         Self::ALL.into_iter().find(|n| n.as_str().eq_ignore_ascii_case(name))
     }
 
-    /// The map, rows top to bottom (REFERENCE.md section 5).
+    /// The map, rows top to bottom (docs/method.md section 5).
     pub fn map(self) -> &'static [&'static str] {
         match self {
             LayoutName::Open => &["#######", "#OOOOO#", "#OOOOO#", "#OOOOO#", "#######"],

@@ -207,3 +207,14 @@ with h5py.File("rules/minari_edge.hdf5", "w", libver="latest") as f:
 with h5py.File("rules/f128.hdf5", "w") as f:
     f.create_dataset("observations", data=np.zeros((2, 2), np.longdouble))
     f.create_dataset("actions", data=np.zeros((2, 1), np.float32))
+
+# Root members a Minari reader must not leave out without a word (docs/data-formats.md, "Minari
+# root"): an episode group whose id is not a number, and a second spelling of an id.
+for name, groups in (("minari_bad_group", ("episode_1", "episode_abc")), ("minari_dup_id", ("episode_1", "episode_01"))):
+    with h5py.File(f"rules/{name}.hdf5", "w", libver="latest") as f:
+        for group in groups:
+            g = f.create_group(group)
+            g.create_dataset("observations", data=np.arange(6, dtype=np.float32).reshape(3, 2))
+            g.create_dataset("actions", data=np.zeros((2, 1), np.float32))
+            g.create_dataset("terminations", data=np.array([False, True]))
+            g.create_dataset("truncations", data=np.zeros(2, bool))

@@ -7,17 +7,21 @@
 //! - [`mlp`]: an MLP denoiser over samples of any shape.
 //! - [`unet2d`]: diffusers' `UNet2DModel` over images [B, C, H, W], with diffusers' parameter
 //!   names (checked against diffusers itself by `server/tests/unet2d_vs_diffusers.rs`).
-//! - [`reward`]: [`RewardNet`], the relative reward network rho(x, t) (windowed MLP, Diffuser's
-//!   ValueFunction, a strided 2D conv encoder, a flat MLP) with its input gradient, the
-//!   differentiable gradient for the double backward of training, and strict safetensors.
+//! - [`reward`]: [`RewardNet`], the relative reward network rho(x, t) with its input gradient
+//!   and the differentiable gradient for the double backward of training; one file per
+//!   architecture (windowed MLP, Diffuser's ValueFunction, a strided 2D conv encoder, a flat
+//!   MLP) under `reward/`.
 //! - [`native`]: [`NativeDenoiser`], the [`super::denoiser::Denoiser`] over either network.
-//! - [`weights`]: strict safetensors loading and atomic saving, shared by every network.
+//! - [`weights`]: [`weights::Weights`], a network's variables built against its planned
+//!   parameter count, strict safetensors loading and atomic saving, shared by every network.
+//! - [`inputs`]: the (x, t) shape and dtype check of every network's forward pass.
 //!
 //! `tests/python/nets_reference.py` is an independent PyTorch implementation of the same
 //! networks; `server/tests/nets_vs_pytorch.rs` checks that both agree on the same weights
 //! (`reward_nets_reference.py` and `reward_nets_vs_pytorch.rs` for the reward networks).
 
 pub mod blocks;
+pub mod inputs;
 pub mod mlp;
 pub mod native;
 pub mod reward;

@@ -10,13 +10,13 @@
 
 use std::path::Path;
 
-use tch::nn::VarStore;
 use tch::{Device, Kind, Tensor};
 
+use super::inputs::check_inputs;
 use super::mlp::MlpDenoiser;
 use super::temporal_unet::TemporalUnet;
 use super::unet2d::{Unet2d, Unet2dConfig};
-use super::weights;
+use super::weights::Weights;
 use crate::engine::denoiser::Denoiser;
 use crate::engine::manifest::{Architecture, Space};
 use crate::error::{Error, Result};
@@ -37,12 +37,11 @@ enum Network {
 /// A native denoiser: the network, its variables, and the space it was built for.
 #[derive(Debug)]
 pub struct NativeDenoiser {
-    vs: VarStore,
+    weights: Weights,
     network: Network,
     architecture: Architecture,
     space: Space,
     item_shape: Vec<i64>,
-    parameter_count: u64,
 }
 
 fn to_i64(value: usize, field: &str) -> Result<i64> {
@@ -157,57 +156,34 @@ impl NativeDenoiser {
     /// A freshly initialised network (PyTorch's default initialisation) on `device`.
     pub fn new(architecture: &Architecture, space: &Space, device: Device) -> Result<Self> {
         let (plan, item_shape) = Plan::new(architecture, space)?;
-        let planned = plan.params()?;
-        let vs = VarStore::new(device);
-        let root = vs.root();
-        let network = match &plan {
-            Plan::TemporalUnet { horizon, transition_dim, dim, dim_mults } => {
-                Network::TemporalUnet(Box::new(TemporalUnet::new(&root, *horizon, *transition_dim, *dim, dim_mults)?))
-            }
-            Plan::Mlp { features, hidden } => Network::Mlp(MlpDenoiser::new(&root, *features, hidden)?),
-            Plan::Unet2d(config) => Network::Unet2d(Box::new(Unet2d::new(&root, config)?)),
-        };
-        let parameter_count = vs
-            .variables()
-            .values()
-            .map(|t| u64::try_from(t.numel()).unwrap_or(u64::MAX))
-            .fold(0u64, u64::saturating_add);
-        if parameter_count != planned {
-            return Err(Error::internal(
-                "NativeDenoiser",
-                format!("built {parameter_count} parameters, planned {planned}"),
-            ));
-        }
-        Ok(Self { vs, network, architecture: architecture.clone(), space: space.clone(), item_shape, parameter_count })
+        let (weights, network) = Weights::build(device, plan.params()?, "NativeDenoiser", |root| {
+            Ok(match &plan {
+                Plan::TemporalUnet { horizon, transition_dim, dim, dim_mults } => Network::TemporalUnet(Box::new(
+                    TemporalUnet::new(root, *horizon, *transition_dim, *dim, dim_mults)?,
+                )),
+                Plan::Mlp { features, hidden } => Network::Mlp(MlpDenoiser::new(root, *features, hidden)?),
+                Plan::Unet2d(config) => Network::Unet2d(Box::new(Unet2d::new(root, config)?)),
+            })
+        })?;
+        Ok(Self { weights, network, architecture: architecture.clone(), space: space.clone(), item_shape })
     }
 
     /// Builds the network and loads its weights from a safetensors file (strictly, see
-    /// [`Self::load_weights`]).
+    /// [`Weights::load_strict`]).
     pub fn load(architecture: &Architecture, space: &Space, path: &Path, device: Device) -> Result<Self> {
-        let mut denoiser = Self::new(architecture, space, device)?;
-        denoiser.load_weights(path)?;
+        let denoiser = Self::new(architecture, space, device)?;
+        denoiser.weights.load_strict(path)?;
         Ok(denoiser)
     }
 
-    /// Replaces every weight with the tensor of the same name in a safetensors file, strictly
-    /// (see [`weights::load_strict`]): on any mismatch nothing is changed.
-    pub fn load_weights(&mut self, path: &Path) -> Result<()> {
-        weights::load_strict(&self.vs, self.parameter_count, path)
-    }
-
-    /// Writes every weight to `path` atomically (see [`weights::save_atomic`]).
+    /// Writes every weight to `path` atomically (see [`Weights::save_atomic`]).
     pub fn save(&self, path: &Path) -> Result<()> {
-        weights::save_atomic(&self.vs, path)
+        self.weights.save_atomic(path)
     }
 
-    pub fn var_store(&self) -> &VarStore {
-        &self.vs
-    }
-
-    /// Mutable access for a trainer (e.g. to build an `nn::Adam` optimizer, or to freeze).
-    /// Changing the set of variables or their dtype breaks the network.
-    pub fn var_store_mut(&mut self) -> &mut VarStore {
-        &mut self.vs
+    /// The variables: names, loading, the `VarStore` a trainer optimises.
+    pub fn weights(&self) -> &Weights {
+        &self.weights
     }
 
     pub fn architecture(&self) -> &Architecture {
@@ -222,40 +198,11 @@ impl NativeDenoiser {
     pub fn item_shape(&self) -> &[i64] {
         &self.item_shape
     }
-
-    /// The parameter names (the PyTorch state-dict keys), sorted.
-    pub fn parameter_names(&self) -> Vec<String> {
-        let mut names: Vec<String> = self.vs.variables().into_keys().collect();
-        names.sort();
-        names
-    }
-
-    fn check_inputs(&self, x: &Tensor, t: &Tensor) -> Result<()> {
-        let size = x.size();
-        let batch = size.first().copied().unwrap_or(0);
-        if size.len() != self.item_shape.len() + 1 || batch < 1 || size[1..] != self.item_shape[..] {
-            return Err(Error::invalid(format!(
-                "denoiser input x: shape {size:?} does not match [B >= 1, {}]",
-                self.item_shape.iter().map(i64::to_string).collect::<Vec<_>>().join(", ")
-            )));
-        }
-        if x.kind() != Kind::Float {
-            return Err(Error::invalid(format!("denoiser input x: dtype {:?}, expected float32", x.kind())));
-        }
-        if t.size() != [batch] || t.kind() != Kind::Int64 {
-            return Err(Error::invalid(format!(
-                "denoiser input t: shape {:?} and dtype {:?}, expected int64 [{batch}]",
-                t.size(),
-                t.kind()
-            )));
-        }
-        Ok(())
-    }
 }
 
 impl Denoiser for NativeDenoiser {
     fn forward(&self, x: &Tensor, t: &Tensor) -> Result<Tensor> {
-        self.check_inputs(x, t)?;
+        check_inputs("denoiser", x, t, &self.item_shape, Kind::Float)?;
         let t = t.f_to_kind(Kind::Float)?;
         match &self.network {
             Network::TemporalUnet(net) => net.forward(x, &t),
@@ -265,7 +212,7 @@ impl Denoiser for NativeDenoiser {
     }
 
     fn parameter_count(&self) -> u64 {
-        self.parameter_count
+        self.weights.parameter_count()
     }
 }
 
@@ -295,7 +242,7 @@ mod tests {
     /// a weight that fails to load or save would show.
     fn perturb(d: &NativeDenoiser) {
         tch::no_grad(|| {
-            for (_, var) in d.var_store().variables() {
+            for (_, var) in d.weights().var_store().variables() {
                 let mut var = var;
                 let noise = var.randn_like() * 0.1;
                 let _ = var.f_add_(&noise).expect("perturb");
@@ -325,7 +272,7 @@ mod tests {
     #[test]
     fn nets_parameter_names_mirror_the_pytorch_modules() {
         let d = build(&unet(32, &[1, 2, 4, 8]), &trajectory(32));
-        let names = d.parameter_names();
+        let names = d.weights().parameter_names();
         for expected in [
             "time_mlp.1.weight",
             "time_mlp.3.bias",
@@ -353,7 +300,7 @@ mod tests {
         }
         let d = build(&mlp(&[64, 32]), &Space::Sample { shape: vec![4, 3] });
         assert_eq!(
-            d.parameter_names(),
+            d.weights().parameter_names(),
             [
                 "net.0.bias",
                 "net.0.weight",
@@ -454,7 +401,7 @@ mod tests {
         let space = trajectory(8);
         let d = build(&arch, &space);
         let named: Vec<(String, Tensor)> =
-            d.var_store().variables().into_iter().collect::<BTreeMap<_, _>>().into_iter().collect();
+            d.weights().var_store().variables().into_iter().collect::<BTreeMap<_, _>>().into_iter().collect();
         let write = |name: &str, tensors: &[(String, Tensor)]| {
             let path = dir.path().join(name);
             Tensor::write_safetensors(tensors, &path).expect("write");
@@ -495,20 +442,23 @@ mod tests {
             (truncated, "not a valid safetensors file".to_string()),
         ]);
 
-        let mut target = build(&arch, &space);
+        let target = build(&arch, &space);
         let before: BTreeMap<String, Tensor> =
-            target.var_store().variables().into_iter().map(|(n, t)| (n, t.detach().copy())).collect();
+            target.weights().var_store().variables().into_iter().map(|(n, t)| (n, t.detach().copy())).collect();
         for (path, needle) in cases {
-            let msg = invalid_message(target.load_weights(&path));
+            let msg = invalid_message(target.weights().load_strict(&path));
             assert!(msg.contains(&needle), "{msg} should contain {needle}");
             assert!(!msg.contains(&dir.path().display().to_string()), "{msg} leaks the path");
         }
         // Nothing was copied by the failed loads.
         let after: BTreeMap<String, Tensor> =
-            target.var_store().variables().into_iter().map(|(n, t)| (n, t.detach().copy())).collect();
+            target.weights().var_store().variables().into_iter().map(|(n, t)| (n, t.detach().copy())).collect();
         assert!(before.iter().zip(&after).all(|((na, a), (nb, b))| na == nb && a.equal(b)));
         // A missing file is the server's problem, not the caller's.
-        assert!(matches!(target.load_weights(&dir.path().join("absent.safetensors")), Err(Error::Internal(_))));
+        assert!(matches!(
+            target.weights().load_strict(&dir.path().join("absent.safetensors")),
+            Err(Error::Internal(_))
+        ));
     }
 
     #[test]
@@ -521,7 +471,7 @@ mod tests {
             let x = x.set_requires_grad(true);
             let loss = d.forward(&x, &t).expect("forward").square().mean(Kind::Float);
             loss.backward();
-            for (name, var) in d.var_store().variables() {
+            for (name, var) in d.weights().var_store().variables() {
                 let grad = var.grad();
                 assert!(grad.defined(), "{name}: no gradient");
                 assert!(grad.abs().sum(Kind::Float).double_value(&[]) > 0.0, "{name}: zero gradient");

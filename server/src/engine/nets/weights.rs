@@ -1,14 +1,18 @@
-//! Weights files of the native networks: strict safetensors loading (exactly the network's
-//! tensor names, shapes and dtype, or an error naming the tensor, with nothing changed) and
-//! atomic saving (a synced temporary sibling renamed over the target). Shared by the
-//! denoisers and the reward networks, so both refuse the same bad files the same way.
-//! Loading a safetensors file never executes code.
+//! The variables of a native network and their files, shared by the denoisers and the reward
+//! networks so that both are built, checked, loaded and saved the same way:
+//!
+//! - [`Weights`]: a network's `VarStore` with its parameter count, built once and checked
+//!   against the count its plan computed without allocating.
+//! - strict safetensors loading ([`Weights::load_strict`]: exactly the network's tensor names,
+//!   shapes and dtype, or an error naming the tensor, with nothing changed) and atomic saving
+//!   ([`Weights::save_atomic`]: a synced temporary sibling renamed over the target). Loading a
+//!   safetensors file never executes code.
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
-use tch::nn::VarStore;
-use tch::{TchError, Tensor};
+use tch::nn::{self, VarStore};
+use tch::{Device, TchError, Tensor};
 
 use crate::error::{Error, Result};
 
@@ -17,12 +21,76 @@ const HEADER_ALLOWANCE: u64 = 1 << 20;
 /// At most this many names are listed in an error message.
 const NAMES_SHOWN: usize = 5;
 
-/// Replaces every variable of `vs` with the tensor of the same name in a safetensors file. The
-/// file must hold exactly these names, each with the variable's shape and dtype; on any
-/// mismatch the error (InvalidArgument) names the tensor and nothing is changed. The file may
-/// be at most the size `parameter_count` weights need plus a header allowance. Messages never
-/// include the file's path (it may be a server-side location).
-pub fn load_strict(vs: &VarStore, parameter_count: u64, path: &Path) -> Result<()> {
+/// A network's variables (parameters and buffers, under PyTorch's state-dict names) and their
+/// number.
+#[derive(Debug)]
+pub struct Weights {
+    vs: VarStore,
+    parameter_count: u64,
+}
+
+impl Weights {
+    /// Creates the variables of a network on `device`: `build` makes its layers under the root
+    /// path. The number of values built must equal `planned`, the count the network's plan
+    /// computed without allocating (which the parameter limits were checked against); a
+    /// mismatch is an internal error of `network`'s bookkeeping.
+    pub fn build<N>(
+        device: Device,
+        planned: u64,
+        network: &str,
+        build: impl FnOnce(&nn::Path) -> Result<N>,
+    ) -> Result<(Self, N)> {
+        let vs = VarStore::new(device);
+        let layers = build(&vs.root())?;
+        let parameter_count = vs
+            .variables()
+            .values()
+            .map(|t| u64::try_from(t.numel()).unwrap_or(u64::MAX))
+            .fold(0u64, u64::saturating_add);
+        if parameter_count != planned {
+            return Err(Error::internal(network, format!("built {parameter_count} parameters, planned {planned}")));
+        }
+        Ok((Self { vs, parameter_count }, layers))
+    }
+
+    pub fn var_store(&self) -> &VarStore {
+        &self.vs
+    }
+
+    /// Mutable access for a trainer (optimizer, freezing, `double()` for precise checks).
+    /// Changing the set of variables breaks the network.
+    pub fn var_store_mut(&mut self) -> &mut VarStore {
+        &mut self.vs
+    }
+
+    pub fn parameter_count(&self) -> u64 {
+        self.parameter_count
+    }
+
+    /// The parameter names (the PyTorch state-dict keys), sorted.
+    pub fn parameter_names(&self) -> Vec<String> {
+        let mut names: Vec<String> = self.vs.variables().into_keys().collect();
+        names.sort();
+        names
+    }
+
+    /// Replaces every variable with the tensor of the same name in a safetensors file. The
+    /// file must hold exactly these names, each with the variable's shape and dtype; on any
+    /// mismatch the error (InvalidArgument) names the tensor and nothing is changed. The file
+    /// may be at most the size the parameters need plus a header allowance. Messages never
+    /// include the file's path (it may be a server-side location).
+    pub fn load_strict(&self, path: &Path) -> Result<()> {
+        load_strict(&self.vs, self.parameter_count, path)
+    }
+
+    /// Writes every variable to `path` in safetensors format, sorted by name, through a synced
+    /// temporary sibling renamed over `path` (never a truncated file under the final name).
+    pub fn save_atomic(&self, path: &Path) -> Result<()> {
+        save_atomic(&self.vs, path)
+    }
+}
+
+fn load_strict(vs: &VarStore, parameter_count: u64, path: &Path) -> Result<()> {
     let variables: BTreeMap<String, Tensor> = vs.variables().into_iter().collect();
     let kind = variables.values().next().map_or(tch::Kind::Float, Tensor::kind);
     let size = std::fs::metadata(path)?.len();
@@ -77,9 +145,7 @@ pub fn load_strict(vs: &VarStore, parameter_count: u64, path: &Path) -> Result<(
     })
 }
 
-/// Writes every variable of `vs` to `path` in safetensors format, sorted by name, through a
-/// synced temporary sibling renamed over `path` (never a truncated file under the final name).
-pub fn save_atomic(vs: &VarStore, path: &Path) -> Result<()> {
+fn save_atomic(vs: &VarStore, path: &Path) -> Result<()> {
     let named = vs
         .variables()
         .into_iter()

@@ -1,0 +1,610 @@
+//! The diffusion model manifest as a file (TOML or JSON, the server's format), its conversion
+//! to the proto `DiffusionManifest`, and the proto back to JSON for `model show --json`.
+//!
+//! ```toml
+//! parametrization = "x0"                  # or "epsilon"
+//! n_timesteps = 20
+//! clip_denoised = true                    # default false
+//! schedule = { kind = "diffuser_cosine" } # linear | cosine | diffuser_cosine (s) | betas (betas)
+//! space = { kind = "trajectory", horizon = 32, action_dim = 2, obs_dim = 4 }
+//! # or space = { kind = "sample", shape = [4, 8, 8] }
+//! normalizer = { kind = "limits", min = [..], max = [..] }
+//! # or { kind = "gaussian", mean = [..], std = [..] } or { kind = "identity" } (the default)
+//! # native safetensors weights only (absent for a TorchScript module, its own architecture):
+//! architecture = { kind = "temporal_unet", dim = 32, dim_mults = [1, 4, 8] }
+//! # or { kind = "mlp", hidden = [..] } or { kind = "unet2d", block_out_channels = [..],
+//! #    layers_per_block, attention, norm_num_groups, attention_head_dim }
+//! ```
+//!
+//! One rule decides what an uploaded file is: a manifest with an `architecture` describes
+//! native weights (`MODEL_FORMAT_NATIVE`), one without describes a TorchScript module.
+
+use std::path::Path;
+
+use anyhow::{Context, Result, anyhow, bail};
+use relreward_client::pb;
+use serde::Deserialize;
+use serde::de::DeserializeOwned;
+use serde_json::{Value, json};
+
+use crate::output::normalizer_json;
+
+/// The offset of the cosine schedules when none is given (what `s = 0` means on the wire).
+const DEFAULT_COSINE_S: f64 = 0.008;
+/// The server's upper bound on T.
+const MAX_TIMESTEPS: u32 = 100_000;
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Parametrization {
+    Epsilon,
+    X0,
+}
+
+impl Parametrization {
+    pub fn to_proto(self) -> pb::Parametrization {
+        match self {
+            Self::Epsilon => pb::Parametrization::Epsilon,
+            Self::X0 => pb::Parametrization::X0,
+        }
+    }
+}
+
+/// A beta schedule. An omitted `s` is sent as 0, which the server reads as 0.008.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case", deny_unknown_fields)]
+pub enum Schedule {
+    Linear,
+    Cosine { s: Option<f64> },
+    DiffuserCosine { s: Option<f64> },
+    Betas { betas: Vec<f64> },
+}
+
+impl Schedule {
+    /// The proto schedule; `field` names it in errors (`manifest.schedule`).
+    pub fn to_proto(&self, field: &str) -> Result<pb::Schedule> {
+        use pb::schedule::{Cosine, ExplicitBetas, Kind, Linear};
+        let cosine_s = |s: Option<f64>| -> Result<f64> {
+            match s {
+                None => Ok(0.0),
+                Some(s) if s.is_finite() && s > 0.0 && s < 1.0 => Ok(s),
+                Some(s) => bail!("{field}.s: {s} is not in (0, 1) (omit it for the default {DEFAULT_COSINE_S})"),
+            }
+        };
+        let kind = match self {
+            Self::Linear => Kind::Linear(Linear {}),
+            Self::Cosine { s } => Kind::Cosine(Cosine { s: cosine_s(*s)? }),
+            Self::DiffuserCosine { s } => Kind::DiffuserCosine(Cosine { s: cosine_s(*s)? }),
+            Self::Betas { betas } => {
+                if let Some(i) = betas.iter().position(|b| !(b.is_finite() && *b > 0.0 && *b < 1.0)) {
+                    bail!("{field}.betas[{i}]: {} is not in (0, 1)", betas[i]);
+                }
+                Kind::Betas(ExplicitBetas { betas: betas.clone() })
+            }
+        };
+        Ok(pb::Schedule { kind: Some(kind) })
+    }
+}
+
+#[derive(Debug, Clone, PartialEq, Eq, Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case", deny_unknown_fields)]
+pub enum Space {
+    Trajectory { horizon: u32, action_dim: u32, obs_dim: u32 },
+    Sample { shape: Vec<u64> },
+}
+
+#[derive(Debug, Clone, PartialEq, Default, Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case", deny_unknown_fields)]
+pub enum Normalizer {
+    Limits {
+        min: Vec<f64>,
+        max: Vec<f64>,
+    },
+    Gaussian {
+        mean: Vec<f64>,
+        std: Vec<f64>,
+    },
+    #[default]
+    Identity,
+}
+
+/// A built-in architecture (native weights); unset fields take the server's TrainDiffusion
+/// defaults.
+#[derive(Debug, Clone, PartialEq, Eq, Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case", deny_unknown_fields)]
+pub enum Architecture {
+    TemporalUnet {
+        dim: Option<u32>,
+        #[serde(default)]
+        dim_mults: Vec<u32>,
+    },
+    Mlp {
+        #[serde(default)]
+        hidden: Vec<u32>,
+    },
+    Unet2d {
+        #[serde(default)]
+        block_out_channels: Vec<u32>,
+        layers_per_block: Option<u32>,
+        attention: Option<bool>,
+        norm_num_groups: Option<u32>,
+        attention_head_dim: Option<u32>,
+    },
+}
+
+impl Architecture {
+    pub fn to_proto(&self) -> pb::diffusion_manifest::Architecture {
+        use pb::diffusion_manifest::Architecture as Wire;
+        match self.clone() {
+            Self::TemporalUnet { dim, dim_mults } => Wire::TemporalUnet(pb::TemporalUnet { dim, dim_mults }),
+            Self::Mlp { hidden } => Wire::Mlp(pb::Mlp { hidden }),
+            Self::Unet2d { block_out_channels, layers_per_block, attention, norm_num_groups, attention_head_dim } => {
+                Wire::Unet2d(pb::Unet2d {
+                    block_out_channels,
+                    layers_per_block,
+                    attention,
+                    norm_num_groups,
+                    attention_head_dim,
+                })
+            }
+        }
+    }
+}
+
+impl Architecture {
+    /// The same three messages in TrainDiffusion's oneof.
+    pub fn to_train_proto(&self) -> pb::train_diffusion::Architecture {
+        use pb::diffusion_manifest::Architecture as M;
+        use pb::train_diffusion::Architecture as T;
+        match self.to_proto() {
+            M::TemporalUnet(u) => T::TemporalUnet(u),
+            M::Mlp(m) => T::Mlp(m),
+            M::Unet2d(u) => T::Unet2d(u),
+        }
+    }
+}
+
+/// A TrainDiffusion architecture as a manifest's (the same three messages), e.g. to print it
+/// with [`architecture_json`].
+pub fn manifest_architecture(a: &pb::train_diffusion::Architecture) -> pb::diffusion_manifest::Architecture {
+    use pb::diffusion_manifest::Architecture as M;
+    use pb::train_diffusion::Architecture as T;
+    match a.clone() {
+        T::TemporalUnet(u) => M::TemporalUnet(u),
+        T::Mlp(m) => M::Mlp(m),
+        T::Unet2d(u) => M::Unet2d(u),
+    }
+}
+
+/// The manifest file, field for field the server's `DiffusionManifest`.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ManifestFile {
+    pub parametrization: Parametrization,
+    pub schedule: Schedule,
+    pub n_timesteps: u32,
+    #[serde(default)]
+    pub clip_denoised: bool,
+    pub space: Space,
+    #[serde(default)]
+    pub normalizer: Normalizer,
+    /// Native weights only (see the module's rule).
+    #[serde(default)]
+    pub architecture: Option<Architecture>,
+}
+
+impl ManifestFile {
+    /// The proto manifest, after the checks that name the offending field.
+    pub fn to_proto(&self) -> Result<pb::DiffusionManifest> {
+        use pb::diffusion_manifest::{Sample, Space as PbSpace, Trajectory};
+        let t = self.n_timesteps;
+        if t == 0 || t > MAX_TIMESTEPS {
+            bail!("manifest.n_timesteps: {t} is outside 1..={MAX_TIMESTEPS}");
+        }
+        if let Schedule::Betas { betas } = &self.schedule
+            && betas.len() != t as usize
+        {
+            bail!("manifest.schedule.betas: {} values but n_timesteps is {t}", betas.len());
+        }
+        let schedule = self.schedule.to_proto("manifest.schedule")?;
+        let (space, coordinates) = match &self.space {
+            Space::Trajectory { horizon, action_dim, obs_dim } => {
+                if *horizon == 0 || u64::from(*action_dim) + u64::from(*obs_dim) == 0 {
+                    bail!(
+                        "manifest.space: horizon {horizon}, action_dim {action_dim}, obs_dim {obs_dim}: horizon and \
+                         action_dim + obs_dim must be positive"
+                    );
+                }
+                let space =
+                    PbSpace::Trajectory(Trajectory { horizon: *horizon, action_dim: *action_dim, obs_dim: *obs_dim });
+                (space, u64::from(*action_dim) + u64::from(*obs_dim))
+            }
+            Space::Sample { shape } => {
+                if shape.is_empty() || shape.contains(&0) {
+                    bail!("manifest.space.shape: {shape:?} must be non-empty with positive dimensions");
+                }
+                let coordinates = shape.iter().try_fold(1u64, |acc, &d| acc.checked_mul(d));
+                let coordinates = coordinates.ok_or_else(|| anyhow!("manifest.space.shape: {shape:?} is too large"))?;
+                (PbSpace::Sample(Sample { shape: shape.clone() }), coordinates)
+            }
+        };
+        let normalizer = normalizer_to_proto(&self.normalizer, "manifest.normalizer", coordinates)?;
+        Ok(pb::DiffusionManifest {
+            parametrization: self.parametrization.to_proto() as i32,
+            schedule: Some(schedule),
+            n_timesteps: t,
+            clip_denoised: self.clip_denoised,
+            space: Some(space),
+            normalizer: Some(normalizer),
+            architecture: self.architecture.as_ref().map(Architecture::to_proto),
+        })
+    }
+}
+
+/// Checks lengths (`coordinates` each), finiteness and orientation, naming `field`.
+fn normalizer_to_proto(n: &Normalizer, field: &str, coordinates: u64) -> Result<pb::Normalizer> {
+    use pb::normalizer::{Gaussian, Identity, Kind, Limits};
+    let (a, b, names) = match n {
+        Normalizer::Identity => return Ok(pb::Normalizer { kind: Some(Kind::Identity(Identity {})) }),
+        Normalizer::Limits { min, max } => (min, max, ("min", "max")),
+        Normalizer::Gaussian { mean, std } => (mean, std, ("mean", "std")),
+    };
+    for (v, name) in [(a, names.0), (b, names.1)] {
+        if v.len() as u64 != coordinates {
+            bail!("{field}.{name}: {} values but the model has {coordinates} coordinates", v.len());
+        }
+        if let Some(i) = v.iter().position(|x| !x.is_finite()) {
+            bail!("{field}.{name}[{i}]: not finite");
+        }
+    }
+    let kind = match n {
+        Normalizer::Limits { min, max } => {
+            if let Some(i) = min.iter().zip(max).position(|(lo, hi)| lo > hi) {
+                bail!("{field}: min[{i}] = {} exceeds max[{i}] = {}", min[i], max[i]);
+            }
+            Kind::Limits(Limits { min: min.clone(), max: max.clone() })
+        }
+        Normalizer::Gaussian { mean, std } => {
+            if let Some(i) = std.iter().position(|&s| s < 0.0) {
+                bail!("{field}.std[{i}]: negative");
+            }
+            Kind::Gaussian(Gaussian { mean: mean.clone(), std: std.clone() })
+        }
+        Normalizer::Identity => Kind::Identity(Identity {}),
+    };
+    Ok(pb::Normalizer { kind: Some(kind) })
+}
+
+/// Parses TOML or JSON: JSON for a `.json` file or text starting with `{`, TOML otherwise.
+/// Errors carry the parser's line and column and the field.
+pub fn parse_text<T: DeserializeOwned>(text: &str, path: &Path) -> Result<T> {
+    let is_json = path.extension().is_some_and(|e| e.eq_ignore_ascii_case("json"))
+        || (path.extension().is_none_or(|e| !e.eq_ignore_ascii_case("toml")) && text.trim_start().starts_with('{'));
+    if is_json {
+        serde_json::from_str(text).map_err(|e| anyhow!("{} (JSON): {e}", path.display()))
+    } else {
+        toml::from_str(text).map_err(|e| anyhow!("{} (TOML): {}", path.display(), e.to_string().trim_end()))
+    }
+}
+
+/// Reads a file of type `T` (see [`parse_text`]).
+pub fn read_file<T: DeserializeOwned>(path: &Path) -> Result<T> {
+    let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+    parse_text(&text, path)
+}
+
+/// Reads and converts a manifest file.
+pub fn load(path: &Path) -> Result<pb::DiffusionManifest> {
+    let file: ManifestFile = read_file(path)?;
+    file.to_proto().with_context(|| format!("{}", path.display()))
+}
+
+// ---------------------------------------------------------------------------------------------
+// Proto to JSON (the file's fields)
+
+pub fn parametrization_name(p: pb::Parametrization) -> Option<&'static str> {
+    match p {
+        pb::Parametrization::Epsilon => Some("epsilon"),
+        pb::Parametrization::X0 => Some("x0"),
+        pb::Parametrization::Unspecified => None,
+    }
+}
+
+/// `{"kind": "linear"}`, `{"kind": "cosine" | "diffuser_cosine", "s": X}` (the effective s),
+/// `{"kind": "betas", "betas": [..]}`, or `null`.
+pub fn schedule_json(s: Option<&pb::Schedule>) -> Value {
+    use pb::schedule::Kind;
+    let effective = |s: f64| if s == 0.0 { DEFAULT_COSINE_S } else { s };
+    match s.and_then(|s| s.kind.as_ref()) {
+        Some(Kind::Linear(_)) => json!({ "kind": "linear" }),
+        Some(Kind::Cosine(c)) => json!({ "kind": "cosine", "s": effective(c.s) }),
+        Some(Kind::DiffuserCosine(c)) => json!({ "kind": "diffuser_cosine", "s": effective(c.s) }),
+        Some(Kind::Betas(b)) => json!({ "kind": "betas", "betas": b.betas }),
+        None => Value::Null,
+    }
+}
+
+/// A schedule in a few words: `cosine (s = 0.008)`, `betas (20 values)`.
+pub fn schedule_text(s: Option<&pb::Schedule>) -> String {
+    use pb::schedule::Kind;
+    let effective = |s: f64| if s == 0.0 { DEFAULT_COSINE_S } else { s };
+    match s.and_then(|s| s.kind.as_ref()) {
+        Some(Kind::Linear(_)) => "linear".to_owned(),
+        Some(Kind::Cosine(c)) => format!("cosine (s = {})", effective(c.s)),
+        Some(Kind::DiffuserCosine(c)) => format!("diffuser_cosine (s = {})", effective(c.s)),
+        Some(Kind::Betas(b)) => format!("betas ({} values)", b.betas.len()),
+        None => "-".to_owned(),
+    }
+}
+
+/// The manifest with the file's fields:
+///
+/// ```json
+/// {"parametrization": "epsilon" | "x0" | null, "schedule": {..} | null, "n_timesteps": T,
+///  "clip_denoised": bool,
+///  "space": {"kind": "trajectory", "horizon": H, "action_dim": A, "obs_dim": O}
+///         | {"kind": "sample", "shape": [..]} | null,
+///  "normalizer": {"kind": "limits", "min": [..], "max": [..]}
+///              | {"kind": "gaussian", "mean": [..], "std": [..]} | {"kind": "identity"},
+///  "architecture": {"kind": "temporal_unet", ..} | {"kind": "mlp", ..} | {"kind": "unet2d", ..}}
+/// ```
+/// (`architecture` only for native models).
+pub fn manifest_json(m: &pb::DiffusionManifest) -> Value {
+    let mut json = json!({
+        "parametrization": parametrization_name(m.parametrization()),
+        "schedule": schedule_json(m.schedule.as_ref()),
+        "n_timesteps": m.n_timesteps,
+        "clip_denoised": m.clip_denoised,
+        "space": space_json(m.space.as_ref()),
+        "normalizer": normalizer_json(m.normalizer.as_ref()),
+    });
+    if let Some(a) = &m.architecture {
+        json["architecture"] = architecture_json(a);
+    }
+    json
+}
+
+/// `{"kind": "temporal_unet" | "mlp" | "unet2d", ..fields}`, the file's form.
+pub fn architecture_json(a: &pb::diffusion_manifest::Architecture) -> Value {
+    use pb::diffusion_manifest::Architecture as Wire;
+    match a {
+        Wire::TemporalUnet(u) => json!({ "kind": "temporal_unet", "dim": u.dim, "dim_mults": u.dim_mults }),
+        Wire::Mlp(m) => json!({ "kind": "mlp", "hidden": m.hidden }),
+        Wire::Unet2d(u) => json!({
+            "kind": "unet2d",
+            "block_out_channels": u.block_out_channels,
+            "layers_per_block": u.layers_per_block,
+            "attention": u.attention,
+            "norm_num_groups": u.norm_num_groups,
+            "attention_head_dim": u.attention_head_dim,
+        }),
+    }
+}
+
+/// An architecture in a few words, `-` for none (a TorchScript module).
+pub fn architecture_text(a: Option<&pb::diffusion_manifest::Architecture>) -> String {
+    use pb::diffusion_manifest::Architecture as Wire;
+    match a {
+        Some(Wire::TemporalUnet(u)) => {
+            format!("temporal_unet (dim {}, dim_mults {:?})", u.dim.unwrap_or(32), u.dim_mults)
+        }
+        Some(Wire::Mlp(m)) => format!("mlp (hidden {:?})", m.hidden),
+        Some(Wire::Unet2d(u)) => format!("unet2d (block_out_channels {:?})", u.block_out_channels),
+        None => "-".to_owned(),
+    }
+}
+
+fn space_json(s: Option<&pb::diffusion_manifest::Space>) -> Value {
+    use pb::diffusion_manifest::Space as PbSpace;
+    match s {
+        Some(PbSpace::Trajectory(t)) => {
+            json!({ "kind": "trajectory", "horizon": t.horizon, "action_dim": t.action_dim, "obs_dim": t.obs_dim })
+        }
+        Some(PbSpace::Sample(s)) => json!({ "kind": "sample", "shape": s.shape }),
+        None => Value::Null,
+    }
+}
+
+/// A space in a few words.
+pub fn space_text(s: Option<&pb::diffusion_manifest::Space>) -> String {
+    use pb::diffusion_manifest::Space as PbSpace;
+    match s {
+        Some(PbSpace::Trajectory(t)) => {
+            format!("trajectory (horizon {}, action_dim {}, obs_dim {})", t.horizon, t.action_dim, t.obs_dim)
+        }
+        Some(PbSpace::Sample(s)) => format!("sample {:?}", s.shape),
+        None => "-".to_owned(),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use pb::diffusion_manifest::{Sample, Space as PbSpace, Trajectory};
+    use pb::normalizer::Kind as NKind;
+    use pb::schedule::Kind as SKind;
+
+    use super::*;
+
+    const TOML: &str = r#"
+        parametrization = "x0"
+        n_timesteps = 4
+        clip_denoised = true
+        schedule = { kind = "diffuser_cosine" }
+        space = { kind = "trajectory", horizon = 32, action_dim = 2, obs_dim = 1 }
+        normalizer = { kind = "limits", min = [0, 0, -1], max = [1, 1, 1] }
+    "#;
+
+    fn parse(text: &str) -> Result<pb::DiffusionManifest> {
+        parse_text::<ManifestFile>(text, Path::new("m.toml"))?.to_proto()
+    }
+
+    fn with_schedule(schedule: &str) -> pb::DiffusionManifest {
+        let text = TOML.replace(r#"{ kind = "diffuser_cosine" }"#, schedule);
+        parse(&text).unwrap_or_else(|e| panic!("{schedule}: {e:#}"))
+    }
+
+    #[test]
+    fn a_toml_manifest_becomes_the_proto() {
+        let m = parse(TOML).expect("parses");
+        assert_eq!(m.parametrization(), pb::Parametrization::X0);
+        assert_eq!(m.n_timesteps, 4);
+        assert!(m.clip_denoised);
+        assert_eq!(m.space, Some(PbSpace::Trajectory(Trajectory { horizon: 32, action_dim: 2, obs_dim: 1 })));
+        let Some(NKind::Limits(l)) = m.normalizer.and_then(|n| n.kind) else { panic!("limits") };
+        assert_eq!((l.min, l.max), (vec![0.0, 0.0, -1.0], vec![1.0, 1.0, 1.0]));
+        // Defaults: clip_denoised false, identity normalizer; epsilon parametrization.
+        let m = parse(
+            r#"parametrization = "epsilon"
+               n_timesteps = 1000
+               schedule = { kind = "linear" }
+               space = { kind = "sample", shape = [4, 8, 8] }"#,
+        )
+        .expect("parses");
+        assert_eq!(m.parametrization(), pb::Parametrization::Epsilon);
+        assert!(!m.clip_denoised);
+        assert_eq!(m.space, Some(PbSpace::Sample(Sample { shape: vec![4, 8, 8] })));
+        assert!(matches!(m.normalizer.and_then(|n| n.kind), Some(NKind::Identity(_))));
+    }
+
+    #[test]
+    fn every_schedule_kind() {
+        let kind = |m: pb::DiffusionManifest| m.schedule.and_then(|s| s.kind).expect("schedule");
+        assert_eq!(kind(with_schedule(r#"{ kind = "linear" }"#)), SKind::Linear(pb::schedule::Linear {}));
+        // An omitted s goes out as 0 (the server's default, 0.008).
+        assert_eq!(kind(with_schedule(r#"{ kind = "cosine" }"#)), SKind::Cosine(pb::schedule::Cosine { s: 0.0 }));
+        assert_eq!(
+            kind(with_schedule(r#"{ kind = "cosine", s = 0.01 }"#)),
+            SKind::Cosine(pb::schedule::Cosine { s: 0.01 })
+        );
+        assert_eq!(
+            kind(with_schedule(r#"{ kind = "diffuser_cosine", s = 0.02 }"#)),
+            SKind::DiffuserCosine(pb::schedule::Cosine { s: 0.02 })
+        );
+        assert_eq!(
+            kind(with_schedule(r#"{ kind = "betas", betas = [0.1, 0.2, 0.3, 0.4] }"#)),
+            SKind::Betas(pb::schedule::ExplicitBetas { betas: vec![0.1, 0.2, 0.3, 0.4] })
+        );
+    }
+
+    #[test]
+    fn every_normalizer() {
+        let with = |normalizer: &str| {
+            let text = TOML.replace(r#"{ kind = "limits", min = [0, 0, -1], max = [1, 1, 1] }"#, normalizer);
+            parse(&text).unwrap_or_else(|e| panic!("{normalizer}: {e:#}")).normalizer.and_then(|n| n.kind)
+        };
+        assert!(matches!(with(r#"{ kind = "identity" }"#), Some(NKind::Identity(_))));
+        let Some(NKind::Gaussian(g)) = with(r#"{ kind = "gaussian", mean = [0, 1, 2], std = [1, 1, 0.5] }"#) else {
+            panic!("gaussian")
+        };
+        assert_eq!((g.mean, g.std), (vec![0.0, 1.0, 2.0], vec![1.0, 1.0, 0.5]));
+        assert!(matches!(with(r#"{ kind = "limits", min = [0, 0, 0], max = [1, 1, 1] }"#), Some(NKind::Limits(_))));
+    }
+
+    #[test]
+    fn json_manifests_parse_too() {
+        let text = r#"{"parametrization": "x0", "n_timesteps": 4, "schedule": {"kind": "cosine"},
+                       "space": {"kind": "sample", "shape": [2]},
+                       "normalizer": {"kind": "gaussian", "mean": [0, 0], "std": [1, 1]}}"#;
+        for name in ["m.json", "m"] {
+            let file: ManifestFile = parse_text(text, Path::new(name)).expect("json");
+            assert_eq!(file.to_proto().expect("valid").n_timesteps, 4);
+        }
+        let err = parse_text::<ManifestFile>(r#"{"parametrization": "v"}"#, Path::new("m.json")).expect_err("bad");
+        assert!(err.to_string().contains("m.json (JSON): unknown variant `v`"), "{err}");
+        assert!(err.to_string().contains("line 1"), "{err}");
+    }
+
+    #[test]
+    fn errors_name_the_field_or_line() {
+        let cases = [
+            (TOML.replace("n_timesteps = 4", "n_timesteps = 0"), "manifest.n_timesteps"),
+            (TOML.replace("\"diffuser_cosine\"", "\"quadratic\""), "unknown variant `quadratic`"),
+            (TOML.replace("\"diffuser_cosine\"", "\"quadratic\""), "line 5"),
+            (TOML.replace("parametrization = \"x0\"", ""), "missing field `parametrization`"),
+            (TOML.replace("n_timesteps = 4", "n_timesteps = -4"), "line 3"),
+            (TOML.replace("n_timesteps = 4", "n_timesteps = \"4\""), "n_timesteps"),
+            (TOML.replace("max = [1, 1, 1]", "max = [1, 1]"), "manifest.normalizer.max: 2 values but the model has 3"),
+            (TOML.replace("max = [1, 1, 1]", "max = [1, 1, -2]"), "manifest.normalizer: min[2] = -1 exceeds max[2]"),
+            (TOML.replace("min = [0, 0, -1], max = [1, 1, 1]", "mean = [0, 0, 0], std = [1, 1, 1]"), "line 7"),
+            (
+                TOML.replace("{ kind = \"diffuser_cosine\" }", "{ kind = \"betas\", betas = [0.1, 0.2] }"),
+                "manifest.schedule.betas: 2 values but n_timesteps is 4",
+            ),
+            (
+                TOML.replace("{ kind = \"diffuser_cosine\" }", "{ kind = \"betas\", betas = [0.1, 0.2, 1.5, 0.1] }"),
+                "manifest.schedule.betas[2]: 1.5 is not in (0, 1)",
+            ),
+            (TOML.replace("{ kind = \"diffuser_cosine\" }", "{ kind = \"cosine\", s = 0 }"), "manifest.schedule.s"),
+            (TOML.replace("horizon = 32", "horizon = 0"), "manifest.space"),
+            (TOML.replace("clip_denoised = true", "clip_denoised = true\nextra = 1"), "unknown field `extra`"),
+            (
+                TOML.replace("clip_denoised = true", "clip_denoised = true\narchitecture = { kind = \"transformer\" }"),
+                "unknown variant `transformer`",
+            ),
+            (
+                TOML.replace(
+                    "clip_denoised = true",
+                    "clip_denoised = true\narchitecture = { kind = \"mlp\", width = 3 }",
+                ),
+                "unknown field `width`",
+            ),
+            (
+                TOML.replace(
+                    "{ kind = \"trajectory\", horizon = 32, action_dim = 2, obs_dim = 1 }",
+                    "{ kind = \"sample\", shape = [3, 0] }",
+                ),
+                "manifest.space.shape",
+            ),
+            ("parametrization = \"x0\"\nn_timesteps = [".to_owned(), "line 2"),
+        ];
+        for (text, needle) in cases {
+            let err = format!("{:#}", parse(&text).expect_err(needle));
+            assert!(err.contains(needle), "{err:?} should contain {needle:?}");
+        }
+    }
+
+    #[test]
+    fn manifest_json_mirrors_the_file() {
+        let schedules = [
+            r#"{ kind = "linear" }"#,
+            r#"{ kind = "cosine", s = 0.01 }"#,
+            r#"{ kind = "diffuser_cosine", s = 0.02 }"#,
+            r#"{ kind = "betas", betas = [0.1, 0.2, 0.3, 0.4] }"#,
+        ];
+        for schedule in schedules {
+            let proto = with_schedule(schedule);
+            let json = manifest_json(&proto);
+            // The JSON document is itself a valid manifest file describing the same model.
+            let back: ManifestFile = serde_json::from_value(json.clone()).expect("json is a manifest file");
+            assert_eq!(back.to_proto().expect("valid"), proto, "{json}");
+        }
+        let json = manifest_json(&with_schedule(r#"{ kind = "diffuser_cosine" }"#));
+        assert_eq!(
+            json,
+            json!({
+                "parametrization": "x0",
+                "schedule": {"kind": "diffuser_cosine", "s": 0.008},
+                "n_timesteps": 4,
+                "clip_denoised": true,
+                "space": {"kind": "trajectory", "horizon": 32, "action_dim": 2, "obs_dim": 1},
+                "normalizer": {"kind": "limits", "min": [0.0, 0.0, -1.0], "max": [1.0, 1.0, 1.0]},
+            })
+        );
+        // A native model's architecture round-trips too.
+        for architecture in [
+            r#"{ kind = "temporal_unet", dim = 16, dim_mults = [1, 2] }"#,
+            r#"{ kind = "mlp", hidden = [64, 64] }"#,
+            r#"{ kind = "unet2d", block_out_channels = [16, 32], layers_per_block = 1, attention = false, norm_num_groups = 8, attention_head_dim = 8 }"#,
+        ] {
+            // (A linear schedule: an omitted cosine s goes out as 0 and comes back as 0.008.)
+            let text = TOML.replace(r#"{ kind = "diffuser_cosine" }"#, r#"{ kind = "linear" }"#);
+            let proto = parse(&format!("{text}\narchitecture = {architecture}")).expect("native manifest");
+            assert!(proto.architecture.is_some());
+            let back: ManifestFile = serde_json::from_value(manifest_json(&proto)).expect("json is a manifest file");
+            assert_eq!(back.to_proto().expect("valid"), proto, "{architecture}");
+        }
+        let empty = manifest_json(&pb::DiffusionManifest::default());
+        assert!(empty["parametrization"].is_null() && empty["schedule"].is_null() && empty["space"].is_null());
+        assert_eq!(empty["normalizer"], json!({"kind": "identity"}));
+    }
+}

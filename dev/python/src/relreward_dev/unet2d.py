@@ -1,0 +1,34 @@
+"""diffusers' own UNet2DModel and DDPMScheduler, configured as relreward's native Unet2d
+(server/src/engine/nets/unet2d.rs) and its linear schedule: the independent reference that
+tests/python/unet2d_reference.py drives for server/tests/unet2d_vs_diffusers.rs and that
+tests/bench/unet2d.py times.
+
+Module map: ``build`` (a UNet2DModel from the config relreward's manifest carries),
+``scheduler`` (DDPM linear betas 1e-4 to 0.02 scaled by 1000 / T).
+"""
+
+from diffusers import DDPMScheduler, UNet2DModel
+
+def build(config):
+    levels = len(config["block_out_channels"])
+    attention = config["attention"]
+    down = ["DownBlock2D"] * (levels - 1) + ["AttnDownBlock2D" if attention else "DownBlock2D"]
+    up = ["AttnUpBlock2D" if attention else "UpBlock2D"] + ["UpBlock2D"] * (levels - 1)
+    return UNet2DModel(
+        sample_size=(config["height"], config["width"]),
+        in_channels=config["channels"],
+        out_channels=config["channels"],
+        block_out_channels=tuple(config["block_out_channels"]),
+        layers_per_block=config["layers_per_block"],
+        down_block_types=tuple(down),
+        up_block_types=tuple(up),
+        norm_num_groups=config["norm_num_groups"],
+        attention_head_dim=config["attention_head_dim"],
+        add_attention=attention,
+    )
+
+
+def scheduler(n_timesteps):
+    scale = 1000.0 / n_timesteps
+    return DDPMScheduler(num_train_timesteps=n_timesteps, beta_schedule="linear",
+                         beta_start=1e-4 * scale, beta_end=0.02 * scale)

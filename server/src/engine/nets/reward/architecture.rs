@@ -1,0 +1,124 @@
+//! What a relative reward network is, before anything is allocated: [`RewardArchitecture`]
+//! (the serialized choice, as stored in job specs and reward manifests) and [`Plan`], its
+//! hyperparameters in i64 validated against the item shape, with the parameter count computed
+//! without allocating, and [`Network`], the layers it builds. Each architecture's own rules
+//! live in its file ([`super::windowed_mlp`], [`super::value_function`],
+//! [`super::conv_encoder`], [`super::mlp`]); this file dispatches to them.
+
+use std::fmt;
+
+use serde::{Deserialize, Serialize};
+use tch::nn;
+
+use super::checks::shape_text;
+use super::conv_encoder::{ConvEncoderNet, ConvEncoderPlan};
+use super::mlp::{MlpNet, MlpPlan};
+use super::value_function::{ValueFunctionNet, ValueFunctionPlan};
+use super::windowed_mlp::{WindowedMlpNet, WindowedMlpPlan};
+use crate::engine::nets::mlp::MAX_FEATURES;
+use crate::engine::nets::native::MAX_PARAMETERS;
+use crate::error::{Error, Result};
+
+/// The architecture of a relative reward network (see the module documentation for the exact
+/// layers and parameter names).
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case", deny_unknown_fields)]
+pub enum RewardArchitecture {
+    /// An MLP over windows of `window` transitions of a trajectory [H, D]; rho is the mean over
+    /// the H / window non-overlapping windows. The paper's maze nets: window 64, hidden (32,)
+    /// (open maze) and window 4, hidden (128, 64, 32) (the others).
+    WindowedMlp { window: usize, hidden: Vec<usize> },
+    /// Diffuser's ValueFunction (the TemporalUnet's down path) over a trajectory [H, D], with
+    /// the channels after each level. The paper's locomotion nets: (64, 64, 128, 128).
+    ValueFunction { widths: Vec<usize> },
+    /// A strided 2D convolutional encoder over image-like items [C, H, W], one stride-2 block per
+    /// width. The paper's Stable Diffusion latent nets: (32, 64, 128, 256).
+    ConvEncoder { widths: Vec<usize> },
+    /// An MLP over flattened samples of any shape.
+    Mlp { hidden: Vec<usize> },
+}
+
+impl fmt::Display for RewardArchitecture {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Self::WindowedMlp { window, hidden } => write!(f, "windowed_mlp(h={window}, hidden={hidden:?})"),
+            Self::ValueFunction { widths } => write!(f, "value_function(widths={widths:?})"),
+            Self::ConvEncoder { widths } => write!(f, "conv_encoder(widths={widths:?})"),
+            Self::Mlp { hidden } => write!(f, "mlp(hidden={hidden:?})"),
+        }
+    }
+}
+
+/// The layers of one architecture (the variables live in the `RewardNet`'s `Weights`).
+#[derive(Debug)]
+pub(super) enum Network {
+    WindowedMlp(WindowedMlpNet),
+    ValueFunction(Box<ValueFunctionNet>),
+    ConvEncoder(Box<ConvEncoderNet>),
+    Mlp(MlpNet),
+}
+
+/// The hyperparameters in i64, validated against the item shape.
+#[derive(Debug, Clone)]
+pub(super) enum Plan {
+    WindowedMlp(WindowedMlpPlan),
+    ValueFunction(ValueFunctionPlan),
+    ConvEncoder(ConvEncoderPlan),
+    Mlp(MlpPlan),
+}
+
+impl Plan {
+    pub(super) fn new(architecture: &RewardArchitecture, item_shape: &[i64]) -> Result<Self> {
+        if item_shape.is_empty() || item_shape.iter().any(|&d| d <= 0) {
+            return Err(Error::invalid(format!(
+                "item shape: [{}] must be non-empty with positive dimensions",
+                shape_text(item_shape)
+            )));
+        }
+        let features =
+            item_shape.iter().try_fold(1i64, |acc, &d| acc.checked_mul(d)).filter(|&n| n <= MAX_FEATURES).ok_or_else(
+                || {
+                    Error::invalid(format!(
+                        "item shape: [{}] has more than {MAX_FEATURES} elements",
+                        shape_text(item_shape)
+                    ))
+                },
+            )?;
+        Ok(match architecture {
+            RewardArchitecture::WindowedMlp { window, hidden } => {
+                Self::WindowedMlp(WindowedMlpPlan::new(item_shape, *window, hidden)?)
+            }
+            RewardArchitecture::ValueFunction { widths } => {
+                Self::ValueFunction(ValueFunctionPlan::new(item_shape, widths)?)
+            }
+            RewardArchitecture::ConvEncoder { widths } => Self::ConvEncoder(ConvEncoderPlan::new(item_shape, widths)?),
+            RewardArchitecture::Mlp { hidden } => Self::Mlp(MlpPlan::new(features, hidden)?),
+        })
+    }
+
+    /// Number of parameters, within [`MAX_PARAMETERS`], computed without allocating.
+    pub(super) fn params(&self) -> Result<u64> {
+        let count = match self {
+            Self::WindowedMlp(plan) => plan.params(),
+            Self::ValueFunction(plan) => plan.params(),
+            Self::ConvEncoder(plan) => plan.params(),
+            Self::Mlp(plan) => plan.params(),
+        };
+        if count > u128::from(MAX_PARAMETERS) {
+            return Err(Error::invalid(format!(
+                "architecture: {count} parameters exceed the limit of {MAX_PARAMETERS}"
+            )));
+        }
+        u64::try_from(count).map_err(|_| Error::invalid("architecture: too many parameters"))
+    }
+
+    /// The network's layers, their variables created under `root` (PyTorch's module names).
+    pub(super) fn build(&self, root: &nn::Path) -> Result<Network> {
+        Ok(match self {
+            Self::WindowedMlp(plan) => Network::WindowedMlp(plan.build(root)?),
+            Self::ValueFunction(plan) => Network::ValueFunction(Box::new(plan.build(root)?)),
+            Self::ConvEncoder(plan) => Network::ConvEncoder(Box::new(plan.build(root)?)),
+            Self::Mlp(plan) => Network::Mlp(plan.build(root)?),
+        })
+    }
+}

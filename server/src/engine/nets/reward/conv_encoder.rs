@@ -1,0 +1,147 @@
+//! `conv_encoder { widths }` (image-like latents), item [C, H, W]: d = widths[0]; per width
+//! w_i, `blocks.{i}`: h = Mish(GroupNorm(8)(Conv2d(3x3, stride 2, padding 1)(h))) + Linear(d,
+//! w_i)(Mish(t_emb)) broadcast over the pixels (`blocks.{i}.conv.*`, `blocks.{i}.norm.*`,
+//! `blocks.{i}.time_mlp.1.*`: the time embedding is projected and added per block, as in
+//! Diffuser's residual blocks); then global average pooling to [B, w], concatenation with the
+//! time embedding and `final_block = Sequential(Linear(w + d, w / 2), Mish, Linear(w / 2, 1))`.
+//! Any H, W >= 1 (each stride-2 convolution maps n to ceil(n / 2)).
+
+use tch::nn::{self, Init};
+use tch::{Kind, Tensor};
+
+use super::checks::{count, shape_text, validate_widths};
+use crate::engine::nets::blocks::{GROUPS, GroupNorm, Linear, Mish, TimeMlp, conv_params, linear_params, total};
+use crate::error::{Error, Result};
+
+/// The encoder's hyperparameters: the item's channels and one width per stride-2 block.
+#[derive(Debug, Clone)]
+pub(super) struct ConvEncoderPlan {
+    channels: i64,
+    widths: Vec<i64>,
+}
+
+impl ConvEncoderPlan {
+    pub(super) fn new(item_shape: &[i64], widths: &[usize]) -> Result<Self> {
+        let &[channels, _, _] = item_shape else {
+            return Err(Error::invalid(format!(
+                "architecture: conv_encoder needs an image-like item shape [channels, height, width], got [{}]",
+                shape_text(item_shape)
+            )));
+        };
+        Ok(Self { channels, widths: validate_widths(widths)? })
+    }
+
+    pub(super) fn params(&self) -> u128 {
+        ConvEncoderNet::params(self.channels, &self.widths)
+    }
+
+    pub(super) fn build(&self, root: &nn::Path) -> Result<ConvEncoderNet> {
+        ConvEncoderNet::new(root, self.channels, &self.widths)
+    }
+}
+
+/// PyTorch's default initialisation for convolutions and linear layers:
+/// U(-1/sqrt(fan_in), 1/sqrt(fan_in)) for weights and biases.
+fn torch_default_init(fan_in: i64) -> Init {
+    let bound = 1.0 / (fan_in.max(1) as f64).sqrt();
+    Init::Uniform { lo: -bound, up: bound }
+}
+
+/// `nn.Conv2d(in, out, 3, stride = 2, padding = 1)`: `weight` [out, in, 3, 3], `bias` [out].
+#[derive(Debug)]
+struct StridedConv2d {
+    weight: Tensor,
+    bias: Tensor,
+}
+
+impl StridedConv2d {
+    fn new(p: &nn::Path, in_channels: i64, out_channels: i64) -> Result<Self> {
+        let init = torch_default_init(in_channels * 9);
+        Ok(Self {
+            weight: p.f_var("weight", &[out_channels, in_channels, 3, 3], init)?,
+            bias: p.f_var("bias", &[out_channels], init)?,
+        })
+    }
+
+    fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        Ok(x.f_conv2d(&self.weight, Some(&self.bias), [2, 2], [1, 1], [1, 1], 1)?)
+    }
+}
+
+/// One encoder level: Mish(GroupNorm(Conv2d(x))) + Linear(Mish(t_emb)) per channel.
+#[derive(Debug)]
+struct EncoderBlock {
+    conv: StridedConv2d,
+    norm: GroupNorm,
+    time_linear: Linear,
+}
+
+impl EncoderBlock {
+    fn forward(&self, x: &Tensor, t_emb: &Tensor, mish: Mish) -> Result<Tensor> {
+        let h = mish.forward(&self.norm.forward(&self.conv.forward(x)?)?)?;
+        let time = self.time_linear.forward(&mish.forward(t_emb)?)?.f_unsqueeze(-1)?.f_unsqueeze(-1)?;
+        Ok(h.f_add(&time)?)
+    }
+}
+
+/// The strided convolutional encoder over images [B, C, H, W].
+#[derive(Debug)]
+pub(super) struct ConvEncoderNet {
+    time_mlp: TimeMlp,
+    blocks: Vec<EncoderBlock>,
+    final_first: Linear,
+    pub(super) final_second: Linear,
+}
+
+impl ConvEncoderNet {
+    /// Call only with validated (non-empty) widths.
+    fn params(channels: i64, widths: &[i64]) -> u128 {
+        let time_dim = widths[0];
+        let mut parts = vec![TimeMlp::params(time_dim, 4 * time_dim, time_dim)];
+        let mut w_in = channels;
+        for &w_out in widths {
+            parts.push(conv_params(w_in, w_out, 9));
+            parts.push(2 * count(w_out));
+            parts.push(linear_params(time_dim, w_out));
+            w_in = w_out;
+        }
+        parts.push(linear_params(w_in + time_dim, w_in / 2));
+        parts.push(linear_params(w_in / 2, 1));
+        total(&parts)
+    }
+
+    fn new(p: &nn::Path, channels: i64, widths: &[i64]) -> Result<Self> {
+        let time_dim = widths[0];
+        let time_mlp = TimeMlp::new(&(p / "time_mlp"), time_dim, 4 * time_dim, time_dim)?;
+        let mut blocks = Vec::with_capacity(widths.len());
+        let mut w_in = channels;
+        for (i, &w_out) in widths.iter().enumerate() {
+            let block = p / "blocks" / i;
+            blocks.push(EncoderBlock {
+                conv: StridedConv2d::new(&(&block / "conv"), w_in, w_out)?,
+                norm: GroupNorm::new(&(&block / "norm"), GROUPS, w_out)?,
+                time_linear: Linear::new(&(&block / "time_mlp" / "1"), time_dim, w_out)?,
+            });
+            w_in = w_out;
+        }
+        let final_path = p / "final_block";
+        Ok(Self {
+            time_mlp,
+            blocks,
+            final_first: Linear::new(&(&final_path / "0"), w_in + time_dim, w_in / 2)?,
+            final_second: Linear::new(&(&final_path / "2"), w_in / 2, 1)?,
+        })
+    }
+
+    /// `x`: [B, C, H, W], `t`: float [B] -> [B].
+    pub(super) fn forward(&self, x: &Tensor, t: &Tensor, mish: Mish) -> Result<Tensor> {
+        let t_emb = self.time_mlp.forward(t, mish)?;
+        let mut h = x.shallow_clone();
+        for block in &self.blocks {
+            h = block.forward(&h, &t_emb, mish)?;
+        }
+        let pooled = h.f_mean_dim([2i64, 3].as_slice(), false, None::<Kind>)?;
+        let out = self.final_first.forward(&Tensor::f_cat(&[&pooled, &t_emb], 1)?)?;
+        Ok(self.final_second.forward(&mish.forward(&out)?)?.f_squeeze_dim(1)?)
+    }
+}

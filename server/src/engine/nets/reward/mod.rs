@@ -1,0 +1,226 @@
+//! The relative reward network rho_theta(x, t): a scalar per item whose input gradient is
+//! trained to match the difference of two diffusion models (Algorithm 1 of "Extracting Reward
+//! Functions from Diffusion Models"). [`RewardNet`] owns its variables ([`Weights`]), validates
+//! its architecture against the item shape before allocating, computes rho, its input gradient
+//! (for guidance) and the same gradient with a differentiable graph (for the double backward
+//! of training), and stores its weights as strict safetensors under PyTorch module names
+//! (`tests/python/reward_nets_reference.py` is the independent PyTorch implementation).
+//!
+//! Module map, one file per architecture ([`RewardArchitecture`]), each with its hyperparameter
+//! checks, parameter count, layers (with their PyTorch names) and forward pass:
+//! - `architecture`: [`RewardArchitecture`] and the validated plan that dispatches to
+//!   (with the checks they share in `checks`):
+//! - `windowed_mlp`: `windowed_mlp { window, hidden }` (maze rewards), rho the mean over
+//!   non-overlapping windows of a trajectory [H, D], with per-window and per-step values;
+//! - `value_function`: `value_function { widths }` (locomotion rewards), Diffuser's
+//!   ValueFunction over a trajectory [H, D];
+//! - `conv_encoder`: `conv_encoder { widths }` (image-like latents [C, H, W]), strided 2D
+//!   convolutions and global pooling;
+//! - `mlp`: `mlp { hidden }` (flat samples of any shape), and the MLP head the windowed
+//!   MLP shares.
+//!
+//! Every activation is Mish (smooth, as the double backward and the paper's existence theorem
+//! want), every time embedding is Diffuser's
+//! `Sequential(SinusoidalPosEmb(d), Linear(d, 4 d), Mish, Linear(4 d, d))` under `time_mlp.1.*`
+//! and `time_mlp.3.*`, fed the diffusion step t as a float.
+//!
+//! All forward passes use tch's fallible operations: bad shapes are errors, never panics.
+//! Mish is libtorch's fused op except in `grad_create_graph`, the pass Algorithm 1
+//! differentiates twice ([`Mish::TwiceDifferentiable`]).
+
+mod architecture;
+mod checks;
+mod conv_encoder;
+mod mlp;
+#[cfg(test)]
+mod tests;
+mod value_function;
+mod windowed_mlp;
+
+use std::path::Path;
+
+use tch::{Device, Kind, Tensor};
+
+pub use self::architecture::RewardArchitecture;
+use self::architecture::{Network, Plan};
+use super::blocks::Mish;
+use super::inputs::check_inputs;
+use super::weights::Weights;
+use crate::error::{Error, Result};
+
+/// A relative reward network rho_theta(x, t) with its variables.
+#[derive(Debug)]
+pub struct RewardNet {
+    weights: Weights,
+    network: Network,
+    architecture: RewardArchitecture,
+    item_shape: Vec<i64>,
+}
+
+impl RewardNet {
+    /// Validates the architecture against the item shape and returns the number of parameters
+    /// the network would have, without allocating it. Errors name the field at fault.
+    pub fn planned_parameter_count(architecture: &RewardArchitecture, item_shape: &[i64]) -> Result<u64> {
+        Plan::new(architecture, item_shape)?.params()
+    }
+
+    /// A freshly initialised network (PyTorch's default initialisation) on `device`, for items
+    /// of `item_shape` ([H, D] for trajectories, the sample shape otherwise).
+    pub fn new(architecture: &RewardArchitecture, item_shape: &[i64], device: Device) -> Result<Self> {
+        let plan = Plan::new(architecture, item_shape)?;
+        let (weights, network) = Weights::build(device, plan.params()?, "RewardNet", |root| plan.build(root))?;
+        Ok(Self { weights, network, architecture: architecture.clone(), item_shape: item_shape.to_vec() })
+    }
+
+    /// Builds the network and loads its weights from a safetensors file (strictly, see
+    /// [`Weights::load_strict`]).
+    pub fn load(architecture: &RewardArchitecture, item_shape: &[i64], path: &Path, device: Device) -> Result<Self> {
+        let net = Self::new(architecture, item_shape, device)?;
+        net.weights.load_strict(path)?;
+        Ok(net)
+    }
+
+    /// Writes every weight to `path` atomically (see [`Weights::save_atomic`]).
+    pub fn save(&self, path: &Path) -> Result<()> {
+        self.weights.save_atomic(path)
+    }
+
+    /// The variables: names, loading, the `VarStore` a trainer optimises.
+    pub fn weights(&self) -> &Weights {
+        &self.weights
+    }
+
+    /// Mutable access for a trainer (e.g. `double()` for precise checks); changing the set of
+    /// variables breaks the network.
+    pub fn weights_mut(&mut self) -> &mut Weights {
+        &mut self.weights
+    }
+
+    pub fn parameter_count(&self) -> u64 {
+        self.weights.parameter_count()
+    }
+
+    pub fn architecture(&self) -> &RewardArchitecture {
+        &self.architecture
+    }
+
+    /// Shape of one item, without the batch dimension.
+    pub fn item_shape(&self) -> &[i64] {
+        &self.item_shape
+    }
+
+    /// E.g. "windowed_mlp(h=4, hidden=[128, 64, 32])".
+    pub fn describe(&self) -> String {
+        self.architecture.to_string()
+    }
+
+    /// Whether per-step values exist (windowed architectures).
+    pub fn is_windowed(&self) -> bool {
+        matches!(self.network, Network::WindowedMlp(_))
+    }
+
+    /// Window length h of the windowed MLP (`None` for the other architectures).
+    pub fn window(&self) -> Option<usize> {
+        match &self.network {
+            Network::WindowedMlp(net) => Some(net.window as usize),
+            _ => None,
+        }
+    }
+
+    /// The dtype of the weights (float32 unless the store was converted); inputs must match.
+    pub fn kind(&self) -> Kind {
+        let output = match &self.network {
+            Network::WindowedMlp(net) => net.output_layer(),
+            Network::Mlp(net) => net.output_layer(),
+            Network::ValueFunction(net) => Some(&net.final_second),
+            Network::ConvEncoder(net) => Some(&net.final_second),
+        };
+        output.map_or(Kind::Float, |layer| layer.weight.kind())
+    }
+
+    /// rho(x, t): `x` [B, *item_shape] in the weights' dtype, `t` int64 [B] -> [B].
+    /// Differentiable with respect to `x` and the parameters when grad mode is on.
+    pub fn rho(&self, x: &Tensor, t: &Tensor) -> Result<Tensor> {
+        let t = self.check_inputs(x, t)?;
+        self.rho_unchecked(x, &t, Mish::Fused)
+    }
+
+    /// Per-window values: [B, H / h] for the windowed MLP (rho is their mean); [B, 1] = rho
+    /// for the other architectures.
+    pub fn per_window(&self, x: &Tensor, t: &Tensor) -> Result<Tensor> {
+        let t = self.check_inputs(x, t)?;
+        match &self.network {
+            Network::WindowedMlp(net) => net.per_window(x, &t, Mish::Fused),
+            _ => Ok(self.rho_unchecked(x, &t, Mish::Fused)?.f_unsqueeze(1)?),
+        }
+    }
+
+    /// Per-step values [B, H] of the windowed MLP: the window starting at each step (the end
+    /// padded by repeating the last row). InvalidArgument for other architectures.
+    pub fn per_step(&self, x: &Tensor, t: &Tensor) -> Result<Tensor> {
+        let Network::WindowedMlp(net) = &self.network else {
+            return Err(Error::invalid(format!(
+                "per-step values need a windowed reward (windowed_mlp); this one is {}",
+                self.describe()
+            )));
+        };
+        let t = self.check_inputs(x, t)?;
+        net.per_step(x, &t, Mish::Fused)
+    }
+
+    /// (rho [B], grad_x of sum(rho), the shape of `x`), both without autograd history. Works
+    /// inside a no-grad region (grad mode is enabled locally); parameter gradients are not
+    /// accumulated.
+    pub fn grad(&self, x: &Tensor, t: &Tensor) -> Result<(Tensor, Tensor)> {
+        let t = self.check_inputs(x, t)?;
+        tch::with_grad(|| {
+            let x_req = x.f_detach_copy()?.f_set_requires_grad(true)?;
+            let rho = self.rho_unchecked(&x_req, &t, Mish::Fused)?;
+            let grad_x = input_gradient(&rho, &x_req, false)?;
+            Ok((rho.f_detach()?, grad_x))
+        })
+    }
+
+    /// grad_x of sum(rho) WITH its graph (create_graph): a loss computed from it (with grad mode
+    /// on) backpropagates to the parameters through the double backward of Algorithm 1. The
+    /// graph is built from a detached copy of `x`, so no gradient flows back into `x`. The one
+    /// pass differentiated twice, hence [`Mish::TwiceDifferentiable`] (the fused op's second
+    /// derivative is NaN for inputs above about 88.7; blocks.rs).
+    pub fn grad_create_graph(&self, x: &Tensor, t: &Tensor) -> Result<Tensor> {
+        let t = self.check_inputs(x, t)?;
+        tch::with_grad(|| {
+            let x_req = x.f_detach_copy()?.f_set_requires_grad(true)?;
+            let rho = self.rho_unchecked(&x_req, &t, Mish::TwiceDifferentiable)?;
+            input_gradient(&rho, &x_req, true)
+        })
+    }
+
+    fn rho_unchecked(&self, x: &Tensor, t: &Tensor, mish: Mish) -> Result<Tensor> {
+        match &self.network {
+            Network::WindowedMlp(net) => {
+                Ok(net.per_window(x, t, mish)?.f_mean_dim([1i64].as_slice(), false, None::<Kind>)?)
+            }
+            Network::Mlp(net) => net.forward(x, t, mish),
+            Network::ValueFunction(net) => net.forward(x, t, mish),
+            Network::ConvEncoder(net) => net.forward(x, t, mish),
+        }
+    }
+
+    /// Checks x [B >= 1, *item_shape] (the weights' dtype) and t int64 [B]; returns t as the
+    /// weights' float dtype for the time embedding.
+    fn check_inputs(&self, x: &Tensor, t: &Tensor) -> Result<Tensor> {
+        let kind = self.kind();
+        check_inputs("reward", x, t, &self.item_shape, kind)?;
+        Ok(t.f_to_kind(kind)?)
+    }
+}
+
+/// d sum(rho) / d x_req, with or without a differentiable graph (PyTorch's
+/// `autograd.grad(rho.sum(), x, create_graph = c, retain_graph = c)`).
+fn input_gradient(rho: &Tensor, x_req: &Tensor, create_graph: bool) -> Result<Tensor> {
+    let sum = rho.f_sum(None::<Kind>)?;
+    let grad = Tensor::f_run_backward(&[&sum], &[x_req], create_graph, create_graph)?
+        .pop()
+        .ok_or_else(|| Error::internal("reward gradient", "autograd returned no gradient"))?;
+    if grad.defined() { Ok(grad) } else { Ok(x_req.f_zeros_like()?) }
+}

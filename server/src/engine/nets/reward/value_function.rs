@@ -1,0 +1,167 @@
+//! `value_function { widths }` (locomotion rewards), item [H, D]: Diffuser's `ValueFunction`
+//! (`diffuser/models/temporal.py`) with `widths` the channels after each level, i.e. Diffuser's
+//! `[dim * m for m in dim_mults]`, and time width `widths[0]` (= Diffuser's `dim`, whose
+//! `dim_mults` start at 1; the paper's (64, 64, 128, 128) is dim 64, dim_mults (1, 1, 2, 2)).
+//! For dims = [D, *widths]: `blocks.{i}.0` = ResidualTemporalBlock(dims[i], dims[i + 1]),
+//! `blocks.{i}.1` = ResidualTemporalBlock(dims[i + 1], dims[i + 1]), `blocks.{i}.2` =
+//! Downsample1d on *every* level; `mid_block1` = ResidualTemporalBlock(w, w / 2),
+//! `mid_down1` = Downsample1d(w / 2), `mid_block2` = ResidualTemporalBlock(w / 2, w / 4),
+//! `mid_down2` = Downsample1d(w / 4) for w = widths[-1]; flatten [B, w / 4 * L] (channel-major)
+//! and concatenate the time embedding; `final_block = Sequential(Linear(fc + d, fc / 2), Mish,
+//! Linear(fc / 2, 1))` with fc = w / 4 * L. L is the length after the len(widths) + 2
+//! downsamplings; the horizon must halve evenly through them (a power of two, or a multiple
+//! of 2^(len(widths) + 2)), and then L = max(H / 2^(len(widths) + 2), 1) equals Diffuser's own
+//! `fc_dim` bookkeeping, so Diffuser ValueFunction checkpoints load unchanged. (Diffuser's
+//! bookkeeping and its actual lengths disagree for other horizons, where its forward fails.)
+//! widths must be multiples of 8 (GroupNorm(8)), the last a multiple of 32 (w / 4 too).
+
+use tch::Tensor;
+use tch::nn;
+
+use super::checks::{count, trajectory_shape, validate_widths};
+use crate::engine::nets::blocks::{
+    Downsample1d, GROUPS, Linear, Mish, ResidualTemporalBlock, TEMPORAL_KERNEL, TimeMlp, total,
+};
+use crate::engine::nets::mlp::MAX_FEATURES;
+use crate::error::{Error, Result};
+
+/// The value function's hyperparameters: `final_length` is L, the horizon after every
+/// downsampling.
+#[derive(Debug, Clone)]
+pub(super) struct ValueFunctionPlan {
+    transition_dim: i64,
+    widths: Vec<i64>,
+    final_length: i64,
+}
+
+impl ValueFunctionPlan {
+    pub(super) fn new(item_shape: &[i64], widths: &[usize]) -> Result<Self> {
+        let (horizon, transition_dim) = trajectory_shape(item_shape, "value_function")?;
+        let widths = validate_widths(widths)?;
+        let last = widths[widths.len() - 1];
+        if last % (4 * GROUPS) != 0 {
+            return Err(Error::invalid(format!(
+                "architecture.widths: the last width {last} must be a multiple of {} (the mid blocks use {last} / 2 and {last} / 4 channels with GroupNorm({GROUPS}))",
+                4 * GROUPS
+            )));
+        }
+        let downsamplings = widths.len() + 2;
+        let mut length = horizon;
+        for _ in 0..downsamplings {
+            if length > 1 && length % 2 != 0 {
+                return Err(Error::invalid(format!(
+                    "item shape: horizon {horizon} does not halve evenly through value_function's {downsamplings} downsamplings ({} levels + 2 mid); use a power of two or a multiple of {}",
+                    widths.len(),
+                    1i64 << downsamplings
+                )));
+            }
+            length = (length + 1) / 2;
+        }
+        Ok(Self { transition_dim, widths, final_length: length })
+    }
+
+    pub(super) fn params(&self) -> u128 {
+        ValueFunctionNet::params(self.transition_dim, &self.widths, self.final_length)
+    }
+
+    pub(super) fn build(&self, root: &nn::Path) -> Result<ValueFunctionNet> {
+        ValueFunctionNet::new(root, self.transition_dim, &self.widths, self.final_length)
+    }
+}
+
+#[derive(Debug)]
+struct ValueLevel {
+    first: ResidualTemporalBlock,
+    second: ResidualTemporalBlock,
+    downsample: Downsample1d,
+}
+
+/// Diffuser's ValueFunction over trajectories [B, H, D].
+#[derive(Debug)]
+pub(super) struct ValueFunctionNet {
+    time_mlp: TimeMlp,
+    levels: Vec<ValueLevel>,
+    mid_block1: ResidualTemporalBlock,
+    mid_down1: Downsample1d,
+    mid_block2: ResidualTemporalBlock,
+    mid_down2: Downsample1d,
+    final_first: Linear,
+    pub(super) final_second: Linear,
+}
+
+impl ValueFunctionNet {
+    /// Call only with a validated plan (non-empty widths, the last a multiple of 32).
+    fn params(transition_dim: i64, widths: &[i64], final_length: i64) -> u128 {
+        let time_dim = widths[0];
+        let mut parts = vec![TimeMlp::params(time_dim, 4 * time_dim, time_dim)];
+        let mut w_in = transition_dim;
+        for &w_out in widths {
+            parts.push(ResidualTemporalBlock::params(w_in, w_out, time_dim, TEMPORAL_KERNEL));
+            parts.push(ResidualTemporalBlock::params(w_out, w_out, time_dim, TEMPORAL_KERNEL));
+            parts.push(Downsample1d::params(w_out));
+            w_in = w_out;
+        }
+        let (mid2, mid3) = (w_in / 2, w_in / 4);
+        parts.push(ResidualTemporalBlock::params(w_in, mid2, time_dim, TEMPORAL_KERNEL));
+        parts.push(Downsample1d::params(mid2));
+        parts.push(ResidualTemporalBlock::params(mid2, mid3, time_dim, TEMPORAL_KERNEL));
+        parts.push(Downsample1d::params(mid3));
+        let fc = count(mid3).saturating_mul(count(final_length));
+        let half = fc / 2;
+        parts.push(fc.saturating_add(count(time_dim)).saturating_mul(half).saturating_add(half));
+        parts.push(half.saturating_add(1));
+        total(&parts)
+    }
+
+    fn new(p: &nn::Path, transition_dim: i64, widths: &[i64], final_length: i64) -> Result<Self> {
+        let time_dim = widths[0];
+        let block = |path: nn::Path, w_in: i64, w_out: i64| {
+            ResidualTemporalBlock::new(&path, w_in, w_out, time_dim, TEMPORAL_KERNEL)
+        };
+        let time_mlp = TimeMlp::new(&(p / "time_mlp"), time_dim, 4 * time_dim, time_dim)?;
+        let mut levels = Vec::with_capacity(widths.len());
+        let mut w_in = transition_dim;
+        for (i, &w_out) in widths.iter().enumerate() {
+            let level = p / "blocks" / i;
+            levels.push(ValueLevel {
+                first: block(&level / "0", w_in, w_out)?,
+                second: block(&level / "1", w_out, w_out)?,
+                downsample: Downsample1d::new(&(&level / "2"), w_out)?,
+            });
+            w_in = w_out;
+        }
+        let (mid2, mid3) = (w_in / 2, w_in / 4);
+        let fc = mid3
+            .checked_mul(final_length)
+            .filter(|&n| n <= MAX_FEATURES)
+            .ok_or_else(|| Error::invalid("architecture: value_function's flattened features are too many"))?;
+        let final_path = p / "final_block";
+        Ok(Self {
+            time_mlp,
+            levels,
+            mid_block1: block(p / "mid_block1", w_in, mid2)?,
+            mid_down1: Downsample1d::new(&(p / "mid_down1"), mid2)?,
+            mid_block2: block(p / "mid_block2", mid2, mid3)?,
+            mid_down2: Downsample1d::new(&(p / "mid_down2"), mid3)?,
+            final_first: Linear::new(&(&final_path / "0"), fc + time_dim, fc / 2)?,
+            final_second: Linear::new(&(&final_path / "2"), fc / 2, 1)?,
+        })
+    }
+
+    /// `x`: [B, H, D], `t`: float [B] -> [B].
+    pub(super) fn forward(&self, x: &Tensor, t: &Tensor, mish: Mish) -> Result<Tensor> {
+        let batch = x.size().first().copied().unwrap_or(0);
+        let mut x = x.f_permute([0, 2, 1])?;
+        let t_emb = self.time_mlp.forward(t, mish)?;
+        for level in &self.levels {
+            x = level.first.forward(&x, &t_emb, mish)?;
+            x = level.second.forward(&x, &t_emb, mish)?;
+            x = level.downsample.forward(&x)?;
+        }
+        x = self.mid_down1.forward(&self.mid_block1.forward(&x, &t_emb, mish)?)?;
+        x = self.mid_down2.forward(&self.mid_block2.forward(&x, &t_emb, mish)?)?;
+        let flat = x.f_reshape([batch, -1])?;
+        let h = self.final_first.forward(&Tensor::f_cat(&[&flat, &t_emb], 1)?)?;
+        Ok(self.final_second.forward(&mish.forward(&h)?)?.f_squeeze_dim(1)?)
+    }
+}
