@@ -1,4 +1,4 @@
-//! The checked npy header parser (`read_npy_header` of `client/toolkit/src/npz.rs`) on
+//! The checked npy header parser (`read_npy_header` of `client/toolkit/src/npz/npy.rs`) on
 //! arbitrary bytes.
 #![no_main]
 

@@ -1,4 +1,4 @@
-//! The toolkit's file readers (`client/toolkit/src/npz.rs`) on an arbitrary file: sniffing,
+//! The toolkit's file readers (`client/toolkit/src/npz/`) on an arbitrary file: sniffing,
 //! .npz archive listing, both dataset readers, and reading every array they accept (streamed
 //! and whole).
 #![no_main]

@@ -9,7 +9,9 @@
 //! - diffusion times ([`diffusion_time`]): t in [0, T) of the model in question;
 //! - guidance scales ([`check_omega`]): finite, |omega| <= [`MAX_OMEGA`].
 //!
-//! Messages quote what the client sent with [`crate::error::quote`]: an escaped prefix.
+//! Messages quote what the client sent with [`crate::error::quote`]: an escaped prefix, and
+//! print a client's floating-point number with [`number`]: compact at any magnitude (1e308
+//! as `1e308`, not 309 digits).
 //!
 //! Names are never used as file paths (files live under generated keys), but the name rule
 //! still excludes '/', '\\' and a leading '.', so no name can ever be read as a path component.
@@ -91,11 +93,20 @@ pub fn diffusion_time(field: &str, t: i64, big_t: usize) -> Result<()> {
     }
 }
 
+/// `v` as a message shows a number a client sent: Rust's shortest round-trip form where that
+/// is short (0, and magnitudes in [1e-4, 1e6)), scientific notation otherwise. `{}` alone
+/// writes every digit of a large double (1e308 takes 309 characters) and long runs of zeros
+/// for a tiny one.
+pub fn number(v: f64) -> String {
+    if v == 0.0 || !v.is_finite() || (1e-4..1e6).contains(&v.abs()) { format!("{v}") } else { format!("{v:e}") }
+}
+
 /// `omega` finite and within [`MAX_OMEGA`]: the rule for a guidance scale.
 pub fn check_omega(omega: f64) -> Result<()> {
     if !omega.is_finite() || omega.abs() > MAX_OMEGA {
         return Err(Error::invalid(format!(
-            "omega: {omega} is outside the accepted range [-{MAX_OMEGA:e}, {MAX_OMEGA:e}]"
+            "omega: {} is outside the accepted range [-{MAX_OMEGA:e}, {MAX_OMEGA:e}]",
+            number(omega)
         )));
     }
     Ok(())
@@ -143,6 +154,30 @@ mod tests {
         assert!(check_omega(1e6).is_ok() && check_omega(-3.0).is_ok());
         for bad in [1e308, f64::NAN, f64::INFINITY, -2e6] {
             assert!(check_omega(bad).unwrap_err().to_string().starts_with("omega:"), "{bad}");
+        }
+        // The number as sent, compactly: not 309 digits.
+        let e = check_omega(1e308).unwrap_err().to_string();
+        assert!(e.starts_with("omega: 1e308 is outside") && e.len() < 100, "{e}");
+        assert!(check_omega(-1.5e300).unwrap_err().to_string().starts_with("omega: -1.5e300 is"));
+    }
+
+    #[test]
+    fn numbers_are_shown_compactly_at_any_magnitude() {
+        for (v, shown) in [
+            (0.0, "0"),
+            (0.5, "0.5"),
+            (-3.25, "-3.25"),
+            (1e-4, "0.0001"),
+            (999_999.5, "999999.5"),
+            (1e6, "1e6"),
+            (1e308, "1e308"),
+            (-f64::MAX, "-1.7976931348623157e308"),
+            (5e-324, "5e-324"),
+            (1.25e-7, "1.25e-7"),
+            (f64::NAN, "NaN"),
+            (f64::NEG_INFINITY, "-inf"),
+        ] {
+            assert_eq!(number(v), shown);
         }
     }
 }

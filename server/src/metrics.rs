@@ -77,13 +77,19 @@ impl CountNs {
     }
 }
 
-/// What serving did for one model since the process started, in the terms of Triton's
-/// `ModelStatistics`. Every query that found the model counts (either protocol): `success`
-/// and `fail` from its arrival at the serving layer to its answer (validation, queue and
-/// compute), `queue` per computed query, `compute_infer` per computed query with the duration
-/// of the merged batch it was part of. A call cancelled by its client before its answer is not
-/// counted; a request refused before it reached the model (unknown model, malformed
-/// protocol message) has no model to count for.
+/// What serving did for one model since the process started, in the terms (and with the
+/// semantics) of Triton's `ModelStatistics`. A query of either protocol counts once it is in
+/// the model's queue, as a Triton request counts once its scheduler accepted it: `success`
+/// and `fail` from its arrival at the serving layer to its answer, `fail` being a deadline
+/// that passed while it was queued (Triton's REJECTED), a call cancelled by its client while
+/// queued or computing (CANCELED), a compute error or non-finite answer (BACKEND) or
+/// shutdown; `queue` per computed query, `compute_infer` per computed query with the duration
+/// of the merged batch it was part of. A request refused before it was queued is answered
+/// with its error and not counted, as Triton does not count a request that fails
+/// `PrepareForInference` or `Enqueue`: a malformed message, an unknown model, a query that
+/// fails validation against the model (shape, B over `serving.max_request_items`, `t` out of
+/// range, non-finite or out-of-range `x`, ...), a deadline passed before it was queued or a
+/// full queue (`relreward_serving_dropped_total{reason="queue_full"}` counts those).
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub struct ModelStats {
     pub success: CountNs,
@@ -202,8 +208,8 @@ impl Metrics {
         self.update_model(model, |s| s.queue.add(1, seconds_to_ns(seconds)));
     }
 
-    /// One query for `model` answered (`ok`) or refused after `elapsed`; `items` is its batch
-    /// size (counted only when it succeeded).
+    /// One queued query for `model` answered (`ok`) or failed after `elapsed`; `items` is its
+    /// batch size (counted only when it succeeded). See [`ModelStats`] for what is counted.
     pub fn observe_query(&self, model: &str, ok: bool, items: u64, elapsed: Duration) {
         self.inner.queries.with_label_values(&[model, if ok { "success" } else { "failure" }]).inc();
         let now_ms = SystemTime::now().duration_since(UNIX_EPOCH).map_or(0, |d| d.as_millis() as u64);

@@ -390,8 +390,9 @@ impl ModelRegistry {
 impl ModelRegistry {
     /// Checks uploaded native weights against their manifest before registration (blocking
     /// work on a worker thread): the strict load names every missing, unexpected or mis-shaped
-    /// tensor; then one forward on zeros `[2, *item]` with `t = [0, T - 1]` must be finite, so
-    /// NaN or infinite weights are refused rather than served. Returns the parameter count.
+    /// tensor; every weight must be finite (the error names the first tensor holding a NaN or
+    /// an infinity, and where); then one forward on zeros `[2, *item]` with `t = [0, T - 1]`
+    /// must be finite too. Returns the parameter count.
     pub async fn validate_native(&self, path: PathBuf, manifest: DiffusionManifest) -> Result<u64> {
         let device = self.inner.device;
         tokio::task::spawn_blocking(move || -> Result<u64> {
@@ -402,6 +403,10 @@ impl ModelRegistry {
                 Error::InvalidArgument(m) | Error::DataLoss(m) => {
                     Error::invalid(format!("chunk: the uploaded weights do not fit header.manifest.architecture: {m}"))
                 }
+                other => other,
+            })?;
+            net.weights().check_finite().map_err(|e| match e {
+                Error::InvalidArgument(m) => Error::invalid(format!("chunk: the uploaded {m}")),
                 other => other,
             })?;
             let probe = ValidationProbe::new(net.item_shape(), manifest.n_timesteps, device)?;

@@ -33,6 +33,28 @@ async fn the_tiny_demo_runs_end_to_end_and_writes_its_pictures() {
             assert!((0.0..=1.0).contains(&steering[key].as_f64().expect("fraction")), "{steering}");
         }
     }
+    // The summary names the models it made (their names carry fingerprints, so a user cannot
+    // guess them): in the JSON, and in the text table (summary.md is the text `demo` prints).
+    let rewards: Vec<&str> =
+        summary["models"]["rewards"].as_array().expect("models.rewards").iter().filter_map(Value::as_str).collect();
+    let experts: Vec<&str> =
+        summary["models"]["experts"].as_array().expect("models.experts").iter().filter_map(Value::as_str).collect();
+    let base = summary["models"]["base"].as_str().expect("models.base");
+    assert_eq!((rewards.len(), experts.len()), (2, 2), "{summary}");
+    for (g, (reward, expert)) in goals.iter().zip(rewards.iter().zip(&experts)) {
+        assert_eq!(g["reward_model"], *reward, "{g}");
+        assert_eq!(g["expert_model"], *expert, "{g}");
+    }
+    let table = std::fs::read_to_string(out_dir.join("summary.md")).expect("summary.md");
+    for name in rewards.iter().chain(&experts).chain([&base]) {
+        assert!(table.contains(name), "summary.md does not name model '{name}':\n{table}");
+    }
+    // Every named model is on the server, rewards as rewards.
+    for name in &rewards {
+        let shown: Value = serde_json::from_slice(&server.cli(&["--json", "model", "show", name]).stdout)
+            .unwrap_or_else(|e| panic!("model show {name}: {e}"));
+        assert_eq!(shown["kind"], "reward", "{shown}");
+    }
     assert!(out_dir.join("summary.md").exists() && out_dir.join("summary.json").exists());
     assert!(out_dir.join("data/base.npz").exists());
 }

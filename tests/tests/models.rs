@@ -52,6 +52,18 @@ async fn native_weights_register_through_model_import() {
     assert!(out.status.success(), "import --name failed:\n{}\n{}", stderr(&out), server.log());
     let report: serde_json::Value = serde_json::from_slice(&out.stdout).expect("json");
     assert_eq!(report["model"]["name"], "diffuser-native");
+    // Registration refused after the conversion (the name is taken): the command fails and
+    // leaves no weights at --out, nor a partial file beside it.
+    let taken_out = path("taken.safetensors");
+    let files_before = file_names(d);
+    let mut args = vec!["model", "import"];
+    let (npz, manifest_path) = (path("state_dict.npz"), path("manifest.toml"));
+    args.extend([npz.as_str(), "--manifest", manifest_path.as_str(), "--dim", "8", "--dim-mults", "1,2"]);
+    args.extend(["--prefix", "model.", "--out", taken_out.as_str(), "--name", "diffuser-native"]);
+    let out = server.cli(&args);
+    assert!(!out.status.success(), "a taken name");
+    assert!(stderr(&out).contains("taken.safetensors was not written"), "{}", stderr(&out));
+    assert_eq!(file_names(d), files_before, "--out was not written");
 
     let model = client.get_model("diffuser-native").await.expect("get");
     assert_eq!(model.format, pb::ModelFormat::Native as i32);
@@ -150,7 +162,7 @@ async fn native_weights_register_through_model_import() {
     .expect_err("unknown format");
     assert!(err.message().starts_with("header.format: unknown value 7"), "{}", err.message());
     // Weights of the right shapes with a NaN in them (the last float of the data section):
-    // refused by the validation forward, not served.
+    // refused naming the tensor and the index, not served.
     let mut poisoned = weights.clone();
     let end = poisoned.len();
     poisoned[end - 4..].copy_from_slice(&f32::NAN.to_le_bytes());
@@ -159,8 +171,8 @@ async fn native_weights_register_through_model_import() {
             .await
             .expect_err("NaN weights");
     assert_eq!(err.code(), Code::InvalidArgument, "{}", err.message());
-    assert!(err.message().starts_with("chunk: the uploaded weights' forward"), "{}", err.message());
-    assert!(err.message().contains("NaN"), "{}", err.message());
+    assert!(err.message().starts_with("chunk: the uploaded weights: tensor '"), "{}", err.message());
+    assert!(err.message().contains("' holds a non-finite value (NaN) at index ["), "{}", err.message());
     assert_eq!(names(&client).await, vec!["diffuser-native".to_owned()], "nothing else was stored");
     assert_eq!(server.staging_entries(), 0, "no staging left behind");
     // The CLI names a manifest architecture that disagrees with the flags, before any work.
@@ -172,6 +184,20 @@ async fn native_weights_register_through_model_import() {
         ),
     )
     .expect("manifest");
+    // A name the server would refuse is refused first, and --out is never written (nor a
+    // partial file beside it).
+    let fresh = path("fresh.safetensors");
+    let mut args = vec!["model", "import"];
+    let (npz, manifest_path) = (path("state_dict.npz"), path("manifest.toml"));
+    args.extend([npz.as_str(), "--manifest", manifest_path.as_str(), "--dim", "8", "--dim-mults", "1,2"]);
+    args.extend(["--prefix", "model.", "--out", fresh.as_str(), "--name", "../x"]);
+    let files_before = file_names(d);
+    let out = server.cli(&args);
+    assert_eq!(out.status.code(), Some(2), "a usage error: {}", stderr(&out));
+    assert!(stderr(&out).contains("--name: \"../x\" is not a valid model name"), "{}", stderr(&out));
+    assert_eq!(file_names(d), files_before, "--out was not written");
+    assert_eq!(names(&client).await, vec!["diffuser-native".to_owned()], "nothing else was stored");
+
     let out = import(&server, "n6", &[]);
     assert!(!out.status.success());
     assert!(

@@ -68,7 +68,10 @@ impl Schedule {
             match s {
                 None => Ok(0.0),
                 Some(s) if s.is_finite() && s > 0.0 && s < 1.0 => Ok(s),
-                Some(s) => bail!("{field}.s: {s} is not in (0, 1) (omit it for the default {DEFAULT_COSINE_S})"),
+                Some(s) => bail!(
+                    "{field}.s: {} is not in (0, 1) (omit it for the default {DEFAULT_COSINE_S})",
+                    crate::output::given_num(s)
+                ),
             }
         };
         let kind = match self {

@@ -36,6 +36,12 @@ pub struct Trajectories {
     pub episode_starts: Vec<bool>,
     /// Maze walls found in the file.
     pub walls: Option<Walls>,
+    /// The file's `goals` array (shape, values as float32): `[w]` one goal for every row, or
+    /// `[N, w]` one per row. Not uploaded (the server trains on states and actions), but
+    /// carried by every conversion ([`Trajectories::write_npz`],
+    /// [`Trajectories::absorb_terminals`]) because the evaluation reads the true goal from it
+    /// (`extract`'s default for `--goal`, `eval heatmap --goal-from`).
+    pub goals: Option<(Vec<u64>, Vec<f32>)>,
     /// What the reader left out, for a note to the user (keys, groups).
     pub ignored: Vec<String>,
     /// Other things the reader did that the user should hear of (e.g. empty Minari episodes
@@ -137,16 +143,27 @@ impl Trajectories {
     /// issue 19). Padding restores the time the expert would spend there; an agent that stays
     /// somewhere does not move, so its velocities are zero (repeating the arrival row instead
     /// would hold a point that moves fast without moving, a state no data resembles).
+    /// Per-row `goals` (`[N, w]`) get the held row's goal on each added row, so they stay row
+    /// aligned; any other `goals` (one `[w]` goal) is kept as it is, as are the walls.
     pub fn absorb_terminals(&mut self, n: usize, at_rest: &[usize]) {
         if n == 0 || self.terminals.is_empty() {
             return;
         }
         let episodes = self.episodes();
         let (od, ad) = (self.obs_dim, self.act_dim);
+        // Goals with one row per row are padded with the rows; a single goal needs nothing.
+        let goal_rows = match &self.goals {
+            Some((shape, values)) if shape.len() == 2 && shape[0] as usize == self.len() => {
+                Some((shape[1] as usize, values))
+            }
+            _ => None,
+        };
+        let mut goals_out: Vec<f32> = Vec::new();
         let mut out = Trajectories {
             obs_dim: od,
             act_dim: ad,
             walls: self.walls.clone(),
+            goals: self.goals.clone(),
             ignored: self.ignored.clone(),
             notes: self.notes.clone(),
             ..Default::default()
@@ -159,6 +176,9 @@ impl Trajectories {
                 out.terminals.push(flag(&self.terminals, t));
                 out.timeouts.push(flag(&self.timeouts, t));
                 out.episode_starts.push(t == ep.start);
+            }
+            if let Some((w, values)) = goal_rows {
+                goals_out.extend_from_slice(&values[ep.start * w..ep.end * w]);
             }
             let last = ep.end - 1;
             if flag(&self.terminals, last) {
@@ -173,14 +193,21 @@ impl Trajectories {
                     out.terminals.push(k + 1 == n);
                     out.timeouts.push(false);
                     out.episode_starts.push(false);
+                    if let Some((w, values)) = goal_rows {
+                        goals_out.extend_from_slice(&values[last * w..(last + 1) * w]);
+                    }
                 }
             }
+        }
+        if let Some((w, _)) = goal_rows {
+            out.goals = Some((vec![out.len() as u64, w as u64], goals_out));
         }
         *self = out;
     }
 
     /// Reads a trajectories `.npz` whole (through [`crate::npz::trajectories_from_npz`], so
-    /// with the same rules) plus its walls.
+    /// with the same rules) plus its walls and `goals` (any numeric dtype, read as float32;
+    /// refused unless finite).
     pub fn from_npz(path: &Path) -> io::Result<Self> {
         let mut source = crate::npz::trajectories_from_npz(path).map_err(io::Error::other)?;
         let specs = relreward_proto::upload::UploadSource::arrays(&source).to_vec();
@@ -211,6 +238,15 @@ impl Trajectories {
             }
         }
         t.walls = crate::npz::walls_from_npz(path)?;
+        if let Some((shape, values)) =
+            crate::npz::read_numbers(path, "goals").map_err(|e| bad("goals", e.to_string()))?
+        {
+            let goals: Vec<f32> = values.iter().map(|&v| v as f32).collect();
+            if let Some(i) = goals.iter().position(|v| !v.is_finite()) {
+                return Err(bad("goals", format!("value {} at flat index {i} is not finite as float32", values[i])));
+            }
+            t.goals = Some((shape, goals));
+        }
         Ok(t)
     }
 
@@ -230,8 +266,8 @@ impl Trajectories {
         source
     }
 
-    /// Writes the canonical `.npz`: the upload's arrays plus `walls` (bool `[rows, cols]`) when
-    /// known.
+    /// Writes the canonical `.npz`: the upload's arrays plus `walls` (bool `[rows, cols]`) and
+    /// `goals` (float32, their shape) when known: what the evaluation reads besides the rows.
     pub fn write_npz(&self, dest: &Path) -> io::Result<PathBuf> {
         let n = self.len() as u64;
         let mut w = NpzWriter::create(dest)?;
@@ -246,6 +282,9 @@ impl Trajectories {
         }
         if let Some((rows, cols, walls)) = &self.walls {
             w.add_bool("walls", &[*rows as u64, *cols as u64], walls)?;
+        }
+        if let Some((shape, values)) = &self.goals {
+            w.add_f32("goals", shape, values)?;
         }
         w.finish()
     }
@@ -304,6 +343,47 @@ mod tests {
         t.absorb_terminals(2, &[1, 7]);
         assert_eq!(t.observations, [0.0, 5.0, 2.0, 5.0, 2.0, 0.0, 2.0, 0.0]);
         assert_eq!(t.actions, [1.0, 1.0, 0.0, 0.0]);
+    }
+
+    /// Issue 34 item 4: goals survive the absorbing conversion and the `.npz` round trip (the
+    /// evaluation reads the true goal from the converted file). Per-row goals stay row aligned
+    /// (the held rows carry the held row's goal), a single goal is kept as it is.
+    #[test]
+    fn absorbing_and_writing_keep_the_goals() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let mut t = Trajectories {
+            observations: vec![0.0, 1.0, 2.0, 3.0, 4.0],
+            obs_dim: 1,
+            actions: vec![9.0; 5],
+            act_dim: 1,
+            terminals: vec![false, true, false, false, true],
+            walls: Some((1, 2, vec![true, false])),
+            goals: Some((vec![5, 2], vec![3.0, 4.0, 3.0, 4.0, 5.0, 6.0, 5.0, 6.0, 5.0, 6.0])),
+            ..Default::default()
+        };
+        let path = t.write_npz(&dir.path().join("in.npz")).expect("write");
+        assert_eq!(Trajectories::from_npz(&path).expect("read").goals, t.goals, "written and read back");
+        t.absorb_terminals(2, &[]);
+        let per_row = [3.0, 4.0, 3.0, 4.0, 3.0, 4.0, 3.0, 4.0, 5.0, 6.0, 5.0, 6.0, 5.0, 6.0, 5.0, 6.0, 5.0, 6.0];
+        assert_eq!(t.goals, Some((vec![9, 2], per_row.to_vec())));
+        let out = t.write_npz(&dir.path().join("absorbed.npz")).expect("write");
+        let back = Trajectories::from_npz(&out).expect("read");
+        assert_eq!((back.len(), back.goals, back.walls), (9, t.goals.clone(), t.walls.clone()));
+
+        // One goal for the whole file: kept unchanged.
+        let mut one = Trajectories {
+            observations: vec![0.0, 1.0],
+            obs_dim: 1,
+            actions: vec![0.0; 2],
+            act_dim: 1,
+            terminals: vec![false, true],
+            goals: Some((vec![2], vec![7.0, 8.0])),
+            ..Default::default()
+        };
+        one.absorb_terminals(3, &[]);
+        assert_eq!((one.len(), one.goals.clone()), (5, Some((vec![2], vec![7.0, 8.0]))));
+        let back = Trajectories::from_npz(&one.write_npz(&dir.path().join("one.npz")).expect("write")).expect("read");
+        assert_eq!(back.goals, one.goals);
     }
 
     /// A damped point mass under random pushes, integrated semi-implicitly (as MuJoCo does)

@@ -256,7 +256,8 @@ impl DiffusionModel {
                 let transition = ad + obs_dim;
                 if !(w.is_finite() && w >= 0.0) || action_dim > transition {
                     return Err(Error::invalid(format!(
-                        "action_weight: weight {w} must be finite and >= 0 and action_dim {action_dim} at most the transition dim {transition}"
+                        "action_weight: weight {} must be finite and >= 0 and action_dim {action_dim} at most the transition dim {transition}",
+                        crate::fields::number(w)
                     )));
                 }
                 let weights = Tensor::f_ones([horizon as i64, transition as i64], (Kind::Float, x0.device()))?;

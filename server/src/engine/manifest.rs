@@ -171,12 +171,18 @@ impl DiffusionManifest {
                     )));
                 }
                 if let Some(i) = betas.iter().position(|b| !(b.is_finite() && *b > 0.0 && *b < 1.0)) {
-                    return Err(Error::invalid(format!("manifest.schedule.betas[{i}]: {} is not in (0, 1)", betas[i])));
+                    return Err(Error::invalid(format!(
+                        "manifest.schedule.betas[{i}]: {} is not in (0, 1)",
+                        crate::fields::number(betas[i])
+                    )));
                 }
             }
             ScheduleSpec::Cosine { s } | ScheduleSpec::DiffuserCosine { s } => {
                 if !(s.is_finite() && *s >= 0.0 && *s < 1.0) {
-                    return Err(Error::invalid(format!("manifest.schedule.s: {s} is not in [0, 1)")));
+                    return Err(Error::invalid(format!(
+                        "manifest.schedule.s: {} is not in [0, 1)",
+                        crate::fields::number(*s)
+                    )));
                 }
             }
             ScheduleSpec::Linear => {}

@@ -57,7 +57,11 @@ impl Normalizer {
         if let Self::Limits { min, max } = self
             && let Some(i) = min.iter().zip(max).position(|(lo, hi)| lo > hi)
         {
-            return Err(Error::invalid(format!("{field}: min[{i}] = {} exceeds max[{i}] = {}", min[i], max[i])));
+            return Err(Error::invalid(format!(
+                "{field}: min[{i}] = {} exceeds max[{i}] = {}",
+                crate::fields::number(min[i]),
+                crate::fields::number(max[i])
+            )));
         }
         if let Self::Gaussian { std, .. } = self
             && let Some(i) = std.iter().position(|&s| s < 0.0)

@@ -173,7 +173,7 @@ impl Schedule {
         if let Some(i) = betas.iter().position(|b| !(b.is_finite() && *b > 0.0 && *b < 1.0)) {
             return Err(Error::invalid(format!(
                 "schedule: beta[{i}] = {} is not in (0, 1) (T = {t}; the linear schedule needs T > 20)",
-                betas[i]
+                crate::fields::number(betas[i])
             )));
         }
         let alphas: Vec<f64> = betas.iter().map(|b| 1.0 - b).collect();
@@ -308,7 +308,7 @@ fn check_cosine_s(s: f64) -> Result<()> {
     if s.is_finite() && (0.0..1.0).contains(&s) {
         Ok(())
     } else {
-        Err(Error::invalid(format!("schedule.s: {s} is not in [0, 1)")))
+        Err(Error::invalid(format!("schedule.s: {} is not in [0, 1)", crate::fields::number(s))))
     }
 }
 

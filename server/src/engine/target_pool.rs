@@ -66,7 +66,7 @@ impl AmortisedTargets {
         if !(self.refresh_fraction.is_finite() && self.refresh_fraction > 0.0 && self.refresh_fraction <= 1.0) {
             return Err(Error::invalid(format!(
                 "{field}.refresh_fraction: {} is not in (0, 1]",
-                self.refresh_fraction
+                crate::fields::number(self.refresh_fraction)
             )));
         }
         Ok(())

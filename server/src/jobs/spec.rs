@@ -170,16 +170,22 @@ impl JobSpec {
         if !(o.learning_rate.is_finite() && o.learning_rate > 0.0 && o.learning_rate < 1.0) {
             return Err(Error::invalid(format!(
                 "spec.optimization.learning_rate: {} is not in (0, 1)",
-                o.learning_rate
+                crate::fields::number(o.learning_rate)
             )));
         }
         if let Some(c) = o.grad_clip
             && !(c.is_finite() && c > 0.0)
         {
-            return Err(Error::invalid(format!("spec.optimization.grad_clip: {c} must be positive")));
+            return Err(Error::invalid(format!(
+                "spec.optimization.grad_clip: {} must be positive",
+                crate::fields::number(c)
+            )));
         }
         if !(0.0..1.0).contains(&o.ema_decay) {
-            return Err(Error::invalid(format!("spec.optimization.ema_decay: {} is not in [0, 1)", o.ema_decay)));
+            return Err(Error::invalid(format!(
+                "spec.optimization.ema_decay: {} is not in [0, 1)",
+                crate::fields::number(o.ema_decay)
+            )));
         }
         match &self.kind {
             JobKind::Diffusion(d) => {
@@ -189,18 +195,22 @@ impl JobSpec {
                 if !(d.action_weight.is_finite() && d.action_weight > 0.0) {
                     return Err(Error::invalid(format!(
                         "spec.diffusion.action_weight: {} must be positive",
-                        d.action_weight
+                        crate::fields::number(d.action_weight)
                     )));
                 }
             }
             JobKind::Reward(r) => {
                 if !(r.rho_l2.is_finite() && r.rho_l2 >= 0.0) {
-                    return Err(Error::invalid(format!("spec.reward.rho_l2: {} must be zero or positive", r.rho_l2)));
+                    return Err(Error::invalid(format!(
+                        "spec.reward.rho_l2: {} must be zero or positive",
+                        crate::fields::number(r.rho_l2)
+                    )));
                 }
                 for (field, w) in [("action_weight", r.action_weight), ("condition_weight", r.condition_weight)] {
                     if !(w.is_finite() && w >= 0.0) {
                         return Err(Error::invalid(format!(
-                            "spec.reward.{field}: {w} must be finite and zero or positive"
+                            "spec.reward.{field}: {} must be finite and zero or positive",
+                            crate::fields::number(w)
                         )));
                     }
                 }

@@ -1,6 +1,6 @@
 //! Serving rho: Score and Gradient queries against reward models, merged across concurrent
 //! callers by a per-model dynamic batcher. Both the native RewardService and the Open
-//! Inference Protocol endpoint call [`Serving::run`]; neither touches tensors themselves.
+//! Inference Protocol endpoint call [`Serving::query`]; neither touches tensors themselves.
 //!
 //! - [`query`]: the one place that validates a reward query, from the wire (Score, Gradient
 //!   and GradientStream messages; OIP's parsed inputs) to [`Serving::prepare`], which checks it
@@ -150,10 +150,21 @@ impl Serving {
     /// Queues `prepared` with its model's batcher and waits for the answer. Dropping the
     /// returned future (a cancelled call) frees the query's place: it is skipped, not computed.
     pub async fn run(&self, prepared: Prepared) -> Result<Answer> {
+        let reply = self.enqueue(prepared)?;
+        Self::answer(reply).await
+    }
+
+    /// Puts `prepared` in its model's queue: refused (DEADLINE_EXCEEDED) when its deadline
+    /// passed before it arrived, RESOURCE_EXHAUSTED when the queue is full.
+    fn enqueue(&self, prepared: Prepared) -> Result<tokio::sync::oneshot::Receiver<Result<Answer>>> {
         if prepared.deadline.is_some_and(|d| d <= Instant::now()) {
             return Err(Error::DeadlineExceeded("the deadline passed before the query was queued".into()));
         }
-        let reply = batcher::submit(&self.inner, prepared)?;
+        batcher::submit(&self.inner, prepared)
+    }
+
+    /// The answer of a queued query (checked finite: a model that yields NaN fails the query).
+    async fn answer(reply: tokio::sync::oneshot::Receiver<Result<Answer>>) -> Result<Answer> {
         let answer = reply
             .await
             .map_err(|_| Error::Unavailable("the serving thread stopped (the server is shutting down)".into()))??;
@@ -162,15 +173,21 @@ impl Serving {
     }
 
     /// Validates and runs in one call, counting the outcome in the model's statistics (see
-    /// [`crate::metrics::ModelStats`]).
+    /// [`crate::metrics::ModelStats`]) with Triton's semantics: a query counts once it is in
+    /// the model's queue (Triton counts a request once its scheduler accepted it). Refusals
+    /// before that (validation against the model, a deadline already passed, a full queue)
+    /// answer the caller and are not counted, as Triton's failures of `PrepareForInference`
+    /// and `Enqueue` are not; after it, every end counts once: success, or fail for a deadline
+    /// passed in the queue (Triton's REJECTED), a cancelled call (CANCELED), a compute error or
+    /// a non-finite answer (BACKEND), or shutdown.
     pub async fn query(&self, name: &str, query: Query) -> Result<Answer> {
         let model = self.reward(name).await?;
         let (started, items) = (Instant::now(), query.shape.first().map_or(0, |&b| b.max(0) as u64));
-        let answer = match self.prepare(model, query).await {
-            Ok(prepared) => self.run(prepared).await,
-            Err(e) => Err(e),
-        };
-        self.inner.metrics.observe_query(name, answer.is_ok(), items, started.elapsed());
+        let prepared = self.prepare(model, query).await?;
+        let reply = self.enqueue(prepared)?;
+        let mut outcome = Outcome { metrics: &self.inner.metrics, model: name, started, items, counted: false };
+        let answer = Self::answer(reply).await;
+        outcome.count(answer.is_ok());
         answer
     }
 
@@ -202,6 +219,31 @@ impl Serving {
             .unwrap_or_else(PoisonError::into_inner)
             .insert(name.to_owned(), (generation, Arc::clone(&table)));
         check_steps(field, name, &table, big_t)
+    }
+}
+
+/// The statistics entry of one queued query: counted once, when its answer comes or, for a
+/// call dropped while queued or computing (its client cancelled), as a failure on drop.
+struct Outcome<'a> {
+    metrics: &'a Metrics,
+    model: &'a str,
+    started: Instant,
+    items: u64,
+    counted: bool,
+}
+
+impl Outcome<'_> {
+    fn count(&mut self, ok: bool) {
+        if !self.counted {
+            self.counted = true;
+            self.metrics.observe_query(self.model, ok, self.items, self.started.elapsed());
+        }
+    }
+}
+
+impl Drop for Outcome<'_> {
+    fn drop(&mut self) {
+        self.count(false);
     }
 }
 

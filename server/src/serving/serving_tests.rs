@@ -281,6 +281,9 @@ async fn an_overfull_queue_answers_resource_exhausted() {
         metric(&f.metrics.render(), "relreward_serving_dropped_total{model=\"rho\",reason=\"queue_full\"}"),
         shed as f64
     );
+    // A query turned away by a full queue was never queued: only the accepted ones count.
+    let stats = f.metrics.model_stats("rho").expect("statistics of rho");
+    assert_eq!((stats.success.count, stats.fail.count), (ok, 0), "{stats:?}");
     // The server is healthy afterwards.
     f.serving.query("rho", score(raw_items(1, 9), 1, vec![0], Units::Raw)).await.expect("still serving");
 }
@@ -305,6 +308,18 @@ async fn expired_and_cancelled_queries_cost_no_compute() {
     assert_eq!(metric(&text, "relreward_serving_dropped_total{model=\"rho\",reason=\"deadline\"}"), 1.0, "{text}");
     assert_eq!(metric(&text, "relreward_serving_dropped_total{model=\"rho\",reason=\"cancelled\"}"), 1.0, "{text}");
     assert_eq!(metric(&text, "relreward_serving_batch_items_count{model=\"rho\"}"), 0.0, "nothing was computed");
+    // Both were queued, so both count as failures (Triton's REJECTED and CANCELED); a query
+    // whose deadline had passed before it arrived was never queued and does not count.
+    let mut late = score(raw_items(1, 3), 1, vec![0], Units::Raw);
+    late.deadline = Some(Instant::now());
+    match f.serving.query("rho", late).await {
+        Err(Error::DeadlineExceeded(m)) => assert!(m.contains("before the query was queued"), "{m}"),
+        other => panic!("expected DeadlineExceeded, got {other:?}"),
+    }
+    let stats = f.metrics.model_stats("rho").expect("statistics of rho");
+    assert_eq!((stats.success.count, stats.fail.count), (0, 2), "{stats:?}");
+    assert!(stats.fail.ns >= 30_000_000, "the deadline's wait is in the failures' duration: {stats:?}");
+    assert_eq!((stats.inference_count, stats.execution_count), (0, 0));
 }
 
 /// Bad queries fail validation with named fields and never reach the batcher.
@@ -370,6 +385,10 @@ async fn bad_queries_name_their_field_and_cost_nothing() {
         other => panic!("expected FailedPrecondition, got {other:?}"),
     }
     assert_eq!(metric(&f.metrics.render(), "relreward_serving_batch_items_count{model=\"rho\"}"), 0.0);
+    // Refused before they were queued: not in ModelStatistics (Triton does not count a request
+    // that fails validation), nor in the queries counter.
+    assert_eq!(f.metrics.model_stats("rho"), None, "validation refusals are not counted");
+    assert!(!f.metrics.render().contains("relreward_serving_queries_total"), "{}", f.metrics.render());
 }
 
 /// One merged batch of gradient queries with different units and omegas: each caller's rows get

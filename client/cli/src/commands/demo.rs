@@ -238,7 +238,8 @@ pub async fn run(ctx: &Ctx, args: DemoArgs) -> Result<Report> {
         let (base, reward) = (&extracted.base_model, &extracted.rewards[k]);
         let steering = steer(&client, base, reward, *goal, plan.omegas, plan.samples, args.seed).await?;
         let expert = &extracted.experts[k];
-        rows.push(GoalRow { expert, goal_cell: *goal, reward_model: &expert.reward.model, steering });
+        let expert_model = &extracted.expert_models[k];
+        rows.push(GoalRow { expert, goal_cell: *goal, reward_model: &expert.reward.model, expert_model, steering });
     }
 
     let recovered = rows.iter().filter(|r| r.expert.goal_recovered() == Some(true)).count();
@@ -251,6 +252,7 @@ pub async fn run(ctx: &Ctx, args: DemoArgs) -> Result<Report> {
         goals_recovered: recovered,
         mean_balanced_accuracy: mean_balanced_accuracy(&extracted),
         goals_steered: steered,
+        base_model: &extracted.base_model,
     };
     let json = json!({
         "layout": summary.layout,
@@ -285,11 +287,13 @@ struct GoalRow<'a> {
     expert: &'a ExpertResult,
     goal_cell: (usize, usize),
     reward_model: &'a str,
+    /// The expert diffusion model the reward was extracted from (the base model is shared).
+    expert_model: &'a str,
     steering: Steering,
 }
 
 /// What the summary table says besides its rows.
-struct Summary {
+struct Summary<'a> {
     layout: &'static str,
     size: String,
     seed: u64,
@@ -297,6 +301,7 @@ struct Summary {
     goals_recovered: usize,
     mean_balanced_accuracy: f64,
     goals_steered: usize,
+    base_model: &'a str,
 }
 
 /// A number as report.json holds it: non-finite numbers are null, which the table shows as NaN.
@@ -305,7 +310,7 @@ fn finite_or_nan(v: f64) -> f64 {
 }
 
 /// The summary as a Markdown table.
-fn summary_table(s: &Summary, rows: &[GoalRow<'_>]) -> String {
+fn summary_table(s: &Summary<'_>, rows: &[GoalRow<'_>]) -> String {
     let mut t = format!(
         "relreward demo: {} ({} size, seed {}), {:.0} s\n\n| goal cell | reward max at | recovered | balanced accuracy | near goal unguided | near goal guided (omega) |\n|---|---|---|---|---|---|\n",
         s.layout, s.size, s.seed, s.elapsed_seconds
@@ -332,6 +337,13 @@ fn summary_table(s: &Summary, rows: &[GoalRow<'_>]) -> String {
         s.goals_steered,
         rows.len()
     ));
+    // The models' names (they carry fingerprints, so nobody can guess them): what `relreward
+    // score`, `grad`, `sample` and the Python client take (README, "From Python").
+    t.push_str("\n| goal cell | reward model | expert diffusion model |\n|---|---|---|\n");
+    for g in rows {
+        t.push_str(&format!("| {},{} | {} | {} |\n", g.goal_cell.0, g.goal_cell.1, g.reward_model, g.expert_model));
+    }
+    t.push_str(&format!("\nbase diffusion model: {}\n", s.base_model));
     t
 }
 

@@ -17,7 +17,7 @@ use super::output::{
     byte_progress_bar, drive_progress, eprint_line, fmt_short, human_bytes, key_values, normalizer_json,
     normalizer_text, or_dash, rfc3339, table, time_or_dash,
 };
-use super::{Ctx, Report};
+use super::{Ctx, Report, UsageError};
 
 #[derive(Debug, Subcommand)]
 pub enum ModelCommand {
@@ -184,6 +184,10 @@ async fn send_model(
 async fn import(ctx: &Ctx, args: ModelImportArgs) -> Result<Report> {
     use relreward_toolkit::diffuser_import::{import_npz, temporal_unet_shapes, write_safetensors};
     let ModelImportArgs { file, manifest, dim, dim_mults, prefix, out, name, description } = args;
+    // Every check before the first byte is written: a refused --name leaves no --out behind.
+    if let Some(name) = &name {
+        check_model_name("--name", name)?;
+    }
     let mut man = manifest::load(&manifest)?;
     let Some(pb::diffusion_manifest::Space::Trajectory(space)) = man.space else {
         bail!("{}: space: a TemporalUnet needs a trajectory space", manifest.display());
@@ -220,7 +224,20 @@ async fn import(ctx: &Ctx, args: ModelImportArgs) -> Result<Report> {
     man.architecture = Some(architecture);
     let expected = temporal_unet_shapes(transition_dim, dim, &dim_mults);
     let tensors = import_npz(&file, &prefix, &expected)?;
-    write_safetensors(&out, &tensors).with_context(|| format!("{}", out.display()))?;
+    // Written beside --out and renamed onto it only once everything succeeded (the upload
+    // too, with --name): a failure at any step leaves --out as it was, never a partial file
+    // nor weights the command reported as failed.
+    let staged = Staged::new(&out);
+    write_safetensors(staged.path(), &tensors).with_context(|| format!("{}", out.display()))?;
+    let model = match name {
+        Some(name) => Some(
+            send_model(ctx, staged.path(), name, man, description)
+                .await
+                .with_context(|| format!("{} was not written", out.display()))?,
+        ),
+        None => None,
+    };
+    staged.commit().with_context(|| format!("{}", out.display()))?;
     let parameters: usize = tensors.iter().map(|(_, _, v)| v.len()).sum();
     let mut text = format!(
         "imported {} tensors ({parameters} parameters) from {} into {}\narchitecture = {{ kind = \"temporal_unet\", dim = {dim}, dim_mults = {dim_mults:?} }}\n",
@@ -234,12 +251,62 @@ async fn import(ctx: &Ctx, args: ModelImportArgs) -> Result<Report> {
         "weights": out.display().to_string(),
         "architecture": { "kind": "temporal_unet", "dim": dim, "dim_mults": dim_mults },
     });
-    if let Some(name) = name {
-        let model = send_model(ctx, &out, name, man, description).await?;
+    if let Some(model) = model {
         text.push_str(&format!("registered as model '{}' (native)\n", model.name));
         json["model"] = model_json(&model);
     }
     Ok(Report::ok(text, json))
+}
+
+/// The server's naming rule (`[a-z0-9][a-z0-9._-]{0,63}`), checked before any work so that a
+/// name the server would refuse is named first and costs nothing.
+fn check_model_name(flag: &str, name: &str) -> Result<()> {
+    let mut chars = name.chars();
+    let first = chars.next().is_some_and(|c| c.is_ascii_lowercase() || c.is_ascii_digit());
+    let rest = chars.all(|c| c.is_ascii_lowercase() || c.is_ascii_digit() || matches!(c, '.' | '_' | '-'));
+    if first && rest && name.len() <= 64 {
+        return Ok(());
+    }
+    let shown: String = name.chars().take(64).collect();
+    Err(UsageError(format!(
+        "{flag}: {shown:?}{} is not a valid model name (1 to 64 characters, [a-z0-9] then [a-z0-9._-])",
+        if shown.len() < name.len() { "..." } else { "" }
+    ))
+    .into())
+}
+
+/// A file written beside its target and renamed onto it by [`Staged::commit`]; removed when
+/// dropped uncommitted.
+struct Staged {
+    target: PathBuf,
+    path: PathBuf,
+    committed: bool,
+}
+
+impl Staged {
+    fn new(target: &std::path::Path) -> Self {
+        let mut file_name = target.file_name().map(std::ffi::OsString::from).unwrap_or_else(|| "weights".into());
+        file_name.push(format!(".partial-{}", std::process::id()));
+        Self { target: target.to_owned(), path: target.with_file_name(file_name), committed: false }
+    }
+
+    fn path(&self) -> &std::path::Path {
+        &self.path
+    }
+
+    fn commit(mut self) -> std::io::Result<()> {
+        std::fs::rename(&self.path, &self.target)?;
+        self.committed = true;
+        Ok(())
+    }
+}
+
+impl Drop for Staged {
+    fn drop(&mut self) {
+        if !self.committed {
+            let _ = std::fs::remove_file(&self.path);
+        }
+    }
 }
 
 async fn list(ctx: &Ctx, kind: Option<ModelKindArg>) -> Result<Report> {

@@ -93,7 +93,7 @@ pub fn reward_spec(config: TrainConfig, args: &TrainRewardArgs) -> Result<pb::Jo
     });
     for (x, source) in [&rho_l2, &action_weight, &condition_weight].into_iter().flatten() {
         if !(x.is_finite() && *x >= 0.0) {
-            return Err(source.invalid(format!("{x} is not zero or positive")));
+            return Err(source.invalid(format!("{} is not zero or positive", crate::output::given_num(*x))));
         }
     }
     Ok(common.spec(Kind::Reward(pb::TrainReward {

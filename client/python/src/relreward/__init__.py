@@ -16,7 +16,7 @@ from relreward.aio import AsyncClient, AsyncGradientStream
 from relreward.client import Client, GradientStream, PendingGradient
 from relreward.datasets import from_minari_episodes
 from relreward.errors import (Aborted, AlreadyExists, Cancelled, DataLoss, DeadlineExceeded, FailedPrecondition,
-                              Internal, InvalidArgument, NotFound, OutOfRange, PermissionDenied, RelrewardError,
+                              Internal, InvalidArgument, InvalidInput, NotFound, OutOfRange, PermissionDenied, RelrewardError,
                               ResourceExhausted, Unauthenticated, Unavailable, Unimplemented, Unknown)
 from relreward.specs import DiffusionJob, DiscriminatorJob, Optimization, RewardJob
 
@@ -38,7 +38,7 @@ __all__ = [
     "Client", "AsyncClient", "GradientStream", "AsyncGradientStream", "PendingGradient", "TLS",
     "ScoreResult", "GradientResult", "Sample", "SampleBatch", "JobEvent", "DownloadedModel",
     "DiffusionJob", "RewardJob", "DiscriminatorJob", "Optimization", "from_minari_episodes",
-    "RelrewardError", "Cancelled", "Unknown", "InvalidArgument", "DeadlineExceeded", "NotFound", "AlreadyExists",
+    "RelrewardError", "Cancelled", "Unknown", "InvalidArgument", "InvalidInput", "DeadlineExceeded", "NotFound", "AlreadyExists",
     "PermissionDenied", "ResourceExhausted", "FailedPrecondition", "Aborted", "OutOfRange", "Unimplemented",
     "Internal", "Unavailable", "DataLoss", "Unauthenticated", "pb", "DEFAULT_CHUNK_BYTES", "MAX_MESSAGE_BYTES",
 ]

@@ -6,6 +6,7 @@ import datetime as _dt
 import hashlib
 import pathlib
 import time
+import warnings
 from dataclasses import dataclass
 from typing import Any, Callable, Iterator, Sequence
 
@@ -15,7 +16,7 @@ import numpy as np
 from relreward import _tensor
 from relreward._proto import datasets_pb2, jobs_pb2, models_pb2, reward_pb2, tensor_pb2
 from relreward.datasets import UploadSource, row_chunks
-from relreward.errors import RelrewardError, Unavailable, error_for, is_retryable
+from relreward.errors import InvalidInput, RelrewardError, Unavailable, error_for, is_retryable
 
 #: Largest message either way (tensors in requests and responses can be large), as the Rust client.
 MAX_MESSAGE_BYTES = 64 << 20
@@ -40,6 +41,47 @@ def backoff_delay(attempt: int, initial: float, maximum: float, left: float) -> 
     return min(initial * (2 ** min(attempt, 20)), maximum, left)
 
 
+def seconds(name: str, v: float | None, *, allow_none: bool = True) -> float | None:
+    """A client setting in seconds: None (when allowed) or a finite number >= 0."""
+    if v is None and allow_none:
+        return None
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not (0 <= float(v) < float("inf")):
+        raise ValueError(f"{name}: {v!r}; expected a finite number of seconds >= 0"
+                         + (" or None" if allow_none else ""))
+    return float(v)
+
+
+class Attempts:
+    """The clock of one retried call (``Client._idempotent`` and its asyncio twin): ``timeout``
+    bounds the whole call, retries and their backoff included (each attempt gets what is left of
+    it as its deadline), and retries stop once ``budget`` seconds have passed since the first
+    attempt, whichever comes first."""
+
+    __slots__ = ("_started", "_timeout", "_budget", "_attempt")
+
+    def __init__(self, timeout: float | None, budget: float) -> None:
+        self._started = time.monotonic()
+        self._timeout = timeout
+        self._budget = budget
+        self._attempt = 0
+
+    def deadline(self) -> float | None:
+        """Seconds the next attempt may take (None: no deadline)."""
+        if self._timeout is None:
+            return None
+        return max(self._timeout - (time.monotonic() - self._started), 0.0)
+
+    def delay(self) -> float | None:
+        """Seconds to back off before the next attempt, or None when there is no time for one
+        (the budget is spent, or the wait would reach the timeout)."""
+        elapsed = time.monotonic() - self._started
+        d = backoff_delay(self._attempt, IDEMPOTENT_INITIAL_S, IDEMPOTENT_MAX_S, self._budget - elapsed)
+        if d is None or (self._timeout is not None and elapsed + d >= self._timeout):
+            return None
+        self._attempt += 1
+        return d
+
+
 @dataclass(frozen=True)
 class TLS:
     """TLS settings (PEM bytes or paths to PEM files).
@@ -61,6 +103,7 @@ class TLS:
         return pathlib.Path(v).read_bytes()
 
     def credentials(self) -> grpc.ChannelCredentials:
+        """grpcio channel credentials from these settings (reads the PEM files now)."""
         if (self.client_cert is None) != (self.client_key is None):
             raise ValueError("client_cert and client_key go together")
         return grpc.ssl_channel_credentials(root_certificates=self._read(self.ca_cert),
@@ -96,6 +139,13 @@ def metadata_of(token: str | None) -> tuple[tuple[str, str], ...] | None:
     return (("authorization", f"Bearer {token}"),)
 
 
+def health_status(raw: bytes) -> str:
+    """The status of a grpc.health.v1 HealthCheckResponse's bytes (field 1, a varint enum; the
+    package carries no health stubs, and an empty message means 0, UNKNOWN)."""
+    status = raw[1] if len(raw) >= 2 and raw[0] == 0x08 else 0
+    return {0: "UNKNOWN", 1: "SERVING", 2: "NOT_SERVING", 3: "SERVICE_UNKNOWN"}.get(status, "UNKNOWN")
+
+
 def units(u: str) -> reward_pb2.Units:
     try:
         return _UNITS[u]
@@ -103,13 +153,47 @@ def units(u: str) -> reward_pb2.Units:
         raise ValueError(f"units {u!r}: expected 'raw' or 'normalized'") from None
 
 
-def times(t: int | Sequence[int] | np.ndarray | None) -> list[int]:
-    """The wire's ``t``: [] (0 for all) for None, [t] (broadcast) for one int, else one per item."""
+_U32, _U64 = (1 << 32) - 1, (1 << 64) - 1
+
+
+def unsigned(name: str, v: Any, limit: int = _U32) -> int:
+    """``v`` as an int for an unsigned wire field (uint32 unless ``limit`` says uint64), or
+    InvalidInput naming ``name``: protobuf's own refusal ("Value out of range: -1") names no
+    field, and ``int()`` would silently truncate 2.5 to 2."""
+    if isinstance(v, (bool, np.bool_)):
+        raise InvalidInput(f"{name}: {v!r} is a bool; expected a non-negative integer")
+    if isinstance(v, (int, np.integer)):
+        i = int(v)
+    elif isinstance(v, (float, np.floating)) and float(v).is_integer():
+        i = int(v)
+    else:
+        raise InvalidInput(f"{name}: {v!r} is not an integer; expected an integer in [0, {limit}]")
+    if i < 0:
+        raise InvalidInput(f"{name}: {i} is negative; expected an integer in [0, {limit}]")
+    if i > limit:
+        raise InvalidInput(f"{name}: {i} is past {limit}, the largest value the field holds")
+    return i
+
+
+def times(t: int | Sequence[int] | np.ndarray | None, name: str = "t") -> list[int]:
+    """The wire's ``t``: [] (0 for all) for None, [t] (broadcast) for one int, else one per item.
+    Steps that are negative, fractional or past uint32 raise InvalidInput naming ``t`` (and the
+    item), as the server would name a step past the model's T."""
     if t is None:
         return []
-    if isinstance(t, (int, np.integer)):
-        return [int(t)]
-    return [int(v) for v in np.asarray(t).reshape(-1)]
+    if isinstance(t, (int, np.integer)) and not isinstance(t, (bool, np.bool_)):
+        return [unsigned(name, t)]
+    a = np.asarray(t)
+    if a.ndim == 0:
+        return [unsigned(name, a.item())]
+    a = a.reshape(-1)
+    if a.dtype.kind in "iu" and a.size:
+        # One vectorised bounds check (a planner's [B] steps); the loop only names the culprit.
+        if int(a.min()) >= 0 and int(a.max()) <= _U32:
+            return a.tolist()
+    elif a.dtype.kind not in "iuf" and a.size:
+        raise InvalidInput(f"{name}: {a.dtype} steps; expected integers in [0, {_U32}]")
+    return [unsigned(f"{name}[{k}]", v) for k, v in enumerate(a.tolist())]
 
 
 # --------------------------------------------------------------------------------------------
@@ -194,6 +278,7 @@ class JobEvent:
 
     @classmethod
     def from_proto(cls, e: jobs_pb2.JobEvent) -> "JobEvent":
+        """The event of a ``relreward.v1.JobEvent`` message, its fields per kind filled in."""
         time = e.time.ToDatetime(tzinfo=_dt.timezone.utc) if e.HasField("time") else None
         kind = e.WhichOneof("event") or "unknown"
         if kind == "state":
@@ -232,7 +317,7 @@ class WatchCursor:
 
     def __init__(self, job_id: str, from_seq: int, reconnect_budget: float) -> None:
         self.job_id = job_id
-        self.cursor = max(from_seq, 1)
+        self.cursor = max(unsigned("from_seq", from_seq, _U64), 1)
         self.budget = reconnect_budget
         self._attempt = 0
         self._down_since: float | None = None
@@ -290,7 +375,7 @@ def gradient_request(model: str, x: Any, t: Any, omega: float | None, input_unit
                      scale_by_posterior_variance_of: str | None, request_id: int = 0) -> reward_pb2.GradientRequest:
     # The hot path of a planner: keyword arguments only where set (each costs a field write).
     req = _GradientRequest(request_id=request_id, model=model, x=_tensor.encode(x),
-                           t=[int(t)] if isinstance(t, (int, np.integer)) else times(t),
+                           t=[t] if type(t) is int and 0 <= t <= _U32 else times(t),
                            input_units=units(input_units), gradient_units=units(gradient_units))
     if scale_by_posterior_variance_of:
         req.scale_by_posterior_variance_of = scale_by_posterior_variance_of
@@ -306,15 +391,16 @@ def gradient_result(r: reward_pb2.GradientResponse) -> GradientResult:
 def sample_request(model: str, reward_model: str | None, omega: float, n: int, seed: int | None,
                    n_guide_steps: int | None, t_stopgrad: int | None, scale_grad_by_std: bool,
                    conditions: Any, input_units: str, batch_size: int) -> reward_pb2.SampleRequest:
-    req = reward_pb2.SampleRequest(model=model, reward_model=reward_model or "", omega=omega, n=n,
+    req = reward_pb2.SampleRequest(model=model, reward_model=reward_model or "", omega=omega, n=unsigned("n", n),
                                    scale_grad_by_std=scale_grad_by_std, input_units=units(input_units),
-                                   batch_size=batch_size)
-    for name, v in (("seed", seed), ("n_guide_steps", n_guide_steps), ("t_stopgrad", t_stopgrad)):
+                                   batch_size=unsigned("batch_size", batch_size))
+    for name, v, limit in (("seed", seed, _U64), ("n_guide_steps", n_guide_steps, _U32),
+                           ("t_stopgrad", t_stopgrad, _U32)):
         if v is not None:
-            setattr(req, name, v)
+            setattr(req, name, unsigned(name, v, limit))
     items = conditions.items() if hasattr(conditions, "items") else (conditions or ())
     for index, state in items:
-        req.conditions.add(index=int(index), state=_tensor.encode(state))
+        req.conditions.add(index=unsigned(f"conditions index {index!r}", index), state=_tensor.encode(state))
     return req
 
 
@@ -345,13 +431,28 @@ class UploadFailure:
 Progress = Callable[[int, int], None]
 
 
+_warned_no_tqdm = False
+
+
+def _warn_no_tqdm() -> None:
+    """Says once per process that ``progress=True`` shows nothing here (it used to be silent)."""
+    global _warned_no_tqdm
+    if not _warned_no_tqdm:
+        _warned_no_tqdm = True
+        warnings.warn("progress=True shows a tqdm bar, but tqdm is not installed: no progress is shown "
+                      "(pip install 'relreward[progress]', or pass a callback(sent_bytes, total_bytes))",
+                      RuntimeWarning, stacklevel=4)
+
+
 def progress_callback(progress: Progress | bool | None, total: int, desc: str) -> tuple[Progress | None, Any]:
     """(callback(sent_bytes, total_bytes), object to close): ``True`` shows a tqdm bar when tqdm
-    is installed (nothing otherwise); a callable is called after each chunk."""
+    is installed (otherwise nothing, with a RuntimeWarning the first time); a callable is called
+    after each chunk."""
     if progress is True:
         try:
             from tqdm.auto import tqdm
         except ImportError:
+            _warn_no_tqdm()
             return None, None
         bar = tqdm(total=total, unit="B", unit_scale=True, desc=desc)
 

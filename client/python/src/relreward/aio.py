@@ -1,13 +1,13 @@
 """The asyncio client: :class:`AsyncClient`, with the methods of :class:`relreward.Client` as
 coroutines (``watch_job`` and ``sample_iter`` as async iterators, ``gradient_stream`` as an
 async context manager). Same retry policy: reads and pure computations retried on
-connection failures for up to 5 s, writes never."""
+connection failures for up to ``retry_budget`` seconds (5 by default) within ``timeout``,
+writes never."""
 
 from __future__ import annotations
 
 import asyncio
 import pathlib
-import time
 from typing import Any, AsyncIterator, Awaitable, Callable, Mapping, Sequence, TypeVar
 
 import grpc
@@ -26,25 +26,92 @@ from relreward.specs import job_spec, manifest as manifest_of
 T = TypeVar("T")
 
 
+class _Connection:
+    """A grpc.aio channel and its stubs. A grpc.aio channel belongs to the event loop it was
+    made in (used from another, every call fails with asyncio's "attached to a different
+    loop"), so it is made on first use, inside the loop that uses it, and remembers that loop."""
+
+    def __init__(self, target: str, credentials: grpc.ChannelCredentials | None, options: list) -> None:
+        self.loop = asyncio.get_running_loop()
+        self.channel = (grpc.aio.insecure_channel(target, options=options) if credentials is None
+                        else grpc.aio.secure_channel(target, credentials, options=options))
+        self.datasets = datasets_pb2_grpc.DatasetServiceStub(self.channel)
+        self.models = models_pb2_grpc.ModelServiceStub(self.channel)
+        self.jobs = jobs_pb2_grpc.JobServiceStub(self.channel)
+        self.rewards = reward_pb2_grpc.RewardServiceStub(self.channel)
+        self.health = self.channel.unary_unary("/grpc.health.v1.Health/Check", request_serializer=lambda _: b"",
+                                               response_deserializer=lambda b: b)
+
+
 class AsyncClient:
-    """asyncio twin of :class:`relreward.Client` (same arguments; see its docstrings for units
-    and shapes). Create it inside a running event loop; ``async with`` closes it."""
+    """asyncio twin of :class:`relreward.Client`: the same arguments (``timeout`` and
+    ``retry_budget`` included), the same methods as coroutines (``watch_job`` and
+    ``sample_iter`` as async iterators, ``gradient_stream`` as an async context manager); see
+    :class:`relreward.Client`'s docstrings for units and shapes.
+
+    It may be created anywhere, inside or outside a running loop (``client =
+    AsyncClient(...)`` at module level, then ``asyncio.run(main())``): the grpc.aio channel is
+    made on the first call, in the loop that runs it. That loop then owns it; using the client
+    from another loop raises a RuntimeError saying so (create one client per loop).
+    ``async with`` (or ``await client.close()``) closes it.
+    """
 
     def __init__(self, endpoint: str = "127.0.0.1:50051", token: str | None = None, tls: c.TLS | bool | None = None,
-                 *, timeout: float | None = None) -> None:
-        target, credentials, options = c.channel_args(endpoint, tls)
+                 *, timeout: float | None = None, retry_budget: float = c.IDEMPOTENT_BUDGET_S) -> None:
+        # Settings are checked here, where the caller wrote them, not at the first call.
+        self._args = c.channel_args(endpoint, tls)
         self.endpoint = endpoint
-        self.timeout = timeout
+        self.timeout = c.seconds("timeout", timeout)
+        self.retry_budget = c.seconds("retry_budget", retry_budget, allow_none=False)
         self._metadata = c.metadata_of(token)
-        self._channel = (grpc.aio.insecure_channel(target, options=options) if credentials is None
-                         else grpc.aio.secure_channel(target, credentials, options=options))
-        self._datasets = datasets_pb2_grpc.DatasetServiceStub(self._channel)
-        self._models = models_pb2_grpc.ModelServiceStub(self._channel)
-        self._jobs = jobs_pb2_grpc.JobServiceStub(self._channel)
-        self._rewards = reward_pb2_grpc.RewardServiceStub(self._channel)
+        self._connection: _Connection | None = None
+
+    def _conn(self) -> _Connection:
+        try:
+            loop = asyncio.get_running_loop()
+        except RuntimeError:
+            raise RuntimeError("relreward.AsyncClient: no running event loop; call its methods from a coroutine "
+                               "(asyncio.run(main())), or use relreward.Client outside asyncio") from None
+        if self._connection is None:
+            self._connection = _Connection(*self._args)
+        elif self._connection.loop is not loop:
+            raise RuntimeError("relreward.AsyncClient: this client's channel belongs to the event loop it was first "
+                               "used in, not the one running now; create one AsyncClient per event loop")
+        return self._connection
+
+    @property
+    def channel(self) -> grpc.aio.Channel:
+        """The underlying grpc.aio channel (for raw stubs; calls on it carry no token). Made
+        now if no call made it yet, so read it inside the loop that will use it."""
+        return self._conn().channel
+
+    @property
+    def _datasets(self) -> datasets_pb2_grpc.DatasetServiceStub:
+        return self._conn().datasets
+
+    @property
+    def _models(self) -> models_pb2_grpc.ModelServiceStub:
+        return self._conn().models
+
+    @property
+    def _jobs(self) -> jobs_pb2_grpc.JobServiceStub:
+        return self._conn().jobs
+
+    @property
+    def _rewards(self) -> reward_pb2_grpc.RewardServiceStub:
+        return self._conn().rewards
 
     async def close(self) -> None:
-        await self._channel.close()
+        """Closes the channel (if a call made one); streams still open on it end. A later call
+        makes a new one."""
+        if self._connection is not None:
+            connection, self._connection = self._connection, None
+            await connection.channel.close()
+
+    async def health(self) -> str:
+        """See :meth:`relreward.Client.health`: "SERVING", "NOT_SERVING", "UNKNOWN" or
+        "SERVICE_UNKNOWN" from grpc.health.v1 (retried as a read)."""
+        return c.health_status(await self._idempotent(self._conn().health, None))
 
     async def __aenter__(self) -> "AsyncClient":
         return self
@@ -59,19 +126,16 @@ class AsyncClient:
             raise from_rpc_error(e) from None
 
     async def _idempotent(self, method: Callable[..., Awaitable[T]], request: Any) -> T:
-        started = time.monotonic()
-        attempt = 0
+        clock = c.Attempts(self.timeout, self.retry_budget)
         while True:
             try:
-                return await method(request, metadata=self._metadata, timeout=self.timeout)
+                return await method(request, metadata=self._metadata, timeout=clock.deadline())
             except grpc.RpcError as e:
                 if not is_retryable(e):
                     raise from_rpc_error(e) from None
-                delay = c.backoff_delay(attempt, c.IDEMPOTENT_INITIAL_S, c.IDEMPOTENT_MAX_S,
-                                        c.IDEMPOTENT_BUDGET_S - (time.monotonic() - started))
+                delay = clock.delay()
                 if delay is None:
                     raise from_rpc_error(e) from None
-                attempt += 1
                 await asyncio.sleep(delay)
 
     async def _all_pages(self, call: Callable[[tensor_pb2.PageRequest], Awaitable[Any]], field: str) -> list:
@@ -110,15 +174,18 @@ class AsyncClient:
                 closer.close()
 
     async def get_dataset(self, name: str) -> datasets_pb2.Dataset:
+        """See :meth:`relreward.Client.get_dataset`: the dataset with its statistics."""
         return await self._idempotent(self._datasets.GetDataset,
                                       datasets_pb2.GetDatasetRequest(name=name, view=datasets_pb2.DATASET_VIEW_FULL))
 
     async def list_datasets(self) -> list[datasets_pb2.Dataset]:
+        """See :meth:`relreward.Client.list_datasets`: every dataset, by name."""
         return await self._all_pages(lambda page: self._idempotent(
             self._datasets.ListDatasets, datasets_pb2.ListDatasetsRequest(page=page, view=datasets_pb2.DATASET_VIEW_BASIC)),
             "datasets")
 
     async def delete_dataset(self, name: str) -> None:
+        """See :meth:`relreward.Client.delete_dataset` (never retried)."""
         await self._once(self._datasets.DeleteDataset, datasets_pb2.DeleteDatasetRequest(name=name))
 
     # models
@@ -143,14 +210,17 @@ class AsyncClient:
                 bar.close()
 
     async def get_model(self, name: str) -> models_pb2.Model:
+        """See :meth:`relreward.Client.get_model`: kind, manifest or reward info."""
         return await self._idempotent(self._models.GetModel, models_pb2.GetModelRequest(name=name))
 
     async def list_models(self, kind: str | None = None) -> list[models_pb2.Model]:
+        """See :meth:`relreward.Client.list_models`: every model, or those of ``kind``."""
         k = _KINDS[kind]
         return await self._all_pages(lambda page: self._idempotent(
             self._models.ListModels, models_pb2.ListModelsRequest(page=page, kind=k)), "models")
 
     async def delete_model(self, name: str) -> None:
+        """See :meth:`relreward.Client.delete_model` (never retried)."""
         await self._once(self._models.DeleteModel, models_pb2.DeleteModelRequest(name=name))
 
     async def download_model(self, name: str, out_dir: str | pathlib.Path, *, overwrite: bool = False
@@ -172,18 +242,22 @@ class AsyncClient:
 
     # jobs
     async def submit_job(self, spec: Any, job_id: str | None = None) -> jobs_pb2.Job:
+        """See :meth:`relreward.Client.submit_job`: queues a training job (never retried)."""
         return await self._once(self._jobs.SubmitJob,
                                 jobs_pb2.SubmitJobRequest(spec=job_spec(spec), job_id=job_id or ""))
 
     async def get_job(self, job_id: str) -> jobs_pb2.Job:
+        """See :meth:`relreward.Client.get_job`: state, step / total_steps, loss, error."""
         return await self._idempotent(self._jobs.GetJob, jobs_pb2.GetJobRequest(id=job_id))
 
     async def list_jobs(self, state: str | None = None) -> list[jobs_pb2.Job]:
+        """See :meth:`relreward.Client.list_jobs`: every job, or those in ``state``, newest first."""
         s = _STATES[state.lower() if state else None]
         return await self._all_pages(lambda page: self._idempotent(
             self._jobs.ListJobs, jobs_pb2.ListJobsRequest(page=page, state=s)), "jobs")
 
     async def cancel_job(self, job_id: str) -> jobs_pb2.Job:
+        """See :meth:`relreward.Client.cancel_job` (never retried)."""
         return await self._once(self._jobs.CancelJob, jobs_pb2.CancelJobRequest(id=job_id))
 
     async def watch_job(self, job_id: str, from_seq: int = 0, *, reconnect_budget: float = c.WATCH_BUDGET_S
@@ -210,20 +284,28 @@ class AsyncClient:
                     call.cancel()
             await asyncio.sleep(watch.retry_delay(failure))
 
-    async def wait_job(self, job_id: str) -> jobs_pb2.Job:
-        async for _ in self.watch_job(job_id):
-            pass
+    async def wait_job(self, job_id: str, on_event: Callable[[c.JobEvent], Any] | None = None) -> jobs_pb2.Job:
+        """See :meth:`relreward.Client.wait_job`: follows the job until it finishes and returns
+        it; ``on_event`` sees every event (a plain function, or a coroutine function, which is
+        awaited). Does not raise for a FAILED or CANCELLED job: check ``job.state``."""
+        async for event in self.watch_job(job_id):
+            if on_event is not None:
+                result = on_event(event)
+                if asyncio.iscoroutine(result):
+                    await result
         return await self.get_job(job_id)
 
     # rewards
     async def score(self, model: str, x: Any, t: int | Sequence[int] | np.ndarray | None = 0, *, units: str = "raw",
                     per_window: bool = False, per_step: bool = False) -> c.ScoreResult:
+        """See :meth:`relreward.Client.score`: rho(x, t) per item (retried as a read)."""
         return c.score_result(await self._idempotent(self._rewards.Score,
                                                      c.score_request(model, x, t, units, per_window, per_step)))
 
     async def gradient(self, model: str, x: Any, t: int | Sequence[int] | np.ndarray | None, *,
                        omega: float | None = None, units: str = "raw", gradient_units: str | None = None,
                        scale_by_posterior_variance_of: str | None = None) -> c.GradientResult:
+        """See :meth:`relreward.Client.gradient`: grad_x rho(x_t, t) and rho (retried as a read)."""
         req = c.gradient_request(model, x, t, omega, units, gradient_units or units, scale_by_posterior_variance_of)
         return c.gradient_result(await self._idempotent(self._rewards.Gradient, req))
 
@@ -238,6 +320,7 @@ class AsyncClient:
                           seed: int | None = None, n_guide_steps: int | None = None, t_stopgrad: int | None = None,
                           scale_grad_by_std: bool = False, conditions: Any = None, units: str = "raw",
                           batch_size: int = 0) -> AsyncIterator[c.Sample]:
+        """See :meth:`relreward.Client.sample_iter`: each sample as it finishes (not retried)."""
         req = c.sample_request(model, reward_model, omega, n, seed, n_guide_steps, t_stopgrad, scale_grad_by_std,
                                conditions, units, batch_size)
         call = self._rewards.Sample(req, metadata=self._metadata, timeout=self.timeout)
@@ -250,6 +333,7 @@ class AsyncClient:
             call.cancel()
 
     async def sample(self, model: str, **kwargs: Any) -> c.SampleBatch:
+        """See :meth:`relreward.Client.sample`: every sample stacked in index order."""
         return c.stack_samples([s async for s in self.sample_iter(model, **kwargs)])
 
 
@@ -316,9 +400,11 @@ class AsyncGradientStream:
         return fut
 
     async def gradient(self, x: Any, t: Any, **kwargs: Any) -> c.GradientResult:
+        """Sends one request and awaits its ``GradientResult(gradient, rewards)``."""
         return await (await self.submit(x, t, **kwargs))
 
     async def close(self) -> None:
+        """Ends the call; requests still waiting fail with Unavailable."""
         if self._call is not None:
             self._call.cancel()
         if self._reader is not None:

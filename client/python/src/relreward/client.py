@@ -34,20 +34,30 @@ class Client:
     ``authorization: Bearer <token>`` with every call (servers with access control). ``tls``:
     ``True`` or a :class:`relreward.TLS` (CA, client certificate for mutual TLS, server name).
 
+    ``timeout``: seconds a call may take in all (None: no deadline): for a retried call this
+    bounds every attempt and the waits between them together, so ``timeout=1.0`` against a
+    server that is down fails after about 1 s; for uploads, downloads and ``sample`` it is the
+    deadline of the whole stream (``watch_job`` and ``gradient_stream`` have none).
+    ``retry_budget``: seconds during which a failed read is retried (default 5.0; 0: never).
+
     Reads and pure computations (get/list, ``score``, ``gradient``, ``health``) are retried for
-    up to 5 s (backoff 50 ms doubling to 1 s) when they fail on the connection (UNAVAILABLE, or
-    a transport failure), as the Rust client does; writes (uploads, deletes, submit, cancel) and
-    streams are never retried behind the caller's back. ``watch_job`` resumes after a dropped
-    connection on its own. Failures raise :class:`relreward.RelrewardError` subclasses.
+    up to ``retry_budget`` seconds, and within ``timeout`` (backoff 50 ms doubling to 1 s), when
+    they fail on the connection (UNAVAILABLE, or a transport failure), as the Rust client does;
+    the last failure is raised once neither leaves time for another attempt. Writes (uploads,
+    deletes, submit, cancel) and streams are never retried behind the caller's back.
+    ``watch_job`` resumes after a dropped connection on its own. Failures raise
+    :class:`relreward.RelrewardError` subclasses; arguments refused before anything is sent
+    raise :class:`relreward.InvalidInput` (both an ``InvalidArgument`` and a ``ValueError``).
 
     Use as a context manager, or call :meth:`close`.
     """
 
     def __init__(self, endpoint: str = "127.0.0.1:50051", token: str | None = None, tls: c.TLS | bool | None = None,
-                 *, timeout: float | None = None) -> None:
+                 *, timeout: float | None = None, retry_budget: float = c.IDEMPOTENT_BUDGET_S) -> None:
         target, credentials, options = c.channel_args(endpoint, tls)
         self.endpoint = endpoint
-        self.timeout = timeout
+        self.timeout = c.seconds("timeout", timeout)
+        self.retry_budget = c.seconds("retry_budget", retry_budget, allow_none=False)
         self._metadata = c.metadata_of(token)
         self._channel = (grpc.insecure_channel(target, options=options) if credentials is None
                          else grpc.secure_channel(target, credentials, options=options))
@@ -84,27 +94,22 @@ class Client:
             raise from_rpc_error(e) from None
 
     def _idempotent(self, method: Callable[..., T], request: Any) -> T:
-        started = time.monotonic()
-        attempt = 0
+        clock = c.Attempts(self.timeout, self.retry_budget)
         while True:
             try:
-                return method(request, metadata=self._metadata, timeout=self.timeout)
+                return method(request, metadata=self._metadata, timeout=clock.deadline())
             except grpc.RpcError as e:
                 if not is_retryable(e):
                     raise from_rpc_error(e) from None
-                delay = c.backoff_delay(attempt, c.IDEMPOTENT_INITIAL_S, c.IDEMPOTENT_MAX_S,
-                                        c.IDEMPOTENT_BUDGET_S - (time.monotonic() - started))
+                delay = clock.delay()
                 if delay is None:
                     raise from_rpc_error(e) from None
-                attempt += 1
                 time.sleep(delay)
 
     def health(self) -> str:
         """The server's overall serving status from grpc.health.v1: "SERVING", "NOT_SERVING",
         "UNKNOWN" or "SERVICE_UNKNOWN"."""
-        raw = self._idempotent(self._health, None)
-        status = raw[1] if len(raw) >= 2 and raw[0] == 0x08 else 0
-        return {0: "UNKNOWN", 1: "SERVING", 2: "NOT_SERVING", 3: "SERVICE_UNKNOWN"}.get(status, "UNKNOWN")
+        return c.health_status(self._idempotent(self._health, None))
 
     # ----------------------------------------------------------------------------------------
     # datasets

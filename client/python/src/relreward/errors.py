@@ -40,6 +40,14 @@ class InvalidArgument(RelrewardError):
     code = grpc.StatusCode.INVALID_ARGUMENT
 
 
+class InvalidInput(InvalidArgument, ValueError):
+    """An argument refused by the client before anything was sent (a negative or fractional
+    ``t``, a count past its field's range, ...); the message names the argument. Code
+    INVALID_ARGUMENT, as the server answers for a value it refuses, and a ``ValueError``, as
+    every local input problem is: ``except relreward.InvalidArgument`` and ``except
+    ValueError`` both catch it."""
+
+
 class DeadlineExceeded(RelrewardError):
     code = grpc.StatusCode.DEADLINE_EXCEEDED
 

@@ -61,16 +61,22 @@ class RewardGuide:
 
     def gradients(self, x: Any, cond: Any = None, t: Any = 0, *args: Any) -> tuple[Any, Any]:
         """(rho ``[B]``, grad_x rho ``[B, H, D]``) at the noisy plans ``x`` ``[B, H, D]`` and
-        steps ``t`` (an int or ``[B]``); torch in, torch out (on ``x``'s device and dtype)."""
+        steps ``t`` (an int or ``[B]``); torch in, torch out (on ``x``'s device and dtype).
+        Both are writable arrays the caller owns (unlike the client's read-only views), so a
+        sampler may edit them in place."""
         result = self.stream.gradient(self._numpy(x), self._numpy(t).astype(np.int64).reshape(-1)
                                       if not isinstance(t, (int, np.integer)) else int(t))
+        # The client's arrays are read-only views of the response bytes; Diffuser's sampler edits
+        # what the guide returns in place (``grad[t < t_stopgrad] = 0``), so hand out owned,
+        # writable copies (torch.from_numpy also warns on a read-only array).
+        rewards, gradient = result.rewards.copy(), result.gradient.copy()
         if _is_torch(x):
             import torch
 
-            y = torch.from_numpy(result.rewards.copy()).to(device=x.device, dtype=x.dtype)
-            grad = torch.from_numpy(result.gradient.copy()).to(device=x.device, dtype=x.dtype)
+            y = torch.from_numpy(rewards).to(device=x.device, dtype=x.dtype)
+            grad = torch.from_numpy(gradient).to(device=x.device, dtype=x.dtype)
             return y, grad
-        return result.rewards, result.gradient
+        return rewards, gradient
 
     def __call__(self, x: Any, cond: Any = None, t: Any = 0, *args: Any) -> Any:
         """rho ``[B]`` at ``x`` and ``t`` (the value Diffuser's guide returns)."""

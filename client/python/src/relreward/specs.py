@@ -7,12 +7,15 @@ JobSpec's protobuf JSON form, e.g. ``{"output_model": "m", "diffusion": {"datase
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from typing import Any, Mapping, Sequence
 
+import numpy as np
 from google.protobuf import json_format
 
 from relreward._proto import jobs_pb2, models_pb2
+from relreward.errors import InvalidInput
 
 
 @dataclass
@@ -31,6 +34,7 @@ class Optimization:
     log_every: int | None = None
 
     def to_proto(self) -> jobs_pb2.Optimization:
+        """The ``relreward.v1.Optimization`` message (unset fields left unset)."""
         return jobs_pb2.Optimization(**{k: v for k, v in self.__dict__.items() if v is not None})
 
 
@@ -88,6 +92,7 @@ class DiffusionJob:
     pooled_normalizer: bool | None = None
 
     def to_proto(self) -> jobs_pb2.JobSpec:
+        """The ``relreward.v1.JobSpec`` message this spec stands for (unset fields left unset)."""
         d = jobs_pb2.TrainDiffusion(dataset=self.dataset, parametrization=_param(self.parametrization),
                                     normalizer_datasets=list(self.normalizer_datasets))
         if self.pooled_normalizer is not None:
@@ -171,6 +176,7 @@ class RewardJob:
     optimization: Optimization | None = None
 
     def to_proto(self) -> jobs_pb2.JobSpec:
+        """The ``relreward.v1.JobSpec`` message this spec stands for (unset fields left unset)."""
         r = jobs_pb2.TrainReward(base_model=self.base_model, expert_model=self.expert_model)
         if (a := _reward_arch(self.architecture)) is not None:
             r.architecture.CopyFrom(a)
@@ -215,6 +221,7 @@ class DiscriminatorJob:
     optimization: Optimization | None = None
 
     def to_proto(self) -> jobs_pb2.JobSpec:
+        """The ``relreward.v1.JobSpec`` message this spec stands for (unset fields left unset)."""
         d = jobs_pb2.TrainDiscriminator(base_dataset=self.base_dataset, expert_dataset=self.expert_dataset,
                                         diffusion_model=self.diffusion_model)
         if (a := _reward_arch(self.architecture)) is not None:
@@ -234,10 +241,28 @@ def job_spec(spec: Any) -> jobs_pb2.JobSpec:
     if isinstance(spec, jobs_pb2.JobSpec):
         return spec
     if hasattr(spec, "to_proto"):
+        _check_unsigned(type(spec).__name__, spec)
         return spec.to_proto()
     if isinstance(spec, Mapping):
         return json_format.ParseDict(dict(spec), jobs_pb2.JobSpec())
     raise TypeError(f"not a job spec: {type(spec).__name__}")
+
+
+def _check_unsigned(path: str, v: Any) -> None:
+    """Every integer of relreward.v1's job messages is unsigned: a negative one in a typed spec
+    raises InvalidInput naming it (``RewardJob.optimization.steps: -1 is negative``) rather than
+    protobuf's ``Value out of range: -1``, which names no field."""
+    if dataclasses.is_dataclass(v) and not isinstance(v, type):
+        for f in dataclasses.fields(v):
+            _check_unsigned(f"{path}.{f.name}", getattr(v, f.name))
+    elif isinstance(v, Mapping):
+        for k, item in v.items():
+            _check_unsigned(f"{path}[{k!r}]", item)
+    elif isinstance(v, (list, tuple)):
+        for k, item in enumerate(v):
+            _check_unsigned(f"{path}[{k}]", item)
+    elif isinstance(v, (int, np.integer)) and not isinstance(v, bool) and v < 0:
+        raise InvalidInput(f"{path}: {int(v)} is negative; the field holds integers from 0")
 
 
 def manifest(m: Any) -> models_pb2.DiffusionManifest:

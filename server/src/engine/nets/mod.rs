@@ -16,9 +16,10 @@
 //!   parameter count, strict safetensors loading and atomic saving, shared by every network.
 //! - [`inputs`]: the (x, t) shape and dtype check of every network's forward pass.
 //!
-//! `tests/python/nets_reference.py` is an independent PyTorch implementation of the same
-//! networks; `server/tests/nets_vs_pytorch.rs` checks that both agree on the same weights
-//! (`reward_nets_reference.py` and `reward_nets_vs_pytorch.rs` for the reward networks).
+//! `relreward_dev.nets` (`dev/python`) is an independent PyTorch implementation of the same
+//! networks; `server/tests/nets_vs_pytorch.rs` checks that both agree on the same weights,
+//! through the driver `tests/python/nets_reference.py` (`relreward_dev.reward_nets` and
+//! `reward_nets_vs_pytorch.rs` for the reward networks).
 
 pub mod blocks;
 pub mod inputs;

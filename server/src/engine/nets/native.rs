@@ -1,7 +1,7 @@
 //! [`NativeDenoiser`]: a built-in architecture ([`Architecture`]) with its weights in a tch
 //! `VarStore`, implementing [`Denoiser`]. Weights travel as safetensors only (data, never code),
 //! under the PyTorch module names of the same architecture, so one file loads both here and in
-//! `tests/python/nets_reference.py` (`load_state_dict(strict=True)`).
+//! `relreward_dev.nets` (`dev/python`; `load_state_dict(strict=True)`).
 //!
 //! Loading is strict and checked before anything is copied: the file must hold exactly the
 //! network's tensor names, each float32 with the variable's shape. tch's `VarStore::load` is not
@@ -459,6 +459,21 @@ mod tests {
             target.weights().load_strict(&dir.path().join("absent.safetensors")),
             Err(Error::Internal(_))
         ));
+    }
+
+    #[test]
+    fn a_non_finite_weight_is_named_with_its_index() {
+        let d = build(&mlp(&[16]), &Space::Sample { shape: vec![4, 3] });
+        d.weights().check_finite().expect("fresh weights are finite");
+        let names = d.weights().parameter_names();
+        let victim = names.iter().find(|n| d.weights().var_store().variables()[*n].dim() == 2).expect("a matrix");
+        let var = d.weights().var_store().variables()[victim].shallow_clone();
+        let cols = var.size()[1];
+        tch::no_grad(|| {
+            let _ = var.shallow_clone().view(-1).get(cols + 2).fill_(f64::NAN);
+        });
+        let msg = invalid_message(d.weights().check_finite());
+        assert!(msg.contains(&format!("tensor '{victim}' holds a non-finite value (NaN) at index [1, 2]")), "{msg}");
     }
 
     #[test]

@@ -3,7 +3,8 @@
 //! `AttnDownBlock2D` / `AttnUpBlock2D` at the lowest resolution when attention is on, and the
 //! `UNetMidBlock2D`. Parameter names are diffusers' state-dict keys, so a `UNet2DModel` of the
 //! same configuration loads these weights with `load_state_dict(strict=True)` and the other way
-//! round (`tests/python/unet2d_reference.py` checks forward passes and a training step).
+//! round (`relreward_dev.unet2d`, driven by `tests/python/unet2d_reference.py`, checks forward
+//! passes and a training step).
 //!
 //! Structure, for widths w = block_out_channels and L = len(w) levels:
 //! - `time_proj`: sinusoidal(w[0]) with cos first (`flip_sin_to_cos`, frequency shift 0), then

@@ -83,6 +83,35 @@ impl Weights {
         load_strict(&self.vs, self.parameter_count, path)
     }
 
+    /// Every variable finite, or InvalidArgument naming the first tensor (in name order) that
+    /// holds a NaN or an infinity, with the index and value of its first such element. Uploads
+    /// are checked with it, so a bad weight is named rather than found by a forward's NaN.
+    pub fn check_finite(&self) -> Result<()> {
+        let variables: BTreeMap<String, Tensor> = self.vs.variables().into_iter().collect();
+        for (name, var) in &variables {
+            let flat = var.f_detach()?.f_to_device(Device::Cpu)?.f_reshape([-1])?;
+            let bad = flat.f_isfinite()?.f_logical_not()?.f_nonzero()?;
+            if bad.size().first().copied().unwrap_or(0) == 0 {
+                continue;
+            }
+            let first = bad.f_int64_value(&[0, 0])?;
+            let value = flat.f_double_value(&[first])?;
+            // The flat position as an index into the tensor's shape, last dimension fastest.
+            let mut index = Vec::new();
+            let mut rest = first;
+            for &d in var.size().iter().rev() {
+                index.push(rest % d.max(1));
+                rest /= d.max(1);
+            }
+            index.reverse();
+            return Err(Error::invalid(format!(
+                "weights: tensor '{name}' holds a non-finite value ({value}) at index {index:?}, shape {:?}",
+                var.size()
+            )));
+        }
+        Ok(())
+    }
+
     /// Writes every variable to `path` in safetensors format, sorted by name, through a synced
     /// temporary sibling renamed over `path` (never a truncated file under the final name).
     pub fn save_atomic(&self, path: &Path) -> Result<()> {

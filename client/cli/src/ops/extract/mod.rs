@@ -5,7 +5,9 @@
 //! converts HDF5 and Minari recordings), then, against a running server, [`pipeline`]:
 //! 1. profiles each file and derives the sizes ([`relreward_toolkit::profile`]: the horizon
 //!    from how far the agent moves per row, capped by the episode lengths), `--config` on top
-//!    ([`sizes`]);
+//!    ([`sizes`]), and resolves what the evaluation will read besides the rows (walls, each
+//!    expert's goal: [`resolve_evaluation`]), so that a run that would fail at step 5 fails
+//!    here, before anything is uploaded or trained;
 //! 2. uploads each dataset, or reuses it: names carry a fingerprint of the file's bytes, so a
 //!    second run finds its datasets (and, names carrying a fingerprint of the sizes too, its
 //!    models and rewards) and continues where the first stopped;
@@ -111,6 +113,8 @@ pub struct ModelEvaluation {
 #[derive(Debug, Clone, Serialize)]
 pub struct MazeEvaluation {
     pub heatmap: String,
+    /// The goal measured against (`--goal`, else the expert file's constant `goals`).
+    pub goal: (f64, f64),
     pub argmax_cell: Option<(i64, i64)>,
     pub distance_cells: Option<f64>,
     pub goal_recovered: Option<bool>,
@@ -174,15 +178,25 @@ pub async fn pipeline(progress: &dyn Progress, client: &Client, inputs: &Inputs,
 
     // ---- sizes from the data
     let mut profiles = Vec::new();
+    let mut base_obs_dim = 0;
     for path in std::iter::once(&inputs.base).chain(&inputs.experts) {
         let p = path.clone();
-        let profile = tokio::task::spawn_blocking(move || -> Result<DataProfile> {
+        let (profile, obs_dim) = tokio::task::spawn_blocking(move || -> Result<(DataProfile, usize)> {
             let t = Trajectories::from_npz(&p)?;
-            Ok(profile::profile(&t.observations, t.obs_dim, &t.episodes()))
+            Ok((profile::profile(&t.observations, t.obs_dim, &t.episodes()), t.obs_dim))
         })
         .await??;
+        if profiles.is_empty() {
+            base_obs_dim = obs_dim;
+        }
         profiles.push(profile);
     }
+    // What the evaluation reads besides the rows (walls, goals), resolved now: a run that
+    // would fail at its evaluation fails here, before anything is uploaded or trained.
+    let evaluation = {
+        let i = inputs.clone();
+        tokio::task::spawn_blocking(move || resolve_evaluation(&i, base_obs_dim)).await??
+    };
     let sizes = match sizing {
         Sizing::Fixed(s) => s,
         Sizing::Derive { size, config } => {
@@ -346,16 +360,11 @@ pub async fn pipeline(progress: &dyn Progress, client: &Client, inputs: &Inputs,
     }
 
     // ---- evaluation
-    let walls_file = match &inputs.walls {
-        Some(w) => Some(w.clone()),
-        None => relreward_toolkit::npz::walls_from_npz(&inputs.base)
-            .with_context(|| format!("{}: maze walls", inputs.base.display()))?
-            .map(|_| inputs.base.clone()),
-    };
     let mut experts = Vec::new();
     for (k, label) in inputs.labels.iter().enumerate() {
         progress.stage(&format!("evaluating reward {} of {} ({label})", k + 1, inputs.labels.len()));
-        let reward = evaluate_model(client, inputs, &sizes, k, &rewards[k], walls_file.as_deref(), "reward").await?;
+        let maze = evaluation.walls.as_deref().zip(evaluation.goals[k]);
+        let reward = evaluate_model(client, inputs, &sizes, k, &rewards[k], maze, "reward").await?;
         let discriminator = match discriminators.get(k) {
             Some(disc) => Some(evaluate_model(client, inputs, &sizes, k, disc, None, "discriminator").await?),
             None => None,
@@ -371,6 +380,78 @@ pub async fn pipeline(progress: &dyn Progress, client: &Client, inputs: &Inputs,
     Ok(Extracted { base_model, expert_models, rewards, experts, profiles, sizes })
 }
 
+/// What the evaluation reads besides the rows, resolved by [`resolve_evaluation`].
+#[derive(Debug, Clone, PartialEq)]
+pub struct EvaluationInputs {
+    /// The file holding the maze's walls (`--walls`, else the base file when it holds them);
+    /// `None`: no maze, so no heatmap and no goal needed.
+    pub walls: Option<PathBuf>,
+    /// One goal per expert: `Some` for every expert whenever `walls` is.
+    pub goals: Vec<Option<(f64, f64)>>,
+}
+
+/// Resolves and checks, from the local files alone, everything the evaluation will read
+/// besides the rows, so that [`pipeline`] fails before its first upload rather than after all
+/// its training (issue 34): the walls (`--walls` must hold them; else the base file's, which
+/// must be well formed), and with walls, a position in the base rows (2 coordinates or more)
+/// and one goal per expert: `--goal`, else the expert file's `goals` when they hold one
+/// constant goal. An expert file converted by `extract` (HDF5, Minari, `--absorbing`) keeps
+/// its input's `goals` ([`Trajectories::write_npz`]), so the rule is the same for every input.
+/// Errors are usage errors naming the flag and the file.
+pub fn resolve_evaluation(inputs: &Inputs, base_obs_dim: usize) -> Result<EvaluationInputs> {
+    let walls = match &inputs.walls {
+        Some(w) => {
+            relreward_toolkit::npz::walls_from_npz(w).with_context(|| format!("--walls {}", w.display()))?.ok_or_else(
+                || UsageError(format!("--walls {}: no 'walls', 'wall_map' or 'maze_map' array", w.display())),
+            )?;
+            Some(w.clone())
+        }
+        None => relreward_toolkit::npz::walls_from_npz(&inputs.base)
+            .with_context(|| format!("--base {}: maze walls", inputs.base.display()))?
+            .map(|_| inputs.base.clone()),
+    };
+    let Some(walls) = walls else {
+        // No maze: the evaluation is discriminability alone, which needs no goal.
+        return Ok(EvaluationInputs { walls: None, goals: inputs.goals.clone() });
+    };
+    if base_obs_dim < 2 {
+        return Err(UsageError(format!(
+            "--base {}: observations have {base_obs_dim} coordinate(s); the maze heatmap (walls in {}) needs a \
+             position, 2",
+            inputs.base.display(),
+            walls.display()
+        ))
+        .into());
+    }
+    let mut goals = Vec::new();
+    for (k, path) in inputs.experts.iter().enumerate() {
+        if let Some(g) = inputs.goals.get(k).copied().flatten() {
+            goals.push(Some(g));
+            continue;
+        }
+        let why = match super::evaluate::constant_goal(path) {
+            Ok(Some(g)) => {
+                goals.push(Some(g));
+                continue;
+            }
+            Ok(None) => match relreward_toolkit::npz::npz_array_shape(path, "goals") {
+                Ok(Some(_)) => "its 'goals' are not one constant goal".to_owned(),
+                _ => "it has no 'goals' array".to_owned(),
+            },
+            Err(e) => format!("{e:#}"),
+        };
+        return Err(UsageError(format!(
+            "--goal: expert {} ({}) has no goal for the maze heatmap (walls in {}): {why}; give --goal X,Y once per \
+             --expert, in order",
+            k + 1,
+            path.display(),
+            walls.display()
+        ))
+        .into());
+    }
+    Ok(EvaluationInputs { walls: Some(walls), goals })
+}
+
 /// A batch size as the job spec takes it.
 fn batch_size(batch: u64, field: &str) -> Result<u32> {
     u32::try_from(batch).map_err(|_| UsageError(format!("[extract] {field} = {batch} is too large")).into())
@@ -384,7 +465,7 @@ async fn evaluate_model(
     sizes: &Sizes,
     k: usize,
     model: &str,
-    walls: Option<&Path>,
+    maze: Option<(&Path, (f64, f64))>,
     kind: &'static str,
 ) -> Result<ModelEvaluation> {
     let out = &inputs.out;
@@ -406,14 +487,12 @@ async fn evaluate_model(
         loss_plot: path_str(&loss_png),
         maze: None,
     };
-    let Some(walls) = walls else { return Ok(evaluation) };
+    let Some((walls, goal)) = maze else { return Ok(evaluation) };
     let heat_png = out.join(format!("heatmap-{model}.png"));
     let mut input = HeatmapInput::new(scoring, inputs.base.clone(), heat_png.clone());
     (input.walls, input.max_windows) = (Some(walls.to_owned()), sizes.max_windows);
-    match inputs.goals[k] {
-        Some(goal) => input.goal = Some(goal),
-        None => input.goal_from = Some(inputs.experts[k].clone()),
-    }
+    // Resolved (and checked) before any training: resolve_evaluation.
+    input.goal = Some(goal);
     let base: Heatmap = heatmap(&Silent, client, &input).await?;
     // The same maze scored at rest: the reward of staying at each position. Reported beside
     // the paper's heatmap, never instead of it; data whose states are more than a position and
@@ -432,6 +511,7 @@ async fn evaluate_model(
     };
     evaluation.maze = Some(MazeEvaluation {
         heatmap: path_str(&heat_png),
+        goal,
         argmax_cell: base.argmax_cell(),
         distance_cells: base.distance_cells,
         goal_recovered: base.goal_recovered,
@@ -465,6 +545,7 @@ mod tests {
     fn rows_serialize_flat_with_the_keys_of_what_was_measured() {
         let refused = MazeEvaluation {
             heatmap: "m.png".into(),
+            goal: (3.0, 3.0),
             argmax_cell: Some((1, 2)),
             distance_cells: Some(0.5),
             goal_recovered: Some(true),
