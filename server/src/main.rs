@@ -152,9 +152,12 @@ async fn serve(config: Config) -> anyhow::Result<()> {
         data_dir = %config.storage.data_dir.display(),
         "relreward-server listening"
     );
+    // The signal handlers go in before the line below announces the server: a SIGTERM sent as
+    // soon as the line is read (tests do) must start the drain, not meet the default action,
+    // which kills the process (seen once under load: a connection reset during the "drain").
+    let (first, second) = shutdown_signals();
     // One machine-readable line on stdout, for scripts and tests that start the server on port 0.
     println!("relreward-server listening on {local}");
-    let (first, second) = shutdown_signals();
     relreward_server::run(config, listener, first, second).await
 }
 
