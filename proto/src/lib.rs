@@ -14,6 +14,7 @@
 //! - [`upload`]: [`upload::UploadSource`], where a dataset upload's array bytes come from (the
 //!   toolkit's file readers produce one, the client sends one), and [`upload::MemorySource`].
 //! - [`error_chain`]: an error with its causes, for messages at both ends.
+//! - [`given_number`]: a number a user gave, echoed in a message, at both ends.
 //!
 //! Everything else about a message (the server's checks of its fields, the client's helpers)
 //! lives with its users.
@@ -55,4 +56,25 @@ pub fn error_chain(e: &dyn std::error::Error) -> String {
         source = cause.source();
     }
     text
+}
+
+/// A number a user gave, echoed in a message: exact (the shortest round-trip form) and compact
+/// at any magnitude (scientific outside [1e-4, 1e6): 1e308 as `1e308`, not 309 digits). The
+/// server's refusals and the CLI's checks of the same fields word numbers the same way.
+pub fn given_number(v: f64) -> String {
+    if v == 0.0 || !v.is_finite() || (1e-4..1e6).contains(&v.abs()) { format!("{v}") } else { format!("{v:e}") }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::given_number;
+
+    #[test]
+    fn given_numbers_are_exact_and_compact() {
+        assert_eq!(given_number(1e308), "1e308");
+        assert_eq!(given_number(-2.5e-9), "-2.5e-9");
+        assert_eq!(given_number(0.25), "0.25");
+        assert_eq!(given_number(0.0), "0");
+        assert!(given_number(-f64::MAX).len() < 30);
+    }
 }

@@ -93,13 +93,8 @@ pub fn diffusion_time(field: &str, t: i64, big_t: usize) -> Result<()> {
     }
 }
 
-/// `v` as a message shows a number a client sent: Rust's shortest round-trip form where that
-/// is short (0, and magnitudes in [1e-4, 1e6)), scientific notation otherwise. `{}` alone
-/// writes every digit of a large double (1e308 takes 309 characters) and long runs of zeros
-/// for a tiny one.
-pub fn number(v: f64) -> String {
-    if v == 0.0 || !v.is_finite() || (1e-4..1e6).contains(&v.abs()) { format!("{v}") } else { format!("{v:e}") }
-}
+/// `v` as a message shows a number a client sent (the rule both ends share).
+pub use relreward_proto::given_number as number;
 
 /// `omega` finite and within [`MAX_OMEGA`]: the rule for a guidance scale.
 pub fn check_omega(omega: f64) -> Result<()> {

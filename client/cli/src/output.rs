@@ -114,11 +114,8 @@ pub fn fmt_num(v: f64) -> String {
     }
 }
 
-/// A number the user gave, echoed in a message: exact (shortest round-trip form) and compact
-/// at any magnitude (scientific outside [1e-4, 1e6): 1e308 as `1e308`, not 309 digits).
-pub fn given_num(v: f64) -> String {
-    if v == 0.0 || !v.is_finite() || (1e-4..1e6).contains(&v.abs()) { format!("{v}") } else { format!("{v:e}") }
-}
+/// A number the user gave, echoed in a message (the rule the server's refusals share).
+pub use relreward_client::given_number as given_num;
 
 /// A fraction as a percentage with two decimals.
 pub fn percent(v: f64) -> String {
@@ -305,15 +302,6 @@ pub fn state_name(state: pb::JobState) -> &'static str {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn given_numbers_are_exact_and_compact() {
-        assert_eq!(given_num(1e308), "1e308");
-        assert_eq!(given_num(-2.5e-9), "-2.5e-9");
-        assert_eq!(given_num(0.25), "0.25");
-        assert_eq!(given_num(0.0), "0");
-        assert!(given_num(-f64::MAX).len() < 30);
-    }
 
     #[test]
     fn timestamps_are_rfc3339_utc() {

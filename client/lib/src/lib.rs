@@ -27,5 +27,5 @@ pub mod watch;
 pub use client::{Client, ClientError};
 pub use download::DownloadedModel;
 pub use relreward_proto::v1 as pb;
-pub use relreward_proto::{error_chain, tensor};
+pub use relreward_proto::{error_chain, given_number, tensor};
 pub use upload::{MemorySource, UploadSource};

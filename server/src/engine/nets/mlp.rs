@@ -26,6 +26,34 @@ pub const MAX_LAYERS: usize = 64;
 pub const MAX_HIDDEN: i64 = 1 << 20;
 pub const MAX_FEATURES: i64 = 1 << 40;
 
+/// Parameters of `time_mlp` + `net` with `outputs` outputs (module docs), computed without
+/// allocating: the layout this denoiser and the reward MLPs (`reward::mlp::MlpHead`) share.
+pub(crate) fn stack_params(features: i64, hidden: &[i64], outputs: i64) -> u128 {
+    let mut parts = vec![TimeMlp::params(MLP_TIME_DIM, MLP_TIME_HIDDEN, MLP_TIME_DIM)];
+    let mut width_in = features.saturating_add(MLP_TIME_DIM);
+    for &h in hidden {
+        parts.push(linear_params(width_in, h));
+        width_in = h;
+    }
+    parts.push(linear_params(width_in, outputs));
+    total(&parts)
+}
+
+/// `time_mlp` and the `net` layers (hidden layers, then the output layer of `outputs`) under
+/// `p`, with PyTorch's names (module docs).
+pub(crate) fn stack(p: &Path, features: i64, hidden: &[i64], outputs: i64) -> Result<(TimeMlp, Vec<Linear>)> {
+    let time_mlp = TimeMlp::new(&(p / "time_mlp"), MLP_TIME_DIM, MLP_TIME_HIDDEN, MLP_TIME_DIM)?;
+    let net = p / "net";
+    let mut layers = Vec::with_capacity(hidden.len() + 1);
+    let mut width_in = features + MLP_TIME_DIM;
+    for (i, &h) in hidden.iter().enumerate() {
+        layers.push(Linear::new(&(&net / (2 * i)), width_in, h)?);
+        width_in = h;
+    }
+    layers.push(Linear::new(&(&net / (2 * hidden.len())), width_in, outputs)?);
+    Ok((time_mlp, layers))
+}
+
 #[derive(Debug)]
 pub struct MlpDenoiser {
     features: i64,
@@ -50,28 +78,13 @@ impl MlpDenoiser {
 
     /// Number of parameters, computed without allocating; call after [`Self::validate`].
     pub fn params(features: i64, hidden: &[i64]) -> u128 {
-        let mut parts = vec![TimeMlp::params(MLP_TIME_DIM, MLP_TIME_HIDDEN, MLP_TIME_DIM)];
-        let mut width_in = features.saturating_add(MLP_TIME_DIM);
-        for &h in hidden {
-            parts.push(linear_params(width_in, h));
-            width_in = h;
-        }
-        parts.push(linear_params(width_in, features));
-        total(&parts)
+        stack_params(features, hidden, features)
     }
 
     /// `features`: n = the product of the sample shape.
     pub fn new(p: &Path, features: i64, hidden: &[i64]) -> Result<Self> {
         Self::validate(features, hidden)?;
-        let time_mlp = TimeMlp::new(&(p / "time_mlp"), MLP_TIME_DIM, MLP_TIME_HIDDEN, MLP_TIME_DIM)?;
-        let net = p / "net";
-        let mut layers = Vec::with_capacity(hidden.len() + 1);
-        let mut width_in = features + MLP_TIME_DIM;
-        for (i, &h) in hidden.iter().enumerate() {
-            layers.push(Linear::new(&(&net / (2 * i)), width_in, h)?);
-            width_in = h;
-        }
-        layers.push(Linear::new(&(&net / (2 * hidden.len())), width_in, features)?);
+        let (time_mlp, layers) = stack(p, features, hidden, features)?;
         Ok(Self { features, time_mlp, layers })
     }
 

@@ -10,8 +10,8 @@ use tch::Tensor;
 use tch::nn;
 
 use super::checks::validate_hidden;
-use crate::engine::nets::blocks::{Linear, Mish, TimeMlp, linear_params, total};
-use crate::engine::nets::mlp::{MLP_TIME_DIM, MLP_TIME_HIDDEN};
+use crate::engine::nets::blocks::{Linear, Mish, TimeMlp};
+use crate::engine::nets::mlp::{MLP_TIME_DIM, stack, stack_params};
 use crate::error::{Error, Result};
 
 /// The flat MLP's hyperparameters: `features` elements per item.
@@ -46,26 +46,11 @@ pub(super) struct MlpHead {
 
 impl MlpHead {
     pub(super) fn params(features: i64, hidden: &[i64]) -> u128 {
-        let mut parts = vec![TimeMlp::params(MLP_TIME_DIM, MLP_TIME_HIDDEN, MLP_TIME_DIM)];
-        let mut width_in = features.saturating_add(MLP_TIME_DIM);
-        for &h in hidden {
-            parts.push(linear_params(width_in, h));
-            width_in = h;
-        }
-        parts.push(linear_params(width_in, 1));
-        total(&parts)
+        stack_params(features, hidden, 1)
     }
 
     pub(super) fn new(p: &nn::Path, features: i64, hidden: &[i64]) -> Result<Self> {
-        let time_mlp = TimeMlp::new(&(p / "time_mlp"), MLP_TIME_DIM, MLP_TIME_HIDDEN, MLP_TIME_DIM)?;
-        let net = p / "net";
-        let mut layers = Vec::with_capacity(hidden.len() + 1);
-        let mut width_in = features + MLP_TIME_DIM;
-        for (i, &h) in hidden.iter().enumerate() {
-            layers.push(Linear::new(&(&net / (2 * i)), width_in, h)?);
-            width_in = h;
-        }
-        layers.push(Linear::new(&(&net / (2 * hidden.len())), width_in, 1)?);
+        let (time_mlp, layers) = stack(p, features, hidden, 1)?;
         Ok(Self { time_mlp, layers })
     }
 
