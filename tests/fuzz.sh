@@ -5,10 +5,10 @@
 #
 #   tests/fuzz.sh                          # every target, 60 s each
 #   FUZZ_SECS=300 tests/fuzz.sh npz_file   # chosen targets, longer
-#   FUZZ_TARGETS="tensor_decode npy_header npz_file" tests/fuzz.sh   # client only (no libtorch)
+#   FUZZ_TARGETS="tensor_decode npy_header npz_file" tests/fuzz.sh   # some, no libtorch
 #
-# Targets (fuzz/fuzz_targets/): tensor_decode, npy_header, npz_file (the proto, client and
-# toolkit crates only) and server_npy_read, manifest_parse, job_spec (link relreward-server, so
+# Targets (fuzz/fuzz_targets/): tensor_decode, npy_header, npz_file, manifest_parse, job_spec
+# (the proto, client and toolkit crates only) and server_npy_read (links relreward-server, so
 # libtorch: found through LIBTORCH, by default the project's .venv/torch-root as in
 # .cargo/config.toml).
 #
@@ -20,14 +20,14 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 export RUSTC_BOOTSTRAP=1
 FUZZ_SECS="${FUZZ_SECS:-60}"
-ALL="tensor_decode npy_header npz_file server_npy_read manifest_parse job_spec"
+ALL="tensor_decode npy_header npz_file manifest_parse job_spec server_npy_read"
 if [ "$#" -gt 0 ]; then targets="$*"; else targets="${FUZZ_TARGETS:-$ALL}"; fi
 
 if ! cargo fuzz --version >/dev/null 2>&1; then
     cargo install cargo-fuzz --locked
 fi
 
-needs_server() { case "$1" in server_npy_read | manifest_parse | job_spec) return 0 ;; *) return 1 ;; esac; }
+needs_server() { case "$1" in server_npy_read) return 0 ;; *) return 1 ;; esac; }
 any_server=""
 for t in $targets; do needs_server "$t" && any_server=1; done
 if [ -n "$any_server" ] && [ -z "${LIBTORCH:-}" ]; then

@@ -114,6 +114,14 @@ impl Error {
     }
 }
 
+/// A document or message the shared schema (`relreward_proto::spec`) refused: its message
+/// names the field.
+impl From<relreward_proto::spec::Invalid> for Error {
+    fn from(e: relreward_proto::spec::Invalid) -> Self {
+        Self::InvalidArgument(e.0)
+    }
+}
+
 impl From<std::io::Error> for Error {
     fn from(e: std::io::Error) -> Self {
         Self::Internal(anyhow::Error::new(e))

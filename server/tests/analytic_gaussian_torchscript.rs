@@ -53,8 +53,11 @@ fn export(dir: &Path, mean: &[f64], schedule: &str, t: usize) -> DiffusionModel 
         .output()
         .expect("run python");
     assert!(out.status.success(), "analytic_gaussian.py failed: {}", String::from_utf8_lossy(&out.stderr));
-    let manifest = DiffusionManifest::parse(&std::fs::read_to_string(dir.join("manifest.json")).expect("manifest"))
-        .expect("manifest parses");
+    let manifest = DiffusionManifest::parse(
+        &std::fs::read_to_string(dir.join("manifest.json")).expect("manifest"),
+        Some("manifest.json"),
+    )
+    .expect("manifest parses");
     let module = tch::CModule::load(dir.join("model.pt")).expect("load TorchScript");
     DiffusionModel::new(manifest, Box::new(TorchScriptDenoiser(module))).expect("model")
 }

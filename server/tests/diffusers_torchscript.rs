@@ -35,7 +35,7 @@ fn diffusers_unet2d_eps_and_posterior_mean_match_diffusers() {
     assert!(out.status.success(), "export_diffusers.py failed:\n{log}");
 
     let text = std::fs::read_to_string(dir.path().join("manifest.json")).expect("manifest");
-    let manifest = DiffusionManifest::parse(&text).expect("the exported manifest is valid");
+    let manifest = DiffusionManifest::parse(&text, Some("manifest.json")).expect("the exported manifest is valid");
     assert!(manifest.clip_denoised, "clip_sample carried over");
     let denoiser = TorchScriptDenoiser::load_and_validate(&dir.path().join("module.pt"), &manifest, Device::Cpu)
         .expect("the traced module passes the upload checks");

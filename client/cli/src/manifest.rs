@@ -1,170 +1,46 @@
-//! The diffusion model manifest as a file (TOML or JSON, the server's format), its conversion
-//! to the proto `DiffusionManifest`, and the proto back to JSON for `model show --json`.
-//!
-//! ```toml
-//! parametrization = "x0"                  # or "epsilon"
-//! n_timesteps = 20
-//! clip_denoised = true                    # default false
-//! schedule = { kind = "diffuser_cosine" } # linear | cosine | diffuser_cosine (s) | betas (betas)
-//! space = { kind = "trajectory", horizon = 32, action_dim = 2, obs_dim = 4 }
-//! # or space = { kind = "sample", shape = [4, 8, 8] }
-//! normalizer = { kind = "limits", min = [..], max = [..] }
-//! # or { kind = "gaussian", mean = [..], std = [..] } or { kind = "identity" } (the default)
-//! # native safetensors weights only (absent for a TorchScript module, its own architecture):
-//! architecture = { kind = "temporal_unet", dim = 32, dim_mults = [1, 4, 8] }
-//! # or { kind = "mlp", hidden = [..] } or { kind = "unet2d", block_out_channels = [..],
-//! #    layers_per_block, attention, norm_num_groups, attention_head_dim }
-//! ```
+//! The diffusion model manifest as a file, read with the shared schema
+//! (`relreward_proto::spec::manifest`: the file's fields, defaults and checks, the server's
+//! own), and the proto back to JSON for `model show --json`.
 //!
 //! One rule decides what an uploaded file is: a manifest with an `architecture` describes
 //! native weights (`MODEL_FORMAT_NATIVE`), one without describes a TorchScript module.
 
 use std::path::Path;
 
-use anyhow::{Context, Result, anyhow, bail};
+use anyhow::{Context, Result};
 use relreward_client::pb;
-use serde::Deserialize;
+use relreward_proto::spec::manifest::{DEFAULT_COSINE_S, DiffusionManifest};
+use relreward_proto::spec::{Format, parse_text as parse_document};
 use serde::de::DeserializeOwned;
 use serde_json::{Value, json};
 
 use crate::output::normalizer_json;
 
-/// The offset of the cosine schedules when none is given (what `s = 0` means on the wire).
-const DEFAULT_COSINE_S: f64 = 0.008;
-/// The server's upper bound on T.
-const MAX_TIMESTEPS: u32 = 100_000;
-
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum Parametrization {
-    Epsilon,
-    X0,
+/// Parses TOML or JSON: JSON for a `.json` file or text starting with `{`, TOML otherwise.
+/// Errors carry the parser's line and column and the field.
+pub fn parse_text<T: DeserializeOwned>(text: &str, path: &Path) -> Result<T> {
+    let name = path.display().to_string();
+    Ok(parse_document(text, Format::guess(Some(&name), text), &name)?)
 }
 
-impl Parametrization {
-    pub fn to_proto(self) -> pb::Parametrization {
-        match self {
-            Self::Epsilon => pb::Parametrization::Epsilon,
-            Self::X0 => pb::Parametrization::X0,
-        }
-    }
+/// Reads a file of type `T` (see [`parse_text`]).
+pub fn read_file<T: DeserializeOwned>(path: &Path) -> Result<T> {
+    let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+    parse_text(&text, path)
 }
 
-/// A beta schedule. An omitted `s` is sent as 0, which the server reads as 0.008.
-#[derive(Debug, Clone, PartialEq, Deserialize)]
-#[serde(tag = "kind", rename_all = "snake_case", deny_unknown_fields)]
-pub enum Schedule {
-    Linear,
-    Cosine { s: Option<f64> },
-    DiffuserCosine { s: Option<f64> },
-    Betas { betas: Vec<f64> },
+/// A manifest file's text as the proto, after the schema's checks (the server's own, so a
+/// manifest it would refuse is refused here, naming the field).
+pub fn load_text(text: &str, path: &Path) -> Result<pb::DiffusionManifest> {
+    let manifest: DiffusionManifest = parse_text(text, path)?;
+    manifest.validate().with_context(|| format!("{}", path.display()))?;
+    Ok(manifest.to_proto())
 }
 
-impl Schedule {
-    /// The proto schedule; `field` names it in errors (`manifest.schedule`).
-    pub fn to_proto(&self, field: &str) -> Result<pb::Schedule> {
-        use pb::schedule::{Cosine, ExplicitBetas, Kind, Linear};
-        let cosine_s = |s: Option<f64>| -> Result<f64> {
-            match s {
-                None => Ok(0.0),
-                Some(s) if s.is_finite() && s > 0.0 && s < 1.0 => Ok(s),
-                Some(s) => bail!(
-                    "{field}.s: {} is not in (0, 1) (omit it for the default {DEFAULT_COSINE_S})",
-                    crate::output::given_num(s)
-                ),
-            }
-        };
-        let kind = match self {
-            Self::Linear => Kind::Linear(Linear {}),
-            Self::Cosine { s } => Kind::Cosine(Cosine { s: cosine_s(*s)? }),
-            Self::DiffuserCosine { s } => Kind::DiffuserCosine(Cosine { s: cosine_s(*s)? }),
-            Self::Betas { betas } => {
-                if let Some(i) = betas.iter().position(|b| !(b.is_finite() && *b > 0.0 && *b < 1.0)) {
-                    bail!("{field}.betas[{i}]: {} is not in (0, 1)", betas[i]);
-                }
-                Kind::Betas(ExplicitBetas { betas: betas.clone() })
-            }
-        };
-        Ok(pb::Schedule { kind: Some(kind) })
-    }
-}
-
-#[derive(Debug, Clone, PartialEq, Eq, Deserialize)]
-#[serde(tag = "kind", rename_all = "snake_case", deny_unknown_fields)]
-pub enum Space {
-    Trajectory { horizon: u32, action_dim: u32, obs_dim: u32 },
-    Sample { shape: Vec<u64> },
-}
-
-#[derive(Debug, Clone, PartialEq, Default, Deserialize)]
-#[serde(tag = "kind", rename_all = "snake_case", deny_unknown_fields)]
-pub enum Normalizer {
-    Limits {
-        min: Vec<f64>,
-        max: Vec<f64>,
-    },
-    Gaussian {
-        mean: Vec<f64>,
-        std: Vec<f64>,
-    },
-    #[default]
-    Identity,
-}
-
-/// A built-in architecture (native weights); unset fields take the server's TrainDiffusion
-/// defaults.
-#[derive(Debug, Clone, PartialEq, Eq, Deserialize)]
-#[serde(tag = "kind", rename_all = "snake_case", deny_unknown_fields)]
-pub enum Architecture {
-    TemporalUnet {
-        dim: Option<u32>,
-        #[serde(default)]
-        dim_mults: Vec<u32>,
-    },
-    Mlp {
-        #[serde(default)]
-        hidden: Vec<u32>,
-    },
-    Unet2d {
-        #[serde(default)]
-        block_out_channels: Vec<u32>,
-        layers_per_block: Option<u32>,
-        attention: Option<bool>,
-        norm_num_groups: Option<u32>,
-        attention_head_dim: Option<u32>,
-    },
-}
-
-impl Architecture {
-    pub fn to_proto(&self) -> pb::diffusion_manifest::Architecture {
-        use pb::diffusion_manifest::Architecture as Wire;
-        match self.clone() {
-            Self::TemporalUnet { dim, dim_mults } => Wire::TemporalUnet(pb::TemporalUnet { dim, dim_mults }),
-            Self::Mlp { hidden } => Wire::Mlp(pb::Mlp { hidden }),
-            Self::Unet2d { block_out_channels, layers_per_block, attention, norm_num_groups, attention_head_dim } => {
-                Wire::Unet2d(pb::Unet2d {
-                    block_out_channels,
-                    layers_per_block,
-                    attention,
-                    norm_num_groups,
-                    attention_head_dim,
-                })
-            }
-        }
-    }
-}
-
-impl Architecture {
-    /// The same three messages in TrainDiffusion's oneof.
-    pub fn to_train_proto(&self) -> pb::train_diffusion::Architecture {
-        use pb::diffusion_manifest::Architecture as M;
-        use pb::train_diffusion::Architecture as T;
-        match self.to_proto() {
-            M::TemporalUnet(u) => T::TemporalUnet(u),
-            M::Mlp(m) => T::Mlp(m),
-            M::Unet2d(u) => T::Unet2d(u),
-        }
-    }
+/// Reads and converts a manifest file.
+pub fn load(path: &Path) -> Result<pb::DiffusionManifest> {
+    let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+    load_text(&text, path)
 }
 
 /// A TrainDiffusion architecture as a manifest's (the same three messages), e.g. to print it
@@ -177,129 +53,6 @@ pub fn manifest_architecture(a: &pb::train_diffusion::Architecture) -> pb::diffu
         T::Mlp(m) => M::Mlp(m),
         T::Unet2d(u) => M::Unet2d(u),
     }
-}
-
-/// The manifest file, field for field the server's `DiffusionManifest`.
-#[derive(Debug, Clone, PartialEq, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct ManifestFile {
-    pub parametrization: Parametrization,
-    pub schedule: Schedule,
-    pub n_timesteps: u32,
-    #[serde(default)]
-    pub clip_denoised: bool,
-    pub space: Space,
-    #[serde(default)]
-    pub normalizer: Normalizer,
-    /// Native weights only (see the module's rule).
-    #[serde(default)]
-    pub architecture: Option<Architecture>,
-}
-
-impl ManifestFile {
-    /// The proto manifest, after the checks that name the offending field.
-    pub fn to_proto(&self) -> Result<pb::DiffusionManifest> {
-        use pb::diffusion_manifest::{Sample, Space as PbSpace, Trajectory};
-        let t = self.n_timesteps;
-        if t == 0 || t > MAX_TIMESTEPS {
-            bail!("manifest.n_timesteps: {t} is outside 1..={MAX_TIMESTEPS}");
-        }
-        if let Schedule::Betas { betas } = &self.schedule
-            && betas.len() != t as usize
-        {
-            bail!("manifest.schedule.betas: {} values but n_timesteps is {t}", betas.len());
-        }
-        let schedule = self.schedule.to_proto("manifest.schedule")?;
-        let (space, coordinates) = match &self.space {
-            Space::Trajectory { horizon, action_dim, obs_dim } => {
-                if *horizon == 0 || u64::from(*action_dim) + u64::from(*obs_dim) == 0 {
-                    bail!(
-                        "manifest.space: horizon {horizon}, action_dim {action_dim}, obs_dim {obs_dim}: horizon and \
-                         action_dim + obs_dim must be positive"
-                    );
-                }
-                let space =
-                    PbSpace::Trajectory(Trajectory { horizon: *horizon, action_dim: *action_dim, obs_dim: *obs_dim });
-                (space, u64::from(*action_dim) + u64::from(*obs_dim))
-            }
-            Space::Sample { shape } => {
-                if shape.is_empty() || shape.contains(&0) {
-                    bail!("manifest.space.shape: {shape:?} must be non-empty with positive dimensions");
-                }
-                let coordinates = shape.iter().try_fold(1u64, |acc, &d| acc.checked_mul(d));
-                let coordinates = coordinates.ok_or_else(|| anyhow!("manifest.space.shape: {shape:?} is too large"))?;
-                (PbSpace::Sample(Sample { shape: shape.clone() }), coordinates)
-            }
-        };
-        let normalizer = normalizer_to_proto(&self.normalizer, "manifest.normalizer", coordinates)?;
-        Ok(pb::DiffusionManifest {
-            parametrization: self.parametrization.to_proto() as i32,
-            schedule: Some(schedule),
-            n_timesteps: t,
-            clip_denoised: self.clip_denoised,
-            space: Some(space),
-            normalizer: Some(normalizer),
-            architecture: self.architecture.as_ref().map(Architecture::to_proto),
-        })
-    }
-}
-
-/// Checks lengths (`coordinates` each), finiteness and orientation, naming `field`.
-fn normalizer_to_proto(n: &Normalizer, field: &str, coordinates: u64) -> Result<pb::Normalizer> {
-    use pb::normalizer::{Gaussian, Identity, Kind, Limits};
-    let (a, b, names) = match n {
-        Normalizer::Identity => return Ok(pb::Normalizer { kind: Some(Kind::Identity(Identity {})) }),
-        Normalizer::Limits { min, max } => (min, max, ("min", "max")),
-        Normalizer::Gaussian { mean, std } => (mean, std, ("mean", "std")),
-    };
-    for (v, name) in [(a, names.0), (b, names.1)] {
-        if v.len() as u64 != coordinates {
-            bail!("{field}.{name}: {} values but the model has {coordinates} coordinates", v.len());
-        }
-        if let Some(i) = v.iter().position(|x| !x.is_finite()) {
-            bail!("{field}.{name}[{i}]: not finite");
-        }
-    }
-    let kind = match n {
-        Normalizer::Limits { min, max } => {
-            if let Some(i) = min.iter().zip(max).position(|(lo, hi)| lo > hi) {
-                bail!("{field}: min[{i}] = {} exceeds max[{i}] = {}", min[i], max[i]);
-            }
-            Kind::Limits(Limits { min: min.clone(), max: max.clone() })
-        }
-        Normalizer::Gaussian { mean, std } => {
-            if let Some(i) = std.iter().position(|&s| s < 0.0) {
-                bail!("{field}.std[{i}]: negative");
-            }
-            Kind::Gaussian(Gaussian { mean: mean.clone(), std: std.clone() })
-        }
-        Normalizer::Identity => Kind::Identity(Identity {}),
-    };
-    Ok(pb::Normalizer { kind: Some(kind) })
-}
-
-/// Parses TOML or JSON: JSON for a `.json` file or text starting with `{`, TOML otherwise.
-/// Errors carry the parser's line and column and the field.
-pub fn parse_text<T: DeserializeOwned>(text: &str, path: &Path) -> Result<T> {
-    let is_json = path.extension().is_some_and(|e| e.eq_ignore_ascii_case("json"))
-        || (path.extension().is_none_or(|e| !e.eq_ignore_ascii_case("toml")) && text.trim_start().starts_with('{'));
-    if is_json {
-        serde_json::from_str(text).map_err(|e| anyhow!("{} (JSON): {e}", path.display()))
-    } else {
-        toml::from_str(text).map_err(|e| anyhow!("{} (TOML): {}", path.display(), e.to_string().trim_end()))
-    }
-}
-
-/// Reads a file of type `T` (see [`parse_text`]).
-pub fn read_file<T: DeserializeOwned>(path: &Path) -> Result<T> {
-    let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
-    parse_text(&text, path)
-}
-
-/// Reads and converts a manifest file.
-pub fn load(path: &Path) -> Result<pb::DiffusionManifest> {
-    let file: ManifestFile = read_file(path)?;
-    file.to_proto().with_context(|| format!("{}", path.display()))
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -438,7 +191,7 @@ mod tests {
     "#;
 
     fn parse(text: &str) -> Result<pb::DiffusionManifest> {
-        parse_text::<ManifestFile>(text, Path::new("m.toml"))?.to_proto()
+        load_text(text, Path::new("m.toml"))
     }
 
     fn with_schedule(schedule: &str) -> pb::DiffusionManifest {
@@ -473,8 +226,8 @@ mod tests {
     fn every_schedule_kind() {
         let kind = |m: pb::DiffusionManifest| m.schedule.and_then(|s| s.kind).expect("schedule");
         assert_eq!(kind(with_schedule(r#"{ kind = "linear" }"#)), SKind::Linear(pb::schedule::Linear {}));
-        // An omitted s goes out as 0 (the server's default, 0.008).
-        assert_eq!(kind(with_schedule(r#"{ kind = "cosine" }"#)), SKind::Cosine(pb::schedule::Cosine { s: 0.0 }));
+        // An omitted s goes out as the schema's default (0.008), explicitly.
+        assert_eq!(kind(with_schedule(r#"{ kind = "cosine" }"#)), SKind::Cosine(pb::schedule::Cosine { s: 0.008 }));
         assert_eq!(
             kind(with_schedule(r#"{ kind = "cosine", s = 0.01 }"#)),
             SKind::Cosine(pb::schedule::Cosine { s: 0.01 })
@@ -509,10 +262,9 @@ mod tests {
                        "space": {"kind": "sample", "shape": [2]},
                        "normalizer": {"kind": "gaussian", "mean": [0, 0], "std": [1, 1]}}"#;
         for name in ["m.json", "m"] {
-            let file: ManifestFile = parse_text(text, Path::new(name)).expect("json");
-            assert_eq!(file.to_proto().expect("valid").n_timesteps, 4);
+            assert_eq!(load_text(text, Path::new(name)).expect("valid").n_timesteps, 4);
         }
-        let err = parse_text::<ManifestFile>(r#"{"parametrization": "v"}"#, Path::new("m.json")).expect_err("bad");
+        let err = load_text(r#"{"parametrization": "v"}"#, Path::new("m.json")).expect_err("bad");
         assert!(err.to_string().contains("m.json (JSON): unknown variant `v`"), "{err}");
         assert!(err.to_string().contains("line 1"), "{err}");
     }
@@ -578,8 +330,8 @@ mod tests {
             let proto = with_schedule(schedule);
             let json = manifest_json(&proto);
             // The JSON document is itself a valid manifest file describing the same model.
-            let back: ManifestFile = serde_json::from_value(json.clone()).expect("json is a manifest file");
-            assert_eq!(back.to_proto().expect("valid"), proto, "{json}");
+            let back: DiffusionManifest = serde_json::from_value(json.clone()).expect("json is a manifest file");
+            assert_eq!(back.to_proto(), proto, "{json}");
         }
         let json = manifest_json(&with_schedule(r#"{ kind = "diffuser_cosine" }"#));
         assert_eq!(
@@ -593,18 +345,28 @@ mod tests {
                 "normalizer": {"kind": "limits", "min": [0.0, 0.0, -1.0], "max": [1.0, 1.0, 1.0]},
             })
         );
-        // A native model's architecture round-trips too.
-        for architecture in [
-            r#"{ kind = "temporal_unet", dim = 16, dim_mults = [1, 2] }"#,
-            r#"{ kind = "mlp", hidden = [64, 64] }"#,
-            r#"{ kind = "unet2d", block_out_channels = [16, 32], layers_per_block = 1, attention = false, norm_num_groups = 8, attention_head_dim = 8 }"#,
+        // A native model's architecture round-trips too (unet2d over images [C, H, W]).
+        let image = r#"{ kind = "sample", shape = [1, 8, 8] }"#;
+        let limits = r#"{ kind = "limits", min = [0, 0, -1], max = [1, 1, 1] }"#;
+        for (architecture, space) in [
+            (r#"{ kind = "temporal_unet", dim = 16, dim_mults = [1, 2] }"#, None),
+            (r#"{ kind = "mlp", hidden = [64, 64] }"#, None),
+            (
+                r#"{ kind = "unet2d", block_out_channels = [16, 32], layers_per_block = 1, attention = false, norm_num_groups = 8, attention_head_dim = 8 }"#,
+                Some(image),
+            ),
         ] {
-            // (A linear schedule: an omitted cosine s goes out as 0 and comes back as 0.008.)
-            let text = TOML.replace(r#"{ kind = "diffuser_cosine" }"#, r#"{ kind = "linear" }"#);
+            let mut text = TOML.replace(r#"{ kind = "diffuser_cosine" }"#, r#"{ kind = "linear" }"#);
+            if let Some(space) = space {
+                text = text
+                    .replace(r#"{ kind = "trajectory", horizon = 32, action_dim = 2, obs_dim = 1 }"#, space)
+                    .replace(limits, r#"{ kind = "identity" }"#);
+            }
             let proto = parse(&format!("{text}\narchitecture = {architecture}")).expect("native manifest");
             assert!(proto.architecture.is_some());
-            let back: ManifestFile = serde_json::from_value(manifest_json(&proto)).expect("json is a manifest file");
-            assert_eq!(back.to_proto().expect("valid"), proto, "{architecture}");
+            let back: DiffusionManifest =
+                serde_json::from_value(manifest_json(&proto)).expect("json is a manifest file");
+            assert_eq!(back.to_proto(), proto, "{architecture}");
         }
         let empty = manifest_json(&pb::DiffusionManifest::default());
         assert!(empty["parametrization"].is_null() && empty["schedule"].is_null() && empty["space"].is_null());

@@ -6,7 +6,7 @@
 
 use tch::{Kind, Tensor};
 
-use super::normalizer::Normalizer;
+use super::normalizer::{Normalize, Normalizer};
 use super::rng::Rng;
 use crate::error::{Error, Result};
 

@@ -1,124 +1,73 @@
-//! Normalizers: the map between a dataset's raw units and the normalized units models work in.
+//! Normalizers on tensors: the map between a dataset's raw units and the normalized units
+//! models work in.
 //!
 //! Per coordinate, along the last dimension for trajectories `[B, H, D]` (D = action_dim +
 //! obs_dim, each row `[action | observation]`) and over all trailing elements for samples
-//! `[B, *shape]`. A model is only meaningful with the normalizer it was trained under, so
-//! every manifest carries one.
+//! `[B, *shape]`. The [`Normalizer`] itself (its kinds, lengths and checks) is the shared
+//! schema's, part of every manifest; this file adds its arithmetic ([`Normalize`]).
 
-use serde::{Deserialize, Serialize};
 use tch::{Kind, Tensor};
 
-use crate::error::{Error, Result};
+pub use relreward_proto::spec::manifest::Normalizer;
 
 /// Ranges narrower than this are treated as constant coordinates: they normalize to 0 rather
 /// than dividing by zero (a constant coordinate carries no information either way).
 const MIN_RANGE: f64 = 1e-12;
 
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
-#[serde(tag = "kind", rename_all = "snake_case", deny_unknown_fields)]
-pub enum Normalizer {
-    /// x_norm = 2 (x - min) / (max - min) - 1 (Diffuser's LimitsNormalizer): the default for
-    /// trajectories.
-    Limits { min: Vec<f64>, max: Vec<f64> },
-    /// x_norm = (x - mean) / std: the default for latents.
-    Gaussian { mean: Vec<f64>, std: Vec<f64> },
-    #[default]
-    Identity,
+/// (offset, scale) per coordinate such that x_norm = (x - offset) * scale.
+fn affine(n: &Normalizer) -> Option<(Vec<f64>, Vec<f64>)> {
+    match n {
+        Normalizer::Identity => None,
+        Normalizer::Limits { min, max } => {
+            let offset = min.iter().zip(max).map(|(lo, hi)| (lo + hi) / 2.0).collect();
+            let scale =
+                min.iter().zip(max).map(|(lo, hi)| if hi - lo > MIN_RANGE { 2.0 / (hi - lo) } else { 0.0 }).collect();
+            Some((offset, scale))
+        }
+        Normalizer::Gaussian { mean, std } => {
+            Some((mean.clone(), std.iter().map(|&s| if s > MIN_RANGE { 1.0 / s } else { 0.0 }).collect()))
+        }
+    }
 }
 
-impl Normalizer {
-    /// Number of coordinates it covers (`None` for identity: any).
-    pub fn coordinates(&self) -> Option<usize> {
-        match self {
-            Self::Limits { min, .. } => Some(min.len()),
-            Self::Gaussian { mean, .. } => Some(mean.len()),
-            Self::Identity => None,
-        }
-    }
+/// Per-coordinate tensors shaped to broadcast against `x` (coordinates = trailing elements of
+/// one item; `item_dims` is the number of dimensions after the batch dimension that the
+/// coordinates span: 1 for trajectories' last dim, all for samples).
+fn broadcast(v: &[f64], x: &Tensor, item_dims: usize) -> Tensor {
+    let size = x.size();
+    let keep = size.len().saturating_sub(item_dims);
+    let mut shape: Vec<i64> = vec![1; keep];
+    shape.extend_from_slice(&size[keep..]);
+    super::upload(&Tensor::from_slice(v).to_kind(Kind::Float), x.device()).expect("a float32 upload").reshape(&shape)
+}
 
-    /// Checks lengths, finiteness and orientation; `field` prefixes messages.
-    pub fn validate(&self, field: &str, coordinates: usize) -> Result<()> {
-        let (a, b, names) = match self {
-            Self::Identity => return Ok(()),
-            Self::Limits { min, max } => (min, max, ("min", "max")),
-            Self::Gaussian { mean, std } => (mean, std, ("mean", "std")),
-        };
-        for (v, name) in [(a, names.0), (b, names.1)] {
-            if v.len() != coordinates {
-                return Err(Error::invalid(format!(
-                    "{field}.{name}: {} values but the model has {coordinates} coordinates",
-                    v.len()
-                )));
-            }
-            if let Some(i) = v.iter().position(|x| !x.is_finite()) {
-                return Err(Error::invalid(format!("{field}.{name}[{i}]: not finite")));
-            }
-        }
-        if let Self::Limits { min, max } = self
-            && let Some(i) = min.iter().zip(max).position(|(lo, hi)| lo > hi)
-        {
-            return Err(Error::invalid(format!(
-                "{field}: min[{i}] = {} exceeds max[{i}] = {}",
-                crate::fields::number(min[i]),
-                crate::fields::number(max[i])
-            )));
-        }
-        if let Self::Gaussian { std, .. } = self
-            && let Some(i) = std.iter().position(|&s| s < 0.0)
-        {
-            return Err(Error::invalid(format!("{field}.std[{i}]: negative")));
-        }
-        Ok(())
-    }
-
-    /// (offset, scale) per coordinate such that x_norm = (x - offset) * scale.
-    fn affine(&self) -> Option<(Vec<f64>, Vec<f64>)> {
-        match self {
-            Self::Identity => None,
-            Self::Limits { min, max } => {
-                let offset = min.iter().zip(max).map(|(lo, hi)| (lo + hi) / 2.0).collect();
-                let scale = min
-                    .iter()
-                    .zip(max)
-                    .map(|(lo, hi)| if hi - lo > MIN_RANGE { 2.0 / (hi - lo) } else { 0.0 })
-                    .collect();
-                Some((offset, scale))
-            }
-            Self::Gaussian { mean, std } => {
-                Some((mean.clone(), std.iter().map(|&s| if s > MIN_RANGE { 1.0 / s } else { 0.0 }).collect()))
-            }
-        }
-    }
-
-    /// Per-coordinate tensors shaped to broadcast against `x` (coordinates = trailing elements
-    /// of one item; `item_dims` is the number of dimensions after the batch dimension that the
-    /// coordinates span: 1 for trajectories' last dim, all for samples).
-    fn broadcast(v: &[f64], x: &Tensor, item_dims: usize) -> Tensor {
-        let size = x.size();
-        let keep = size.len().saturating_sub(item_dims);
-        let mut shape: Vec<i64> = vec![1; keep];
-        shape.extend_from_slice(&size[keep..]);
-        super::upload(&Tensor::from_slice(v).to_kind(Kind::Float), x.device())
-            .expect("a float32 upload")
-            .reshape(&shape)
-    }
-
+/// A normalizer's arithmetic, on tensors and on host floats.
+pub trait Normalize {
     /// Raw → normalized. Differentiable (so gradients can be chained through it).
-    pub fn normalize(&self, x: &Tensor, item_dims: usize) -> Tensor {
-        match self.affine() {
-            None => x.shallow_clone(),
-            Some((offset, scale)) => {
-                (x - Self::broadcast(&offset, x, item_dims)) * Self::broadcast(&scale, x, item_dims)
-            }
-        }
-    }
-
+    fn normalize(&self, x: &Tensor, item_dims: usize) -> Tensor;
     /// Raw → normalized on host float32 values, in place, without a tensor (per-request work
     /// that stays off libtorch). `values` holds whole items row-major, so element k is
-    /// coordinate k mod [`Self::coordinates`]. The same float32 arithmetic as [`Self::normalize`]
-    /// ((x - offset) * scale, each step rounded to float32), so the same numbers.
-    pub fn normalize_values(&self, values: &mut [f32]) {
-        let Some((offset, scale)) = self.affine() else { return };
+    /// coordinate k mod the coordinate count. The same float32 arithmetic as
+    /// [`Normalize::normalize`] ((x - offset) * scale, each step rounded to float32), so the
+    /// same numbers.
+    fn normalize_values(&self, values: &mut [f32]);
+    /// Normalized → raw. Constant coordinates come back as their constant.
+    fn unnormalize(&self, x: &Tensor, item_dims: usize) -> Tensor;
+    /// d x_norm / d x_raw per coordinate, broadcast against `x`: a gradient with respect to
+    /// normalized inputs times this is the gradient with respect to raw inputs.
+    fn jacobian(&self, x: &Tensor, item_dims: usize) -> Tensor;
+}
+
+impl Normalize for Normalizer {
+    fn normalize(&self, x: &Tensor, item_dims: usize) -> Tensor {
+        match affine(self) {
+            None => x.shallow_clone(),
+            Some((offset, scale)) => (x - broadcast(&offset, x, item_dims)) * broadcast(&scale, x, item_dims),
+        }
+    }
+
+    fn normalize_values(&self, values: &mut [f32]) {
+        let Some((offset, scale)) = affine(self) else { return };
         let offset: Vec<f32> = offset.iter().map(|&o| o as f32).collect();
         let scale: Vec<f32> = scale.iter().map(|&s| s as f32).collect();
         for item in values.chunks_mut(offset.len().max(1)) {
@@ -128,23 +77,20 @@ impl Normalizer {
         }
     }
 
-    /// Normalized → raw. Constant coordinates come back as their constant.
-    pub fn unnormalize(&self, x: &Tensor, item_dims: usize) -> Tensor {
-        match self.affine() {
+    fn unnormalize(&self, x: &Tensor, item_dims: usize) -> Tensor {
+        match affine(self) {
             None => x.shallow_clone(),
             Some((offset, scale)) => {
                 let inv: Vec<f64> = scale.iter().map(|&s| if s > 0.0 { 1.0 / s } else { 0.0 }).collect();
-                x * Self::broadcast(&inv, x, item_dims) + Self::broadcast(&offset, x, item_dims)
+                x * broadcast(&inv, x, item_dims) + broadcast(&offset, x, item_dims)
             }
         }
     }
 
-    /// d x_norm / d x_raw per coordinate, broadcast against `x`: a gradient with respect to
-    /// normalized inputs times this is the gradient with respect to raw inputs.
-    pub fn jacobian(&self, x: &Tensor, item_dims: usize) -> Tensor {
-        match self.affine() {
+    fn jacobian(&self, x: &Tensor, item_dims: usize) -> Tensor {
+        match affine(self) {
             None => Tensor::ones([1], (Kind::Float, x.device())),
-            Some((_, scale)) => Self::broadcast(&scale, x, item_dims),
+            Some((_, scale)) => broadcast(&scale, x, item_dims),
         }
     }
 }
@@ -216,17 +162,5 @@ mod tests {
         let x = t(&[0.0, 1.0, 2.0, 3.0, 1.0, 2.0, 3.0, 4.0], &[2, 2, 2]);
         let y = n.normalize(&x, 2);
         assert!(close(&y, &t(&[0.0, 0.0, 0.0, 0.0, 1.0, 1.0, 1.0, 1.0], &[2, 2, 2])));
-    }
-
-    #[test]
-    fn validation_names_the_problem() {
-        let n = Normalizer::Limits { min: vec![0.0], max: vec![1.0, 2.0] };
-        assert!(
-            n.validate("manifest.normalizer", 2).unwrap_err().to_string().contains("manifest.normalizer.min: 1 values")
-        );
-        let n = Normalizer::Limits { min: vec![3.0], max: vec![1.0] };
-        assert!(n.validate("m", 1).unwrap_err().to_string().contains("exceeds"));
-        let n = Normalizer::Gaussian { mean: vec![f64::NAN], std: vec![1.0] };
-        assert!(n.validate("m", 1).unwrap_err().to_string().contains("mean[0]: not finite"));
     }
 }

@@ -43,23 +43,13 @@ use tch::{Device, Kind, Tensor};
 use super::diffusion::DiffusionModel;
 use super::manifest::Space;
 use super::nets::reward::{RewardArchitecture, RewardNet};
-use super::normalizer::Normalizer;
+use super::normalizer::{Normalize, Normalizer};
 use super::threads::side_by_side;
 use crate::error::{Error, Result};
 
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum Target {
-    Mean,
-    Score,
-}
-
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum EvalPoint {
-    XT,
-    MuBase,
-}
+/// What grad rho is aligned with and where it is evaluated: the job spec's choices (shared
+/// schema, `relreward_proto::spec::job`).
+pub use relreward_proto::spec::job::{EvalPoint, Target};
 
 /// Checks that two diffusion models can be compared: same item shape, same T and schedule.
 /// Different normalizers are aligned ([`Alignment`]), except with identity on one side only

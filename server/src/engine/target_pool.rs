@@ -22,80 +22,20 @@
 //! generation that wrote it (the draws are cheap; only those slots go through the models), so a
 //! restart costs one pool's worth of model passes and never reads half-written state.
 
-use serde::{Deserialize, Serialize};
 use tch::{Kind, Tensor};
 
 use super::data::TrainingData;
 use super::diffusion::DiffusionModel;
 use super::relative_reward::{ConditionEntries, EvalPoint, Target, noised_target_and_point};
 use super::rng::Rng;
-use crate::error::{Error, Result};
+use crate::error::Result;
 
 /// Items per pass through the frozen models when (re)filling the pool: large enough that the
 /// passes run at the models' batched speed, small enough to bound their activations.
 const PASS_ITEMS: usize = 1024;
 
-/// The most bytes the pool's two float tensors (targets and evaluation points) may take.
-pub const MAX_POOL_BYTES: u64 = 2 << 30;
-
-/// Settings of the amortised-target option (`TrainReward.amortised_targets`).
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-pub struct AmortisedTargets {
-    /// Triples held in the pool.
-    pub pool_size: usize,
-    /// Expected uses of each triple per epoch.
-    pub reuse: u32,
-    /// Fraction of the pool replaced after every epoch, in (0, 1].
-    pub refresh_fraction: f64,
-}
-
-impl AmortisedTargets {
-    /// 16384 triples, 4 uses per epoch, a quarter refreshed per epoch: each triple is used
-    /// about 16 times and the models see 1/16 of the per-step recipe's items.
-    pub const DEFAULT: Self = Self { pool_size: 16384, reuse: 4, refresh_fraction: 0.25 };
-
-    /// Range checks (field names as the wire's).
-    pub fn validate(&self) -> Result<()> {
-        let field = "spec.reward.amortised_targets";
-        if self.pool_size == 0 || self.pool_size > 1 << 22 {
-            return Err(Error::invalid(format!("{field}.pool_size: {} is outside 1..=4194304", self.pool_size)));
-        }
-        if self.reuse == 0 || self.reuse > 1024 {
-            return Err(Error::invalid(format!("{field}.reuse: {} is outside 1..=1024", self.reuse)));
-        }
-        if !(self.refresh_fraction.is_finite() && self.refresh_fraction > 0.0 && self.refresh_fraction <= 1.0) {
-            return Err(Error::invalid(format!(
-                "{field}.refresh_fraction: {} is not in (0, 1]",
-                crate::fields::number(self.refresh_fraction)
-            )));
-        }
-        Ok(())
-    }
-
-    /// Checks the pool's memory for items of `item_numel` floats.
-    pub fn check_memory(&self, item_numel: usize) -> Result<()> {
-        let bytes = 2 * 4 * self.pool_size as u64 * item_numel as u64;
-        if bytes > MAX_POOL_BYTES {
-            return Err(Error::invalid(format!(
-                "spec.reward.amortised_targets.pool_size: {} items of {item_numel} floats need {:.2} GiB, above the {} GiB limit",
-                self.pool_size,
-                bytes as f64 / (1u64 << 30) as f64,
-                MAX_POOL_BYTES >> 30
-            )));
-        }
-        Ok(())
-    }
-
-    /// Slots refreshed per epoch (at least one).
-    pub fn refresh_items(&self) -> usize {
-        ((self.pool_size as f64 * self.refresh_fraction).ceil() as usize).clamp(1, self.pool_size)
-    }
-
-    /// Training steps per epoch at this batch size (at least one).
-    pub fn steps_per_epoch(&self, batch: usize) -> u64 {
-        ((self.pool_size as u64 * u64::from(self.reuse)).div_ceil(batch.max(1) as u64)).max(1)
-    }
-}
+/// The option's settings and their checks are the job spec's (shared schema).
+pub use relreward_proto::spec::job::{AmortisedTargets, MAX_POOL_BYTES};
 
 /// What the pool computes its targets with.
 pub struct TargetSource<'a> {

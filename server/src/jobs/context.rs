@@ -12,10 +12,10 @@ use std::time::Instant;
 use tokio::sync::broadcast;
 use tokio_util::sync::CancellationToken;
 
-use super::spec::JobSpec;
 use crate::error::{Error, Result};
 use crate::store::ingest::now_ms;
 use crate::store::{CheckpointRef, JobEvent, JobEventKind, JobRecord, ModelRecord, Staging, Store};
+use relreward_proto::spec::job::JobSpec;
 
 /// Why a job stopped without finishing.
 #[derive(Debug)]

@@ -4,7 +4,6 @@
 
 use super::context::{JobContext, Stop};
 use super::datasets::{array, load_rows};
-use super::spec::DiffusionJob;
 use super::training::TrainLoop;
 use crate::engine::data::TrainingData;
 use crate::engine::diffusion::DiffusionModel;
@@ -16,6 +15,7 @@ use crate::error::{Error, Result};
 use crate::fields::validate_name;
 use crate::store::ingest::now_ms;
 use crate::store::{ArrayStats, DatasetKind, DatasetRecord, ModelFormat, ModelKind, ModelRecord, Provenance, Store};
+use relreward_proto::spec::job::DiffusionJob;
 
 /// Held-out items per evaluation.
 const EVAL_ITEMS: usize = 256;
@@ -53,6 +53,7 @@ pub async fn validate_inputs(store: &Store, job: &DiffusionJob) -> Result<()> {
     // cannot build is refused at submission rather than failing the accepted job.
     manifest
         .validate()
+        .map_err(Error::from)
         .and_then(|()| match &manifest.architecture {
             Some(arch) => NativeDenoiser::planned_parameter_count(arch, &manifest.space).map(|_| ()),
             None => Ok(()),

@@ -13,7 +13,8 @@
 //! when it runs elsewhere.
 //!
 //! Module map:
-//! - [`spec`]: the stored, fully explicit job specification.
+//! - The stored, fully explicit job specification is the shared schema's
+//!   (`relreward_proto::spec::job::JobSpec`: its defaults and checks, one definition).
 //! - [`context`]: [`context::JobContext`], what a running job may do.
 //! - [`datasets`]: stored datasets read back as training rows and windows.
 //! - [`training`]: [`training::TrainLoop`], the optimisation loop every runner shares.
@@ -28,7 +29,6 @@ pub mod context;
 pub mod datasets;
 pub mod diffusion;
 pub mod reward;
-pub mod spec;
 pub mod training;
 
 use std::collections::HashMap;
@@ -40,13 +40,13 @@ use tokio::sync::{Notify, broadcast};
 use tokio_util::sync::CancellationToken;
 
 use self::context::{JobContext, Stop};
-use self::spec::{JobKind, JobSpec};
 use crate::config::JobsConfig;
 use crate::error::{Error, Result};
 use crate::fields::validate_name;
 use crate::store::ingest::now_ms;
 use crate::store::{JobEvent, JobEventKind, JobRecord, JobState, Lease, Store};
 use crate::tasks::Tasks;
+use relreward_proto::spec::job::{JobKind, JobSpec};
 
 /// Live-event buffer per job; a watcher further behind re-reads from the store.
 const LIVE_BUFFER: usize = 256;

@@ -8,12 +8,11 @@ use tch::{Device, Kind, Tensor};
 
 use super::context::{JobContext, Stop};
 use super::datasets::load_rows;
-use super::spec::{DiscriminatorJob, RewardAlgorithm, RewardJob};
 use super::training::TrainLoop;
 use crate::engine::data::TrainingData;
 use crate::engine::diffusion::DiffusionModel;
 use crate::engine::manifest::{DiffusionManifest, Space};
-use crate::engine::nets::reward::{RewardArchitecture, RewardNet};
+use crate::engine::nets::reward::RewardNet;
 use crate::engine::normalizer::Normalizer;
 use crate::engine::relative_reward::{
     ConditionEntries, EvalPoint, Objective, RewardManifest, Target, check_pair, entry_weights, noised,
@@ -25,21 +24,7 @@ use crate::error::{Error, Result};
 use crate::registry::load_diffusion_copy;
 use crate::store::ingest::now_ms;
 use crate::store::{DatasetKind, ModelFormat, ModelKind, ModelRecord, Provenance, Store};
-
-/// The default reward network for a space (the paper's tables): windowed MLP h = 4 with
-/// (128, 64, 32) for trajectories (h = 1 if the horizon is not a multiple of 4), the latent
-/// conv encoder for [C, H, W] samples, an MLP for other samples.
-pub fn default_architecture(space: &Space) -> RewardArchitecture {
-    match space {
-        Space::Trajectory { horizon, .. } => {
-            RewardArchitecture::WindowedMlp { window: if horizon % 4 == 0 { 4 } else { 1 }, hidden: vec![128, 64, 32] }
-        }
-        Space::Sample { shape } if shape.len() == 3 => {
-            RewardArchitecture::ConvEncoder { widths: vec![32, 64, 128, 256] }
-        }
-        Space::Sample { .. } => RewardArchitecture::Mlp { hidden: vec![128, 64, 32] },
-    }
-}
+use relreward_proto::spec::job::{DiscriminatorJob, RewardAlgorithm, RewardJob};
 
 async fn diffusion_manifest(store: &Store, field: &str, name: &str) -> Result<DiffusionManifest> {
     let record = store

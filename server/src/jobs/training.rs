@@ -11,10 +11,10 @@ use sha2::{Digest, Sha256};
 use tch::Tensor;
 
 use super::context::{JobContext, StepReport, Stop};
-use super::spec::Optimization;
 use crate::engine::optim::{Adam, Ema, named_parameters};
 use crate::engine::rng::Rng;
 use crate::error::{Error, Result};
+use relreward_proto::spec::job::Optimization;
 
 /// What a checkpoint's `state.json` holds besides the tensors.
 #[derive(Serialize, Deserialize)]

@@ -31,7 +31,7 @@ use tokio::sync::{Semaphore, mpsc};
 use tokio_stream::wrappers::ReceiverStream;
 
 use crate::engine::manifest::Space;
-use crate::engine::normalizer::Normalizer;
+use crate::engine::normalizer::{Normalize, Normalizer};
 use crate::error::{Error, Result, brief};
 use crate::fields::{self, validate_name};
 use crate::registry::{ModelRegistry, SharedReward};

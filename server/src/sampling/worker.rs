@@ -18,6 +18,7 @@ use tokio::sync::{Mutex, OwnedSemaphorePermit, Semaphore, mpsc};
 use tokio_util::sync::CancellationToken;
 
 use super::{Plan, SampleRow, stopping};
+use crate::engine::normalizer::Normalize;
 use crate::engine::rng::Rng;
 use crate::engine::sampling::{Condition, Guidance, GuidedSampler, RewardFn, Step};
 use crate::error::{Error, Result};

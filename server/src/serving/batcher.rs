@@ -24,6 +24,7 @@ use tch::Tensor;
 use tokio::sync::oneshot;
 
 use super::{Answer, HostTensor, Inner, Prepared};
+use crate::engine::normalizer::Normalize;
 use crate::error::{Error, Result};
 use crate::registry::SharedReward;
 

@@ -29,6 +29,7 @@ use relreward_proto::v1 as pb;
 
 use super::batcher::BatchKind;
 use super::{Answer, Serving};
+use crate::engine::normalizer::Normalize;
 use crate::error::{Error, Result, brief};
 use crate::fields;
 use crate::registry::SharedReward;

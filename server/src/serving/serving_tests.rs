@@ -14,7 +14,7 @@ use super::*;
 use crate::config::{Config, Overrides};
 use crate::engine::manifest::Space;
 use crate::engine::nets::{RewardArchitecture, RewardNet};
-use crate::engine::normalizer::Normalizer;
+use crate::engine::normalizer::{Normalize, Normalizer};
 use crate::engine::relative_reward::{EvalPoint, Objective, RewardManifest, Target};
 use crate::engine::reward_model::RewardModel;
 use crate::store::digests::sha256_file;

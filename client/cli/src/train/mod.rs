@@ -44,14 +44,17 @@
 //! ```
 //!
 //! Flags override the file; whatever neither sets stays unset, and the server fills in the
-//! paper's defaults. A file with another command's table is refused.
+//! paper's defaults. A nested document (an architecture, a schedule) is read with the shared
+//! schema's defaults for what it leaves out, the same the server would give. A file with
+//! another command's table is refused.
 //!
 //! The reward algorithm is `--algorithm` if given, else the one its flags imply (`--dataset`:
 //! 1, `--num-chains`: 2), else the file's, else Algorithm 1. The reward architecture is `--arch`
 //! if given, else the file's; `--window`, `--hidden` and `--widths` adjust it, and the file's
 //! widths are kept only when the file names the same kind.
 //!
-//! The file's types are in [`config`], the flags in [`flags`], and the merging in [`spec`].
+//! The file's types are the shared schema's (`relreward_proto::spec::job::request`, re-exported
+//! by [`config`]), the flags are in [`flags`], and the merging in [`spec`].
 
 pub mod config;
 pub mod flags;
@@ -227,9 +230,10 @@ mod tests {
         assert_eq!((d.horizon, d.n_timesteps, d.action_weight), (Some(32), Some(20), Some(10.0)));
         assert_eq!(d.parametrization(), pb::Parametrization::X0);
         assert_eq!(d.clip_denoised, Some(true));
+        // A nested document's omitted field is read with the schema's default (cosine s).
         assert_eq!(
             d.schedule,
-            Some(pb::Schedule { kind: Some(pb::schedule::Kind::Cosine(pb::schedule::Cosine { s: 0.0 })) })
+            Some(pb::Schedule { kind: Some(pb::schedule::Kind::Cosine(pb::schedule::Cosine { s: 0.008 })) })
         );
         assert_eq!(
             d.architecture,
@@ -279,9 +283,12 @@ mod tests {
             &pb::TrainDiffusion { dataset: "d".into(), ..Default::default() },
             "parametrization UNSPECIFIED, no schedule, no architecture, no T or H"
         );
-        // An MLP with no widths leaves them to the server as well.
+        // An MLP with no widths gets the schema's (the server's) default widths.
         let spec = diffusion_spec(config("[diffusion]\narchitecture = { kind = \"mlp\" }"), &args).expect("spec");
-        assert_eq!(diffusion(&spec).architecture, Some(pb::train_diffusion::Architecture::Mlp(pb::Mlp::default())));
+        assert_eq!(
+            diffusion(&spec).architecture,
+            Some(pb::train_diffusion::Architecture::Mlp(pb::Mlp { hidden: vec![256, 256] }))
+        );
     }
 
     #[test]
@@ -417,7 +424,7 @@ mod tests {
             ..Default::default()
         };
         let spec = reward_spec(config(REWARD_CONFIG), &args).expect("spec");
-        assert_eq!(reward(&spec).architecture, mlp(&[]));
+        assert_eq!(reward(&spec).architecture, mlp(&[128, 64, 32]), "the kind's defaults, from the schema");
         let args = TrainRewardArgs {
             arch: ArchArgs { arch: Some(ArchKind::ValueFunction), widths: Some(vec![8, 16]), ..Default::default() },
             ..Default::default()
@@ -480,14 +487,14 @@ mod tests {
             },
             "no architecture, target and eval point UNSPECIFIED, no rho_l2"
         );
-        // A kind with no widths leaves them to the server too.
+        // A kind with no widths gets that kind's defaults (the schema's, as the server's).
         let args = TrainRewardArgs {
             arch: ArchArgs { arch: Some(ArchKind::WindowedMlp), ..Default::default() },
             ..args.clone()
         };
         assert_eq!(
             reward(&reward_spec(TrainConfig::default(), &args).expect("spec")).architecture,
-            windowed(None, &[])
+            windowed(Some(4), &[128, 64, 32])
         );
     }
 
@@ -680,7 +687,7 @@ mod tests {
             ..Default::default()
         };
         let spec = discriminator_spec(config(DISCRIMINATOR_CONFIG), &args).expect("spec");
-        assert_eq!(discriminator(&spec).architecture, windowed(Some(2), &[]));
+        assert_eq!(discriminator(&spec).architecture, windowed(Some(2), &[128, 64, 32]));
     }
 
     #[test]

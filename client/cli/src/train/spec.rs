@@ -8,13 +8,16 @@ use anyhow::{Context, Result, anyhow, bail};
 use pb::job_spec::Kind;
 use relreward_client::pb;
 
+use relreward_proto::spec::job::DEFAULT_N_TIMESTEPS;
+use relreward_proto::spec::manifest::Parametrization;
+
 use super::config::{
     Algorithm, ArchKind, Architecture, DiscriminatorConfig, EvalPoint, RewardArchitecture, RewardConfig, Target,
     TrainConfig,
 };
 use super::flags::{AlgorithmArg, ArchArgs, TrainArgs, TrainDiffusionArgs, TrainDiscriminatorArgs, TrainRewardArgs};
 use crate::UsageError;
-use crate::manifest::{Parametrization, read_file};
+use crate::manifest::read_file;
 
 /// Reads the config file, if any (none: every field unset).
 pub fn load_config(path: Option<&Path>) -> Result<TrainConfig> {
@@ -43,13 +46,23 @@ pub fn diffusion_spec(config: TrainConfig, args: &TrainDiffusionArgs) -> Result<
     let d = config.diffusion.unwrap_or_default();
     let dataset =
         required(&args.dataset, d.dataset, "no dataset to train on", "--dataset NAME", "dataset", "diffusion")?;
-    let schedule = d.schedule.map(|s| s.to_proto("diffusion.schedule")).transpose().context("--config")?;
+    let n_timesteps = args.n_timesteps.or(d.n_timesteps);
+    // The schema's checks of the file's schedule (the server's own), against the T the job
+    // will have.
+    let schedule = d
+        .schedule
+        .map(|s| {
+            s.validate("diffusion.schedule", n_timesteps.map_or(DEFAULT_N_TIMESTEPS, |t| t as usize))?;
+            Ok::<_, relreward_proto::spec::Invalid>(s.to_proto())
+        })
+        .transpose()
+        .context("--config")?;
     let architecture = d.architecture.as_ref().map(Architecture::to_train_proto);
     Ok(common.spec(Kind::Diffusion(pb::TrainDiffusion {
         dataset,
         parametrization: d.parametrization.map_or(pb::Parametrization::Unspecified, Parametrization::to_proto) as i32,
         schedule,
-        n_timesteps: args.n_timesteps.or(d.n_timesteps),
+        n_timesteps,
         horizon: args.horizon.or(d.horizon),
         architecture,
         action_weight: d.action_weight,
@@ -334,9 +347,9 @@ fn reward_architecture(
         )));
     }
     let field = |name: &str| format!("{table}.architecture.{name}");
-    let widths = |flag: &Option<Vec<u32>>, flag_name: &'static str, file: Vec<u32>, name: &str| {
+    let widths = |flag: &Option<Vec<u32>>, flag_name: &'static str, file: Vec<usize>, name: &str| {
         let (widths, source) = match flag {
-            Some(widths) => (widths.clone(), Source::Flag(flag_name)),
+            Some(widths) => (widths.iter().map(|&w| w as usize).collect::<Vec<_>>(), Source::Flag(flag_name)),
             None => (file, Source::File(field(name))),
         };
         match widths.iter().position(|&w| w == 0) {
@@ -344,15 +357,16 @@ fn reward_architecture(
             None => Ok(widths),
         }
     };
-    let file = file.filter(|a| a.kind() == kind).unwrap_or_else(|| RewardArchitecture::unset(kind));
+    // The file's network when it names this kind, else the kind's defaults (the schema's).
+    let file = file.filter(|a| a.kind() == kind).unwrap_or_else(|| RewardArchitecture::default_of(kind));
     let architecture = match file {
         RewardArchitecture::WindowedMlp { window, hidden } => {
-            let window = flag_or_file(args.window, "--window", window, || field("window"));
+            let window = flag_or_file(args.window.map(|h| h as usize), "--window", Some(window), || field("window"));
             if let Some((0, source)) = &window {
                 return Err(source.invalid("a window holds at least 1 transition"));
             }
             let hidden = widths(&args.hidden, "--hidden", hidden, "hidden")?;
-            RewardArchitecture::WindowedMlp { window: window.map(|(h, _)| h), hidden }
+            RewardArchitecture::WindowedMlp { window: window.map_or(0, |(h, _)| h), hidden }
         }
         RewardArchitecture::ValueFunction { widths: w } => {
             RewardArchitecture::ValueFunction { widths: widths(&args.widths, "--widths", w, "widths")? }
@@ -364,5 +378,5 @@ fn reward_architecture(
             RewardArchitecture::Mlp { hidden: widths(&args.hidden, "--hidden", hidden, "hidden")? }
         }
     };
-    Ok(Some(architecture.into_proto()))
+    Ok(Some(architecture.to_proto()))
 }

@@ -1,13 +1,11 @@
 //! What a relative reward network is, before anything is allocated: [`RewardArchitecture`]
-//! (the serialized choice, as stored in job specs and reward manifests) and [`Plan`], its
+//! (the serialized choice, as stored in job specs and reward manifests; defined in the shared
+//! schema) and [`Plan`], its
 //! hyperparameters in i64 validated against the item shape, with the parameter count computed
 //! without allocating, and [`Network`], the layers it builds. Each architecture's own rules
 //! live in its file ([`super::windowed_mlp`], [`super::value_function`],
 //! [`super::conv_encoder`], [`super::mlp`]); this file dispatches to them.
 
-use std::fmt;
-
-use serde::{Deserialize, Serialize};
 use tch::nn;
 
 use super::checks::shape_text;
@@ -19,35 +17,9 @@ use crate::engine::nets::mlp::MAX_FEATURES;
 use crate::engine::nets::native::MAX_PARAMETERS;
 use crate::error::{Error, Result};
 
-/// The architecture of a relative reward network (see the module documentation for the exact
-/// layers and parameter names).
-#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(tag = "kind", rename_all = "snake_case", deny_unknown_fields)]
-pub enum RewardArchitecture {
-    /// An MLP over windows of `window` transitions of a trajectory [H, D]; rho is the mean over
-    /// the H / window non-overlapping windows. The paper's maze nets: window 64, hidden (32,)
-    /// (open maze) and window 4, hidden (128, 64, 32) (the others).
-    WindowedMlp { window: usize, hidden: Vec<usize> },
-    /// Diffuser's ValueFunction (the TemporalUnet's down path) over a trajectory [H, D], with
-    /// the channels after each level. The paper's locomotion nets: (64, 64, 128, 128).
-    ValueFunction { widths: Vec<usize> },
-    /// A strided 2D convolutional encoder over image-like items [C, H, W], one stride-2 block per
-    /// width. The paper's Stable Diffusion latent nets: (32, 64, 128, 256).
-    ConvEncoder { widths: Vec<usize> },
-    /// An MLP over flattened samples of any shape.
-    Mlp { hidden: Vec<usize> },
-}
-
-impl fmt::Display for RewardArchitecture {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        match self {
-            Self::WindowedMlp { window, hidden } => write!(f, "windowed_mlp(h={window}, hidden={hidden:?})"),
-            Self::ValueFunction { widths } => write!(f, "value_function(widths={widths:?})"),
-            Self::ConvEncoder { widths } => write!(f, "conv_encoder(widths={widths:?})"),
-            Self::Mlp { hidden } => write!(f, "mlp(hidden={hidden:?})"),
-        }
-    }
-}
+/// The architecture of a relative reward network: the shared schema's type (its kinds, widths
+/// and defaults are `relreward_proto::spec::job`'s); this file plans and builds it.
+pub use relreward_proto::spec::job::RewardArchitecture;
 
 /// The layers of one architecture (the variables live in the `RewardNet`'s `Weights`).
 #[derive(Debug)]
