@@ -42,6 +42,11 @@ pub struct ServerConfig {
     pub max_request_bytes: usize,
     /// Largest response message sent.
     pub max_response_bytes: usize,
+    /// Largest request metadata (headers, counted as HTTP/2 does: name + value + 32 per
+    /// entry). A call over it is refused alone with RESOURCE_EXHAUSTED naming this setting;
+    /// HTTP/2 itself accepts header blocks up to [`ServerConfig::http2_header_list_bytes`], so
+    /// that the refusal is a status and not a protocol error on the whole connection.
+    pub max_metadata_bytes: usize,
     /// Connections served at once; one beyond is closed at once (the client sees
     /// UNAVAILABLE and can back off) rather than left waiting unanswered in the accept backlog.
     pub max_connections: usize,
@@ -346,6 +351,16 @@ pub enum ConfigError {
     Invalid { key: &'static str, message: String },
 }
 
+impl ServerConfig {
+    /// The HTTP/2 header list size the server accepts (SETTINGS_MAX_HEADER_LIST_SIZE): 16 times
+    /// `max_metadata_bytes`, so that metadata over the setting still arrives as a call the
+    /// server can refuse with a status (HTTP/2 answers a larger block with HTTP 431, and one
+    /// much larger with a connection error).
+    pub fn http2_header_list_bytes(&self) -> u32 {
+        u32::try_from(self.max_metadata_bytes.saturating_mul(16)).unwrap_or(u32::MAX)
+    }
+}
+
 impl Config {
     /// Loads defaults, the optional file, the environment and the overrides, then validates.
     pub fn load(file: Option<&Path>, overrides: &Overrides) -> Result<Self, ConfigError> {
@@ -389,6 +404,9 @@ impl Config {
         }
         if !(1024..=1 << 30).contains(&self.server.max_request_bytes) {
             return invalid("server.max_request_bytes", "must be between 1024 and 1073741824".into());
+        }
+        if !(1024..=4 << 20).contains(&self.server.max_metadata_bytes) {
+            return invalid("server.max_metadata_bytes", "must be between 1024 and 4194304".into());
         }
         if !(1024..=1 << 30).contains(&self.server.max_response_bytes) {
             return invalid("server.max_response_bytes", "must be between 1024 and 1073741824".into());

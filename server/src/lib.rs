@@ -180,7 +180,10 @@ pub async fn run(
         .max_concurrent_streams(Some(config.server.max_concurrent_streams))
         .initial_stream_window_size(config.server.http2_stream_window_bytes)
         .initial_connection_window_size(config.server.http2_connection_window_bytes)
-        .http2_adaptive_window(Some(false));
+        .http2_adaptive_window(Some(false))
+        // Metadata is bounded by `limits::MetadataLimitLayer` (a status on the call alone);
+        // HTTP/2's own bound sits far above it (hyper's default, 16 KiB, answered HTTP 431).
+        .http2_max_header_list_size(Some(config.server.http2_header_list_bytes()));
     if config.server.max_connection_age_secs > 0 {
         builder = builder
             .max_connection_age(Duration::from_secs(config.server.max_connection_age_secs))
@@ -202,6 +205,7 @@ pub async fn run(
             .layer(metrics::GrpcMetricsLayer::new(metrics))
             // Statuses tonic and the layers below make themselves, by the error module's rules.
             .layer(error::wire::WireStatusLayer)
+            .layer(limits::MetadataLimitLayer::new(config.server.max_metadata_bytes))
             .layer(security.layer)
             // Inside the security layer: a refused call gets no default deadline.
             .layer(limits::DeadlineLayer::new(config.serving.default_deadline_ms))

@@ -1,6 +1,7 @@
 //! Limits that protect the whole server rather than one service: connections accepted at
-//! once, call deadlines (a default for unary calls, and DEADLINE_EXCEEDED rather than tonic's
-//! CANCELLED when one passes), and the disk budget of the data directory.
+//! once, request metadata size, call deadlines (a default for unary calls, and
+//! DEADLINE_EXCEEDED rather than tonic's CANCELLED when one passes), and the disk budget of
+//! the data directory.
 //!
 //! Message sizes, upload quotas and queue capacities live with the services they bound
 //! (`api`, `serving`, `jobs`); HTTP/2 streams per connection are a builder setting in `run`.
@@ -22,6 +23,71 @@ use tokio::sync::{OwnedSemaphorePermit, Semaphore};
 use tonic::transport::server::Connected;
 
 use crate::error::Error;
+
+// ---------------------------------------------------------------------------------------------
+// Request metadata
+
+/// Refuses a call whose metadata is over `server.max_metadata_bytes`, with RESOURCE_EXHAUSTED
+/// naming the setting, before authentication and routing. Only that call: the connection and
+/// its other calls (an open GradientStream) go on. Sizes are counted as HTTP/2 counts a header
+/// list (RFC 9113 6.5.2: name + value + 32 per entry), so the limit means what HTTP/2's does.
+#[derive(Debug, Clone, Copy)]
+pub struct MetadataLimitLayer {
+    max: usize,
+}
+
+impl MetadataLimitLayer {
+    pub fn new(max: usize) -> Self {
+        Self { max }
+    }
+}
+
+/// The HTTP/2 size of a header list.
+pub fn metadata_bytes(headers: &http::HeaderMap) -> usize {
+    headers.iter().map(|(name, value)| name.as_str().len() + value.len() + 32).sum()
+}
+
+impl<S> tower_layer::Layer<S> for MetadataLimitLayer {
+    type Service = MetadataLimitService<S>;
+
+    fn layer(&self, inner: S) -> Self::Service {
+        MetadataLimitService { inner, max: self.max }
+    }
+}
+
+#[derive(Debug, Clone)]
+pub struct MetadataLimitService<S> {
+    inner: S,
+    max: usize,
+}
+
+impl<S, ReqBody, ResBody> tower_service::Service<Request<ReqBody>> for MetadataLimitService<S>
+where
+    S: tower_service::Service<Request<ReqBody>, Response = Response<ResBody>>,
+    ResBody: Default,
+{
+    type Response = Response<ResBody>;
+    type Error = S::Error;
+    type Future = futures::future::Either<futures::future::Ready<Result<Response<ResBody>, S::Error>>, S::Future>;
+
+    fn poll_ready(&mut self, cx: &mut Context<'_>) -> Poll<Result<(), Self::Error>> {
+        self.inner.poll_ready(cx)
+    }
+
+    fn call(&mut self, request: Request<ReqBody>) -> Self::Future {
+        let bytes = metadata_bytes(request.headers());
+        if bytes <= self.max {
+            return futures::future::Either::Right(self.inner.call(request));
+        }
+        let status = tonic::Status::resource_exhausted(format!(
+            "request metadata is {bytes} bytes (headers counted as HTTP/2 does, 32 bytes per entry \
+             on top of name and value), above server.max_metadata_bytes = {}",
+            self.max
+        ));
+        tracing::warn!(method = request.uri().path(), bytes, max = self.max, "call refused: metadata too large");
+        futures::future::Either::Left(futures::future::ready(Ok(status.into_http())))
+    }
+}
 
 // ---------------------------------------------------------------------------------------------
 // Connections

@@ -1,7 +1,7 @@
 //! The transport, end to end: compression on every service (tonic clients, and grpcio and
 //! tritonclient through tests/python/transport_probe.py), HTTP/2 flow control with a stalled
-//! GradientStream on a shared connection, reflection's in-stream errors (v1 and v1alpha), and
-//! the shutdown drain (health NOT_SERVING while still serving, then the graceful close).
+//! GradientStream on a shared connection, oversized request metadata refused on its call alone,
+//! reflection's in-stream errors (v1 and v1alpha), and the shutdown drain (health NOT_SERVING while still serving, then the graceful close).
 
 use std::process::Command;
 use std::sync::Arc;
@@ -345,6 +345,59 @@ async fn a_stalled_gradient_stream_does_not_stall_its_connection() {
     assert!(rss_max < rss_stalled + (16 << 20), "RSS kept growing while stalled: {rss_stalled} -> {rss_max}");
     drop(stalled);
     producer.abort();
+}
+
+/// Request metadata over `server.max_metadata_bytes` (64 KiB) is refused on its call alone,
+/// RESOURCE_EXHAUSTED naming the setting, while a GradientStream open on the same connection
+/// goes on answering; metadata under it (32 KiB, over hyper's 16 KiB default) is served. Before
+/// the limit, 16-64 KiB got HTTP 431 (UNKNOWN at the client) and about 100 KB a GOAWAY that
+/// ended every call on the connection.
+#[tokio::test(flavor = "multi_thread")]
+async fn oversized_metadata_is_refused_on_its_call_alone() {
+    let server = TestServer::start();
+    let channel = channel(&server).await;
+    let mut rewards = RewardServiceClient::new(channel.clone());
+    let (tx, rx) = tokio::sync::mpsc::channel::<pb::GradientRequest>(4);
+    let mut stream = rewards.gradient_stream(ReceiverStream::new(rx)).await.expect("stream opened").into_inner();
+    answered_in_stream(&tx, &mut stream, 1).await;
+
+    let with_metadata = |bytes: usize| {
+        let mut call = tonic::Request::new(pb::ListDatasetsRequest::default());
+        let pad = tonic::metadata::MetadataValue::try_from("x".repeat(bytes)).expect("ascii");
+        call.metadata_mut().insert("x-pad", pad);
+        call
+    };
+    let mut datasets = DatasetServiceClient::new(channel.clone());
+    datasets.list_datasets(with_metadata(32 << 10)).await.expect("32 KiB of metadata is served");
+    for bytes in [100_000, 200_000, 900_000] {
+        let status = datasets.list_datasets(with_metadata(bytes)).await.expect_err("over the limit");
+        assert_eq!(status.code(), Code::ResourceExhausted, "{bytes} bytes: {status:?}");
+        assert!(status.message().contains("server.max_metadata_bytes = 65536"), "{}", status.message());
+        // The connection and its open stream go on.
+        answered_in_stream(&tx, &mut stream, 10 + bytes as u64).await;
+    }
+    datasets.list_datasets(pb::ListDatasetsRequest::default()).await.expect("the connection serves on");
+    let mut health = HealthClient::new(channel);
+    health.check(HealthCheckRequest::default()).await.expect("health on the same connection");
+}
+
+/// Sends request `id` (for a model that does not exist) on an open GradientStream and checks
+/// that it is answered, in-stream.
+async fn answered_in_stream(
+    tx: &tokio::sync::mpsc::Sender<pb::GradientRequest>,
+    stream: &mut tonic::Streaming<pb::GradientResponse>,
+    id: u64,
+) {
+    let request = pb::GradientRequest {
+        request_id: id,
+        model: "no-such-model".into(),
+        x: Some(encode_f32(&[1, 8, 4], &x_values(32))),
+        ..Default::default()
+    };
+    tx.send(request).await.expect("stream open");
+    let answer = stream.message().await.expect("stream alive").expect("an answer");
+    assert_eq!(answer.request_id, id);
+    assert!(answer.error.is_some(), "no such model, answered in-stream: {answer:?}");
 }
 
 /// Waits until `taken` has not moved for 2 s; returns it.
