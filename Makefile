@@ -14,7 +14,7 @@ SETUP_STAMP := $(VENV)/.relreward-setup
 # sources or the protos it compiles change.
 PY_CLIENT_STAMP := $(VENV)/.relreward-python-client
 PY_CLIENT_SOURCES := client/python/pyproject.toml client/python/setup.py client/python/MANIFEST.in \
-	$(wildcard client/python/src/relreward/*.py client/python/src/relreward/_proto/__init__.py proto/relreward/v1/*.proto)
+	$(wildcard client/python/src/relreward/*.py client/python/src/relreward/v1/__init__.py proto/relreward/v1/*.proto)
 # The development package (dev/python: relreward_dev, the server launcher and the PyTorch
 # reference nets that tests, experiments and benchmarks import), installed into .venv the same
 # way; built from a copy in a temporary directory so that no build/ is left in the checkout.

@@ -59,7 +59,7 @@ MIN_RANGE = 1e-12
 def load_stubs():
     """The relreward.v1 Python stubs: the `relreward` package's (client/python, which `make
     setup` installs, built from the same proto/)."""
-    from relreward._proto import reward_pb2, reward_pb2_grpc, tensor_pb2
+    from relreward.v1 import reward_pb2, reward_pb2_grpc, tensor_pb2
 
     return reward_pb2, reward_pb2_grpc, tensor_pb2
 

@@ -1,4 +1,4 @@
-"""Build hook: compiles the relreward.v1 protos into the private package ``relreward._proto``.
+"""Build hook: compiles the relreward.v1 protos into the package ``relreward.v1``.
 
 The protos come from the repository (``../../proto/relreward/v1``) when building from a clone,
 or from the copy an sdist carries (``proto/relreward/v1``, put into the sdist's own tree when
@@ -6,14 +6,19 @@ the sdist is built). Only ``relreward/v1`` is compiled: ``proto/inference`` is n
 tritonclient ships its own stubs for it and both would register ``inference.*`` in protobuf's
 default pool.
 
-The generated modules import each other as ``from relreward.v1 import x_pb2``; that is rewritten
-to ``from relreward._proto import x_pb2`` so the stubs live under this package alone and cannot
-clash with another package's ``relreward`` (or anyone's top-level ``relreward.v1``).
+The stubs are protoc's output as it is: the module path (``relreward.v1.jobs_pb2``) and the file
+names registered in protobuf's pool (``relreward/v1/jobs.proto``) are the ones that
+``python -m grpc_tools.protoc -I proto --python_out=OUT --grpc_python_out=OUT
+proto/relreward/v1/*.proto`` gives a user. Code written against such user-compiled stubs thus
+runs unchanged with the package installed (Python takes the installed regular package
+``relreward`` before a ``relreward/`` folder without ``__init__.py`` in OUT), and a user's copy
+loaded under another name registers byte-identical files, which the pool accepts, sharing one
+class per message. Message classes report an importable module (pickle needs that).
 
 Building or installing from a checkout writes nothing into it: the stubs are generated into the
 build directory (not ``src/``), the sdist's proto copy goes into the sdist's staging tree (not
 ``proto/`` here), and setuptools' ``build/`` and ``*.egg-info`` go to a temporary directory.
-Only an editable install (``pip install -e``) generates the stubs into ``src/relreward/_proto``,
+Only an editable install (``pip install -e``) generates the stubs into ``src/relreward/v1``,
 since it runs the package from ``src/``.
 """
 
@@ -21,7 +26,6 @@ from __future__ import annotations
 
 import atexit
 import pathlib
-import re
 import shutil
 import tempfile
 
@@ -32,7 +36,6 @@ from setuptools.command.sdist import sdist
 HERE = pathlib.Path(__file__).resolve().parent
 REPO_PROTO = HERE.parent.parent / "proto"
 LOCAL_PROTO = HERE / "proto"
-IMPORT = re.compile(r"^from relreward\.v1 import ", re.MULTILINE)
 
 
 def proto_root() -> pathlib.Path:
@@ -45,8 +48,14 @@ def proto_root() -> pathlib.Path:
 
 
 def generate(out: pathlib.Path) -> None:
-    """Runs protoc (grpcio-tools) over relreward/v1/*.proto into ``out`` (relreward/_proto)."""
-    from grpc_tools import protoc
+    """Runs protoc (grpcio-tools) over relreward/v1/*.proto into ``out`` (relreward/v1)."""
+    try:
+        from grpc_tools import protoc
+    except ImportError as e:
+        # SystemExit, not the ImportError: setuptools' editable install swallows an Exception from
+        # a custom build_py and would install the package without its stubs.
+        raise SystemExit("building relreward needs grpcio-tools==1.81.1 (a build requirement: with "
+                         "--no-build-isolation, install it first)") from e
 
     root = proto_root()
     files = sorted(str(p.relative_to(root)) for p in (root / "relreward" / "v1").glob("*.proto"))
@@ -60,8 +69,7 @@ def generate(out: pathlib.Path) -> None:
         for old in out.glob("*_pb2*.py*"):
             old.unlink()
         for path in sorted((pathlib.Path(tmp) / "relreward" / "v1").iterdir()):
-            text = IMPORT.sub("from relreward._proto import ", path.read_text())
-            (out / path.name).write_text(text)
+            shutil.copyfile(path, out / path.name)
 
 
 class BuildPyWithStubs(build_py):
@@ -70,17 +78,17 @@ class BuildPyWithStubs(build_py):
 
     def run(self) -> None:
         if self.editable_mode:
-            generate(HERE / "src" / "relreward" / "_proto")
+            generate(HERE / "src" / "relreward" / "v1")
             super().run()
             return
         super().run()
-        generate(pathlib.Path(self.build_lib) / "relreward" / "_proto")
+        generate(pathlib.Path(self.build_lib) / "relreward" / "v1")
 
     def get_outputs(self, include_bytecode: bool = True) -> list[str]:
         # The generated files are outputs too (the wheel's RECORD is built from the tree, but
         # `install --record` and editable mappings ask here).
         outputs = list(super().get_outputs(include_bytecode))
-        out = pathlib.Path(self.build_lib) / "relreward" / "_proto"
+        out = pathlib.Path(self.build_lib) / "relreward" / "v1"
         outputs += [str(p) for p in sorted(out.glob("*_pb2*.py*")) if str(p) not in outputs]
         return outputs
 

@@ -167,9 +167,8 @@ def prepare(cfg: Config, client: relreward.Client) -> dict:
 def _finish(client: relreward.Client, job, what: str, log) -> None:
     t0 = time.time()
     done = client.wait_job(job.id)
-    if done.state != relreward.pb.jobs.JOB_STATE_SUCCEEDED:
-        state = relreward.pb.jobs.JobState.Name(done.state)
-        raise RuntimeError(f"{what} job {job.id} ended {state}: {done}")
+    if done.state is not relreward.JobState.SUCCEEDED:
+        raise RuntimeError(f"{what} job {job.id} ended {done.state}: {done.error or done}")
     log(f"{what} trained in {time.time() - t0:.0f}s")
 
 

@@ -36,7 +36,7 @@ import time
 import numpy as np
 
 import relreward
-from relreward._proto import reward_pb2, reward_pb2_grpc, tensor_pb2
+from relreward.v1 import reward_pb2, reward_pb2_grpc, tensor_pb2
 from relreward_dev.launcher import Binaries, Server
 
 REPO = pathlib.Path(__file__).resolve().parents[2]

@@ -59,7 +59,7 @@ def relreward_rate(client, steps, warmup, rep, data):
     job = client.submit_job(spec)
     seen = {}
     for ev in client.watch_job(job.id):
-        if ev.kind == "progress" and ev.step in (warmup, warmup + steps):
+        if ev.type == "progress" and ev.step in (warmup, warmup + steps):
             seen[ev.step] = time.monotonic()
     done = client.get_job(job.id)
     if done.error:

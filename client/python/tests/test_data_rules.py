@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from relreward import datasets
-from relreward._proto import tensor_pb2
+from relreward.v1 import tensor_pb2
 
 DATA = pathlib.Path(__file__).resolve().parents[2] / "toolkit" / "tests" / "data"
 

@@ -27,9 +27,9 @@ def test_upload_dict_checks_digest_stats_and_episodes(client):
                                description="from a dict")
     sent = [data["observations"], data["actions"], data["terminals"], data["timeouts"]]
     assert ds.sha256 == payload_sha(sent)
-    assert ds.num_rows == 112 and ds.kind == relreward.pb.datasets.DATASET_KIND_TRAJECTORIES
+    assert ds.num_rows == 112 and ds.kind == "trajectories"
     assert ds.episodes.count == 5 and ds.episodes.min_length == 5 and ds.episodes.max_length == 40
-    assert [a.spec.name for a in ds.arrays] == ["observations", "actions", "terminals", "timeouts"]
+    assert [a.name for a in ds.arrays] == ["observations", "actions", "terminals", "timeouts"]
     # progress: many chunks (100-byte target), monotone, ending at the total
     total = sum(a.nbytes for a in sent)
     assert len(seen) > 10 and seen[-1] == (total, total)
@@ -57,8 +57,8 @@ def test_digest_does_not_depend_on_chunking_and_matches_the_cli(client, server, 
 def test_samples_from_array_and_npy(client, tmp_path):
     x = np.random.default_rng(0).standard_normal((50, 3, 4, 4)).astype(np.float64)
     ds = client.upload_dataset("py-latents", x)
-    assert ds.kind == relreward.pb.datasets.DATASET_KIND_SAMPLES and ds.num_rows == 50
-    assert list(ds.arrays[0].spec.shape) == [50, 3, 4, 4] and ds.sha256 == payload_sha([x])
+    assert ds.kind == "samples" and ds.num_rows == 50
+    assert ds.arrays[0].shape == (50, 3, 4, 4) and ds.sha256 == payload_sha([x])
     np.save(tmp_path / "s.npy", x.astype(np.float32))
     ds2 = client.upload_dataset("py-latents-npy", tmp_path / "s.npy")
     assert ds2.sha256 == payload_sha([x.astype(np.float32)])
@@ -149,11 +149,11 @@ def test_cartpole_like_hdf5_with_an_odd_suffix_uploads_as_the_cli_reads_it(clien
         f["observations"], f["actions"], f["terminals"] = obs, act, terminals
         f["timeouts"] = np.zeros(30, np.float32)
     ds = client.upload_dataset("py-cartpole", path, chunk_bytes=64)
-    assert [(a.spec.name, a.spec.dtype, list(a.spec.shape)) for a in ds.arrays] == [
-        ("observations", relreward.pb.tensor.DTYPE_FLOAT32, [30, 4]),
-        ("actions", relreward.pb.tensor.DTYPE_FLOAT32, [30, 1]),
-        ("terminals", relreward.pb.tensor.DTYPE_BOOL, [30]),
-        ("timeouts", relreward.pb.tensor.DTYPE_BOOL, [30]),
+    assert [(a.name, a.dtype, a.shape) for a in ds.arrays] == [
+        ("observations", "float32", (30, 4)),
+        ("actions", "float32", (30, 1)),
+        ("terminals", "bool", (30,)),
+        ("timeouts", "bool", (30,)),
     ]
     assert ds.sha256 == payload_sha([obs.astype(np.float32), act.astype(np.float32).reshape(30, 1),
                                      terminals.astype(bool), np.zeros(30, bool)])

@@ -58,7 +58,7 @@ def test_async_download_writes_the_same_files(client, tiny, tmp_path):
     got = asyncio.run(fetch())
     assert got.model == sync.model and got.manifest == sync.manifest
     assert got.path.read_bytes() == sync.path.read_bytes()
-    assert got.model.kind == relreward.pb.models.MODEL_KIND_DIFFUSION
+    assert got.model.kind == "diffusion"
     assert got.manifest["architecture"]["kind"] == "temporal_unet"
 
 

@@ -65,11 +65,11 @@ def test_example_planner_gradient_stream(server, tiny):
 
 
 def test_imports_next_to_tritonclient():
-    """relreward's stubs live under relreward._proto: no clash with tritonclient's `inference`."""
+    """relreward's stubs live under relreward.v1: no clash with tritonclient's `inference`."""
     code = "import relreward, tritonclient.grpc, tritonclient.grpc.service_pb2; print(relreward.Client.__name__)"
     p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     if "No module named 'tritonclient'" in p.stderr:
         pytest.skip("tritonclient not installed")
     assert p.returncode == 0 and p.stdout.strip() == "Client", p.stderr
     assert relreward.pb.reward.DESCRIPTOR.package == "relreward.v1"
-    assert relreward.pb.reward.__name__ == "relreward._proto.reward_pb2"
+    assert relreward.pb.reward.__name__ == "relreward.v1.reward_pb2"

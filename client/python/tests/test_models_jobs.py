@@ -3,6 +3,7 @@ resume after a restart, cancel)."""
 
 from __future__ import annotations
 
+import dataclasses
 import socket
 import threading
 import time
@@ -21,8 +22,8 @@ def test_models_list_show(client, tiny):
     assert {m.name for m in client.list_models("reward")} >= {tiny.reward}
     assert tiny.reward not in {m.name for m in client.list_models("diffusion")}
     rw = client.get_model(tiny.reward)
-    assert list(rw.reward.input_shape) == [tiny.horizon, tiny.transition_dim]
-    assert rw.reward.n_timesteps == tiny.n_timesteps and rw.reward.window == 4
+    assert rw.reward.input_shape == rw.item_shape == (tiny.horizon, tiny.transition_dim)
+    assert rw.reward.n_timesteps == rw.n_timesteps == tiny.n_timesteps and rw.reward.window == 4
     with pytest.raises(relreward.NotFound):
         client.get_model("nope")
 
@@ -46,7 +47,7 @@ def test_torchscript_upload_with_a_manifest(client, tmp_path):
     import hashlib
 
     assert m.sha256 == hashlib.sha256(path.read_bytes()).hexdigest()
-    assert m.format == relreward.pb.models.MODEL_FORMAT_TORCHSCRIPT and m.manifest.n_timesteps == 10
+    assert m.format == "torchscript" and m.manifest.n_timesteps == 10 and m.item_shape == (3,)
     assert seen[-1] == path.stat().st_size
     out = client.sample("py-ts", n=2, seed=0)
     assert out.x.shape == (2, 3)
@@ -68,12 +69,12 @@ def test_submit_watch_with_live_loss_and_idempotent_ids(client, tiny):
     events = list(client.watch_job(job.id))
     seqs = [e.seq for e in events]
     assert seqs == list(range(1, len(seqs) + 1))
-    progress = [e for e in events if e.kind == "progress"]
+    progress = [e for e in events if e.type == "progress"]
     assert progress and all(np.isfinite(e.loss) and e.total_steps == 12 for e in progress)
-    assert events[-1].terminal and events[-1].state == "SUCCEEDED"
+    assert events[-1].terminal and events[-1].state == "succeeded"
     # from_seq replays from there
     assert [e.seq for e in client.watch_job(job.id, from_seq=3)] == seqs[2:]
-    assert client.get_job(job.id).state == relreward.pb.jobs.JOB_STATE_SUCCEEDED
+    assert client.get_job(job.id).state is relreward.JobState.SUCCEEDED
     assert job.id in {j.id for j in client.list_jobs("succeeded")}
     with pytest.raises(relreward.FailedPrecondition):
         client.cancel_job(job.id)
@@ -86,17 +87,17 @@ def test_dict_specs_reward_job_and_cancel(client, tiny):
                                            "temporal_unet": {"dim": 8, "dim_mults": [1, 2]}}})
     cancelled = None
     for event in client.watch_job(job.id):
-        if event.kind == "progress" and cancelled is None:
+        if event.type == "progress" and cancelled is None:
             cancelled = client.cancel_job(job.id)
             assert cancelled.id == job.id
         last = event
-    assert last.state == "CANCELLED"
+    assert last.state == relreward.JobState.CANCELLED
     r = client.submit_job(relreward.RewardJob(output_model="py-rw", base_model=tiny.base, expert_model=tiny.expert,
                                               datasets=[tiny.dataset], seed=2,
                                               architecture=("windowed_mlp", {"window": 4, "hidden": [8]}),
                                               optimization=relreward.Optimization(steps=4, batch_size=8)))
     done = client.wait_job(r.id)
-    assert done.state == relreward.pb.jobs.JOB_STATE_SUCCEEDED
+    assert done.state is relreward.JobState.SUCCEEDED
     assert client.get_model("py-rw").reward.window == 4
     with pytest.raises(relreward.NotFound):
         client.submit_job(relreward.DiscriminatorJob(output_model="py-d", base_dataset="nope", expert_dataset="nope",
@@ -126,14 +127,14 @@ def test_watch_resumes_after_a_server_restart(tmp_path):
     servers = [s1]
     for event in client.watch_job(job.id):
         events.append(event)
-        if len(servers) == 1 and event.kind == "checkpoint":
+        if len(servers) == 1 and event.type == "checkpoint":
             s1.stop()  # SIGKILL mid-job
             threading.Timer(1.0, lambda: servers.append(start_server(data, listen=listen))).start()
     try:
         assert len(servers) == 2, "the server was restarted"
         seqs = [e.seq for e in events]
         assert seqs == list(range(1, len(seqs) + 1)), seqs
-        assert events[-1].state == "SUCCEEDED"
+        assert events[-1].state == "succeeded"
     finally:
         client.close()
         for s in servers:
@@ -175,8 +176,8 @@ def test_async_upload_submit_and_watch(server, tiny):
 
     ds, events, jobs = asyncio.run(main())
     assert ds.num_rows == 112 and ds.episodes.count == 5
-    assert [e.seq for e in events] == list(range(1, len(events) + 1)) and events[-1].state == "SUCCEEDED"
-    assert any(e.kind == "progress" and e.loss > 0 for e in events)
+    assert [e.seq for e in events] == list(range(1, len(events) + 1)) and events[-1].state == "succeeded"
+    assert any(e.type == "progress" and e.loss > 0 for e in events)
 
 
 def test_progress_true_uses_tqdm_when_installed(client):
@@ -190,8 +191,8 @@ def test_discriminator_job(client, tiny):
         output_model="py-disc", base_dataset=tiny.dataset, expert_dataset="py-disc-expert", diffusion_model=tiny.base,
         architecture=("windowed_mlp", {"window": 4, "hidden": [8]}), seed=1,
         optimization=relreward.Optimization(steps=4, batch_size=8)))
-    assert client.wait_job(job.id).state == relreward.pb.jobs.JOB_STATE_SUCCEEDED
-    assert client.get_model("py-disc").kind == relreward.pb.models.MODEL_KIND_DISCRIMINATOR
+    assert client.wait_job(job.id).state == "succeeded"
+    assert client.get_model("py-disc").kind == "discriminator"
     x = np.zeros((2, tiny.horizon, tiny.transition_dim), np.float32)
     assert client.score("py-disc", x).rewards.shape == (2,)
 
@@ -204,24 +205,23 @@ def test_native_weights_upload_round_trips_a_trained_model(client, tiny, tmp_pat
     import hashlib
 
     base = client.get_model(tiny.base)
-    assert base.format == relreward.pb.models.MODEL_FORMAT_NATIVE
-    assert base.manifest.WhichOneof("architecture") is not None, "a native model's manifest names its architecture"
+    assert base.format == "native"
+    assert base.manifest.architecture is not None, "a native model's manifest names its architecture"
     got = client.download_model(tiny.base, tmp_path / "base")
     files = [got.path]
     assert hashlib.sha256(got.path.read_bytes()).hexdigest() == base.sha256
     m = client.upload_model(files[0], "py-native", base.manifest, description="re-uploaded")
-    assert m.format == relreward.pb.models.MODEL_FORMAT_NATIVE and m.sha256 == base.sha256
+    assert m.format == "native" and m.sha256 == base.sha256
     assert m.parameter_count == base.parameter_count
     a, b = client.sample(tiny.base, n=3, seed=5), client.sample("py-native", n=3, seed=5)
     np.testing.assert_array_equal(a.x, b.x)
     # Weights that do not fit the architecture are refused, naming the field; nothing is kept.
-    wrong = relreward.pb.models.DiffusionManifest()
-    wrong.CopyFrom(base.manifest)
-    arch = wrong.WhichOneof("architecture")
-    if arch == "temporal_unet":
-        wrong.temporal_unet.dim = wrong.temporal_unet.dim * 2 if wrong.temporal_unet.dim else 64
+    arch = dict(base.manifest.architecture)
+    if arch["kind"] == "temporal_unet":
+        arch["dim"] = arch["dim"] * 2 if arch["dim"] else 64
     else:
-        wrong.mlp.hidden[0] += 8
+        arch["hidden"] = [arch["hidden"][0] + 8, *arch["hidden"][1:]]
+    wrong = dataclasses.replace(base.manifest, architecture=arch)
     with pytest.raises(relreward.InvalidArgument, match="header.manifest.architecture"):
         client.upload_model(files[0], "py-native-bad", wrong)
     assert "py-native-bad" not in {x.name for x in client.list_models()}

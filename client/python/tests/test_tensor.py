@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from relreward import _tensor
-from relreward._proto import tensor_pb2
+from relreward.v1 import tensor_pb2
 
 
 def test_float32_input_is_not_converted_and_copied_once():

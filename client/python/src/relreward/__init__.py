@@ -2,22 +2,28 @@
 
     import numpy as np, relreward
     with relreward.Client("127.0.0.1:50051") as client:
-        grad, rho = client.gradient("maze-reward", np.zeros((1, 64, 6), np.float32), t=10)
+        model = client.get_model("maze-reward")
+        x = np.zeros((1, *model.item_shape), np.float32)
+        grad, rho = client.gradient(model.name, x, t=model.n_timesteps - 1)
 
-See :class:`Client` (and :class:`AsyncClient` for asyncio), :mod:`relreward.guide` for a drop-in
-value guide for Diffuser-style planners, and docs/python.md.
+See :class:`Client` (and :class:`AsyncClient` for asyncio), :mod:`relreward.results` for what
+they return, :mod:`relreward.guide` for a drop-in value guide for Diffuser-style planners, and
+docs/python.md.
 """
 
-from relreward._common import (GradientResult, JobEvent, Sample, SampleBatch, ScoreResult, TLS, DEFAULT_CHUNK_BYTES,
-                               MAX_MESSAGE_BYTES)
+from relreward._common import TLS, DEFAULT_CHUNK_BYTES, MAX_MESSAGE_BYTES
 from relreward._download import DownloadedModel
-from relreward._proto import datasets_pb2, jobs_pb2, models_pb2, reward_pb2, tensor_pb2
+from relreward.v1 import datasets_pb2, jobs_pb2, models_pb2, reward_pb2, tensor_pb2
 from relreward.aio import AsyncClient, AsyncGradientStream
 from relreward.client import Client, GradientStream, PendingGradient
 from relreward.datasets import from_minari_episodes
+from relreward.relabel import Relabelled, relabel
 from relreward.errors import (Aborted, AlreadyExists, Cancelled, DataLoss, DeadlineExceeded, FailedPrecondition,
                               Internal, InvalidArgument, InvalidInput, NotFound, OutOfRange, PermissionDenied, RelrewardError,
                               ResourceExhausted, Unauthenticated, Unavailable, Unimplemented, Unknown)
+from relreward.results import (ArrayInfo, ArrayStats, Dataset, EpisodeInfo, GradientResult, Job, JobEvent, JobState,
+                               Manifest, Model, Normalizer, Provenance, RewardInfo, Sample, SampleBatch, Schedule,
+                               ScoreResult, Space)
 from relreward.specs import DiffusionJob, DiscriminatorJob, Optimization, RewardJob
 
 __version__ = "0.1.0"
@@ -25,7 +31,7 @@ __version__ = "0.1.0"
 
 class pb:
     """The generated protobuf message modules (``pb.reward.GradientRequest``, ...), for callers
-    that need a raw message."""
+    that need a raw message (every result also keeps the one it was read from as ``.proto``)."""
 
     datasets = datasets_pb2
     jobs = jobs_pb2
@@ -36,8 +42,10 @@ class pb:
 
 __all__ = [
     "Client", "AsyncClient", "GradientStream", "AsyncGradientStream", "PendingGradient", "TLS",
-    "ScoreResult", "GradientResult", "Sample", "SampleBatch", "JobEvent", "DownloadedModel",
-    "DiffusionJob", "RewardJob", "DiscriminatorJob", "Optimization", "from_minari_episodes",
+    "ScoreResult", "GradientResult", "Sample", "SampleBatch", "DownloadedModel",
+    "Dataset", "ArrayInfo", "ArrayStats", "EpisodeInfo", "Model", "Manifest", "Schedule", "Space", "Normalizer",
+    "RewardInfo", "Provenance", "Job", "JobState", "JobEvent",
+    "DiffusionJob", "RewardJob", "DiscriminatorJob", "Optimization", "from_minari_episodes", "relabel", "Relabelled",
     "RelrewardError", "Cancelled", "Unknown", "InvalidArgument", "InvalidInput", "DeadlineExceeded", "NotFound", "AlreadyExists",
     "PermissionDenied", "ResourceExhausted", "FailedPrecondition", "Aborted", "OutOfRange", "Unimplemented",
     "Internal", "Unavailable", "DataLoss", "Unauthenticated", "pb", "DEFAULT_CHUNK_BYTES", "MAX_MESSAGE_BYTES",

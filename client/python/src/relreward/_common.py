@@ -1,8 +1,9 @@
-"""What the sync and asyncio clients share: connection settings, request builders, results."""
+"""What the sync and asyncio clients share below the plans of :mod:`relreward._calls`:
+connection settings, the retry clock, argument checks, request builders and the upload
+streams' messages."""
 
 from __future__ import annotations
 
-import datetime as _dt
 import hashlib
 import pathlib
 import time
@@ -14,9 +15,10 @@ import grpc
 import numpy as np
 
 from relreward import _tensor
-from relreward._proto import datasets_pb2, jobs_pb2, models_pb2, reward_pb2, tensor_pb2
+from relreward.v1 import datasets_pb2, models_pb2, reward_pb2, tensor_pb2
 from relreward.datasets import UploadSource, row_chunks
-from relreward.errors import InvalidInput, RelrewardError, Unavailable, error_for, is_retryable
+from relreward.errors import InvalidInput
+from relreward.results import GradientResult, Sample, SampleBatch, ScoreResult
 
 #: Largest message either way (tensors in requests and responses can be large), as the Rust client.
 MAX_MESSAGE_BYTES = 64 << 20
@@ -30,7 +32,6 @@ IDEMPOTENT_INITIAL_S, IDEMPOTENT_MAX_S, IDEMPOTENT_BUDGET_S = 0.05, 1.0, 5.0
 WATCH_INITIAL_S, WATCH_MAX_S, WATCH_BUDGET_S = 0.25, 5.0, 60.0
 
 _UNITS: dict[str, reward_pb2.Units] = {"raw": reward_pb2.UNITS_RAW, "normalized": reward_pb2.UNITS_NORMALIZED}
-_TERMINAL = {jobs_pb2.JOB_STATE_SUCCEEDED, jobs_pb2.JOB_STATE_FAILED, jobs_pb2.JOB_STATE_CANCELLED}
 
 
 def backoff_delay(attempt: int, initial: float, maximum: float, left: float) -> float | None:
@@ -52,7 +53,7 @@ def seconds(name: str, v: float | None, *, allow_none: bool = True) -> float | N
 
 
 class Attempts:
-    """The clock of one retried call (``Client._idempotent`` and its asyncio twin): ``timeout``
+    """The clock of one retried call (``relreward._calls.read``): ``timeout``
     bounds the whole call, retries and their backoff included (each attempt gets what is left of
     it as its deadline), and retries stop once ``budget`` seconds have passed since the first
     attempt, whichever comes first."""
@@ -153,7 +154,15 @@ def units(u: str) -> reward_pb2.Units:
         raise ValueError(f"units {u!r}: expected 'raw' or 'normalized'") from None
 
 
-_U32, _U64 = (1 << 32) - 1, (1 << 64) - 1
+_U32, U64 = (1 << 32) - 1, (1 << 64) - 1
+
+
+def text(name: str, v: Any) -> str:
+    """``v`` for a string field, or InvalidInput naming ``name``: protobuf's own refusal ("bad
+    argument type for built-in operation") names neither the field nor the type."""
+    if isinstance(v, str):
+        return v
+    raise InvalidInput(f"{name}: {v!r} is {type(v).__name__}, not a string")
 
 
 def unsigned(name: str, v: Any, limit: int = _U32) -> int:
@@ -197,169 +206,12 @@ def times(t: int | Sequence[int] | np.ndarray | None, name: str = "t") -> list[i
 
 
 # --------------------------------------------------------------------------------------------
-# Results
-
-
-@dataclass
-class ScoreResult:
-    """rho per item, float32 ``[B]``; per window ``[B, H / h]`` and per step ``[B, H]`` when asked
-    for (else None). Read-only views of the response."""
-
-    rewards: np.ndarray
-    per_window: np.ndarray | None = None
-    per_step: np.ndarray | None = None
-
-
-@dataclass
-class GradientResult:
-    """grad_x rho, float32, same shape as x (times omega and the posterior variance when asked),
-    in the requested gradient units; and rho per item, float32 ``[B]``. Read-only views."""
-
-    gradient: np.ndarray
-    rewards: np.ndarray
-
-    def __iter__(self) -> Iterator[np.ndarray]:
-        # ``grad, rho = client.gradient(...)`` unpacks.
-        return iter((self.gradient, self.rewards))
-
-
-@dataclass(frozen=True)
-class Sample:
-    """One sample: ``x`` in raw units and ``x_normalized``, ``[H, D]`` or the sample shape
-    (float32), and rho(x, 0) when a reward model was given."""
-
-    index: int
-    x: np.ndarray
-    x_normalized: np.ndarray
-    reward: float | None
-
-
-@dataclass(frozen=True)
-class SampleBatch:
-    """All samples of a ``sample`` call stacked in index order: ``x`` and ``x_normalized``
-    ``[n, H, D]`` (or ``[n, *shape]``) float32, ``rewards`` ``[n]`` float64 (None without a reward
-    model)."""
-
-    x: np.ndarray
-    x_normalized: np.ndarray
-    rewards: np.ndarray | None
-
-
-@dataclass(frozen=True)
-class JobEvent:
-    """One recorded event of a job (``seq`` from 1, no gaps).
-
-    ``kind`` is "state", "progress", "checkpoint" or "log". State changes set ``state`` (e.g.
-    "RUNNING", "SUCCEEDED") and ``message``; progress sets ``step``, ``total_steps``, ``loss``,
-    ``grad_norm``, ``learning_rate``, ``steps_per_second``, ``eta_seconds`` (seconds) and
-    ``eval_loss`` when a held-out loss was evaluated; checkpoints set ``step``; log lines set
-    ``message``. ``raw`` is the protobuf message.
-    """
-
-    seq: int
-    time: _dt.datetime | None
-    kind: str
-    raw: jobs_pb2.JobEvent
-    state: str | None = None
-    message: str = ""
-    step: int | None = None
-    total_steps: int | None = None
-    loss: float | None = None
-    grad_norm: float | None = None
-    learning_rate: float | None = None
-    steps_per_second: float | None = None
-    eta_seconds: float | None = None
-    eval_loss: float | None = None
-
-    @property
-    def terminal(self) -> bool:
-        """Whether this event moved the job to SUCCEEDED, FAILED or CANCELLED."""
-        return self.kind == "state" and self.state in ("SUCCEEDED", "FAILED", "CANCELLED")
-
-    @classmethod
-    def from_proto(cls, e: jobs_pb2.JobEvent) -> "JobEvent":
-        """The event of a ``relreward.v1.JobEvent`` message, its fields per kind filled in."""
-        time = e.time.ToDatetime(tzinfo=_dt.timezone.utc) if e.HasField("time") else None
-        kind = e.WhichOneof("event") or "unknown"
-        if kind == "state":
-            return cls(e.seq, time, kind, e, state=state_name(e.state.state), message=e.state.message)
-        if kind == "progress":
-            p = e.progress
-            return cls(e.seq, time, kind, e, step=p.step, total_steps=p.total_steps, loss=p.loss,
-                       grad_norm=p.grad_norm, learning_rate=p.learning_rate, steps_per_second=p.steps_per_second,
-                       eta_seconds=p.eta_seconds, eval_loss=p.eval_loss if p.HasField("eval_loss") else None)
-        if kind == "checkpoint":
-            return cls(e.seq, time, kind, e, step=e.checkpoint.step)
-        if kind == "log":
-            return cls(e.seq, time, kind, e, message=e.log.message)
-        return cls(e.seq, time, kind, e)
-
-
-def state_name(state: int) -> str:
-    """"PENDING", "RUNNING", "SUCCEEDED", "FAILED", "CANCELLED" (or "UNSPECIFIED")."""
-    return jobs_pb2.JobState.Name(state).removeprefix("JOB_STATE_")
-
-
-def is_terminal(state: int) -> bool:
-    return state in _TERMINAL
-
-
-class WatchCursor:
-    """The bookkeeping of ``watch_job``, shared by the sync and asyncio clients (which differ
-    only in how they wait): where to resume, which events are replays, and how long to back
-    off after a failure.
-
-    Each pass of a client's loop opens ``WatchJob(request())``, yields ``accept(raw)`` for every
-    event that is not None (a replay after a reconnect is None), and on a failure (or a stream
-    that ended while the job still runs: ``ended()``) sleeps ``retry_delay(failure)``, which
-    raises instead once the failure is not worth a retry or the budget is spent.
-    """
-
-    def __init__(self, job_id: str, from_seq: int, reconnect_budget: float) -> None:
-        self.job_id = job_id
-        self.cursor = max(unsigned("from_seq", from_seq, _U64), 1)
-        self.budget = reconnect_budget
-        self._attempt = 0
-        self._down_since: float | None = None
-
-    def request(self) -> jobs_pb2.WatchJobRequest:
-        return jobs_pb2.WatchJobRequest(id=self.job_id, from_seq=self.cursor)
-
-    def accept(self, raw: jobs_pb2.JobEvent) -> JobEvent | None:
-        """The event to yield, or None for one already yielded before a reconnect."""
-        self._down_since, self._attempt = None, 0
-        if raw.seq < self.cursor:
-            return None
-        self.cursor = raw.seq + 1
-        return JobEvent.from_proto(raw)
-
-    @staticmethod
-    def ended() -> RelrewardError:
-        """The failure of a stream that ended while the job was not finished."""
-        return Unavailable("the event stream ended before the job finished")
-
-    def retry_delay(self, failure: RelrewardError) -> float:
-        """Seconds to wait before reconnecting after ``failure``; raises it (or, once the budget
-        is spent, an error saying so) when there is no point in trying again."""
-        if not is_retryable(failure):
-            raise failure
-        now = time.monotonic()
-        self._down_since = self._down_since if self._down_since is not None else now
-        delay = backoff_delay(self._attempt, WATCH_INITIAL_S, WATCH_MAX_S, self.budget - (now - self._down_since))
-        if delay is None:
-            raise error_for(failure.code, f"{failure.message} (gave up reconnecting after "
-                                          f"{now - self._down_since:.0f} s; events from {self.cursor} on were not seen)")
-        self._attempt += 1
-        return delay
-
-
-# --------------------------------------------------------------------------------------------
 # Requests
 
 
 def score_request(model: str, x: Any, t: Any, input_units: str, per_window: bool,
                   per_step: bool) -> reward_pb2.ScoreRequest:
-    return reward_pb2.ScoreRequest(model=model, x=_tensor.encode(x), t=times(t), input_units=units(input_units),
+    return reward_pb2.ScoreRequest(model=text("model", model), x=_tensor.encode(x), t=times(t), input_units=units(input_units),
                                    per_window=per_window, per_step=per_step)
 
 
@@ -374,11 +226,12 @@ _GradientRequest = reward_pb2.GradientRequest
 def gradient_request(model: str, x: Any, t: Any, omega: float | None, input_units: str, gradient_units: str,
                      scale_by_posterior_variance_of: str | None, request_id: int = 0) -> reward_pb2.GradientRequest:
     # The hot path of a planner: keyword arguments only where set (each costs a field write).
-    req = _GradientRequest(request_id=request_id, model=model, x=_tensor.encode(x),
+    req = _GradientRequest(request_id=request_id, model=model if type(model) is str else text("model", model),
+                           x=_tensor.encode(x),
                            t=[t] if type(t) is int and 0 <= t <= _U32 else times(t),
                            input_units=units(input_units), gradient_units=units(gradient_units))
     if scale_by_posterior_variance_of:
-        req.scale_by_posterior_variance_of = scale_by_posterior_variance_of
+        req.scale_by_posterior_variance_of = text("scale_by_posterior_variance_of", scale_by_posterior_variance_of)
     if omega is not None:
         req.omega = omega
     return req
@@ -391,10 +244,10 @@ def gradient_result(r: reward_pb2.GradientResponse) -> GradientResult:
 def sample_request(model: str, reward_model: str | None, omega: float, n: int, seed: int | None,
                    n_guide_steps: int | None, t_stopgrad: int | None, scale_grad_by_std: bool,
                    conditions: Any, input_units: str, batch_size: int) -> reward_pb2.SampleRequest:
-    req = reward_pb2.SampleRequest(model=model, reward_model=reward_model or "", omega=omega, n=unsigned("n", n),
-                                   scale_grad_by_std=scale_grad_by_std, input_units=units(input_units),
-                                   batch_size=unsigned("batch_size", batch_size))
-    for name, v, limit in (("seed", seed, _U64), ("n_guide_steps", n_guide_steps, _U32),
+    req = reward_pb2.SampleRequest(model=text("model", model), reward_model=text("reward_model", reward_model or ""),
+                                   omega=omega, n=unsigned("n", n), scale_grad_by_std=scale_grad_by_std,
+                                   input_units=units(input_units), batch_size=unsigned("batch_size", batch_size))
+    for name, v, limit in (("seed", seed, U64), ("n_guide_steps", n_guide_steps, _U32),
                            ("t_stopgrad", t_stopgrad, _U32)):
         if v is not None:
             setattr(req, name, unsigned(name, v, limit))
@@ -439,9 +292,11 @@ def _warn_no_tqdm() -> None:
     global _warned_no_tqdm
     if not _warned_no_tqdm:
         _warned_no_tqdm = True
+        # stacklevel 7 names the caller of upload_*: past this function, progress_callback, the
+        # plan, Stepper.answer, the client's _run and its method (the same depth sync and async).
         warnings.warn("progress=True shows a tqdm bar, but tqdm is not installed: no progress is shown "
                       "(pip install 'relreward[progress]', or pass a callback(sent_bytes, total_bytes))",
-                      RuntimeWarning, stacklevel=4)
+                      RuntimeWarning, stacklevel=7)
 
 
 def progress_callback(progress: Progress | bool | None, total: int, desc: str) -> tuple[Progress | None, Any]:

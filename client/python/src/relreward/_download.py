@@ -16,9 +16,12 @@ import json
 import os
 import pathlib
 from dataclasses import dataclass
-from typing import Any, BinaryIO
+from typing import TYPE_CHECKING, Any, BinaryIO
 
-from relreward._proto import models_pb2
+from relreward.v1 import models_pb2
+
+if TYPE_CHECKING:  # the record the client swaps in (results imports nothing from here)
+    from relreward.results import Model
 
 #: Where the stored manifest goes, beside the files.
 MANIFEST_FILE = "manifest.json"
@@ -38,7 +41,7 @@ class DownloadedModel:
     """
 
     path: pathlib.Path
-    model: models_pb2.Model
+    model: Model
     manifest: dict[str, Any]
     files: tuple[pathlib.Path, ...]
     manifest_path: pathlib.Path

@@ -13,7 +13,7 @@ from typing import Any, cast
 
 import numpy as np
 
-from relreward._proto import tensor_pb2
+from relreward.v1 import tensor_pb2
 
 # numpy dtype (little-endian) for each wire dtype.
 _NUMPY_OF: dict[int, np.dtype] = {

@@ -1,33 +1,30 @@
 """The asyncio client: :class:`AsyncClient`, with the methods of :class:`relreward.Client` as
 coroutines (``watch_job`` and ``sample_iter`` as async iterators, ``gradient_stream`` as an
-async context manager). Same retry policy: reads and pure computations retried on
-connection failures for up to ``retry_budget`` seconds (5 by default) within ``timeout``,
-writes never."""
+async context manager). Each method runs the same plan of :mod:`relreward._calls` as its sync
+twin (same requests, retry policy, results); this module performs the plans' steps with
+grpc.aio and ``asyncio.sleep``."""
 
 from __future__ import annotations
 
 import asyncio
 import pathlib
-from typing import Any, AsyncIterator, Awaitable, Callable, Mapping, Sequence, TypeVar
+from typing import Any, AsyncIterator, Callable, Mapping, Sequence
 
 import grpc
 import grpc.aio
 import numpy as np
 
+from relreward import _calls as calls
 from relreward import _common as c
-from relreward._proto import (datasets_pb2, datasets_pb2_grpc, jobs_pb2, jobs_pb2_grpc, models_pb2,
-                              models_pb2_grpc, reward_pb2, reward_pb2_grpc, tensor_pb2)
-from relreward._download import DownloadedModel, ModelDownload
-from relreward.client import _KINDS, _STATES
-from relreward.datasets import source_of
-from relreward.errors import RelrewardError, Unavailable, error_for, from_rpc_error, is_retryable
-from relreward.specs import job_spec, manifest as manifest_of
-
-T = TypeVar("T")
+from relreward._download import DownloadedModel
+from relreward.client import Client
+from relreward.errors import RelrewardError, Unavailable, error_for, from_rpc_error
+from relreward.results import (Dataset, GradientResult, Job, JobEvent, JobState, Manifest, Model, Sample,
+                               SampleBatch, ScoreResult)
 
 
 class _Connection:
-    """A grpc.aio channel and its stubs. A grpc.aio channel belongs to the event loop it was
+    """A grpc.aio channel and its methods. A grpc.aio channel belongs to the event loop it was
     made in (used from another, every call fails with asyncio's "attached to a different
     loop"), so it is made on first use, inside the loop that uses it, and remembers that loop."""
 
@@ -35,19 +32,25 @@ class _Connection:
         self.loop = asyncio.get_running_loop()
         self.channel = (grpc.aio.insecure_channel(target, options=options) if credentials is None
                         else grpc.aio.secure_channel(target, credentials, options=options))
-        self.datasets = datasets_pb2_grpc.DatasetServiceStub(self.channel)
-        self.models = models_pb2_grpc.ModelServiceStub(self.channel)
-        self.jobs = jobs_pb2_grpc.JobServiceStub(self.channel)
-        self.rewards = reward_pb2_grpc.RewardServiceStub(self.channel)
-        self.health = self.channel.unary_unary("/grpc.health.v1.Health/Check", request_serializer=lambda _: b"",
-                                               response_deserializer=lambda b: b)
+        self.methods = calls.rpc_methods(self.channel)
+
+
+def _doc(sync: Callable[..., Any], note: str = "") -> Callable[[Callable[..., Any]], Callable[..., Any]]:
+    """Gives an AsyncClient method the docstring of its :class:`relreward.Client` twin (one
+    text for both: they run the same plan), with ``note`` on what differs under asyncio."""
+
+    def give(method: Callable[..., Any]) -> Callable[..., Any]:
+        method.__doc__ = f"{(sync.__doc__ or '').rstrip()}\n\n        asyncio: {note}" if note else sync.__doc__
+        return method
+
+    return give
 
 
 class AsyncClient:
     """asyncio twin of :class:`relreward.Client`: the same arguments (``timeout`` and
     ``retry_budget`` included), the same methods as coroutines (``watch_job`` and
-    ``sample_iter`` as async iterators, ``gradient_stream`` as an async context manager); see
-    :class:`relreward.Client`'s docstrings for units and shapes.
+    ``sample_iter`` as async iterators, ``gradient_stream`` as an async context manager), the
+    same results; each method's docstring is its sync twin's.
 
     It may be created anywhere, inside or outside a running loop (``client =
     AsyncClient(...)`` at module level, then ``asyncio.run(main())``): the grpc.aio channel is
@@ -85,22 +88,6 @@ class AsyncClient:
         now if no call made it yet, so read it inside the loop that will use it."""
         return self._conn().channel
 
-    @property
-    def _datasets(self) -> datasets_pb2_grpc.DatasetServiceStub:
-        return self._conn().datasets
-
-    @property
-    def _models(self) -> models_pb2_grpc.ModelServiceStub:
-        return self._conn().models
-
-    @property
-    def _jobs(self) -> jobs_pb2_grpc.JobServiceStub:
-        return self._conn().jobs
-
-    @property
-    def _rewards(self) -> reward_pb2_grpc.RewardServiceStub:
-        return self._conn().rewards
-
     async def close(self) -> None:
         """Closes the channel (if a call made one); streams still open on it end. A later call
         makes a new one."""
@@ -108,186 +95,130 @@ class AsyncClient:
             connection, self._connection = self._connection, None
             await connection.channel.close()
 
-    async def health(self) -> str:
-        """See :meth:`relreward.Client.health`: "SERVING", "NOT_SERVING", "UNKNOWN" or
-        "SERVICE_UNKNOWN" from grpc.health.v1 (retried as a read)."""
-        return c.health_status(await self._idempotent(self._conn().health, None))
-
     async def __aenter__(self) -> "AsyncClient":
         return self
 
     async def __aexit__(self, *exc: object) -> None:
         await self.close()
 
-    async def _once(self, method: Callable[..., Awaitable[T]], request: Any) -> T:
+    async def _perform(self, step: Any, s: calls.Stepper) -> Any:
+        """Performs one step of a plan (see :mod:`relreward._calls`) and returns the next."""
         try:
-            return await method(request, metadata=self._metadata, timeout=self.timeout)
+            kind = type(step)
+            if kind is calls.Unary or kind is calls.Upload:
+                reply = await self._conn().methods[step.method](step.request if kind is calls.Unary else step.messages,
+                                                                metadata=self._metadata, timeout=step.timeout)
+            elif step is calls.NEXT:
+                message = await s.stream.read()
+                reply = None if message is grpc.aio.EOF else message
+            elif kind is calls.Open:
+                s.open(self._conn().methods[step.method](step.request, metadata=self._metadata, timeout=step.timeout))
+                reply = None
+            elif kind is calls.Sleep:
+                await asyncio.sleep(step.seconds)
+                reply = None
+            else:
+                raise TypeError(f"a plan yielded {step!r} where no item can be emitted")
         except grpc.RpcError as e:
-            raise from_rpc_error(e) from None
+            return s.fail(from_rpc_error(e))
+        return s.answer(reply)
 
-    async def _idempotent(self, method: Callable[..., Awaitable[T]], request: Any) -> T:
-        clock = c.Attempts(self.timeout, self.retry_budget)
-        while True:
-            try:
-                return await method(request, metadata=self._metadata, timeout=clock.deadline())
-            except grpc.RpcError as e:
-                if not is_retryable(e):
-                    raise from_rpc_error(e) from None
-                delay = clock.delay()
-                if delay is None:
-                    raise from_rpc_error(e) from None
-                await asyncio.sleep(delay)
+    async def _run(self, plan: calls.Plan) -> Any:
+        """The result of a plan."""
+        s = calls.Stepper(plan)
+        try:
+            step = s.answer(None)
+            while type(step) is not calls.Done:
+                step = await self._perform(step, s)
+            return step.value
+        finally:
+            s.close()
 
-    async def _all_pages(self, call: Callable[[tensor_pb2.PageRequest], Awaitable[Any]], field: str) -> list:
-        out: list = []
-        token = ""
-        while True:
-            resp = await call(tensor_pb2.PageRequest(page_token=token))
-            out.extend(getattr(resp, field))
-            token = resp.next_page_token
-            if not token:
-                return out
+    async def _iter(self, plan: calls.Plan) -> AsyncIterator[Any]:
+        """The items a plan emits; leaving the loop early ends the plan and its stream."""
+        s = calls.Stepper(plan)
+        try:
+            step = s.answer(None)
+            while type(step) is not calls.Done:
+                if type(step) is calls.Emit:
+                    yield step.value
+                    step = s.answer(None)
+                else:
+                    step = await self._perform(step, s)
+        finally:
+            s.close()
+
+    @_doc(Client.health)
+    async def health(self) -> str:
+        return await self._run(calls.health(self))
 
     # datasets
+    @_doc(Client.upload_dataset, "the input is read on the event loop's thread between chunks.")
     async def upload_dataset(self, name: str, data: Any, *, kind: str | None = None, key: str | None = None,
                              description: str = "", chunk_bytes: int = c.DEFAULT_CHUNK_BYTES,
-                             progress: c.Progress | bool | None = None) -> datasets_pb2.Dataset:
-        """See :meth:`relreward.Client.upload_dataset` (the input is read on the event loop's
-        thread between chunks)."""
-        source, closer = source_of(data, kind, key)
-        try:
-            callback, bar = c.progress_callback(progress, source.total_bytes(), name)
-            failure = c.UploadFailure()
-            try:
-                return await self._datasets.UploadDataset(
-                    c.dataset_messages(name, source, description, chunk_bytes, callback, failure),
-                    metadata=self._metadata, timeout=self.timeout)
-            except grpc.RpcError as e:
-                if failure.error is not None:
-                    raise failure.error from None
-                raise from_rpc_error(e) from None
-            finally:
-                if bar is not None:
-                    bar.close()
-        finally:
-            if closer is not None:
-                closer.close()
+                             progress: c.Progress | bool | None = None) -> Dataset:
+        return await self._run(calls.upload_dataset(self, name, data, kind, key, description, chunk_bytes, progress))
 
-    async def get_dataset(self, name: str) -> datasets_pb2.Dataset:
-        """See :meth:`relreward.Client.get_dataset`: the dataset with its statistics."""
-        return await self._idempotent(self._datasets.GetDataset,
-                                      datasets_pb2.GetDatasetRequest(name=name, view=datasets_pb2.DATASET_VIEW_FULL))
+    @_doc(Client.get_dataset)
+    async def get_dataset(self, name: str) -> Dataset:
+        return await self._run(calls.get_dataset(self, name))
 
-    async def list_datasets(self) -> list[datasets_pb2.Dataset]:
-        """See :meth:`relreward.Client.list_datasets`: every dataset, by name."""
-        return await self._all_pages(lambda page: self._idempotent(
-            self._datasets.ListDatasets, datasets_pb2.ListDatasetsRequest(page=page, view=datasets_pb2.DATASET_VIEW_BASIC)),
-            "datasets")
+    @_doc(Client.list_datasets)
+    async def list_datasets(self) -> list[Dataset]:
+        return await self._run(calls.list_datasets(self))
 
+    @_doc(Client.delete_dataset)
     async def delete_dataset(self, name: str) -> None:
-        """See :meth:`relreward.Client.delete_dataset` (never retried)."""
-        await self._once(self._datasets.DeleteDataset, datasets_pb2.DeleteDatasetRequest(name=name))
+        await self._run(calls.delete_dataset(self, name))
 
     # models
-    async def upload_model(self, path: str | pathlib.Path, name: str,
-                           manifest: Mapping[str, Any] | models_pb2.DiffusionManifest, *, description: str = "",
-                           chunk_bytes: int = c.DEFAULT_CHUNK_BYTES,
-                           progress: c.Progress | bool | None = None) -> models_pb2.Model:
-        """See :meth:`relreward.Client.upload_model`."""
-        path = pathlib.Path(path)
-        header = c.upload_header(name, manifest_of(manifest), description)
-        callback, bar = c.progress_callback(progress, path.stat().st_size, name)
-        failure = c.UploadFailure()
-        try:
-            return await self._models.UploadModel(c.model_messages(path, header, chunk_bytes, callback, failure),
-                                                  metadata=self._metadata, timeout=self.timeout)
-        except grpc.RpcError as e:
-            if failure.error is not None:
-                raise failure.error from None
-            raise from_rpc_error(e) from None
-        finally:
-            if bar is not None:
-                bar.close()
+    @_doc(Client.upload_model, "the file is read on the event loop's thread between chunks.")
+    async def upload_model(self, path: str | pathlib.Path, name: str, manifest: Manifest | Mapping[str, Any] | Any,
+                           *, description: str = "", chunk_bytes: int = c.DEFAULT_CHUNK_BYTES,
+                           progress: c.Progress | bool | None = None) -> Model:
+        return await self._run(calls.upload_model(self, path, name, manifest, description, chunk_bytes, progress))
 
-    async def get_model(self, name: str) -> models_pb2.Model:
-        """See :meth:`relreward.Client.get_model`: kind, manifest or reward info."""
-        return await self._idempotent(self._models.GetModel, models_pb2.GetModelRequest(name=name))
+    @_doc(Client.get_model)
+    async def get_model(self, name: str) -> Model:
+        return await self._run(calls.get_model(self, name))
 
-    async def list_models(self, kind: str | None = None) -> list[models_pb2.Model]:
-        """See :meth:`relreward.Client.list_models`: every model, or those of ``kind``."""
-        k = _KINDS[kind]
-        return await self._all_pages(lambda page: self._idempotent(
-            self._models.ListModels, models_pb2.ListModelsRequest(page=page, kind=k)), "models")
+    @_doc(Client.list_models)
+    async def list_models(self, kind: str | None = None) -> list[Model]:
+        return await self._run(calls.list_models(self, kind))
 
+    @_doc(Client.delete_model)
     async def delete_model(self, name: str) -> None:
-        """See :meth:`relreward.Client.delete_model` (never retried)."""
-        await self._once(self._models.DeleteModel, models_pb2.DeleteModelRequest(name=name))
+        await self._run(calls.delete_model(self, name))
 
+    @_doc(Client.download_model, "files are written on the event loop's thread as chunks arrive.")
     async def download_model(self, name: str, out_dir: str | pathlib.Path, *, overwrite: bool = False
                              ) -> DownloadedModel:
-        """See :meth:`relreward.Client.download_model` (files are written on the event loop's
-        thread as chunks arrive)."""
-        download = ModelDownload(name, out_dir, overwrite)
-        call = self._models.DownloadModel(models_pb2.DownloadModelRequest(name=name), metadata=self._metadata,
-                                          timeout=self.timeout)
-        try:
-            async for message in call:
-                download.feed(message)
-            return download.finish()
-        except grpc.RpcError as e:
-            raise from_rpc_error(e) from None
-        finally:
-            download.close()
-            call.cancel()
+        return await self._run(calls.download_model(self, name, out_dir, overwrite))
 
     # jobs
-    async def submit_job(self, spec: Any, job_id: str | None = None) -> jobs_pb2.Job:
-        """See :meth:`relreward.Client.submit_job`: queues a training job (never retried)."""
-        return await self._once(self._jobs.SubmitJob,
-                                jobs_pb2.SubmitJobRequest(spec=job_spec(spec), job_id=job_id or ""))
+    @_doc(Client.submit_job)
+    async def submit_job(self, spec: Any, job_id: str | None = None) -> Job:
+        return await self._run(calls.submit_job(self, spec, job_id))
 
-    async def get_job(self, job_id: str) -> jobs_pb2.Job:
-        """See :meth:`relreward.Client.get_job`: state, step / total_steps, loss, error."""
-        return await self._idempotent(self._jobs.GetJob, jobs_pb2.GetJobRequest(id=job_id))
+    @_doc(Client.get_job)
+    async def get_job(self, job_id: str) -> Job:
+        return await self._run(calls.get_job(self, job_id))
 
-    async def list_jobs(self, state: str | None = None) -> list[jobs_pb2.Job]:
-        """See :meth:`relreward.Client.list_jobs`: every job, or those in ``state``, newest first."""
-        s = _STATES[state.lower() if state else None]
-        return await self._all_pages(lambda page: self._idempotent(
-            self._jobs.ListJobs, jobs_pb2.ListJobsRequest(page=page, state=s)), "jobs")
+    @_doc(Client.list_jobs)
+    async def list_jobs(self, state: JobState | str | None = None) -> list[Job]:
+        return await self._run(calls.list_jobs(self, state))
 
-    async def cancel_job(self, job_id: str) -> jobs_pb2.Job:
-        """See :meth:`relreward.Client.cancel_job` (never retried)."""
-        return await self._once(self._jobs.CancelJob, jobs_pb2.CancelJobRequest(id=job_id))
+    @_doc(Client.cancel_job)
+    async def cancel_job(self, job_id: str) -> Job:
+        return await self._run(calls.cancel_job(self, job_id))
 
-    async def watch_job(self, job_id: str, from_seq: int = 0, *, reconnect_budget: float = c.WATCH_BUDGET_S
-                        ) -> AsyncIterator[c.JobEvent]:
-        """See :meth:`relreward.Client.watch_job`: every event once, resuming after a drop."""
-        watch = c.WatchCursor(job_id, from_seq, reconnect_budget)
-        while True:
-            call = None
-            try:
-                call = self._jobs.WatchJob(watch.request(), metadata=self._metadata)
-                async for raw in call:
-                    event = watch.accept(raw)
-                    if event is not None:
-                        yield event
-                        if event.terminal:
-                            return
-                if c.is_terminal((await self.get_job(job_id)).state):
-                    return
-                failure = watch.ended()
-            except grpc.RpcError as e:
-                failure = from_rpc_error(e)
-            finally:
-                if call is not None:
-                    call.cancel()
-            await asyncio.sleep(watch.retry_delay(failure))
+    @_doc(Client.watch_job, "an async iterator: ``async for event in client.watch_job(job_id)``.")
+    def watch_job(self, job_id: str, from_seq: int = 0, *, reconnect_budget: float = c.WATCH_BUDGET_S
+                  ) -> AsyncIterator[JobEvent]:
+        return self._iter(calls.watch_job(self, job_id, from_seq, reconnect_budget))
 
-    async def wait_job(self, job_id: str, on_event: Callable[[c.JobEvent], Any] | None = None) -> jobs_pb2.Job:
-        """See :meth:`relreward.Client.wait_job`: follows the job until it finishes and returns
-        it; ``on_event`` sees every event (a plain function, or a coroutine function, which is
-        awaited). Does not raise for a FAILED or CANCELLED job: check ``job.state``."""
+    @_doc(Client.wait_job, "``on_event`` may also be a coroutine function, which is awaited.")
+    async def wait_job(self, job_id: str, on_event: Callable[[JobEvent], Any] | None = None) -> Job:
         async for event in self.watch_job(job_id):
             if on_event is not None:
                 result = on_event(event)
@@ -296,44 +227,36 @@ class AsyncClient:
         return await self.get_job(job_id)
 
     # rewards
+    @_doc(Client.score)
     async def score(self, model: str, x: Any, t: int | Sequence[int] | np.ndarray | None = 0, *, units: str = "raw",
-                    per_window: bool = False, per_step: bool = False) -> c.ScoreResult:
-        """See :meth:`relreward.Client.score`: rho(x, t) per item (retried as a read)."""
-        return c.score_result(await self._idempotent(self._rewards.Score,
-                                                     c.score_request(model, x, t, units, per_window, per_step)))
+                    per_window: bool = False, per_step: bool = False) -> ScoreResult:
+        return await self._run(calls.score(self, model, x, t, units, per_window, per_step))
 
+    @_doc(Client.gradient)
     async def gradient(self, model: str, x: Any, t: int | Sequence[int] | np.ndarray | None, *,
                        omega: float | None = None, units: str = "raw", gradient_units: str | None = None,
-                       scale_by_posterior_variance_of: str | None = None) -> c.GradientResult:
-        """See :meth:`relreward.Client.gradient`: grad_x rho(x_t, t) and rho (retried as a read)."""
-        req = c.gradient_request(model, x, t, omega, units, gradient_units or units, scale_by_posterior_variance_of)
-        return c.gradient_result(await self._idempotent(self._rewards.Gradient, req))
+                       scale_by_posterior_variance_of: str | None = None) -> GradientResult:
+        return await self._run(calls.gradient(self, model, x, t, omega, units, gradient_units,
+                                              scale_by_posterior_variance_of))
 
+    @_doc(Client.gradient_stream, "an :class:`AsyncGradientStream`: ``async with client.gradient_stream(model) as "
+                                  "s: grad, rho = await s.gradient(x, t)``.")
     def gradient_stream(self, model: str, *, omega: float | None = None, units: str = "raw",
                         gradient_units: str | None = None, scale_by_posterior_variance_of: str | None = None
                         ) -> "AsyncGradientStream":
-        """``async with client.gradient_stream(model) as s: grad, rho = await s.gradient(x, t)``."""
-        return AsyncGradientStream(self._rewards.GradientStream, self._metadata, model, omega, units,
+        return AsyncGradientStream(self._conn().methods["GradientStream"], self._metadata, model, omega, units,
                                    gradient_units or units, scale_by_posterior_variance_of)
 
-    async def sample_iter(self, model: str, *, reward_model: str | None = None, omega: float = 0.0, n: int = 1,
-                          seed: int | None = None, n_guide_steps: int | None = None, t_stopgrad: int | None = None,
-                          scale_grad_by_std: bool = False, conditions: Any = None, units: str = "raw",
-                          batch_size: int = 0) -> AsyncIterator[c.Sample]:
-        """See :meth:`relreward.Client.sample_iter`: each sample as it finishes (not retried)."""
-        req = c.sample_request(model, reward_model, omega, n, seed, n_guide_steps, t_stopgrad, scale_grad_by_std,
-                               conditions, units, batch_size)
-        call = self._rewards.Sample(req, metadata=self._metadata, timeout=self.timeout)
-        try:
-            async for r in call:
-                yield c.sample_of(r)
-        except grpc.RpcError as e:
-            raise from_rpc_error(e) from None
-        finally:
-            call.cancel()
+    @_doc(Client.sample_iter, "an async iterator: ``async for s in client.sample_iter(model)``.")
+    def sample_iter(self, model: str, *, reward_model: str | None = None, omega: float = 0.0, n: int = 1,
+                    seed: int | None = None, n_guide_steps: int | None = None, t_stopgrad: int | None = None,
+                    scale_grad_by_std: bool = False, conditions: Mapping[int, Any] | Sequence[tuple[int, Any]] | None = None,
+                    units: str = "raw", batch_size: int = 0) -> AsyncIterator[Sample]:
+        return self._iter(calls.sample_iter(self, model, reward_model, omega, n, seed, n_guide_steps, t_stopgrad,
+                                            scale_grad_by_std, conditions, units, batch_size))
 
-    async def sample(self, model: str, **kwargs: Any) -> c.SampleBatch:
-        """See :meth:`relreward.Client.sample`: every sample stacked in index order."""
+    @_doc(Client.sample)
+    async def sample(self, model: str, **kwargs: Any) -> SampleBatch:
         return c.stack_samples([s async for s in self.sample_iter(model, **kwargs)])
 
 
@@ -383,7 +306,7 @@ class AsyncGradientStream:
 
     async def submit(self, x: Any, t: Any, *, model: str | None = None, omega: float | None = None,
                      units: str | None = None, gradient_units: str | None = None,
-                     scale_by_posterior_variance_of: str | None = None) -> "asyncio.Future[c.GradientResult]":
+                     scale_by_posterior_variance_of: str | None = None) -> "asyncio.Future[GradientResult]":
         """Sends a request; returns a future of its ``GradientResult``."""
         if self._call is None:
             raise ValueError("use the stream as `async with client.gradient_stream(model) as s`")
@@ -399,7 +322,7 @@ class AsyncGradientStream:
                                                   scale_by_posterior_variance_of or d_scale, rid))
         return fut
 
-    async def gradient(self, x: Any, t: Any, **kwargs: Any) -> c.GradientResult:
+    async def gradient(self, x: Any, t: Any, **kwargs: Any) -> GradientResult:
         """Sends one request and awaits its ``GradientResult(gradient, rewards)``."""
         return await (await self.submit(x, t, **kwargs))
 

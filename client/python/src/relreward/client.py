@@ -1,4 +1,8 @@
-"""The synchronous client: :class:`Client` and :class:`GradientStream`."""
+"""The synchronous client: :class:`Client` and :class:`GradientStream`.
+
+Each method is a shell around its plan in :mod:`relreward._calls` (shared with
+:class:`relreward.AsyncClient`); this module performs the plans' steps with blocking grpcio
+calls."""
 
 from __future__ import annotations
 
@@ -6,24 +10,18 @@ import pathlib
 import queue
 import threading
 import time
-from typing import Any, Callable, Iterator, Mapping, Sequence, TypeVar
+from typing import Any, Callable, Iterator, Mapping, Sequence
 
 import grpc
 import numpy as np
 
+from relreward import _calls as calls
 from relreward import _common as c
-from relreward._proto import (datasets_pb2, datasets_pb2_grpc, jobs_pb2, jobs_pb2_grpc, models_pb2,
-                              models_pb2_grpc, reward_pb2, reward_pb2_grpc, tensor_pb2)
-from relreward._download import DownloadedModel, ModelDownload
-from relreward.datasets import source_of
-from relreward.errors import RelrewardError, Unavailable, error_for, from_rpc_error, is_retryable
-from relreward.specs import job_spec, manifest as manifest_of
-
-T = TypeVar("T")
-_KINDS: dict[str | None, models_pb2.ModelKind] = {None: models_pb2.MODEL_KIND_UNSPECIFIED, "diffusion": models_pb2.MODEL_KIND_DIFFUSION, "reward": models_pb2.MODEL_KIND_REWARD,
-          "discriminator": models_pb2.MODEL_KIND_DISCRIMINATOR}
-_STATES: dict[str | None, Any] = {None: 0, **{n.removeprefix("JOB_STATE_").lower(): v
-                                                for n, v in jobs_pb2.JobState.items() if v}}
+from relreward._download import DownloadedModel
+from relreward.v1 import reward_pb2
+from relreward.errors import RelrewardError, Unavailable, error_for, from_rpc_error
+from relreward.results import (Dataset, GradientResult, Job, JobEvent, JobState, Manifest, Model, Sample,
+                               SampleBatch, ScoreResult)
 
 
 class Client:
@@ -49,6 +47,9 @@ class Client:
     :class:`relreward.RelrewardError` subclasses; arguments refused before anything is sent
     raise :class:`relreward.InvalidInput` (both an ``InvalidArgument`` and a ``ValueError``).
 
+    Results are the package's own types (:mod:`relreward.results`: :class:`relreward.Dataset`,
+    :class:`relreward.Model`, :class:`relreward.Job`, ...), never protobuf messages.
+
     Use as a context manager, or call :meth:`close`.
     """
 
@@ -61,13 +62,7 @@ class Client:
         self._metadata = c.metadata_of(token)
         self._channel = (grpc.insecure_channel(target, options=options) if credentials is None
                          else grpc.secure_channel(target, credentials, options=options))
-        self._datasets = datasets_pb2_grpc.DatasetServiceStub(self._channel)
-        self._models = models_pb2_grpc.ModelServiceStub(self._channel)
-        self._jobs = jobs_pb2_grpc.JobServiceStub(self._channel)
-        self._rewards = reward_pb2_grpc.RewardServiceStub(self._channel)
-        self._health = self._channel.unary_unary("/grpc.health.v1.Health/Check",
-                                                 request_serializer=lambda _: b"",
-                                                 response_deserializer=lambda b: b)
+        self._methods = calls.rpc_methods(self._channel)
 
     # ----------------------------------------------------------------------------------------
     # plumbing
@@ -87,37 +82,65 @@ class Client:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    def _once(self, method: Callable[..., T], request: Any) -> T:
+    def _perform(self, step: Any, s: calls.Stepper) -> Any:
+        """Performs one step of a plan (see :mod:`relreward._calls`) and returns the next."""
         try:
-            return method(request, metadata=self._metadata, timeout=self.timeout)
+            kind = type(step)
+            if kind is calls.Unary or kind is calls.Upload:
+                reply = self._methods[step.method](step.request if kind is calls.Unary else step.messages,
+                                                   metadata=self._metadata, timeout=step.timeout)
+            elif step is calls.NEXT:
+                reply = next(s.stream, None)
+            elif kind is calls.Open:
+                s.open(self._methods[step.method](step.request, metadata=self._metadata, timeout=step.timeout))
+                reply = None
+            elif kind is calls.Sleep:
+                time.sleep(step.seconds)
+                reply = None
+            else:
+                raise TypeError(f"a plan yielded {step!r} where no item can be emitted")
         except grpc.RpcError as e:
-            raise from_rpc_error(e) from None
+            return s.fail(from_rpc_error(e))
+        return s.answer(reply)
 
-    def _idempotent(self, method: Callable[..., T], request: Any) -> T:
-        clock = c.Attempts(self.timeout, self.retry_budget)
-        while True:
-            try:
-                return method(request, metadata=self._metadata, timeout=clock.deadline())
-            except grpc.RpcError as e:
-                if not is_retryable(e):
-                    raise from_rpc_error(e) from None
-                delay = clock.delay()
-                if delay is None:
-                    raise from_rpc_error(e) from None
-                time.sleep(delay)
+    def _run(self, plan: calls.Plan) -> Any:
+        """The result of a plan."""
+        s = calls.Stepper(plan)
+        try:
+            step = s.answer(None)
+            while type(step) is not calls.Done:
+                step = self._perform(step, s)
+            return step.value
+        finally:
+            s.close()
+
+    def _iter(self, plan: calls.Plan) -> Iterator[Any]:
+        """The items a plan emits; leaving the loop early ends the plan and its stream."""
+        s = calls.Stepper(plan)
+        try:
+            step = s.answer(None)
+            while type(step) is not calls.Done:
+                if type(step) is calls.Emit:
+                    yield step.value
+                    step = s.answer(None)
+                else:
+                    step = self._perform(step, s)
+        finally:
+            s.close()
 
     def health(self) -> str:
         """The server's overall serving status from grpc.health.v1: "SERVING", "NOT_SERVING",
         "UNKNOWN" or "SERVICE_UNKNOWN"."""
-        return c.health_status(self._idempotent(self._health, None))
+        return self._run(calls.health(self))
 
     # ----------------------------------------------------------------------------------------
     # datasets
 
     def upload_dataset(self, name: str, data: Any, *, kind: str | None = None, key: str | None = None,
                        description: str = "", chunk_bytes: int = c.DEFAULT_CHUNK_BYTES,
-                       progress: c.Progress | bool | None = None) -> datasets_pb2.Dataset:
-        """Uploads a dataset and returns it once the server verified and published it.
+                       progress: c.Progress | bool | None = None) -> Dataset:
+        """Uploads a dataset and returns it (a :class:`relreward.Dataset`) once the server
+        verified and published it.
 
         ``data``: a D4RL-style dict of numpy arrays (``observations`` ``[N, obs_dim]``,
         ``actions`` ``[N, act_dim]``, optional ``terminals``/``timeouts``/``episode_starts``
@@ -134,99 +157,60 @@ class Client:
         ``progress``: ``callback(sent_bytes, total_bytes)`` after each chunk, or ``True`` for a
         tqdm bar when tqdm is installed. Never retried (a write).
         """
-        source, closer = source_of(data, kind, key)
-        try:
-            callback, bar = c.progress_callback(progress, source.total_bytes(), name)
-            failure = c.UploadFailure()
-            messages = c.dataset_messages(name, source, description, chunk_bytes, callback, failure)
-            try:
-                return self._datasets.UploadDataset(messages, metadata=self._metadata, timeout=self.timeout)
-            except grpc.RpcError as e:
-                if failure.error is not None:
-                    raise failure.error from None
-                raise from_rpc_error(e) from None
-            finally:
-                if bar is not None:
-                    bar.close()
-        finally:
-            if closer is not None:
-                closer.close()
+        return self._run(calls.upload_dataset(self, name, data, kind, key, description, chunk_bytes, progress))
 
-    def get_dataset(self, name: str) -> datasets_pb2.Dataset:
-        """The dataset with its per-coordinate statistics (FULL view)."""
-        return self._idempotent(self._datasets.GetDataset,
-                                datasets_pb2.GetDatasetRequest(name=name, view=datasets_pb2.DATASET_VIEW_FULL))
+    def get_dataset(self, name: str) -> Dataset:
+        """The dataset with its per-coordinate statistics (FULL view): a :class:`relreward.Dataset`."""
+        return self._run(calls.get_dataset(self, name))
 
-    def list_datasets(self) -> list[datasets_pb2.Dataset]:
-        """Every dataset (BASIC view), ordered by name, following pagination."""
-        return self._all_pages(lambda page: self._idempotent(
-            self._datasets.ListDatasets, datasets_pb2.ListDatasetsRequest(page=page, view=datasets_pb2.DATASET_VIEW_BASIC)),
-            "datasets")
+    def list_datasets(self) -> list[Dataset]:
+        """Every dataset (BASIC view: no statistics), ordered by name, following pagination."""
+        return self._run(calls.list_datasets(self))
 
     def delete_dataset(self, name: str) -> None:
         """Deletes a dataset (never retried)."""
-        self._once(self._datasets.DeleteDataset, datasets_pb2.DeleteDatasetRequest(name=name))
-
-    def _all_pages(self, call: Callable[[tensor_pb2.PageRequest], Any], field: str) -> list:
-        out: list = []
-        token = ""
-        while True:
-            resp = call(tensor_pb2.PageRequest(page_token=token))
-            out.extend(getattr(resp, field))
-            token = resp.next_page_token
-            if not token:
-                return out
+        self._run(calls.delete_dataset(self, name))
 
     # ----------------------------------------------------------------------------------------
     # models
 
-    def upload_model(self, path: str | pathlib.Path, name: str, manifest: Mapping[str, Any] | models_pb2.DiffusionManifest,
+    def upload_model(self, path: str | pathlib.Path, name: str, manifest: Manifest | Mapping[str, Any] | Any,
                      *, description: str = "", chunk_bytes: int = c.DEFAULT_CHUNK_BYTES,
-                     progress: c.Progress | bool | None = None) -> models_pb2.Model:
-        """Registers a diffusion model with its manifest (a ``DiffusionManifest`` or a dict in
-        the CLI's manifest form, see :func:`relreward.specs.manifest`): a TorchScript module
-        (``forward(x, t)``; needs a server with ``models.allow_torchscript_upload``), or native
-        safetensors weights when the manifest names an ``architecture`` (e.g. written by
-        ``relreward model import``; always accepted, loaded strictly). The file is streamed in
-        chunks with its sha256; the server validates it against the manifest. Needs an
-        ``admin`` token where tokens are on."""
-        path = pathlib.Path(path)
-        header = c.upload_header(name, manifest_of(manifest), description)
-        callback, bar = c.progress_callback(progress, path.stat().st_size, name)
-        failure = c.UploadFailure()
-        try:
-            return self._models.UploadModel(c.model_messages(path, header, chunk_bytes, callback, failure),
-                                            metadata=self._metadata, timeout=self.timeout)
-        except grpc.RpcError as e:
-            if failure.error is not None:
-                raise failure.error from None
-            raise from_rpc_error(e) from None
-        finally:
-            if bar is not None:
-                bar.close()
+                     progress: c.Progress | bool | None = None) -> Model:
+        """Registers a diffusion model with its manifest and returns it (a
+        :class:`relreward.Model`). ``manifest``: a :class:`relreward.Manifest` (e.g. another
+        model's ``get_model(...).manifest``), a dict in the CLI's manifest form (see
+        :func:`relreward.specs.manifest`), or a ``DiffusionManifest`` message. The file is a
+        TorchScript module (``forward(x, t)``; needs a server with
+        ``models.allow_torchscript_upload``), or native safetensors weights when the manifest
+        names an ``architecture`` (e.g. written by ``relreward model import``; always accepted,
+        loaded strictly). It is streamed in chunks with its sha256; the server validates it
+        against the manifest. Needs an ``admin`` token where tokens are on. Never retried."""
+        return self._run(calls.upload_model(self, path, name, manifest, description, chunk_bytes, progress))
 
-    def get_model(self, name: str) -> models_pb2.Model:
-        """The model: kind, manifest (diffusion) or reward info (input shape, T, normalizer)."""
-        return self._idempotent(self._models.GetModel, models_pb2.GetModelRequest(name=name))
+    def get_model(self, name: str) -> Model:
+        """The model (a :class:`relreward.Model`): kind, format, manifest (diffusion) or reward
+        info (input shape, T, normalizer); ``model.item_shape`` and ``model.n_timesteps`` say
+        what ``score``/``gradient`` take, whatever its kind."""
+        return self._run(calls.get_model(self, name))
 
-    def list_models(self, kind: str | None = None) -> list[models_pb2.Model]:
+    def list_models(self, kind: str | None = None) -> list[Model]:
         """Every model, or those of ``kind`` ("diffusion", "reward", "discriminator"), by name."""
-        k = _KINDS[kind]
-        return self._all_pages(lambda page: self._idempotent(
-            self._models.ListModels, models_pb2.ListModelsRequest(page=page, kind=k)), "models")
+        return self._run(calls.list_models(self, kind))
 
     def delete_model(self, name: str) -> None:
         """Deletes a model (FAILED_PRECONDITION while a job uses it; never retried)."""
-        self._once(self._models.DeleteModel, models_pb2.DeleteModelRequest(name=name))
+        self._run(calls.delete_model(self, name))
 
     def download_model(self, name: str, out_dir: str | pathlib.Path, *, overwrite: bool = False
                        ) -> DownloadedModel:
         """Downloads model ``name`` (any kind) into ``out_dir`` (created if missing) and returns
         a :class:`relreward.DownloadedModel`: ``path`` (the model file: ``weights.safetensors``,
         native weights under PyTorch tensor names, or ``module.pt``, a TorchScript module),
-        ``model`` (the record) and ``manifest`` (the stored manifest as a dict: architecture
-        and sizes, space, normalizer, n_timesteps, ...), also written as ``manifest.json``.
-        An Algorithm 2 reward's ``step_norm.safetensors`` comes with it (``files``).
+        ``model`` (the record, a :class:`relreward.Model`) and ``manifest`` (the stored manifest
+        as a dict: architecture and sizes, space, normalizer, n_timesteps, ...), also written as
+        ``manifest.json``. An Algorithm 2 reward's ``step_norm.safetensors`` comes with it
+        (``files``).
 
         Every file is checked against the size and sha256 the server declared before any is
         put in place; a failed download leaves no file behind. Without ``overwrite``, raises
@@ -236,78 +220,52 @@ class Client:
             got = client.download_model("maze-reward", "out/maze-reward")
             state = safetensors.torch.load_file(got.path)
         """
-        download = ModelDownload(name, out_dir, overwrite)
-        stream = self._models.DownloadModel(models_pb2.DownloadModelRequest(name=name), metadata=self._metadata,
-                                            timeout=self.timeout)
-        try:
-            for message in stream:
-                download.feed(message)
-            return download.finish()
-        except grpc.RpcError as e:
-            raise from_rpc_error(e) from None
-        finally:
-            download.close()
-            stream.cancel()
+        return self._run(calls.download_model(self, name, out_dir, overwrite))
 
     # ----------------------------------------------------------------------------------------
     # jobs
 
-    def submit_job(self, spec: Any, job_id: str | None = None) -> jobs_pb2.Job:
-        """Queues a training job: a :class:`relreward.DiffusionJob`, :class:`relreward.RewardJob`,
-        :class:`relreward.DiscriminatorJob`, a ``JobSpec`` message, or a dict in the JobSpec's
-        JSON form. With ``job_id``, resubmitting the same spec returns the existing job (a
-        different spec under that id is AlreadyExists). Never retried."""
-        return self._once(self._jobs.SubmitJob, jobs_pb2.SubmitJobRequest(spec=job_spec(spec), job_id=job_id or ""))
+    def submit_job(self, spec: Any, job_id: str | None = None) -> Job:
+        """Queues a training job and returns it (a :class:`relreward.Job`). ``spec``: a
+        :class:`relreward.DiffusionJob`, :class:`relreward.RewardJob`,
+        :class:`relreward.DiscriminatorJob` (another job's ``job.spec`` included), a ``JobSpec``
+        message, or a dict in the JobSpec's JSON form. With ``job_id``, resubmitting the same
+        spec returns the existing job (a different spec under that id is AlreadyExists). Never
+        retried."""
+        return self._run(calls.submit_job(self, spec, job_id))
 
-    def get_job(self, job_id: str) -> jobs_pb2.Job:
-        """The job: state, step / total_steps, latest loss, error, last_seq."""
-        return self._idempotent(self._jobs.GetJob, jobs_pb2.GetJobRequest(id=job_id))
+    def get_job(self, job_id: str) -> Job:
+        """The job (a :class:`relreward.Job`): ``state`` (a :class:`relreward.JobState`), step /
+        total_steps, latest loss, error, times, last_seq, spec."""
+        return self._run(calls.get_job(self, job_id))
 
-    def list_jobs(self, state: str | None = None) -> list[jobs_pb2.Job]:
-        """Every job, or those in ``state`` ("pending", "running", "succeeded", ...), newest first."""
-        s = _STATES[state.lower() if state else None]
-        return self._all_pages(lambda page: self._idempotent(
-            self._jobs.ListJobs, jobs_pb2.ListJobsRequest(page=page, state=s)), "jobs")
+    def list_jobs(self, state: JobState | str | None = None) -> list[Job]:
+        """Every job, or those in ``state`` ("pending", "running", "succeeded", "failed",
+        "cancelled" or a :class:`relreward.JobState`), newest first."""
+        return self._run(calls.list_jobs(self, state))
 
-    def cancel_job(self, job_id: str) -> jobs_pb2.Job:
-        """Stops the job at its next step (FailedPrecondition once it finished). Never retried."""
-        return self._once(self._jobs.CancelJob, jobs_pb2.CancelJobRequest(id=job_id))
+    def cancel_job(self, job_id: str) -> Job:
+        """Stops the job at its next step and returns it (FailedPrecondition once it finished).
+        Never retried."""
+        return self._run(calls.cancel_job(self, job_id))
 
     def watch_job(self, job_id: str, from_seq: int = 0, *, reconnect_budget: float = c.WATCH_BUDGET_S
-                  ) -> Iterator[c.JobEvent]:
-        """The job's events from ``from_seq`` (0 or 1: the first), then live ones (progress
-        events carry the loss as training goes) until a terminal state, after which the
-        iterator ends.
+                  ) -> Iterator[JobEvent]:
+        """The job's events (:class:`relreward.JobEvent`) from ``from_seq`` (0 or 1: the first),
+        then live ones (progress events carry the loss as training goes) until a terminal
+        state, after which the iterator ends.
 
         A dropped connection (server restart, network) is resumed from the last event seen
         plus one, so every event is yielded exactly once, in order; reconnects back off from
         250 ms to 5 s and give up (raising the last error) after ``reconnect_budget`` seconds
         without an event. Breaking out of the loop cancels the stream.
         """
-        watch = c.WatchCursor(job_id, from_seq, reconnect_budget)
-        while True:
-            stream = None
-            try:
-                stream = self._jobs.WatchJob(watch.request(), metadata=self._metadata)
-                for raw in stream:
-                    event = watch.accept(raw)
-                    if event is not None:
-                        yield event
-                        if event.terminal:
-                            return
-                if c.is_terminal(self.get_job(job_id).state):
-                    return
-                failure = watch.ended()
-            except grpc.RpcError as e:
-                failure = from_rpc_error(e)
-            finally:
-                if stream is not None:
-                    stream.cancel()
-            time.sleep(watch.retry_delay(failure))
+        return self._iter(calls.watch_job(self, job_id, from_seq, reconnect_budget))
 
-    def wait_job(self, job_id: str, on_event: Callable[[c.JobEvent], None] | None = None) -> jobs_pb2.Job:
-        """Follows the job (:meth:`watch_job`) until it finishes and returns it; ``on_event``
-        sees every event. Does not raise for a FAILED or CANCELLED job: check ``job.state``."""
+    def wait_job(self, job_id: str, on_event: Callable[[JobEvent], None] | None = None) -> Job:
+        """Follows the job (:meth:`watch_job`) until it finishes and returns it (a
+        :class:`relreward.Job`); ``on_event`` sees every event. Does not raise for a FAILED or
+        CANCELLED job: check ``job.state``."""
         for event in self.watch_job(job_id):
             if on_event is not None:
                 on_event(event)
@@ -317,7 +275,7 @@ class Client:
     # rewards
 
     def score(self, model: str, x: Any, t: int | Sequence[int] | np.ndarray | None = 0, *, units: str = "raw",
-              per_window: bool = False, per_step: bool = False) -> c.ScoreResult:
+              per_window: bool = False, per_step: bool = False) -> ScoreResult:
         """rho(x, t) per item.
 
         ``x``: ``[B, H, D]`` trajectories (rows ``[action | observation]``) or ``[B, *shape]``
@@ -326,12 +284,11 @@ class Client:
         "normalized". Returns float32 ``rewards`` ``[B]``, and ``per_window`` ``[B, H / h]`` /
         ``per_step`` ``[B, H]`` when asked for (windowed rewards). Retried on connection failures.
         """
-        return c.score_result(self._idempotent(self._rewards.Score,
-                                               c.score_request(model, x, t, units, per_window, per_step)))
+        return self._run(calls.score(self, model, x, t, units, per_window, per_step))
 
     def gradient(self, model: str, x: Any, t: int | Sequence[int] | np.ndarray | None, *, omega: float | None = None,
                  units: str = "raw", gradient_units: str | None = None,
-                 scale_by_posterior_variance_of: str | None = None) -> c.GradientResult:
+                 scale_by_posterior_variance_of: str | None = None) -> GradientResult:
         """grad_x rho(x_t, t) and rho for a batch.
 
         ``x`` ``[B, H, D]`` or ``[B, *shape]`` (float32 on the wire: a C-contiguous float32
@@ -344,8 +301,8 @@ class Client:
         float32 read-only views (``grad, rho = client.gradient(...)`` unpacks). Retried on
         connection failures.
         """
-        req = c.gradient_request(model, x, t, omega, units, gradient_units or units, scale_by_posterior_variance_of)
-        return c.gradient_result(self._idempotent(self._rewards.Gradient, req))
+        return self._run(calls.gradient(self, model, x, t, omega, units, gradient_units,
+                                        scale_by_posterior_variance_of))
 
     def gradient_stream(self, model: str, *, omega: float | None = None, units: str = "raw",
                         gradient_units: str | None = None, scale_by_posterior_variance_of: str | None = None
@@ -354,30 +311,23 @@ class Client:
         manager and call ``stream.gradient(x_t, t)`` at every denoising step, or ``submit`` several
         and collect them (pipelining). The keyword arguments are the defaults of every request
         (each call may override them); see :meth:`gradient`."""
-        return GradientStream(self._rewards.GradientStream, self._metadata, model, omega, units,
+        return GradientStream(self._methods["GradientStream"], self._metadata, model, omega, units,
                               gradient_units or units, scale_by_posterior_variance_of)
 
     def sample_iter(self, model: str, *, reward_model: str | None = None, omega: float = 0.0, n: int = 1,
                     seed: int | None = None, n_guide_steps: int | None = None, t_stopgrad: int | None = None,
                     scale_grad_by_std: bool = False, conditions: Mapping[int, Any] | Sequence[tuple[int, Any]] | None = None,
-                    units: str = "raw", batch_size: int = 0) -> Iterator[c.Sample]:
-        """DDPM samples from diffusion model ``model`` as each finishes (any order; see
-        ``Sample.index``), guided by ``reward_model`` with scale ``omega`` (0: unguided, rewards
-        still reported). ``conditions``: ``{horizon index: state [obs_dim]}`` inpainted after
-        every step, in ``units``; ``n_guide_steps`` gradient steps per denoising step; no
-        guidance below ``t_stopgrad``; ``seed`` makes it reproducible. Not retried."""
-        req = c.sample_request(model, reward_model, omega, n, seed, n_guide_steps, t_stopgrad, scale_grad_by_std,
-                               conditions, units, batch_size)
-        stream = self._rewards.Sample(req, metadata=self._metadata, timeout=self.timeout)
-        try:
-            for r in stream:
-                yield c.sample_of(r)
-        except grpc.RpcError as e:
-            raise from_rpc_error(e) from None
-        finally:
-            stream.cancel()
+                    units: str = "raw", batch_size: int = 0) -> Iterator[Sample]:
+        """DDPM samples (:class:`relreward.Sample`) from diffusion model ``model`` as each
+        finishes (any order; see ``Sample.index``), guided by ``reward_model`` with scale
+        ``omega`` (0: unguided, rewards still reported). ``conditions``: ``{horizon index:
+        state [obs_dim]}`` inpainted after every step, in ``units``; ``n_guide_steps`` gradient
+        steps per denoising step; no guidance below ``t_stopgrad``; ``seed`` makes it
+        reproducible. Not retried."""
+        return self._iter(calls.sample_iter(self, model, reward_model, omega, n, seed, n_guide_steps, t_stopgrad,
+                                            scale_grad_by_std, conditions, units, batch_size))
 
-    def sample(self, model: str, **kwargs: Any) -> c.SampleBatch:
+    def sample(self, model: str, **kwargs: Any) -> SampleBatch:
         """All samples of :meth:`sample_iter` stacked in index order: ``x`` and
         ``x_normalized`` ``[n, H, D]`` float32, ``rewards`` ``[n]`` (None without a reward model)."""
         return c.stack_samples(list(self.sample_iter(model, **kwargs)))
@@ -395,7 +345,7 @@ class PendingGradient:
         self._stream = stream
         self.request_id = request_id
 
-    def result(self) -> c.GradientResult:
+    def result(self) -> GradientResult:
         """The answer (``GradientResult``), or the request's own error raised as a
         RelrewardError (the stream goes on)."""
         return self._stream._result(self.request_id)
@@ -448,12 +398,12 @@ class GradientStream:
         self._requests.put(req)
         return PendingGradient(self, rid)
 
-    def gradient(self, x: Any, t: int | Sequence[int] | np.ndarray | None, **kwargs: Any) -> c.GradientResult:
+    def gradient(self, x: Any, t: int | Sequence[int] | np.ndarray | None, **kwargs: Any) -> GradientResult:
         """Sends one request and returns its ``GradientResult(gradient, rewards)`` (float32
         read-only views; ``gradient`` shaped like ``x``, ``rewards`` ``[B]``)."""
         return self.submit(x, t, **kwargs).result()
 
-    def _result(self, rid: int) -> c.GradientResult:
+    def _result(self, rid: int) -> GradientResult:
         with self._lock:
             while rid not in self._done:
                 if self._failed is not None:

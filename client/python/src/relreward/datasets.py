@@ -57,7 +57,7 @@ from typing import Any, Iterable, Mapping, Sequence
 
 import numpy as np
 
-from relreward._proto import datasets_pb2
+from relreward.v1 import datasets_pb2
 from relreward._tensor import wire_dtype
 
 TRAJECTORIES = datasets_pb2.DATASET_KIND_TRAJECTORIES

@@ -14,7 +14,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 from google.protobuf import json_format
 
-from relreward._proto import jobs_pb2, models_pb2
+from relreward.v1 import jobs_pb2, models_pb2
 from relreward.errors import InvalidInput
 
 
