@@ -88,6 +88,8 @@ enum Command {
     Score(commands::score::ScoreArgs),
     /// Gradients of a reward model: grad_x rho(x_t, t) per item.
     Grad(commands::grad::GradArgs),
+    /// Replace a trajectory file's rewards with a reward model's (offline RL), keeping the originals.
+    Relabel(commands::relabel::RelabelArgs),
     /// Sample from a diffusion model, optionally guided by a reward model.
     Sample(commands::sample::SampleArgs),
     /// Evaluate a reward: discriminability of base vs expert, reward heatmaps and goal recovery.
@@ -155,6 +157,7 @@ async fn run(cli: Cli) -> Result<Report> {
         Command::Job(command) => commands::jobs::run(&ctx, command).await,
         Command::Score(args) => commands::score::score(&ctx, args).await,
         Command::Grad(args) => commands::grad::grad(&ctx, args).await,
+        Command::Relabel(args) => commands::relabel::relabel(&ctx, args).await,
         Command::Sample(args) => commands::sample::sample(&ctx, args).await,
         Command::Eval(command) => commands::eval::run(&ctx, command).await,
         Command::Maze(command) => commands::maze::run(&ctx, command).await,

@@ -313,3 +313,53 @@ def test_a_reward_without_windows_gives_rho_of_the_item_ending_at_each_row(clien
     close(transition_rewards(client, value_reward, data, batch=16), rho)
     with pytest.raises(relreward.InvalidArgument, match="per-step values need a windowed_mlp reward"):
         client.score(value_reward, items[:2], 0, per_step=True)  # why the rule does not read per_step
+
+
+def test_the_cli_relabels_an_npz_as_the_package_does(server, client, tiny, tmp_path):
+    """`relreward relabel` (Rust) follows the same rule: the same rewards, bit for bit, for the
+    same requests; the same original kept; every other member byte for byte; refusals first."""
+    data = npz_data()
+    src = tmp_path / "src.npz"
+    np.savez_compressed(src, **data)
+    want = relreward.relabel(client, tiny.reward, src, tmp_path / "py.npz").rewards
+    report = server.cli_json("relabel", "--model", tiny.reward, "--input", str(src), "--output",
+                             str(tmp_path / "cli.npz"))
+    assert (report["rows"], report["episodes"], report["original"]) == (112, 5, ORIGINAL)
+    out = np.load(tmp_path / "cli.npz")
+    np.testing.assert_array_equal(out["rewards"], want)
+    assert sorted(out.files) == sorted([*data, ORIGINAL])
+    for key in data:
+        expected = data["rewards"] if key == "rewards" else data[key]
+        got = out[ORIGINAL] if key == "rewards" else out[key]
+        np.testing.assert_array_equal(got, expected)
+        assert got.dtype == expected.dtype
+    # Smaller batches, the same values up to the documented batching tolerance.
+    server.cli("relabel", "--model", tiny.reward, "--input", str(src), "--output", str(tmp_path / "b3.npz"),
+               "--batch", "3")
+    close(np.load(tmp_path / "b3.npz")["rewards"], want)
+    # Relabelling the relabelled file keeps the first original.
+    server.cli("relabel", "--model", tiny.reward, "--input", str(tmp_path / "cli.npz"), "--output",
+               str(tmp_path / "again.npz"))
+    np.testing.assert_array_equal(np.load(tmp_path / "again.npz")[ORIGINAL], data["rewards"])
+
+    bad_width = tmp_path / "wide.npz"
+    np.savez(bad_width, **{**data, "observations": np.zeros((112, 3), np.float32)})
+    cases = [
+        (["--input", str(src), "--output", str(tmp_path / "cli.npz")], "exists; pass --overwrite"),
+        (["--input", str(src), "--output", str(src)], "is --input"),
+        (["--input", str(tmp_path / "x.hdf5"), "--output", str(tmp_path / "o.npz")], "no such file"),
+        (["--input", str(bad_width), "--output", str(tmp_path / "o.npz")], "D = action_dim + obs_dim"),
+        (["--input", str(src), "--output", str(tmp_path / "o.npz"), "--t", "10"], "--t 10: outside 0..10"),
+        (["--input", str(src), "--output", str(tmp_path / "o.npz"), "--batch", "0"], "--batch"),
+        (["--input", str(src), "--output", str(tmp_path / "o.h5")], "must end in .npz"),
+    ]
+    (tmp_path / "d.hdf5").write_bytes(b"")
+    cases.append((["--input", str(tmp_path / "d.hdf5"), "--output", str(tmp_path / "o.npz")], "relreward.relabel"))
+    before = sorted(p.name for p in tmp_path.iterdir())
+    for args, needle in cases:
+        p = server.cli("relabel", "--model", tiny.reward, *args, check=False)
+        assert p.returncode != 0 and needle in p.stderr, (args, p.stderr)
+    p = server.cli("relabel", "--model", tiny.base, "--input", str(src), "--output", str(tmp_path / "o.npz"),
+                   check=False)
+    assert p.returncode != 0 and "is a diffusion model" in p.stderr, p.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == before, "a refusal wrote nothing"

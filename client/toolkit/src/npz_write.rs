@@ -1,5 +1,6 @@
 //! Writes numpy `.npz` archives: an uncompressed zip of `.npy` files (what `np.savez` writes),
-//! for the results of `score`, `grad` and `sample`.
+//! for the results of `score`, `grad` and `sample`, and for `relabel`, which copies another
+//! archive's members unchanged ([`NpzWriter::copy_members`]).
 //!
 //! Arrays are float32, int64 or bool, little-endian, C order, in npy format 1.0 (headers padded to
 //! a multiple of 64 bytes, as numpy does). The archive is written to a temporary file next to
@@ -114,6 +115,26 @@ impl NpzWriter {
         zip.write_all(&header)?;
         write(zip)?;
         self.names.push(name.to_owned());
+        Ok(())
+    }
+
+    /// Copies the members of archive `src` byte for byte (compressed ones stay compressed), each
+    /// under the name `rename` gives its array name (`rewards` for `rewards.npy`), or skipped
+    /// where it gives `None`.
+    pub fn copy_members(&mut self, src: &Path, rename: impl Fn(&str) -> Option<String>) -> io::Result<()> {
+        let mut archive = npyz::zip::ZipArchive::new(io::BufReader::new(File::open(src)?)).map_err(io::Error::other)?;
+        for i in 0..archive.len() {
+            let member = archive.by_index_raw(i).map_err(io::Error::other)?;
+            let name = member.name().to_owned();
+            let array = name.strip_suffix(".npy").unwrap_or(&name);
+            let Some(to) = rename(array) else { continue };
+            if self.names.contains(&to) {
+                return Err(io::Error::new(io::ErrorKind::InvalidInput, format!("array name '{to}' is used twice")));
+            }
+            let zip = self.zip.as_mut().ok_or_else(|| io::Error::other("the archive is already finished"))?;
+            zip.raw_copy_file_rename(member, format!("{to}.npy")).map_err(io::Error::other)?;
+            self.names.push(to);
+        }
         Ok(())
     }
 

@@ -120,6 +120,11 @@ impl RewardModel {
         self.net.per_window(&self.input(x, t)?, t)
     }
 
+    /// rho `[B]` and the per-window values from one pass (see `RewardNet::rho_and_windows`).
+    pub fn rho_and_windows(&self, x: &Tensor, t: &Tensor) -> Result<(Tensor, Tensor)> {
+        self.net.rho_and_windows(&self.input(x, t)?, t)
+    }
+
     /// Per-step values `[B, H]` of a windowed reward.
     pub fn per_step(&self, x: &Tensor, t: &Tensor) -> Result<Tensor> {
         self.net.per_step(&self.input(x, t)?, t)

@@ -289,9 +289,16 @@ fn compute(queue: &ModelQueue, kind: BatchKind, batch: &[Pending]) -> Result<Vec
     match kind {
         BatchKind::Score { per_window, per_step } => {
             let _no_grad = tch::no_grad_guard();
-            let rewards = split_host(&model.rho(&x, &t)?, &sizes)?;
-            let mut windows =
-                if per_window { Some(split_host(&model.per_window(&x, &t)?, &sizes)?.into_iter()) } else { None };
+            // With per-window values, rho comes from the same pass (one network evaluation, not
+            // two: half the cost of a Score that asks for both, as an RL wrapper's every step).
+            let (rho, windows) = if per_window {
+                let (rho, windows) = model.rho_and_windows(&x, &t)?;
+                (rho, Some(windows))
+            } else {
+                (model.rho(&x, &t)?, None)
+            };
+            let rewards = split_host(&rho, &sizes)?;
+            let mut windows = windows.map(|w| split_host(&w, &sizes)).transpose()?.map(Vec::into_iter);
             let mut steps =
                 if per_step { Some(split_host(&model.per_step(&x, &t)?, &sizes)?.into_iter()) } else { None };
             Ok(rewards

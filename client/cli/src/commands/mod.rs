@@ -28,6 +28,7 @@ pub mod grad;
 pub mod jobs;
 pub mod maze;
 pub mod models;
+pub mod relabel;
 pub mod rewards;
 pub mod sample;
 pub mod score;

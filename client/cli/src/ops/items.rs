@@ -249,36 +249,7 @@ fn load_items(file: InputFile, model: &str, input_shape: &[u64], stride: usize) 
                     source.path().display()
                 );
             };
-            let specs = source.arrays().to_vec();
-            let index = |name: &str| specs.iter().position(|s| s.name == name);
-            let mut floats = |name: &str| -> Result<(Vec<f32>, usize)> {
-                let i = index(name).ok_or_else(|| anyhow!("--input: no '{name}' array"))?;
-                let t = source.read_tensor(i).map_err(|e| anyhow!("--input: {e}"))?;
-                let values = tensor::decode_finite_f32(&t).map_err(|e| anyhow!("--input: array '{name}': {e}"))?;
-                Ok((values, t.shape.get(1).copied().unwrap_or(1) as usize))
-            };
-            let (observations, obs_dim) = floats("observations")?;
-            let (actions, act_dim) = floats("actions")?;
-            if (act_dim + obs_dim) as u64 != dim {
-                bail!(
-                    "--input: rows of {act_dim} action and {obs_dim} observation values make windows of {} columns, \
-                     but model '{model}' takes [H = {horizon}, D = {dim}] windows (D = action_dim + obs_dim)",
-                    act_dim + obs_dim
-                );
-            }
-            let n = observations.len() / obs_dim.max(1);
-            let mut flags = |name: &str| -> Result<Vec<bool>> {
-                let Some(i) = index(name) else { return Ok(Vec::new()) };
-                let t = source.read_tensor(i).map_err(|e| anyhow!("--input: {e}"))?;
-                tensor::decode_flags(&t).map_err(|e| anyhow!("--input: array '{name}': {e}"))
-            };
-            let mut ends = flags("terminals")?;
-            ends.resize(n, false);
-            for (e, t) in ends.iter_mut().zip(flags("timeouts")?) {
-                *e |= t;
-            }
-            let starts_at = flags("episode_starts")?;
-            let episodes = episodes(n, &ends, &starts_at);
+            let Trajectories { rows, episodes, .. } = read_trajectories(&mut source, model, horizon, dim)?;
             let starts = window_starts(&episodes, horizon as usize, stride);
             if starts.is_empty() {
                 let longest = episodes.iter().map(ExactSizeIterator::len).max().unwrap_or(0);
@@ -288,7 +259,6 @@ fn load_items(file: InputFile, model: &str, input_shape: &[u64], stride: usize) 
                     episodes.len()
                 );
             }
-            let rows = trajectory_rows(&actions, act_dim, &observations, obs_dim);
             Ok(Items::Windows(Windows {
                 rows,
                 dim: dim as usize,
@@ -301,8 +271,57 @@ fn load_items(file: InputFile, model: &str, input_shape: &[u64], stride: usize) 
     }
 }
 
+/// A trajectory file's rows and episodes, checked against a model of `[horizon, dim]` items.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Trajectories {
+    /// `[N, dim]` rows, `[action | observation]`, float32.
+    pub rows: Vec<f32>,
+    pub act_dim: usize,
+    pub obs_dim: usize,
+    /// Row ranges: an episode ends after a `terminals` or `timeouts` row and begins at an
+    /// `episode_starts` row.
+    pub episodes: Vec<Range<usize>>,
+}
+
+/// Reads the rows and episodes of a trajectory archive (the D4RL names the toolkit's reader
+/// gives) for model `model`, whose items are `[horizon, dim]`; errors name `--input`.
+pub fn read_trajectories(source: &mut NpzSource, model: &str, horizon: u64, dim: u64) -> Result<Trajectories> {
+    let specs = source.arrays().to_vec();
+    let index = |name: &str| specs.iter().position(|s| s.name == name);
+    let mut floats = |name: &str| -> Result<(Vec<f32>, usize)> {
+        let i = index(name).ok_or_else(|| anyhow!("--input: no '{name}' array"))?;
+        let t = source.read_tensor(i).map_err(|e| anyhow!("--input: {e}"))?;
+        let values = tensor::decode_finite_f32(&t).map_err(|e| anyhow!("--input: array '{name}': {e}"))?;
+        Ok((values, t.shape.get(1).copied().unwrap_or(1) as usize))
+    };
+    let (observations, obs_dim) = floats("observations")?;
+    let (actions, act_dim) = floats("actions")?;
+    if (act_dim + obs_dim) as u64 != dim {
+        bail!(
+            "--input: rows of {act_dim} action and {obs_dim} observation values make windows of {} columns, \
+             but model '{model}' takes [H = {horizon}, D = {dim}] windows (D = action_dim + obs_dim)",
+            act_dim + obs_dim
+        );
+    }
+    let n = observations.len() / obs_dim.max(1);
+    let mut flags = |name: &str| -> Result<Vec<bool>> {
+        let Some(i) = index(name) else { return Ok(Vec::new()) };
+        let t = source.read_tensor(i).map_err(|e| anyhow!("--input: {e}"))?;
+        tensor::decode_flags(&t).map_err(|e| anyhow!("--input: array '{name}': {e}"))
+    };
+    let mut ends = flags("terminals")?;
+    ends.resize(n, false);
+    for (e, t) in ends.iter_mut().zip(flags("timeouts")?) {
+        *e |= t;
+    }
+    let starts_at = flags("episode_starts")?;
+    let episodes = episodes(n, &ends, &starts_at);
+    let rows = trajectory_rows(&actions, act_dim, &observations, obs_dim);
+    Ok(Trajectories { rows, act_dim, obs_dim, episodes })
+}
+
 /// The reward model's item shape, refusing diffusion models by name.
-async fn reward_input_shape(client: &Client, name: &str) -> Result<Vec<u64>> {
+pub async fn reward_input_shape(client: &Client, name: &str) -> Result<Vec<u64>> {
     let model = client.get_model(name).await.with_context(|| format!("--model {name}"))?;
     match model.kind() {
         pb::ModelKind::Reward | pb::ModelKind::Discriminator => {}

@@ -15,6 +15,7 @@
 //! - [`jobs`]: submit a training job and wait for it on the client's `follow_job` watch.
 //! - [`datasets`]: a recordings file opened as an upload (npz, npy, D4RL HDF5, Minari), sent,
 //!   or reused by name.
+//! - [`relabel`]: a trajectory archive's rewards replaced by a reward model's (offline RL).
 //! - [`scoring`]: the toolkit's `Scorer` over the server's `Score`, checked answers, and
 //!   server errors labelled with the flag behind the field they name.
 //! - [`items`]: local files read as a reward model's items (arrays, or trajectory windows).
@@ -24,6 +25,7 @@ pub mod evaluate;
 pub mod extract;
 pub mod items;
 pub mod jobs;
+pub mod relabel;
 pub mod scoring;
 pub mod steer;
 

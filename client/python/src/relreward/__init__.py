@@ -25,6 +25,7 @@ from relreward.results import (ArrayInfo, ArrayStats, Dataset, EpisodeInfo, Grad
                                Manifest, Model, Normalizer, Provenance, RewardInfo, Sample, SampleBatch, Schedule,
                                ScoreResult, Space)
 from relreward.specs import DiffusionJob, DiscriminatorJob, Optimization, RewardJob
+from relreward.rl import RewardVectorWrapper, RewardWindows, pointmaze_mapping
 
 __version__ = "0.1.0"
 
@@ -46,6 +47,7 @@ __all__ = [
     "Dataset", "ArrayInfo", "ArrayStats", "EpisodeInfo", "Model", "Manifest", "Schedule", "Space", "Normalizer",
     "RewardInfo", "Provenance", "Job", "JobState", "JobEvent",
     "DiffusionJob", "RewardJob", "DiscriminatorJob", "Optimization", "from_minari_episodes", "relabel", "Relabelled",
+    "RewardVectorWrapper", "RewardWindows", "pointmaze_mapping",
     "RelrewardError", "Cancelled", "Unknown", "InvalidArgument", "InvalidInput", "DeadlineExceeded", "NotFound", "AlreadyExists",
     "PermissionDenied", "ResourceExhausted", "FailedPrecondition", "Aborted", "OutOfRange", "Unimplemented",
     "Internal", "Unavailable", "DataLoss", "Unauthenticated", "pb", "DEFAULT_CHUNK_BYTES", "MAX_MESSAGE_BYTES",

@@ -155,6 +155,24 @@ impl RewardNet {
         }
     }
 
+    /// (rho [B], per-window values) from one pass: for the windowed MLP rho is the mean of the
+    /// windows it has just computed (the same numbers as [`RewardNet::rho`] and
+    /// [`RewardNet::per_window`] called apart, at the cost of one of them).
+    pub fn rho_and_windows(&self, x: &Tensor, t: &Tensor) -> Result<(Tensor, Tensor)> {
+        let t = self.check_inputs(x, t)?;
+        match &self.network {
+            Network::WindowedMlp(net) => {
+                let windows = net.per_window(x, &t, Mish::Fused)?;
+                Ok((windows.f_mean_dim([1i64].as_slice(), false, None::<Kind>)?, windows))
+            }
+            _ => {
+                let rho = self.rho_unchecked(x, &t, Mish::Fused)?;
+                let windows = rho.f_unsqueeze(1)?;
+                Ok((rho, windows))
+            }
+        }
+    }
+
     /// Per-step values [B, H] of the windowed MLP: the window starting at each step (the end
     /// padded by repeating the last row). InvalidArgument for other architectures.
     pub fn per_step(&self, x: &Tensor, t: &Tensor) -> Result<Tensor> {

@@ -111,6 +111,17 @@ fn reward_windowed_rho_is_the_mean_of_its_windows() {
     assert_eq!(rho.size(), [3]);
     assert_eq!(windows.size(), [3, 4]);
     assert_close(&rho, &windows.mean_dim(1, false, Kind::Float), 1e-6, "rho vs mean of windows");
+    // One pass for both (what Score with per_window runs) gives the same numbers, bit for bit,
+    // for every architecture.
+    let (rho1, windows1) = tch::no_grad(|| net.rho_and_windows(&x, &t)).expect("one pass");
+    assert_eq!((max_abs_diff(&rho1, &rho), max_abs_diff(&windows1, &windows)), (0.0, 0.0));
+    for (arch, shape) in small_cases().into_iter().skip(2) {
+        let other = build(&arch, &shape);
+        let (x, t) = inputs(&other, 3, Kind::Float);
+        let (r, w) = tch::no_grad(|| other.rho_and_windows(&x, &t)).expect("one pass");
+        let apart = tch::no_grad(|| other.rho(&x, &t)).expect("rho");
+        assert_eq!((max_abs_diff(&r, &apart), w.size()), (0.0, vec![3, 1]), "{arch}");
+    }
     // Not the sum, and not trivially constant.
     assert!(max_abs_diff(&rho, &windows.sum_dim_intlist(1, false, Kind::Float)) > 1e-3);
     assert!(windows.std(true).double_value(&[]) > 1e-3);
