@@ -26,7 +26,7 @@ BIN := target/release
 # Arguments for `make run`, e.g. make run ARGS="--listen 127.0.0.1:6000 --data-dir /tmp/rr".
 ARGS ?=
 
-.PHONY: help setup build run test test-cluster lint fmt clean demo bench soak steer images
+.PHONY: help setup build run test test-cluster lint fmt clean demo bench soak steer images rl-pointmaze rl-offline
 # Arguments for `make demo`, e.g. make demo DEMO_ARGS="--layout medium --goals 4".
 DEMO_ARGS ?=
 
@@ -39,6 +39,8 @@ help:
 	@echo "make soak   the 10-minute load and soak test (tests/soak.sh; make test runs 60 s of it)"
 	@echo "make steer  locomotion steering experiment, ENV=hopper|halfcheetah|walker2d (paper section 5.2)"
 	@echo "make images the digits experiment: Algorithm 2 on two image DDPMs (experiments/images/digits.py)"
+	@echo "make rl-pointmaze  SAC agents on the extracted reward alone in MuJoCo PointMaze (issue 35; RL_ARGS)"
+	@echo "make rl-offline    IQL (d3rlpy) on relabelled locomotion data, OFFLINE_ENV=halfcheetah (issue 35)"
 	@echo "make lint   rustfmt check and clippy"
 	@echo "make clean  remove build outputs (keeps .venv and data/)"
 
@@ -141,6 +143,27 @@ steer: build
 	$(VENV)/bin/python experiments/locomotion/data.py --env $(ENV) --out steer-out/data
 	$(VENV)/bin/python experiments/locomotion/steer.py --env $(ENV) --data steer-out/data --work steer-out/$(ENV) \
 	  $(STEER_ARGS)
+
+## rl-pointmaze: agents trained on the extracted reward alone (issue 35 item 3): SAC in MuJoCo
+## PointMaze umaze per goal (default the four of docs/results.md): generate.py data, one
+## `relreward extract --discriminator`, then the arms rho, discriminator (logit), env (ceiling),
+## constant (floor), 2 seeds each, 20 evaluation episodes per agent on reserved seeds
+## (experiments/pointmaze/rl.py; RL_ARGS adds its flags, e.g. RL_ARGS="--goals 3,1 --steps 14000").
+## Writes rl-pointmaze-out/ (results.md, results.json, curves.png). Method: docs/pointmaze_rl.md.
+RL_ARGS ?=
+rl-pointmaze: build
+	$(VENV)/bin/python experiments/pointmaze/rl.py --work rl-pointmaze-out $(RL_ARGS)
+
+## rl-offline: offline RL on relabelled data (issue 35 item 4; docs/offline_rl.md): OFFLINE_ENV's
+## medium-replay set relabelled by the steering experiment's reward and discriminator, d3rlpy IQL
+## on four arms (true, rho, discriminator, constant), 2 seeds x 10 episodes. Writes offline-out/.
+## OFFLINE_ARGS adds flags (e.g. --paper-scale, --steps N).
+OFFLINE_ENV ?= halfcheetah
+OFFLINE_ARGS ?=
+rl-offline: build
+	$(VENV)/bin/python experiments/locomotion/data.py --env $(OFFLINE_ENV) --out offline-out/data
+	$(VENV)/bin/python experiments/locomotion/offline.py --env $(OFFLINE_ENV) --data offline-out/data \
+	  --work offline-out/$(OFFLINE_ENV) $(OFFLINE_ARGS)
 
 lint: setup
 	$(CARGO) fmt --all -- --check

@@ -1,9 +1,9 @@
-//! Job specs (`proto/src/spec/job`): the stored JSON form, deserialized and range-checked by
+//! Job specs (`proto/src/schema/job`): the stored JSON form, deserialized and range-checked by
 //! `JobSpec::validate`, and the wire form it goes back out as.
 #![no_main]
 
 use libfuzzer_sys::fuzz_target;
-use relreward_proto::spec::job::JobSpec;
+use relreward_proto::schema::job::JobSpec;
 
 fuzz_target!(|data: &[u8]| {
     let Ok(spec) = serde_json::from_slice::<JobSpec>(data) else { return };

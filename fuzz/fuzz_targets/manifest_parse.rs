@@ -1,9 +1,9 @@
-//! Model manifests (`proto/src/spec/manifest.rs`): TOML or JSON text, parsed and validated,
+//! Model manifests (`proto/src/schema/manifest.rs`): TOML or JSON text, parsed and validated,
 //! then the derived quantities the engine computes from an accepted manifest.
 #![no_main]
 
 use libfuzzer_sys::fuzz_target;
-use relreward_proto::spec::manifest::DiffusionManifest;
+use relreward_proto::schema::manifest::DiffusionManifest;
 
 fuzz_target!(|data: &[u8]| {
     let Ok(text) = std::str::from_utf8(data) else { return };

@@ -13,7 +13,7 @@
 //!   it what the client encodes with it, so it lives here and neither end depends on the other.
 //! - [`upload`]: [`upload::UploadSource`], where a dataset upload's array bytes come from (the
 //!   toolkit's file readers produce one, the client sends one), and [`upload::MemorySource`].
-//! - [`spec`]: the diffusion manifest and the job spec, defined once: their file, stored and
+//! - [`schema`]: the diffusion manifest and the job spec, defined once: their file, stored and
 //!   wire forms, their defaults and their checks (no tch; the server and the CLI both use it).
 //! - [`error_chain`]: an error with its causes, for messages at both ends.
 //! - [`given_number`]: a number a user gave, echoed in a message, at both ends.
@@ -21,7 +21,7 @@
 //! Everything else about a message (the server's checks of the other messages' fields, the
 //! client's helpers) lives with its users.
 
-pub mod spec;
+pub mod schema;
 pub mod tensor;
 pub mod upload;
 

@@ -114,10 +114,10 @@ impl Error {
     }
 }
 
-/// A document or message the shared schema (`relreward_proto::spec`) refused: its message
+/// A document or message the shared schema (`relreward_proto::schema`) refused: its message
 /// names the field.
-impl From<relreward_proto::spec::Invalid> for Error {
-    fn from(e: relreward_proto::spec::Invalid) -> Self {
+impl From<relreward_proto::schema::Invalid> for Error {
+    fn from(e: relreward_proto::schema::Invalid) -> Self {
         Self::InvalidArgument(e.0)
     }
 }

@@ -1,5 +1,5 @@
 //! The diffusion model manifest as a file, read with the shared schema
-//! (`relreward_proto::spec::manifest`: the file's fields, defaults and checks, the server's
+//! (`relreward_proto::schema::manifest`: the file's fields, defaults and checks, the server's
 //! own), and the proto back to JSON for `model show --json`.
 //!
 //! One rule decides what an uploaded file is: a manifest with an `architecture` describes
@@ -9,8 +9,8 @@ use std::path::Path;
 
 use anyhow::{Context, Result};
 use relreward_client::pb;
-use relreward_proto::spec::manifest::{DEFAULT_COSINE_S, DiffusionManifest};
-use relreward_proto::spec::{Format, parse_text as parse_document};
+use relreward_proto::schema::manifest::{DEFAULT_COSINE_S, DiffusionManifest};
+use relreward_proto::schema::{Format, parse_text as parse_document};
 use serde::de::DeserializeOwned;
 use serde_json::{Value, json};
 

@@ -1,6 +1,6 @@
 """The Python specs follow the Rust schema (issue 33: one schema per concept).
 
-``proto/schema.json`` is generated from the Rust types of ``relreward_proto::spec`` (a Rust test
+``proto/schema.json`` is generated from the Rust types of ``relreward_proto::schema`` (a Rust test
 keeps it current). Here the Python package's typed specs are checked against it: the same field
 names for every job kind and for the optimisation settings, the same architecture kinds with the
 same field names, and the same spellings of the enumerations, so a field added or renamed on the

@@ -1,7 +1,7 @@
 //! `relreward.v1.JobService`: submit, get, list, cancel and watch training jobs.
 //!
 //! Converts the proto `JobSpec` into the stored, fully explicit `JobSpec` of the shared schema
-//! (`relreward_proto::spec::job`, where every default is stated once), after looking up what
+//! (`relreward_proto::schema::job`, where every default is stated once), after looking up what
 //! those defaults depend on, so a job's meaning never depends on a later change of defaults.
 
 use std::pin::Pin;
@@ -10,7 +10,7 @@ use futures::{Stream, StreamExt};
 use relreward_proto::v1::{self as pb, job_service_server::JobService};
 use tonic::{Request, Response, Status};
 
-use relreward_proto::spec::job::{Facts, JobSpec};
+use relreward_proto::schema::job::{Facts, JobSpec};
 
 use super::{page_limit, timestamp};
 use crate::engine::manifest::{DiffusionManifest, Space};

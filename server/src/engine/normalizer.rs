@@ -8,7 +8,7 @@
 
 use tch::{Kind, Tensor};
 
-pub use relreward_proto::spec::manifest::Normalizer;
+pub use relreward_proto::schema::manifest::Normalizer;
 
 /// Ranges narrower than this are treated as constant coordinates: they normalize to 0 rather
 /// than dividing by zero (a constant coordinate carries no information either way).

@@ -48,8 +48,8 @@ use super::threads::side_by_side;
 use crate::error::{Error, Result};
 
 /// What grad rho is aligned with and where it is evaluated: the job spec's choices (shared
-/// schema, `relreward_proto::spec::job`).
-pub use relreward_proto::spec::job::{EvalPoint, Target};
+/// schema, `relreward_proto::schema::job`).
+pub use relreward_proto::schema::job::{EvalPoint, Target};
 
 /// Checks that two diffusion models can be compared: same item shape, same T and schedule.
 /// Different normalizers are aligned ([`Alignment`]), except with identity on one side only

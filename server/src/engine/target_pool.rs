@@ -35,7 +35,7 @@ use crate::error::Result;
 const PASS_ITEMS: usize = 1024;
 
 /// The option's settings and their checks are the job spec's (shared schema).
-pub use relreward_proto::spec::job::{AmortisedTargets, MAX_POOL_BYTES};
+pub use relreward_proto::schema::job::{AmortisedTargets, MAX_POOL_BYTES};
 
 /// What the pool computes its targets with.
 pub struct TargetSource<'a> {

@@ -15,7 +15,7 @@ use tokio_util::sync::CancellationToken;
 use crate::error::{Error, Result};
 use crate::store::ingest::now_ms;
 use crate::store::{CheckpointRef, JobEvent, JobEventKind, JobRecord, ModelRecord, Staging, Store};
-use relreward_proto::spec::job::JobSpec;
+use relreward_proto::schema::job::JobSpec;
 
 /// Why a job stopped without finishing.
 #[derive(Debug)]

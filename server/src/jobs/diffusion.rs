@@ -15,7 +15,7 @@ use crate::error::{Error, Result};
 use crate::fields::validate_name;
 use crate::store::ingest::now_ms;
 use crate::store::{ArrayStats, DatasetKind, DatasetRecord, ModelFormat, ModelKind, ModelRecord, Provenance, Store};
-use relreward_proto::spec::job::DiffusionJob;
+use relreward_proto::schema::job::DiffusionJob;
 
 /// Held-out items per evaluation.
 const EVAL_ITEMS: usize = 256;

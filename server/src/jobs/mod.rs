@@ -14,7 +14,7 @@
 //!
 //! Module map:
 //! - The stored, fully explicit job specification is the shared schema's
-//!   (`relreward_proto::spec::job::JobSpec`: its defaults and checks, one definition).
+//!   (`relreward_proto::schema::job::JobSpec`: its defaults and checks, one definition).
 //! - [`context`]: [`context::JobContext`], what a running job may do.
 //! - [`datasets`]: stored datasets read back as training rows and windows.
 //! - [`training`]: [`training::TrainLoop`], the optimisation loop every runner shares.
@@ -46,7 +46,7 @@ use crate::fields::validate_name;
 use crate::store::ingest::now_ms;
 use crate::store::{JobEvent, JobEventKind, JobRecord, JobState, Lease, Store};
 use crate::tasks::Tasks;
-use relreward_proto::spec::job::{JobKind, JobSpec};
+use relreward_proto::schema::job::{JobKind, JobSpec};
 
 /// Live-event buffer per job; a watcher further behind re-reads from the store.
 const LIVE_BUFFER: usize = 256;

@@ -24,7 +24,7 @@ use crate::error::{Error, Result};
 use crate::registry::load_diffusion_copy;
 use crate::store::ingest::now_ms;
 use crate::store::{DatasetKind, ModelFormat, ModelKind, ModelRecord, Provenance, Store};
-use relreward_proto::spec::job::{DiscriminatorJob, RewardAlgorithm, RewardJob};
+use relreward_proto::schema::job::{DiscriminatorJob, RewardAlgorithm, RewardJob};
 
 async fn diffusion_manifest(store: &Store, field: &str, name: &str) -> Result<DiffusionManifest> {
     let record = store

@@ -14,7 +14,7 @@ use super::context::{JobContext, StepReport, Stop};
 use crate::engine::optim::{Adam, Ema, named_parameters};
 use crate::engine::rng::Rng;
 use crate::error::{Error, Result};
-use relreward_proto::spec::job::Optimization;
+use relreward_proto::schema::job::Optimization;
 
 /// What a checkpoint's `state.json` holds besides the tensors.
 #[derive(Serialize, Deserialize)]

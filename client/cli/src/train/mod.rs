@@ -53,7 +53,7 @@
 //! if given, else the file's; `--window`, `--hidden` and `--widths` adjust it, and the file's
 //! widths are kept only when the file names the same kind.
 //!
-//! The file's types are the shared schema's (`relreward_proto::spec::job::request`, re-exported
+//! The file's types are the shared schema's (`relreward_proto::schema::job::request`, re-exported
 //! by [`config`]), the flags are in [`flags`], and the merging in [`spec`].
 
 pub mod config;

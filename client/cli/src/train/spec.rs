@@ -8,8 +8,8 @@ use anyhow::{Context, Result, anyhow, bail};
 use pb::job_spec::Kind;
 use relreward_client::pb;
 
-use relreward_proto::spec::job::DEFAULT_N_TIMESTEPS;
-use relreward_proto::spec::manifest::Parametrization;
+use relreward_proto::schema::job::DEFAULT_N_TIMESTEPS;
+use relreward_proto::schema::manifest::Parametrization;
 
 use super::config::{
     Algorithm, ArchKind, Architecture, DiscriminatorConfig, EvalPoint, RewardArchitecture, RewardConfig, Target,
@@ -53,7 +53,7 @@ pub fn diffusion_spec(config: TrainConfig, args: &TrainDiffusionArgs) -> Result<
         .schedule
         .map(|s| {
             s.validate("diffusion.schedule", n_timesteps.map_or(DEFAULT_N_TIMESTEPS, |t| t as usize))?;
-            Ok::<_, relreward_proto::spec::Invalid>(s.to_proto())
+            Ok::<_, relreward_proto::schema::Invalid>(s.to_proto())
         })
         .transpose()
         .context("--config")?;

@@ -36,7 +36,7 @@ from relreward import specs
 from relreward.v1 import datasets_pb2, jobs_pb2, models_pb2, tensor_pb2
 
 #: The cosine schedules' offset s when the wire says 0 (unset), as the server and the CLI
-#: apply it (proto/src/spec/manifest.rs DEFAULT_COSINE_S).
+#: apply it (proto/src/schema/manifest.rs DEFAULT_COSINE_S).
 DEFAULT_COSINE_S = 0.008
 
 

@@ -18,8 +18,8 @@ use crate::engine::nets::native::MAX_PARAMETERS;
 use crate::error::{Error, Result};
 
 /// The architecture of a relative reward network: the shared schema's type (its kinds, widths
-/// and defaults are `relreward_proto::spec::job`'s); this file plans and builds it.
-pub use relreward_proto::spec::job::RewardArchitecture;
+/// and defaults are `relreward_proto::schema::job`'s); this file plans and builds it.
+pub use relreward_proto::schema::job::RewardArchitecture;
 
 /// The layers of one architecture (the variables live in the `RewardNet`'s `Weights`).
 #[derive(Debug)]

@@ -463,7 +463,7 @@ fn reward_architecture_serde() {
     }
     // A field left out takes the schema's default for the kind (the wire's default too).
     let arch: RewardArchitecture = serde_json::from_str(r#"{"kind": "windowed_mlp", "hidden": [8]}"#).expect("default");
-    assert_eq!(arch, windowed(relreward_proto::spec::job::DEFAULT_WINDOW, &[8]));
+    assert_eq!(arch, windowed(relreward_proto::schema::job::DEFAULT_WINDOW, &[8]));
     assert_eq!(mlp(&[8]).to_string(), "mlp(hidden=[8])");
     assert_eq!(value_function(&[8, 32]).to_string(), "value_function(widths=[8, 32])");
 }

@@ -48,7 +48,7 @@
 use serde::Deserialize;
 
 use super::{EvalPoint, RewardArchitecture, Target};
-use crate::spec::manifest::{Architecture, Parametrization, ScheduleSpec};
+use crate::schema::manifest::{Architecture, Parametrization, ScheduleSpec};
 use crate::v1 as pb;
 
 #[derive(Debug, Clone, Default, PartialEq, Deserialize)]
