@@ -124,13 +124,7 @@ def _check_model(client: Any, model: str, rows: _Rows, t: Any, name: str) -> tup
     if isinstance(t, bool) or not isinstance(t, (int, np.integer)):
         raise InvalidInput(f"t: {t!r} is not an integer; expected one diffusion step")
     m = client.get_model(model)
-    if m.reward is None:
-        raise InvalidInput(f"model: '{model}' is a {m.kind} model; relabelling needs a reward (or discriminator) model")
-    shape = tuple(m.item_shape or ())
-    if len(shape) != 2:
-        raise InvalidInput(f"model: '{model}' scores items of shape {list(shape)}, not trajectories "
-                           "[H, action_dim + obs_dim]")
-    horizon, width = shape
+    horizon, width = m.trajectory_window()
     act_dim, obs_dim = int(rows.actions.shape[1]), int(rows.observations.shape[1])
     if act_dim + obs_dim != width:
         raise InvalidInput(f"{name}: rows of {act_dim} action + {obs_dim} observation values = {act_dim + obs_dim}, "

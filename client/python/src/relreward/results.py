@@ -415,6 +415,20 @@ class Model(_Plain):
             return self.manifest.space.item_shape
         return None
 
+    def trajectory_window(self) -> tuple[int, int]:
+        """``(H, D)`` of a reward (or discriminator) over trajectory windows ``[H, action_dim +
+        obs_dim]``, what the RL wrapper and relabelling need; InvalidInput naming ``model``
+        otherwise."""
+        from relreward.errors import InvalidInput  # errors imports nothing from here
+
+        if self.reward is None:
+            raise InvalidInput(f"model: {self.name!r} is a {self.kind} model; a reward or discriminator is needed")
+        shape = tuple(self.item_shape or ())
+        if len(shape) != 2:
+            raise InvalidInput(f"model: {self.name!r} scores items of shape {list(shape)}, not trajectories "
+                               "[H, action_dim + obs_dim]")
+        return int(shape[0]), int(shape[1])
+
     @property
     def n_timesteps(self) -> int | None:
         """T, the number of diffusion steps (valid ``t``: 0 .. T-1), of any kind of model."""

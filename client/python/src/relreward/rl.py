@@ -85,13 +85,7 @@ class RewardWindows:
     def __init__(self, client: Client, model: str | Model, num_envs: int, *, t: int = 0,
                  mapping: RowMapping | None = None, window_value: bool = False, action_dim: int | None = None) -> None:
         record = model if isinstance(model, Model) else client.get_model(model)
-        if record.reward is None:
-            raise InvalidInput(f"model: {record.name!r} is a {record.kind} model; a reward or discriminator is needed")
-        shape = tuple(record.item_shape or ())
-        if len(shape) != 2:
-            raise InvalidInput(f"model: {record.name!r} scores items of shape {list(shape)}, not trajectories "
-                               "[H, action_dim + obs_dim]")
-        horizon, width = shape
+        horizon, width = record.trajectory_window()
         if action_dim is None:
             action_dim = _action_dim_of_base(client, record)
         if (isinstance(action_dim, bool) or not isinstance(action_dim, (int, np.integer))
