@@ -57,7 +57,8 @@ import numpy as np
 
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parents[1]
-sys.path.insert(0, str(HERE))  # generate.py, this script's sibling (as when run by path)
+# generate.py is this script's sibling: on sys.path when it runs by path (the tests' conftest
+# adds the folder).
 
 import generate  # noqa: E402  (gymnasium-robotics registered on import)
 

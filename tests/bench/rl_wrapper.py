@@ -190,8 +190,7 @@ def definitions(args: argparse.Namespace) -> None:
 def cost(args: argparse.Namespace) -> None:
     import torch
 
-    sys.path.insert(0, str(REPO / "bench/reference"))
-    from grpc_server import RewardModel  # the PyTorch reference network on relreward's weights
+    from relreward_dev.served import RewardModel  # the PyTorch reference network on relreward's weights
 
     torch.set_num_threads(1)
     started = time.time()

@@ -25,8 +25,9 @@ REPO = pathlib.Path(__file__).resolve().parents[3]
 BINARIES = Binaries.of_checkout(REPO)
 SERVER_BIN = BINARIES.server
 # Scripts the tests import: experiments/locomotion's (steer, planner, data, common, diagnose;
-# they import each other as siblings, as when run by path) and examples/'.
-for folder in ("experiments/locomotion", "examples"):
+# they import each other as siblings, as when run by path), experiments/pointmaze's (rl.py
+# imports generate.py) and examples/'.
+for folder in ("experiments/locomotion", "experiments/pointmaze", "examples"):
     sys.path.insert(0, str(REPO / folder))
 
 TINY_DIFFUSION_CONFIG = """[optimization]

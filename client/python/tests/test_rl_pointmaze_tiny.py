@@ -22,8 +22,7 @@ pytest.importorskip("gymnasium_robotics")
 
 
 def load_rl(monkeypatch):
-    # rl.py imports generate.py as its sibling, as when run by path.
-    monkeypatch.syspath_prepend(str(REPO / "experiments/pointmaze"))
+    # rl.py imports generate.py as its sibling (conftest puts experiments/pointmaze on the path).
     spec = importlib.util.spec_from_file_location("pointmaze_rl", REPO / "experiments/pointmaze/rl.py")
     mod = importlib.util.module_from_spec(spec)
     monkeypatch.setitem(sys.modules, spec.name, mod)  # dataclasses look their module up there

@@ -15,6 +15,8 @@ Module map:
   torch.nn, state-dict names as relreward's; ``item_shape`` of a manifest's space.
 - ``reward_nets``: the relative reward networks (windowed MLP, Diffuser's ValueFunction, the
   2D conv encoder, the flat MLP).
+- ``served``: a downloaded reward model as relreward serves it (network, normalizer, step
+  tables), for the reference server and the in-process comparisons.
 - ``unet2d``: diffusers' own UNet2DModel and DDPMScheduler configured as relreward's native
   Unet2d and linear schedule.
 - ``analytic``: the exact eps-model of Gaussian data, as a TorchScript-able module.
