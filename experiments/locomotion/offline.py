@@ -47,6 +47,7 @@ import torch
 
 import relreward
 from common import ENVS, PLANNERS, episodes, normalized_score, welch
+import steer  # the steering experiment whose reward and discriminator are relabelled
 
 ARMS = ("true", "rho", "discriminator", "constant")
 # IQL's D4RL locomotion recipe (Kostrikov et al. 2021, appendix; d3rlpy's reproductions/offline/iql.py):
@@ -73,11 +74,11 @@ class Config:
     eval_episodes: int = 10
     max_steps: int = 1000
     t: int = 0
-    # The reward's and the discriminator's training (steer.Config's defaults, so that a steering
-    # run's trained models, found by name on the same server data, are the ones relabelled).
-    reward_steps: int = 1500
-    disc_steps: int = 1500
-    widths: tuple = (32, 64, 128)
+    # The reward's and the discriminator's training: steer.Config's own defaults, so that a
+    # steering run's trained models, found by name on the same server data, are the ones relabelled.
+    reward_steps: int = steer.Config.reward_steps
+    disc_steps: int = steer.Config.disc_steps
+    widths: tuple = steer.Config.widths
     arms: tuple = ARMS
     log: Callable = field(default=print)
 
@@ -216,8 +217,6 @@ def table(env: str, summary: dict) -> str:
 
 
 def experiment(cfg: Config) -> dict:
-    import steer
-
     # One thread: on a shared 2-core machine torch's default pool contends with the server.
     torch.set_num_threads(1)
     cfg.work.mkdir(parents=True, exist_ok=True)

@@ -322,6 +322,11 @@ pub fn read_trajectories(source: &mut NpzSource, model: &str, horizon: u64, dim:
 
 /// The reward model's item shape, refusing diffusion models by name.
 pub async fn reward_input_shape(client: &Client, name: &str) -> Result<Vec<u64>> {
+    Ok(reward_info(client, name).await?.input_shape)
+}
+
+/// The reward model's record (item shape, T, ...), refusing diffusion models by name.
+pub async fn reward_info(client: &Client, name: &str) -> Result<pb::RewardInfo> {
     let model = client.get_model(name).await.with_context(|| format!("--model {name}"))?;
     match model.kind() {
         pb::ModelKind::Reward | pb::ModelKind::Discriminator => {}
@@ -331,7 +336,7 @@ pub async fn reward_input_shape(client: &Client, name: &str) -> Result<Vec<u64>>
         ),
         pb::ModelKind::Unspecified => bail!("--model {name}: the server did not say what kind of model this is"),
     }
-    Ok(model.reward.map(|r| r.input_shape).unwrap_or_default())
+    Ok(model.reward.unwrap_or_default())
 }
 
 /// Opens `--input`, asks the server for the model's item shape and loads the items.

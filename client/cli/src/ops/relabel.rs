@@ -22,7 +22,7 @@ use relreward_toolkit::npz_write::NpzWriter;
 use serde::Serialize;
 
 use super::Progress;
-use super::items::{Trajectories, batches, read_trajectories, reward_input_shape};
+use super::items::{Trajectories, batches, read_trajectories, reward_info};
 use super::scoring::floats;
 use crate::UsageError;
 
@@ -131,12 +131,12 @@ fn windows(traj: &Trajectories, first: &[usize], horizon: usize, range: Range<us
 /// Relabels `q.input` into `q.output` (see the module documentation).
 pub async fn relabel(client: &Client, progress: &dyn Progress, q: &RelabelQuery) -> Result<Relabelled> {
     check_paths(q)?;
-    let model = client.get_model(&q.model).await.with_context(|| format!("--model {}", q.model))?;
-    let input_shape = reward_input_shape(client, &q.model).await?;
+    let info = reward_info(client, &q.model).await?;
+    let input_shape = info.input_shape;
     let &[horizon, dim] = input_shape.as_slice() else {
         bail!("--model {}: takes items of shape {input_shape:?}, not [H, D] trajectory windows", q.model);
     };
-    let n_timesteps = model.reward.as_ref().map_or(0, |r| r.n_timesteps);
+    let n_timesteps = info.n_timesteps;
     if n_timesteps > 0 && q.t >= n_timesteps {
         bail!(UsageError(format!("--t {}: outside 0..{n_timesteps} (model '{}' has T = {n_timesteps})", q.t, q.model)));
     }
