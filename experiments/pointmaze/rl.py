@@ -76,12 +76,12 @@ class Config:
     goals: tuple[tuple[int, int], ...] = UMAZE_GOALS
     arms: tuple[str, ...] = ARMS
     seeds: int = 2
-    steps: int = 20_000
+    steps: int = 100_000
     n_envs: int = 4
     gradient_steps: int = 2
     learning_starts: int = 1_000
     batch_size: int = 256
-    net: tuple[int, ...] = (256, 256)
+    net: tuple[int, ...] = (64, 64)
     normalize: bool = True
     cap: int = generate.CAPS["umaze"]
     eval_episodes: int = 20
@@ -92,6 +92,7 @@ class Config:
     extract_size: str = "default"
     data_seed: int = 0
     torch_threads: int = 1
+    workers: int = 2
     log: Callable[[str], None] = field(default=print, repr=False)
 
 
@@ -112,9 +113,30 @@ def make_env(goal: tuple[int, int], cap: int):
                     reward_type="dense", max_episode_steps=cap)
 
 
-def prepare(cfg: Config, server) -> dict[tuple[int, int], dict[str, str]]:
+def prepare(cfg: Config, server) -> dict[tuple[int, int], dict[str, Any]]:
     """Data by generate.py and one `relreward extract --discriminator` over every goal's expert:
-    {goal: {"rho": reward model, "discriminator": model}}."""
+    {goal: {"rho": reward model, "discriminator": model, "sha256": {model: digest}, "extract": ...}}.
+
+    A finished extract is reused (WORK/prepare.json) when it was made from the same data settings
+    and goals and the server still holds its models unchanged (same sha256), so a run split across
+    sessions, or rerun for more seeds, trains every agent on the same rewards."""
+    import relreward
+    key = {k: getattr(cfg, k) for k in ("base_transitions", "expert_transitions", "extract_size", "data_seed")}
+    key["goals"] = [list(g) for g in cfg.goals]
+    done = cfg.work / "prepare.json"
+    if done.exists():
+        prev = json.loads(done.read_text())
+        client = relreward.Client(server.addr)
+        try:
+            same = prev["key"] == key and all(
+                client.get_model(name).sha256 == sha for m in prev["models"].values() for name, sha in m["sha256"].items())
+        except relreward.NotFound:  # a model is gone
+            same = False
+        finally:
+            client.close()
+        if same:
+            cfg.log("extract: reusing WORK/prepare.json (same data settings and goals, models unchanged)")
+            return {tuple(int(v) for v in g.split(",")): m for g, m in prev["models"].items()}
     data = cfg.work / "data"
     data.mkdir(parents=True, exist_ok=True)
     gen = [sys.executable, str(HERE / "generate.py"), "--maze", "umaze", "--variant", "d4rl"]
@@ -150,6 +172,14 @@ def prepare(cfg: Config, server) -> dict[tuple[int, int], dict[str, str]]:
                         "extract": {k: rw.get(k) for k in ("balanced_accuracy", "auc", "argmax_cell", "goal_recovered")}
                         | {"discriminator_auc": rw["discriminator"]["auc"],
                            "discriminator_balanced_accuracy": rw["discriminator"]["balanced_accuracy"]}}
+    client = relreward.Client(server.addr)
+    try:
+        for m in models.values():
+            m["sha256"] = {m[arm]: client.get_model(m[arm]).sha256 for arm in ("rho", "discriminator")}
+    finally:
+        client.close()
+    done.write_text(json.dumps({"key": key, "models": {f"{g[0]},{g[1]}": m for g, m in models.items()}}, indent=1)
+                    + "\n")
     return models
 
 
@@ -313,32 +343,123 @@ def plot(cfg: Config, runs: list[dict], path: Path) -> None:
     plt.close(fig)
 
 
+def run_file(cfg: Config, goal: tuple[int, int], arm: str, seed: int) -> Path:
+    return cfg.work / "runs" / f"{goal[0]}-{goal[1]}-{arm}-{seed}.json"
+
+
+def run_key(cfg: Config, goal: tuple[int, int], arm: str, seed: int, models: dict[str, Any]) -> dict:
+    """What makes one agent: the training and evaluation settings and the reward's exact weights."""
+    key = {k: getattr(cfg, k) for k in ("steps", "n_envs", "gradient_steps", "learning_starts", "batch_size", "net",
+                                        "normalize", "cap", "eval_episodes", "curve_episodes", "eval_every")}
+    key.update(goal=list(goal), arm=arm, seed=seed, net=list(cfg.net))
+    if arm in ("rho", "discriminator"):
+        key["reward_sha256"] = models["sha256"][models[arm]]
+    return key
+
+
+def run_agent(cfg: Config, addr: str, goal: tuple[int, int], arm: str, seed: int, models: dict[str, Any]) -> dict:
+    """Trains and evaluates one agent and records it in WORK/runs/ (written whole or not at all)."""
+    import relreward
+    client = relreward.Client(addr)
+    try:
+        run = train(cfg, client, goal, arm, seed, models)
+    finally:
+        client.close()
+    path = run_file(cfg, goal, arm, seed)
+    path.parent.mkdir(exist_ok=True)
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(json.dumps({"key": run_key(cfg, goal, arm, seed, models), "run": run}, indent=1) + "\n")
+    tmp.replace(path)
+    return run
+
+
+def finished_run(cfg: Config, goal: tuple[int, int], arm: str, seed: int, models: dict[str, Any]) -> dict | None:
+    path = run_file(cfg, goal, arm, seed)
+    if not path.exists():
+        return None
+    rec = json.loads(path.read_text())
+    return rec["run"] if rec["key"] == run_key(cfg, goal, arm, seed, models) else None
+
+
+def run_agents(cfg: Config, addr: str, models: dict, todo: list[tuple[tuple[int, int], str, int]]) -> None:
+    """Every agent of `todo`, cfg.workers at a time. With one worker they train in this process;
+    with more, each in a process of its own (`rl.py --worker SPEC`; its log in WORK/logs/), since
+    SAC's updates run on one core each and the machine's cores are otherwise idle."""
+    def report(goal, arm, seed, r):
+        cfg.log(f"goal {goal} {arm} seed {seed}: success {r['success']:.2f}, within {r['time_within']:.2f}, "
+                f"final distance {r['final_distance']:.2f} ({r['train_seconds']:.0f} s)")
+
+    if cfg.workers == 1:
+        for goal, arm, seed in todo:
+            report(goal, arm, seed, run_agent(cfg, addr, goal, arm, seed, models[goal]))
+        return
+    (cfg.work / "logs").mkdir(exist_ok=True)
+    spec_cfg = {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(cfg).items() if k != "log"}
+    pending, running = list(todo), {}
+    try:
+        while pending or running:
+            while pending and len(running) < cfg.workers:
+                goal, arm, seed = task = pending.pop(0)
+                name = f"{goal[0]}-{goal[1]}-{arm}-{seed}"
+                spec = cfg.work / "logs" / f"{name}.spec.json"
+                spec.write_text(json.dumps({"config": spec_cfg, "addr": addr, "goal": list(goal), "arm": arm,
+                                            "seed": seed, "models": models[goal]}))
+                log = open(cfg.work / "logs" / f"{name}.log", "w")
+                running[task] = (subprocess.Popen([sys.executable, str(Path(__file__).resolve()), "--worker",
+                                                   str(spec)], stdout=log, stderr=subprocess.STDOUT), log)
+            time.sleep(0.5)
+            for task, (proc, log) in list(running.items()):
+                if proc.poll() is None:
+                    continue
+                log.close()
+                del running[task]
+                goal, arm, seed = task
+                if proc.returncode != 0:
+                    tail = Path(log.name).read_text()[-3000:]
+                    raise RuntimeError(f"agent {task} failed (exit {proc.returncode}); {log.name}:\n{tail}")
+                report(goal, arm, seed, finished_run(cfg, goal, arm, seed, models[goal]))
+    finally:
+        for proc, log in running.values():
+            proc.kill()
+            proc.wait()
+            log.close()
+
+
 def experiment(cfg: Config, server) -> dict:
     """Every goal, arm and seed against `server` (a relreward_dev.launcher.Server: the CLI's
-    extract runs through it); writes and returns the results."""
-    import relreward
+    extract runs through it); writes and returns the results. Agents already recorded in
+    WORK/runs/ with the same settings and rewards are reused, not retrained."""
     cfg.work.mkdir(parents=True, exist_ok=True)
     t0 = time.time()
     models = prepare(cfg, server)
     prep_s = time.time() - t0
-    client = relreward.Client(server.addr)
-    runs = []
-    for goal in cfg.goals:
-        for arm in cfg.arms:
-            for seed in range(cfg.seeds):
-                r = train(cfg, client, goal, arm, seed, models[goal])
-                cfg.log(f"goal {goal} {arm} seed {seed}: success {r['success']:.2f}, within {r['time_within']:.2f}, "
-                        f"final distance {r['final_distance']:.2f} ({r['train_seconds']:.0f} s)")
-                runs.append(r)
+    tasks = [(goal, arm, seed) for goal in cfg.goals for seed in range(cfg.seeds) for arm in cfg.arms]
+    todo = [t for t in tasks if finished_run(cfg, *t, models[t[0]]) is None]
+    if len(todo) < len(tasks):
+        cfg.log(f"reusing {len(tasks) - len(todo)} agents recorded in WORK/runs/")
+    run_agents(cfg, server.addr, models, todo)
+    runs = [finished_run(cfg, goal, arm, seed, models[goal])
+            for goal in cfg.goals for arm in cfg.arms for seed in range(cfg.seeds)]
     result = {"config": {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(cfg).items() if k != "log"},
               "models": {f"{g[0]},{g[1]}": m for g, m in models.items()}, "prepare_seconds": prep_s,
-              "total_seconds": time.time() - t0, "runs": runs}
+              "trained_now": len(todo), "total_seconds": time.time() - t0, "runs": runs}
     (cfg.work / "results.json").write_text(json.dumps(result, indent=1) + "\n")
     (cfg.work / "curves.json").write_text(json.dumps(
         [{k: r[k] for k in ("goal", "arm", "seed", "curve")} for r in runs], indent=1) + "\n")
     plot(cfg, runs, cfg.work / "curves.png")
     (cfg.work / "results.md").write_text(table(cfg, runs))
     return result
+
+
+def worker(spec_path: Path) -> None:
+    """One agent, as run_agents' child process: the spec names the settings, server and reward."""
+    spec = json.loads(spec_path.read_text())
+    c = spec["config"]
+    c.update(work=Path(c["work"]), goals=tuple(tuple(g) for g in c["goals"]), arms=tuple(c["arms"]),
+             net=tuple(c["net"]))
+    cfg = Config(**c)
+    goal = tuple(spec["goal"])
+    run_agent(cfg, spec["addr"], goal, spec["arm"], spec["seed"], spec["models"])
 
 
 def parse_goal(s: str) -> tuple[int, int]:
@@ -354,6 +475,9 @@ def parse_goal(s: str) -> tuple[int, int]:
 
 
 def main() -> None:
+    if len(sys.argv) == 3 and sys.argv[1] == "--worker":
+        worker(Path(sys.argv[2]))
+        return
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     d = Config(work=Path("rl-pointmaze-out"))
     p.add_argument("--work", type=Path, default=d.work)
@@ -376,7 +500,9 @@ def main() -> None:
     p.add_argument("--expert-transitions", type=int, default=d.expert_transitions)
     p.add_argument("--extract-size", choices=("tiny", "default", "full"), default=d.extract_size)
     p.add_argument("--data-seed", type=int, default=d.data_seed)
-    p.add_argument("--torch-threads", type=int, default=d.torch_threads, help="SAC's torch threads")
+    p.add_argument("--torch-threads", type=int, default=d.torch_threads, help="SAC's torch threads per agent")
+    p.add_argument("--workers", type=int, default=d.workers,
+                   help="agents trained at once, each in its own process (1: in this process)")
     a = vars(p.parse_args())
     a["goals"] = tuple(a["goals"])
     for arm in a["arms"]:
@@ -385,7 +511,7 @@ def main() -> None:
     if len(set(a["goals"])) < len(a["goals"]):
         p.error(f"--goals: a goal is named twice in {a['goals']}")
     for k in ("seeds", "steps", "n_envs", "gradient_steps", "batch_size", "cap", "eval_episodes", "curve_episodes",
-              "eval_every", "base_transitions", "expert_transitions", "torch_threads"):
+              "eval_every", "base_transitions", "expert_transitions", "torch_threads", "workers"):
         if a[k] < 1:
             p.error(f"--{k.replace('_', '-')}: {a[k]} is not a positive integer")
     if a["learning_starts"] < 0 or min(a["net"]) < 1:

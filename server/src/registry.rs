@@ -39,6 +39,7 @@ use tch::Device;
 use crate::config::ModelsConfig;
 use crate::engine::denoiser::{Denoiser, ValidationProbe};
 use crate::engine::diffusion::DiffusionModel;
+use crate::engine::export;
 use crate::engine::manifest::DiffusionManifest;
 use crate::engine::nets::NativeDenoiser;
 use crate::engine::relative_reward::RewardManifest;
@@ -432,6 +433,38 @@ fn kind_name(kind: ModelKind) -> &'static str {
 pub fn load_diffusion_copy(record: &ModelRecord, dir: &Path, device: Device) -> Result<DiffusionModel> {
     let (model, _) = build_diffusion(record, dir, device)?;
     Ok(model)
+}
+
+/// A stored native model traced into a TorchScript module at `out` (blocking; on the CPU,
+/// from a private copy: nothing served is locked meanwhile). See [`crate::engine::export`] for
+/// what the module computes. A TorchScript diffusion model is refused: its stored file is
+/// already the module.
+pub fn export_torchscript(record: &ModelRecord, dir: &Path, out: &Path) -> Result<()> {
+    let (path, _) = verified_file(record, dir)?;
+    match (record.kind, record.format) {
+        (_, ModelFormat::Torchscript) => Err(Error::FailedPrecondition(format!(
+            "torchscript: model '{}' is stored as TorchScript already; its module.pt is the export",
+            record.name
+        ))),
+        (ModelKind::Reward | ModelKind::Discriminator, ModelFormat::Native) => {
+            let manifest: RewardManifest = serde_json::from_value(record.manifest.clone())
+                .map_err(|e| lost(record, format!("its stored manifest is unreadable: {e}")))?;
+            let mut model = RewardModel::load(manifest, &path, dir, Device::Cpu)?;
+            model.freeze();
+            export::trace_reward(&model, out)
+        }
+        (ModelKind::Diffusion, ModelFormat::Native) => {
+            let manifest: DiffusionManifest = serde_json::from_value(record.manifest.clone())
+                .map_err(|e| lost(record, format!("its stored manifest is unreadable: {e}")))?;
+            let arch = manifest.architecture.as_ref().ok_or_else(|| {
+                lost(record, "its stored manifest names no architecture (native models need one)".into())
+            })?;
+            let mut net = NativeDenoiser::load(arch, &manifest.space, &path, Device::Cpu)?;
+            net.freeze();
+            let item_shape = net.item_shape().to_vec();
+            export::trace_denoiser(&net, &item_shape, manifest.n_timesteps, out)
+        }
+    }
 }
 
 /// The stored file of `record`, checked against its recorded sha256; returns its path and size.

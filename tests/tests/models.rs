@@ -254,7 +254,7 @@ async fn download_returns_the_stored_files() {
     assert_eq!(std::fs::read(dir.join("module.pt")).expect("module"), gaussian);
 
     // Unknown and malformed names.
-    let req = |name: &str| pb::DownloadModelRequest { name: name.into() };
+    let req = |name: &str| pb::DownloadModelRequest { name: name.into(), ..Default::default() };
     let err = client.models().download_model(req("no-such-model")).await.expect_err("unknown");
     assert_eq!(err.code(), Code::NotFound);
     assert!(err.message().starts_with("name:") && err.message().contains("'no-such-model'"), "{}", err.message());

@@ -140,9 +140,12 @@ async fn call(client: &Client, rpc: Rpc, who: &str) -> Code {
         Rpc::UploadDataset => code(upload(client, &format!("up-{who}")).await),
         Rpc::DeleteMissingDataset => code(client.delete_dataset(MISSING).await),
         Rpc::GetMissingModel => code(client.get_model(MISSING).await),
-        Rpc::DownloadMissingModel => {
-            status_code(client.models().download_model(pb::DownloadModelRequest { name: MISSING.into() }).await)
-        }
+        Rpc::DownloadMissingModel => status_code(
+            client
+                .models()
+                .download_model(pb::DownloadModelRequest { name: MISSING.into(), ..Default::default() })
+                .await,
+        ),
         Rpc::UploadModelBadName => {
             let header = pb::UploadModelHeader { name: "Not A Name".into(), ..Default::default() };
             let msg = pb::UploadModelRequest { message: Some(pb::upload_model_request::Message::Header(header)) };

@@ -34,8 +34,28 @@ impl Client {
         dir: &Path,
         overwrite: bool,
     ) -> Result<DownloadedModel, ClientError> {
-        let stream = self.models().download_model(pb::DownloadModelRequest { name: name.to_owned() }).await?;
-        receive(stream.into_inner(), name, dir, overwrite).await
+        self.fetch_model(pb::DownloadModelRequest { name: name.to_owned(), torchscript: false }, dir, overwrite).await
+    }
+
+    /// [`Client::download_model`] plus the model as a TorchScript module, `module.pt`, traced
+    /// by the server (see `DownloadModelRequest.torchscript`): for a reward or discriminator
+    /// `forward(x raw, t) -> rho`, Score's values; for a native diffusion model the denoiser
+    /// over normalized inputs. What a PyTorch user loads with `torch.jit.load`, beside the
+    /// safetensors weights and `manifest.json`. A model stored as TorchScript is refused
+    /// (FAILED_PRECONDITION): download it instead.
+    pub async fn export_model(&self, name: &str, dir: &Path, overwrite: bool) -> Result<DownloadedModel, ClientError> {
+        self.fetch_model(pb::DownloadModelRequest { name: name.to_owned(), torchscript: true }, dir, overwrite).await
+    }
+
+    async fn fetch_model(
+        &self,
+        req: pb::DownloadModelRequest,
+        dir: &Path,
+        overwrite: bool,
+    ) -> Result<DownloadedModel, ClientError> {
+        let name = req.name.clone();
+        let stream = self.models().download_model(req).await?;
+        receive(stream.into_inner(), &name, dir, overwrite).await
     }
 }
 

@@ -102,6 +102,7 @@ def test_no_public_method_returns_a_protobuf_message(client, server, tiny, finis
             "list_models": lambda c: c.list_models(),
             "delete_model": lambda c: c.delete_model(f"py-walk-{tag}"),
             "download_model": lambda c: c.download_model(tiny.reward, tmp_path / f"rw-{tag}"),
+            "export_model": lambda c: c.export_model(tiny.reward, tmp_path / f"rw-export-{tag}"),
             "submit_job": lambda c: c.submit_job(long_job, job_id=f"py-walk-{tag}"),
             "cancel_job": lambda c: c.cancel_job(f"py-walk-{tag}"),
             "get_job": lambda c: c.get_job(finished.id),

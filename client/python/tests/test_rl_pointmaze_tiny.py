@@ -7,6 +7,7 @@ outputs hold what the experiment reports.
 
 from __future__ import annotations
 
+import dataclasses
 import importlib.util
 import json
 import math
@@ -38,8 +39,9 @@ def test_tiny_pointmaze_rl_runs_every_arm_and_writes_its_table(server, tmp_path,
     cfg = rl.Config(work=tmp_path / "work", goals=(goal,), seeds=1, steps=240, n_envs=2, gradient_steps=1,
                     learning_starts=100, batch_size=32, net=(16, 16), cap=40, eval_episodes=3, curve_episodes=1,
                     eval_every=120, base_transitions=1500, expert_transitions=600, extract_size="tiny",
-                    log=lambda s: None)
+                    workers=2, log=lambda s: None)
     result = rl.experiment(cfg, server)
+    assert result["trained_now"] == 4
 
     runs = {r["arm"]: r for r in result["runs"]}
     assert sorted(runs) == sorted(rl.ARMS)
@@ -77,3 +79,11 @@ def test_tiny_pointmaze_rl_runs_every_arm_and_writes_its_table(server, tmp_path,
     with Image.open(work / "curves.png") as im:
         im.load()
         assert im.size[0] > 100
+
+    # A rerun in the same WORK (a run split across sessions) reuses the extract and every
+    # recorded agent; a changed setting retrains.
+    logs: list[str] = []
+    again = rl.experiment(dataclasses.replace(cfg, log=logs.append), server)
+    assert any("reusing WORK/prepare.json" in line for line in logs), logs
+    assert again["trained_now"] == 0 and again["models"] == result["models"] and again["runs"] == result["runs"]
+    assert rl.finished_run(dataclasses.replace(cfg, steps=250), goal, "rho", 0, result["models"]["3,1"]) is None

@@ -25,7 +25,9 @@
 //! before a byte leaves), then one `header` (the record, the stored manifest as JSON, each
 //! file's name, size and sha256) and the files' bytes in chunks bounded by
 //! `server.max_response_bytes`. The files are opened before the header is sent, so a model
-//! deleted meanwhile still streams whole (its blob is immutable until removed).
+//! deleted meanwhile still streams whole (its blob is immutable until removed). With
+//! `torchscript` (the export), the stored native network is traced into a module on a blocking
+//! thread (`registry::export_torchscript`, `engine::export`) and sent as a last file.
 
 use std::path::Path;
 use std::pin::Pin;
@@ -264,14 +266,19 @@ impl Models {
         Ok(pb::ListModelsResponse { models, next_page_token })
     }
 
-    /// The header of a download and its files, opened (see the module doc).
-    async fn download(&self, name: &str) -> Result<(pb::DownloadModelHeader, Vec<(std::fs::File, u64)>)> {
+    /// The header of a download and its files, opened (see the module doc); with
+    /// `torchscript`, the traced module last.
+    async fn download(
+        &self,
+        name: &str,
+        torchscript: bool,
+    ) -> Result<(pb::DownloadModelHeader, Vec<(std::fs::File, u64)>)> {
         validate_name("name", name)?;
         let not_found = || Error::NotFound(format!("name: model '{name}' not found"));
         let record = self.store.meta.get_model(name).await?.ok_or_else(not_found)?;
         let dir = self.store.blobs.local_dir(&record.blob_key).await?;
-        let files = tokio::task::block_in_place(|| stored_files(&record, &dir))?;
-        let mut opened = Vec::with_capacity(files.len());
+        let mut files = tokio::task::block_in_place(|| stored_files(&record, &dir))?;
+        let mut opened = Vec::with_capacity(files.len() + 1);
         for file in &files {
             match std::fs::File::open(dir.join(&file.name)) {
                 Ok(f) => opened.push((f, file.size_bytes)),
@@ -279,6 +286,18 @@ impl Models {
                 Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Err(not_found()),
                 Err(e) => return Err(e.into()),
             }
+        }
+        if torchscript {
+            // Traced into a staging directory that is removed on return: the open file stays
+            // readable until the stream has sent it, and nothing is left on disk.
+            let staging = self.store.blobs.staging()?;
+            let path = staging.path().join(MODULE_FILE);
+            let (sha256, size_bytes) = tokio::task::block_in_place(|| -> Result<_> {
+                crate::registry::export_torchscript(&record, &dir, &path)?;
+                Ok(digests::sha256_file(&path)?)
+            })?;
+            opened.push((std::fs::File::open(&path)?, size_bytes));
+            files.push(pb::ModelFile { name: MODULE_FILE.into(), size_bytes, sha256 });
         }
         let manifest_json = serde_json::to_string_pretty(&record.manifest)
             .map_err(|e| Error::internal("encoding the stored manifest", e))?;
@@ -434,7 +453,8 @@ impl ModelService for Models {
         &self,
         request: Request<pb::DownloadModelRequest>,
     ) -> Result<Response<Self::DownloadModelStream>, Status> {
-        let (header, files) = self.download(&request.into_inner().name).await?;
+        let req = request.into_inner();
+        let (header, files) = self.download(&req.name, req.torchscript).await?;
         Ok(Response::new(download_stream(header, files, self.chunk_bytes)))
     }
 }

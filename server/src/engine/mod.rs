@@ -24,10 +24,12 @@
 //!   denoiser, validated against its manifest by one forward pass.
 //! - [`reward_model`]: [`reward_model::RewardModel`], a stored reward as served: rho over
 //!   normalized inputs (with Algorithm 2's per-step standardisation), its gradient.
+//! - [`export`]: a stored native network traced into a TorchScript module for PyTorch users.
 
 pub mod data;
 pub mod denoiser;
 pub mod diffusion;
+pub mod export;
 pub mod manifest;
 pub mod nets;
 pub mod normalizer;

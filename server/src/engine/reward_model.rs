@@ -87,6 +87,12 @@ impl RewardModel {
         self.net.parameter_count()
     }
 
+    /// The weights stop requiring gradients (a copy that is only evaluated and traced; the
+    /// input gradient is unaffected).
+    pub fn freeze(&mut self) {
+        self.net.weights_mut().var_store_mut().freeze();
+    }
+
     /// rho's input: `x` itself, or standardised per step for Algorithm 2 rewards.
     fn input(&self, x: &Tensor, t: &Tensor) -> Result<Tensor> {
         match &self.step_norm {

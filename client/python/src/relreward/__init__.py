@@ -7,7 +7,10 @@
         grad, rho = client.gradient(model.name, x, t=model.n_timesteps - 1)
 
 See :class:`Client` (and :class:`AsyncClient` for asyncio), :mod:`relreward.results` for what
-they return, :mod:`relreward.guide` for a drop-in value guide for Diffuser-style planners, and
+they return, :mod:`relreward.guide` for a drop-in value guide for Diffuser-style planners,
+:mod:`relreward.tracking` for a training job's events as TensorBoard event files and a W&B
+offline run (imported on its own, ``from relreward.tracking import follow``, so that
+``python -m relreward.tracking`` runs it as a script; it needs the ``tensorboard`` extra), and
 docs/python.md.
 """
 

@@ -304,12 +304,14 @@ def delete_model(cfg: Any, name: str) -> Plan[None]:
     yield from write("DeleteModel", models_pb2.DeleteModelRequest(name=c.text("name", name)), cfg)
 
 
-def download_model(cfg: Any, name: str, out_dir: str | pathlib.Path, overwrite: bool) -> Plan[DownloadedModel]:
+def download_model(cfg: Any, name: str, out_dir: str | pathlib.Path, overwrite: bool,
+                   torchscript: bool = False) -> Plan[DownloadedModel]:
     """Not retried (a long stream); the files go in place only once every one arrived whole
-    (:class:`relreward._download.ModelDownload`)."""
+    (:class:`relreward._download.ModelDownload`). ``torchscript``: the export (the server
+    traces the model and sends ``module.pt`` last)."""
     download = ModelDownload(c.text("name", name), out_dir, overwrite)
     try:
-        yield Open("DownloadModel", models_pb2.DownloadModelRequest(name=name), cfg.timeout)
+        yield Open("DownloadModel", models_pb2.DownloadModelRequest(name=name, torchscript=torchscript), cfg.timeout)
         while (message := (yield NEXT)) is not None:
             download.feed(message)
         got = download.finish()

@@ -46,6 +46,12 @@ class DownloadedModel:
     files: tuple[pathlib.Path, ...]
     manifest_path: pathlib.Path
 
+    @property
+    def module(self) -> pathlib.Path | None:
+        """The TorchScript module (``module.pt``): an export's traced module, or a TorchScript
+        model's stored file; None for a plain download of native weights."""
+        return next((f for f in self.files if f.name == "module.pt"), None)
+
 
 def _plain(name: str) -> bool:
     return bool(name) and name not in (".", "..", MANIFEST_FILE) and not any(ch in name for ch in "/\\\0")

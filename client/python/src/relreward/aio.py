@@ -195,6 +195,11 @@ class AsyncClient:
                              ) -> DownloadedModel:
         return await self._run(calls.download_model(self, name, out_dir, overwrite))
 
+    @_doc(Client.export_model, "files are written on the event loop's thread as chunks arrive.")
+    async def export_model(self, name: str, out_dir: str | pathlib.Path, *, overwrite: bool = False
+                           ) -> DownloadedModel:
+        return await self._run(calls.download_model(self, name, out_dir, overwrite, torchscript=True))
+
     # jobs
     @_doc(Client.submit_job)
     async def submit_job(self, spec: Any, job_id: str | None = None) -> Job:

@@ -222,6 +222,31 @@ class Client:
         """
         return self._run(calls.download_model(self, name, out_dir, overwrite))
 
+    def export_model(self, name: str, out_dir: str | pathlib.Path, *, overwrite: bool = False
+                     ) -> DownloadedModel:
+        """:meth:`download_model` plus the model as a TorchScript module, ``module.pt``
+        (``.module``), traced by the server from the stored weights, which
+        ``torch.jit.load`` runs with no relreward code:
+
+        - a reward or discriminator: ``forward(x, t) -> rho``, ``x`` float32
+          ``[B, *item_shape]`` in the dataset's **raw** units (the normalizer is inside), ``t``
+          int64 ``[B]``, rho float32 ``[B]``: :meth:`score`'s values, and
+          ``torch.autograd.grad`` through it gives :meth:`gradient`'s (``units="raw"``);
+        - a native diffusion model: ``forward(x, t) -> eps`` (or x0, as the manifest's
+          ``parametrization`` says) over **normalized** inputs, the form a TorchScript upload
+          takes.
+
+        The safetensors weights and ``manifest.json`` come as with :meth:`download_model`, for
+        rebuilding the net in PyTorch. A model stored as TorchScript already raises
+        FailedPrecondition (its ``module.pt`` is the export: download it).
+
+            got = client.export_model("maze-reward", "out/maze-reward")
+            rho = torch.jit.load(got.module)
+            x = torch.zeros(1, *got.model.item_shape, requires_grad=True)
+            grad, = torch.autograd.grad(rho(x, torch.zeros(1, dtype=torch.long)).sum(), x)
+        """
+        return self._run(calls.download_model(self, name, out_dir, overwrite, torchscript=True))
+
     # ----------------------------------------------------------------------------------------
     # jobs
 

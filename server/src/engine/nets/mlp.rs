@@ -94,9 +94,9 @@ impl MlpDenoiser {
 
     /// `x`: float [B, *shape] with prod(shape) = n; `t`: float [B]. Returns x's shape.
     pub fn forward(&self, x: &Tensor, t: &Tensor) -> Result<Tensor> {
+        // Batch-agnostic shapes (flatten / unflatten): a traced export serves any batch size.
         let shape = x.size();
-        let batch = shape.first().copied().unwrap_or(0);
-        let flat = x.f_reshape([batch, self.features])?;
+        let flat = x.f_flatten(1, -1)?;
         let mut h = Tensor::f_cat(&[&flat, &self.time_mlp.forward(t, Mish::Fused)?], 1)?;
         let last = self.layers.len().saturating_sub(1);
         for (i, layer) in self.layers.iter().enumerate() {
@@ -105,6 +105,6 @@ impl MlpDenoiser {
                 h = Mish::Fused.forward(&h)?;
             }
         }
-        Ok(h.f_reshape(shape)?)
+        Ok(h.f_unflatten(1, &shape[1..])?)
     }
 }

@@ -186,6 +186,11 @@ impl NativeDenoiser {
         &self.weights
     }
 
+    /// The weights stop requiring gradients (a copy that is only evaluated and traced).
+    pub fn freeze(&mut self) {
+        self.weights.var_store_mut().freeze();
+    }
+
     pub fn architecture(&self) -> &Architecture {
         &self.architecture
     }

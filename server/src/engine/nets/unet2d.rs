@@ -278,19 +278,20 @@ impl Attention {
     }
 
     fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        // No size here names the batch (flatten and unflatten keep it), so a traced export of
+        // the net (`engine::export`) serves any batch size.
         let size = x.size();
-        let (b, c, hw) = (size[0], size[1], size[2] * size[3]);
         // [B, HW, C]: one token per position.
-        let h = self.group_norm.forward(x)?.f_reshape([b, c, hw])?.f_transpose(1, 2)?;
+        let h = self.group_norm.forward(x)?.f_flatten(2, 3)?.f_transpose(1, 2)?;
         let split =
-            |t: Tensor| -> Result<Tensor> { Ok(t.f_reshape([b, hw, self.heads, self.head_dim])?.f_transpose(1, 2)?) };
+            |t: Tensor| -> Result<Tensor> { Ok(t.f_unflatten(2, [self.heads, self.head_dim])?.f_transpose(1, 2)?) };
         let q = split(self.to_q.forward(&h)?)?;
         let k = split(self.to_k.forward(&h)?)?;
         let v = split(self.to_v.forward(&h)?)?;
         let scores = q.f_matmul(&k.f_transpose(-1, -2)?)?.f_mul_scalar(1.0 / (self.head_dim as f64).sqrt())?;
         let attended = scores.f_softmax(-1, Kind::Float)?.f_matmul(&v)?;
-        let merged = attended.f_transpose(1, 2)?.f_reshape([b, hw, c])?;
-        let out = self.to_out.forward(&merged)?.f_transpose(1, 2)?.f_reshape([b, c, size[2], size[3]])?;
+        let merged = attended.f_transpose(1, 2)?.f_flatten(2, 3)?;
+        let out = self.to_out.forward(&merged)?.f_transpose(1, 2)?.f_unflatten(2, [size[2], size[3]])?;
         Ok(out.f_add(x)?)
     }
 }

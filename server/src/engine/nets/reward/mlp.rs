@@ -32,7 +32,7 @@ impl MlpPlan {
     }
 
     pub(super) fn build(&self, root: &nn::Path) -> Result<MlpNet> {
-        Ok(MlpNet { features: self.features, head: MlpHead::new(root, self.features, &self.hidden)? })
+        Ok(MlpNet { head: MlpHead::new(root, self.features, &self.hidden)? })
     }
 }
 
@@ -62,11 +62,12 @@ impl MlpHead {
     /// sharing its time embedding).
     pub(super) fn forward(&self, features: &Tensor, t: &Tensor, mish: Mish) -> Result<Tensor> {
         let size = features.size();
-        let (batch, rows) = match size.as_slice() {
-            &[batch, rows, _] => (batch, rows),
+        let rows = match size.as_slice() {
+            &[_, rows, _] => rows,
             other => return Err(Error::internal("reward MLP", format!("features of shape {other:?}"))),
         };
-        let t_emb = self.time_mlp.forward(t, mish)?.f_unsqueeze(1)?.f_expand([batch, rows, MLP_TIME_DIM], false)?;
+        // -1 keeps the batch: no size in a traced export names it (`engine::export`).
+        let t_emb = self.time_mlp.forward(t, mish)?.f_unsqueeze(1)?.f_expand([-1, rows, MLP_TIME_DIM], false)?;
         let mut h = Tensor::f_cat(&[features, &t_emb], 2)?;
         let last = self.layers.len().saturating_sub(1);
         for (i, layer) in self.layers.iter().enumerate() {
@@ -82,14 +83,12 @@ impl MlpHead {
 /// The flat MLP over samples [B, *shape].
 #[derive(Debug)]
 pub(super) struct MlpNet {
-    features: i64,
     head: MlpHead,
 }
 
 impl MlpNet {
     pub(super) fn forward(&self, x: &Tensor, t: &Tensor, mish: Mish) -> Result<Tensor> {
-        let batch = x.size().first().copied().unwrap_or(0);
-        let flat = x.f_reshape([batch, 1, self.features])?;
+        let flat = x.f_flatten(1, -1)?.f_unsqueeze(1)?;
         Ok(self.head.forward(&flat, t, mish)?.f_squeeze_dim(1)?)
     }
 

@@ -150,7 +150,6 @@ impl ValueFunctionNet {
 
     /// `x`: [B, H, D], `t`: float [B] -> [B].
     pub(super) fn forward(&self, x: &Tensor, t: &Tensor, mish: Mish) -> Result<Tensor> {
-        let batch = x.size().first().copied().unwrap_or(0);
         let mut x = x.f_permute([0, 2, 1])?;
         let t_emb = self.time_mlp.forward(t, mish)?;
         for level in &self.levels {
@@ -160,7 +159,7 @@ impl ValueFunctionNet {
         }
         x = self.mid_down1.forward(&self.mid_block1.forward(&x, &t_emb, mish)?)?;
         x = self.mid_down2.forward(&self.mid_block2.forward(&x, &t_emb, mish)?)?;
-        let flat = x.f_reshape([batch, -1])?;
+        let flat = x.f_flatten(1, -1)?;
         let h = self.final_first.forward(&Tensor::f_cat(&[&flat, &t_emb], 1)?)?;
         Ok(self.final_second.forward(&mish.forward(&h)?)?.f_squeeze_dim(1)?)
     }

@@ -67,28 +67,24 @@ pub(super) struct WindowedMlpNet {
 impl WindowedMlpNet {
     /// [B, H / h]: one value per non-overlapping window.
     pub(super) fn per_window(&self, x: &Tensor, t: &Tensor, mish: Mish) -> Result<Tensor> {
-        let batch = x.size().first().copied().unwrap_or(0);
-        let windows = x.f_reshape([batch, self.horizon / self.window, self.window * self.transition_dim])?;
+        // [B, H, D] -> [B, H / h, h, D] -> [B, H / h, h D]; no size names the batch, so a traced
+        // export (`engine::export`) serves any batch size.
+        let windows = x.f_unflatten(1, [self.horizon / self.window, self.window])?.f_flatten(2, 3)?;
         self.head.forward(&windows, t, mish)
     }
 
     /// [B, H]: one value per stride-1 window starting at each step, the end padded by
     /// repeating the last row.
     pub(super) fn per_step(&self, x: &Tensor, t: &Tensor, mish: Mish) -> Result<Tensor> {
-        let batch = x.size().first().copied().unwrap_or(0);
         let padded = if self.window > 1 {
             let last =
-                x.f_narrow(1, self.horizon - 1, 1)?.f_expand([batch, self.window - 1, self.transition_dim], false)?;
+                x.f_narrow(1, self.horizon - 1, 1)?.f_expand([-1, self.window - 1, self.transition_dim], false)?;
             Tensor::f_cat(&[x, &last], 1)?
         } else {
             x.shallow_clone()
         };
         // [B, H, D, h] -> [B, H, h, D] -> [B, H, h D] (rows of each window in order).
-        let windows = padded.f_unfold(1, self.window, 1)?.f_permute([0, 1, 3, 2])?.f_reshape([
-            batch,
-            self.horizon,
-            self.window * self.transition_dim,
-        ])?;
+        let windows = padded.f_unfold(1, self.window, 1)?.f_permute([0, 1, 3, 2])?.f_flatten(2, 3)?;
         self.head.forward(&windows, t, mish)
     }
 
