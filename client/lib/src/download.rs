@@ -19,6 +19,8 @@ use crate::client::{Client, ClientError};
 
 /// Where the stored manifest goes, beside the files.
 pub const MANIFEST_FILE: &str = "manifest.json";
+/// The traced TorchScript module an export adds.
+pub const EXPORT_FILE: &str = "module.pt";
 
 impl Client {
     /// Downloads model `name` into `dir` (created if missing): its files under their stored
@@ -44,7 +46,18 @@ impl Client {
     /// safetensors weights and `manifest.json`. A model stored as TorchScript is refused
     /// (FAILED_PRECONDITION): download it instead.
     pub async fn export_model(&self, name: &str, dir: &Path, overwrite: bool) -> Result<DownloadedModel, ClientError> {
-        self.fetch_model(pb::DownloadModelRequest { name: name.to_owned(), torchscript: true }, dir, overwrite).await
+        let got = self
+            .fetch_model(pb::DownloadModelRequest { name: name.to_owned(), torchscript: true }, dir, overwrite)
+            .await?;
+        // A server from before the export ignores the request's `torchscript` and sends a
+        // plain download: say so rather than report an export without its module.
+        if !got.files.iter().any(|f| f.file_name().is_some_and(|n| n == EXPORT_FILE)) {
+            return Err(ClientError::Invalid(format!(
+                "the server sent no {EXPORT_FILE} (it predates model export); the plain download is in {}",
+                dir.display()
+            )));
+        }
+        Ok(got)
     }
 
     async fn fetch_model(

@@ -26,8 +26,13 @@
 //!   recovery) and its PNG pictures.
 //! - [`diffuser_import`]: a Diffuser `TemporalUnet` state_dict (exported to `.npz`) checked
 //!   against the architecture and written as native safetensors weights (`model import`).
+//! - [`diffusers_import`]: a folder written by diffusers' `save_pretrained` (`UNet1DModel` in
+//!   Diffuser's TemporalUnet configuration, or `UNet2DModel`, with its `DDPMScheduler`), found
+//!   by path or in the local Hugging Face cache, checked and converted into native weights and
+//!   a manifest (`model import DIR|ORG/NAME`).
 
 pub mod diffuser_import;
+pub mod diffusers_import;
 pub mod episodes;
 pub mod eval;
 #[cfg(feature = "hdf5")]

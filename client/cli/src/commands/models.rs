@@ -12,6 +12,8 @@ use relreward_client::pb;
 use serde_json::{Value, json};
 use tokio::sync::oneshot;
 
+use relreward_toolkit::diffuser_import::{NamedTensor, write_safetensors};
+
 use super::manifest::{self, architecture_text, manifest_json, parametrization_name, schedule_text, space_text};
 use super::output::{
     byte_progress_bar, drive_progress, eprint_line, fmt_short, human_bytes, key_values, normalizer_json,
@@ -24,9 +26,12 @@ pub enum ModelCommand {
     /// Register a diffusion model with its manifest: a TorchScript module, or native safetensors
     /// weights when the manifest names an `architecture`.
     Upload(ModelUploadArgs),
-    /// Convert a Diffuser TemporalUnet state_dict (exported to .npz) into native weights
-    /// (safetensors), checking every tensor against the architecture; runs locally.
-    Import(ModelImportArgs),
+    /// Convert a model into native weights (safetensors), checking every tensor: a Diffuser
+    /// TemporalUnet state_dict exported to .npz, or a folder written by diffusers'
+    /// save_pretrained (UNet1DModel, UNet2DModel), by path or by repository id in the local
+    /// Hugging Face cache; runs locally (nothing is downloaded) unless --name.
+    // Boxed: its many flags would make every other variant as large.
+    Import(Box<ModelImportArgs>),
     /// List models (every kind unless --kind).
     List {
         #[arg(long, value_enum)]
@@ -37,6 +42,10 @@ pub enum ModelCommand {
     /// Download a model's files (TorchScript module or safetensors weights, and any that
     /// belong with them) and its manifest as manifest.json, each checked against its sha256.
     Download(ModelDownloadArgs),
+    /// Download plus module.pt, the model traced as TorchScript by the server: a reward's
+    /// forward(x in raw units, t) -> rho (Score's values; autograd gives Gradient's), a native
+    /// diffusion model's denoiser over normalized inputs. Loads with torch.jit.load.
+    Export(ModelDownloadArgs),
     /// Delete a model (refused while a job uses it).
     Delete { name: String },
 }
@@ -57,25 +66,19 @@ pub struct ModelUploadArgs {
     description: String,
 }
 
+/// `model import`: the source decides the form. A file is a `.npz` state_dict (the flags under
+/// "Diffuser .npz"); a directory, or a repository id found in the local Hugging Face cache, is a
+/// diffusers folder (the flags under "diffusers folder"), whose config.json and
+/// scheduler_config.json give the architecture and the manifest.
 #[derive(Debug, Args)]
 pub struct ModelImportArgs {
-    /// The state_dict as .npz, one array per tensor name:
-    /// `np.savez(path, **{k: v.cpu().numpy() for k, v in model.state_dict().items()})`.
-    file: PathBuf,
-    /// The model's manifest (TOML or JSON); its trajectory space gives the horizon and the
-    /// transition dim (action_dim + obs_dim). An `architecture` in it must agree with the flags.
-    #[arg(long, value_name = "MANIFEST.toml|json")]
-    manifest: PathBuf,
-    /// TemporalUnet `dim` (Diffuser's `model.dim`).
-    #[arg(long)]
-    dim: u64,
-    /// TemporalUnet `dim_mults`, comma separated (Diffuser's `model.dim_mults`).
-    #[arg(long, value_delimiter = ',', required = true)]
-    dim_mults: Vec<u64>,
-    /// Keep only tensors under this prefix and strip it: `model.` for a GaussianDiffusion
-    /// state_dict (Diffuser's checkpoints hold `model` and `ema`, each one of these).
-    #[arg(long, default_value = "")]
-    prefix: String,
+    /// A Diffuser state_dict as .npz (`np.savez(path, **{k: v.cpu().numpy() for k, v in
+    /// model.state_dict().items()})`); or a folder written by diffusers' save_pretrained
+    /// (config.json, diffusion_pytorch_model.safetensors, scheduler/scheduler_config.json; or a
+    /// pipeline's unet/ and scheduler/); or the repository id of such a folder in the local
+    /// Hugging Face cache ($HF_HOME/hub; nothing is downloaded).
+    #[arg(value_name = "FILE.npz|DIR|ORG/NAME")]
+    source: String,
     /// Where to write the native weights (safetensors, relreward's tensor names).
     #[arg(long, value_name = "WEIGHTS.safetensors")]
     out: PathBuf,
@@ -86,6 +89,51 @@ pub struct ModelImportArgs {
     /// The registered model's description (with --name).
     #[arg(long, default_value = "", requires = "name")]
     description: String,
+
+    /// The model's manifest (TOML or JSON); its trajectory space gives the horizon and the
+    /// transition dim (action_dim + obs_dim). An `architecture` in it must agree with the flags.
+    #[arg(long, value_name = "MANIFEST.toml|json", help_heading = "Diffuser .npz")]
+    manifest: Option<PathBuf>,
+    /// TemporalUnet `dim` (Diffuser's `model.dim`).
+    #[arg(long, help_heading = "Diffuser .npz")]
+    dim: Option<u64>,
+    /// TemporalUnet `dim_mults`, comma separated (Diffuser's `model.dim_mults`).
+    #[arg(long, value_delimiter = ',', help_heading = "Diffuser .npz")]
+    dim_mults: Vec<u64>,
+    /// Keep only tensors under this prefix and strip it: `model.` for a GaussianDiffusion
+    /// state_dict (Diffuser's checkpoints hold `model` and `ema`, each one of these) [default: none].
+    #[arg(long, help_heading = "Diffuser .npz")]
+    prefix: Option<String>,
+
+    /// Where to write the manifest derived from the folder (TOML, or JSON for a .json name)
+    /// [default: OUT with the extension .manifest.toml].
+    #[arg(long, value_name = "MANIFEST.toml|json", help_heading = "diffusers folder")]
+    manifest_out: Option<PathBuf>,
+    /// UNet1DModel: the trajectory length (a multiple of 2^(levels - 1)); required.
+    #[arg(long, help_heading = "diffusers folder")]
+    horizon: Option<usize>,
+    /// UNet1DModel: how many of the channels are the action (rows are [action | observation],
+    /// Diffuser's layout); required.
+    #[arg(long, help_heading = "diffusers folder")]
+    action_dim: Option<usize>,
+    /// UNet2DModel: the image's height and width [default: the config's sample_size].
+    #[arg(long, value_name = "H[,W]", value_delimiter = ',', help_heading = "diffusers folder")]
+    image_size: Vec<usize>,
+    /// The normalizer the model was trained under, a TOML or JSON table (e.g. kind =
+    /// "gaussian", mean = [..], std = [..]) [default: identity: a folder holds none].
+    #[arg(long, value_name = "NORMALIZER.toml|json", help_heading = "diffusers folder")]
+    normalizer: Option<PathBuf>,
+    /// The model's subfolder [default: the folder itself when it holds config.json, else unet].
+    #[arg(long, value_name = "NAME", help_heading = "diffusers folder")]
+    subfolder: Option<String>,
+    /// The DDPMScheduler's config [default: scheduler/scheduler_config.json, found as
+    /// save_pretrained lays it out].
+    #[arg(long, value_name = "FILE", help_heading = "diffusers folder")]
+    scheduler_config: Option<PathBuf>,
+    /// For a repository id: the cached revision (a branch or tag under refs/, or a commit)
+    /// [default: main].
+    #[arg(long, value_name = "REV", help_heading = "diffusers folder")]
+    revision: Option<String>,
 }
 
 #[derive(Debug, Args)]
@@ -119,10 +167,11 @@ impl ModelKindArg {
 pub async fn run(ctx: &Ctx, command: ModelCommand) -> Result<Report> {
     match command {
         ModelCommand::Upload(args) => upload(ctx, args).await,
-        ModelCommand::Import(args) => import(ctx, args).await,
+        ModelCommand::Import(args) => import(ctx, *args).await,
         ModelCommand::List { kind } => list(ctx, kind).await,
         ModelCommand::Show { name } => show(ctx, &name).await,
-        ModelCommand::Download(args) => download(ctx, args).await,
+        ModelCommand::Download(args) => download(ctx, args, false).await,
+        ModelCommand::Export(args) => download(ctx, args, true).await,
         ModelCommand::Delete { name } => delete(ctx, &name).await,
     }
 }
@@ -179,16 +228,139 @@ async fn send_model(
     Ok(model)
 }
 
-/// The architecture's limits are the engine's (`TemporalUnet::validate`); checked here too so
-/// that a bad flag is named before the file is read.
+/// What `model import` reads: decided by the source (see [`ModelImportArgs`]).
+enum ImportSource {
+    Npz(PathBuf),
+    /// A diffusers folder: a directory given, or a cache snapshot found by repository id.
+    Folder {
+        root: PathBuf,
+        repo: Option<String>,
+    },
+}
+
+impl ImportSource {
+    /// A directory is a folder, a file a state_dict; a path that does not exist but has the form
+    /// of a repository id is looked up in the Hugging Face cache (`revision`, default main).
+    fn find(source: &str, revision: Option<&str>) -> Result<Self> {
+        use relreward_toolkit::diffusers_import::{hub_cache, hub_snapshot, is_repo_id};
+        let path = PathBuf::from(source);
+        if path.is_dir() {
+            return Ok(Self::Folder { root: path, repo: None });
+        }
+        if path.is_file() {
+            return Ok(Self::Npz(path));
+        }
+        if !is_repo_id(source) {
+            bail!("{source}: no such file or directory (nor a repository id, ORG/NAME)");
+        }
+        let Some(cache) = hub_cache(&|k| std::env::var(k).ok()) else {
+            bail!("{source}: no Hugging Face cache to look in (set HF_HOME or HF_HUB_CACHE)");
+        };
+        let root = hub_snapshot(&cache, source, revision.unwrap_or("main"))?;
+        Ok(Self::Folder { root, repo: Some(source.to_owned()) })
+    }
+}
+
+/// A converted model, before anything is written.
+struct Converted {
+    tensors: Vec<NamedTensor>,
+    manifest: pb::DiffusionManifest,
+    /// The manifest file to write beside the weights (a diffusers folder's): path and text.
+    manifest_file: Option<(PathBuf, String)>,
+    text: String,
+    json: Value,
+}
+
 async fn import(ctx: &Ctx, args: ModelImportArgs) -> Result<Report> {
-    use relreward_toolkit::diffuser_import::{import_npz, temporal_unet_shapes, write_safetensors};
-    let ModelImportArgs { file, manifest, dim, dim_mults, prefix, out, name, description } = args;
     // Every check before the first byte is written: a refused --name leaves no --out behind.
-    if let Some(name) = &name {
+    if let Some(name) = &args.name {
         check_model_name("--name", name)?;
     }
-    let mut man = manifest::load(&manifest)?;
+    let source = ImportSource::find(&args.source, args.revision.as_deref())?;
+    let converted = match &source {
+        ImportSource::Npz(file) => convert_npz(file, &args)?,
+        ImportSource::Folder { root, repo } => convert_folder(root, repo.as_deref(), &args)?,
+    };
+    let Converted { tensors, manifest, manifest_file, mut text, mut json } = converted;
+    let ModelImportArgs { out, name, description, .. } = args;
+    // Written beside their targets and renamed onto them only once everything succeeded (the
+    // upload too, with --name): a failure at any step leaves --out (and the manifest) as they
+    // were, never a partial file nor weights the command reported as failed.
+    let staged = Staged::new(&out);
+    write_safetensors(staged.path(), &tensors).with_context(|| format!("{}", out.display()))?;
+    let staged_manifest = match &manifest_file {
+        Some((path, body)) => {
+            let staged = Staged::new(path);
+            std::fs::write(staged.path(), body).with_context(|| format!("{}", path.display()))?;
+            Some(staged)
+        }
+        None => None,
+    };
+    let model = match name {
+        Some(name) => Some(
+            send_model(ctx, staged.path(), name, manifest, description)
+                .await
+                .with_context(|| format!("{} was not written", out.display()))?,
+        ),
+        None => None,
+    };
+    staged.commit().with_context(|| format!("{}", out.display()))?;
+    if let (Some(staged), Some((path, _))) = (staged_manifest, &manifest_file) {
+        staged.commit().with_context(|| format!("{}", path.display()))?;
+    }
+    if let Some(model) = model {
+        text.push_str(&format!("registered as model '{}' (native)\n", model.name));
+        json["model"] = model_json(&model);
+    }
+    Ok(Report::ok(text, json))
+}
+
+/// Refuses the flags of the other form, naming each.
+fn refuse_flags(given: &[(&str, bool)], form: &str) -> Result<()> {
+    let named: Vec<&str> = given.iter().filter(|(_, set)| *set).map(|(flag, _)| *flag).collect();
+    if named.is_empty() {
+        return Ok(());
+    }
+    Err(UsageError(format!("{}: {form}", named.join(", "))).into())
+}
+
+/// A Diffuser state_dict (.npz). The architecture's limits are the engine's
+/// (`TemporalUnet::validate`); checked here too so that a bad flag is named before the file is
+/// read.
+fn convert_npz(file: &std::path::Path, args: &ModelImportArgs) -> Result<Converted> {
+    use relreward_toolkit::diffuser_import::{import_npz, temporal_unet_shapes};
+    refuse_flags(
+        &[
+            ("--manifest-out", args.manifest_out.is_some()),
+            ("--horizon", args.horizon.is_some()),
+            ("--action-dim", args.action_dim.is_some()),
+            ("--image-size", !args.image_size.is_empty()),
+            ("--normalizer", args.normalizer.is_some()),
+            ("--subfolder", args.subfolder.is_some()),
+            ("--scheduler-config", args.scheduler_config.is_some()),
+            ("--revision", args.revision.is_some()),
+        ],
+        "only for a diffusers folder (a directory or a repository id), not for a .npz state_dict",
+    )?;
+    let (Some(manifest), Some(dim), false) = (&args.manifest, args.dim, args.dim_mults.is_empty()) else {
+        let missing: Vec<&str> = [
+            ("--manifest", args.manifest.is_none()),
+            ("--dim", args.dim.is_none()),
+            ("--dim-mults", args.dim_mults.is_empty()),
+        ]
+        .iter()
+        .filter(|(_, m)| *m)
+        .map(|(f, _)| *f)
+        .collect();
+        return Err(UsageError(format!(
+            "{}: required for a .npz state_dict ({} is a file; a diffusers folder is a directory)",
+            missing.join(", "),
+            file.display()
+        ))
+        .into());
+    };
+    let dim_mults = &args.dim_mults;
+    let mut man = manifest::load(manifest)?;
     let Some(pb::diffusion_manifest::Space::Trajectory(space)) = man.space else {
         bail!("{}: space: a TemporalUnet needs a trajectory space", manifest.display());
     };
@@ -196,7 +368,7 @@ async fn import(ctx: &Ctx, args: ModelImportArgs) -> Result<Report> {
     if dim == 0 || dim % 8 != 0 || dim > 1 << 20 {
         bail!("--dim: {dim} must be a positive multiple of 8 (GroupNorm with 8 groups), at most 2^20");
     }
-    if dim_mults.is_empty() || dim_mults.len() > 16 || dim_mults.iter().any(|&m| m == 0 || dim * m > 1 << 20) {
+    if dim_mults.len() > 16 || dim_mults.iter().any(|&m| m == 0 || dim * m > 1 << 20) {
         bail!("--dim-mults: {dim_mults:?} must hold 1 to 16 positive multipliers, each times --dim at most 2^20");
     }
     let factor = 1u64 << (dim_mults.len() - 1);
@@ -222,40 +394,114 @@ async fn import(ctx: &Ctx, args: ModelImportArgs) -> Result<Report> {
         );
     }
     man.architecture = Some(architecture);
-    let expected = temporal_unet_shapes(transition_dim, dim, &dim_mults);
-    let tensors = import_npz(&file, &prefix, &expected)?;
-    // Written beside --out and renamed onto it only once everything succeeded (the upload
-    // too, with --name): a failure at any step leaves --out as it was, never a partial file
-    // nor weights the command reported as failed.
-    let staged = Staged::new(&out);
-    write_safetensors(staged.path(), &tensors).with_context(|| format!("{}", out.display()))?;
-    let model = match name {
-        Some(name) => Some(
-            send_model(ctx, staged.path(), name, man, description)
-                .await
-                .with_context(|| format!("{} was not written", out.display()))?,
-        ),
-        None => None,
-    };
-    staged.commit().with_context(|| format!("{}", out.display()))?;
+    let expected = temporal_unet_shapes(transition_dim, dim, dim_mults);
+    let tensors = import_npz(file, args.prefix.as_deref().unwrap_or(""), &expected)?;
     let parameters: usize = tensors.iter().map(|(_, _, v)| v.len()).sum();
-    let mut text = format!(
+    let text = format!(
         "imported {} tensors ({parameters} parameters) from {} into {}\narchitecture = {{ kind = \"temporal_unet\", dim = {dim}, dim_mults = {dim_mults:?} }}\n",
         tensors.len(),
         file.display(),
-        out.display()
+        args.out.display()
     );
-    let mut json = json!({
+    let json = json!({
         "tensors": tensors.len(),
         "parameters": parameters,
-        "weights": out.display().to_string(),
+        "weights": args.out.display().to_string(),
         "architecture": { "kind": "temporal_unet", "dim": dim, "dim_mults": dim_mults },
     });
-    if let Some(model) = model {
-        text.push_str(&format!("registered as model '{}' (native)\n", model.name));
-        json["model"] = model_json(&model);
+    Ok(Converted { tensors, manifest: man, manifest_file: None, text, json })
+}
+
+/// A diffusers folder: the toolkit's `diffusers_import` reads both configs and the weights; the
+/// manifest it derives is written beside the weights.
+fn convert_folder(root: &std::path::Path, repo: Option<&str>, args: &ModelImportArgs) -> Result<Converted> {
+    use relreward_toolkit::diffusers_import::{Hints, import_folder, locate};
+    refuse_flags(
+        &[
+            ("--manifest", args.manifest.is_some()),
+            ("--dim", args.dim.is_some()),
+            ("--dim-mults", !args.dim_mults.is_empty()),
+            ("--prefix", args.prefix.is_some()),
+        ],
+        "only for a .npz state_dict, not for a diffusers folder (its config.json gives the architecture and its \
+         scheduler_config.json the manifest, written to --manifest-out)",
+    )?;
+    if repo.is_none() && args.revision.is_some() {
+        return Err(UsageError(format!("--revision: for a repository id; {} is a directory", root.display())).into());
     }
-    Ok(Report::ok(text, json))
+    let image_size = match args.image_size.as_slice() {
+        [] => None,
+        [s] => Some((*s, *s)),
+        [h, w] => Some((*h, *w)),
+        more => return Err(UsageError(format!("--image-size: {more:?}; give H or H,W")).into()),
+    };
+    let normalizer = args.normalizer.as_deref().map(manifest::read_file).transpose()?;
+    let hints = Hints { horizon: args.horizon, action_dim: args.action_dim, image_size, normalizer };
+    let folder = locate(root, args.subfolder.as_deref(), args.scheduler_config.as_deref())?;
+    let imported = import_folder(&folder, &hints)?;
+    let manifest_path = args.manifest_out.clone().unwrap_or_else(|| default_manifest_path(&args.out));
+    let from = repo
+        .map_or_else(|| folder.model_dir.display().to_string(), |r| format!("{r} ({})", folder.model_dir.display()));
+    let body =
+        manifest_text(&imported.manifest, &manifest_path, &from, imported.class.name(), &imported.schedule_source)?;
+    let man = imported.manifest.to_proto();
+    let tensors = imported.tensors;
+    let parameters: usize = tensors.iter().map(|(_, _, v)| v.len()).sum();
+    let text = format!(
+        "imported {} from {from} ({} tensors, {parameters} parameters) into {}\n\
+         manifest {}: {} parametrization, T = {} ({} betas), clip_denoised {}, space {}, normalizer {}\n\
+         architecture {}\n",
+        imported.class.name(),
+        tensors.len(),
+        args.out.display(),
+        manifest_path.display(),
+        parametrization_name(man.parametrization()).unwrap_or("-"),
+        man.n_timesteps,
+        imported.schedule_source,
+        man.clip_denoised,
+        space_text(man.space.as_ref()),
+        normalizer_text(man.normalizer.as_ref()),
+        architecture_text(man.architecture.as_ref()),
+    );
+    let json = json!({
+        "source": from,
+        "class": imported.class.name(),
+        "tensors": tensors.len(),
+        "parameters": parameters,
+        "weights": args.out.display().to_string(),
+        "manifest_file": manifest_path.display().to_string(),
+        "manifest": manifest_json(&man),
+    });
+    Ok(Converted { tensors, manifest: man, manifest_file: Some((manifest_path, body)), text, json })
+}
+
+/// `weights.safetensors` -> `weights.manifest.toml`, beside it.
+fn default_manifest_path(out: &std::path::Path) -> PathBuf {
+    out.with_extension("manifest.toml")
+}
+
+/// The derived manifest as a file: JSON for a `.json` name, TOML otherwise, with a comment
+/// saying where it came from (TOML only).
+fn manifest_text(
+    man: &relreward_proto::schema::manifest::DiffusionManifest,
+    path: &std::path::Path,
+    from: &str,
+    class: &str,
+    schedule: &str,
+) -> Result<String> {
+    if path.extension().is_some_and(|e| e.eq_ignore_ascii_case("json")) {
+        return Ok(serde_json::to_string_pretty(man)? + "\n");
+    }
+    let normalizer = if man.normalizer == relreward_proto::schema::manifest::Normalizer::Identity {
+        "# A diffusers folder holds no normalizer: set the one the model was trained under.\n"
+    } else {
+        ""
+    };
+    Ok(format!(
+        "# Derived by `relreward model import` from {from}\n# ({class}; DDPMScheduler, {schedule} betas as diffusers \
+         computes them).\n{normalizer}{}",
+        toml::to_string(man)?
+    ))
 }
 
 /// The server's naming rule (`[a-z0-9][a-z0-9._-]{0,63}`), checked before any work so that a
@@ -320,9 +566,15 @@ async fn show(ctx: &Ctx, name: &str) -> Result<Report> {
     Ok(Report::ok(format_model(&model), model_json(&model)))
 }
 
-async fn download(ctx: &Ctx, args: ModelDownloadArgs) -> Result<Report> {
+/// `model download`, or with `export` `model export` (the same files plus the traced module.pt).
+async fn download(ctx: &Ctx, args: ModelDownloadArgs, export: bool) -> Result<Report> {
     let ModelDownloadArgs { name, out, force } = args;
-    let got = ctx.connect().await?.download_model(&name, &out, force).await?;
+    let client = ctx.connect().await?;
+    let got = if export {
+        client.export_model(&name, &out, force).await?
+    } else {
+        client.download_model(&name, &out, force).await?
+    };
     let paths: Vec<String> = got.files.iter().chain([&got.manifest_path]).map(|p| p.display().to_string()).collect();
     let text = format!(
         "downloaded {} ({}, sha256 {}) into {}\n{}\n",
@@ -560,6 +812,34 @@ mod tests {
             }),
             ..uploaded()
         }
+    }
+
+    /// The manifest `model import` writes for a diffusers folder reads back as the same
+    /// manifest, in both forms, through the loader `model upload` uses.
+    #[test]
+    fn a_derived_manifest_file_reads_back() {
+        use relreward_proto::schema::manifest::{
+            Architecture, DiffusionManifest, Normalizer, Parametrization, ScheduleSpec, Space,
+        };
+        let man = DiffusionManifest {
+            parametrization: Parametrization::X0,
+            schedule: ScheduleSpec::Betas { betas: vec![f64::from(1e-4f32), 0.5, 0.999] },
+            n_timesteps: 3,
+            clip_denoised: true,
+            space: Space::Trajectory { horizon: 8, action_dim: 2, obs_dim: 3 },
+            normalizer: Normalizer::Identity,
+            architecture: Some(Architecture::TemporalUnet { dim: 8, dim_mults: vec![1, 2] }),
+        };
+        for name in ["w.manifest.toml", "m.json"] {
+            let path = std::path::Path::new(name);
+            let text = manifest_text(&man, path, "DIR", "UNet1DModel", "squaredcos_cap_v2").unwrap();
+            let back = manifest::load_text(&text, path).unwrap_or_else(|e| panic!("{name}: {e:#}\n{text}"));
+            assert_eq!(back, man.to_proto(), "{name}:\n{text}");
+        }
+        assert_eq!(
+            default_manifest_path(std::path::Path::new("out/w.safetensors")),
+            PathBuf::from("out/w.manifest.toml")
+        );
     }
 
     #[test]

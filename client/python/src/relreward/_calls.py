@@ -28,7 +28,7 @@ from relreward._download import DownloadedModel, ModelDownload
 from relreward.v1 import (datasets_pb2, datasets_pb2_grpc, jobs_pb2, jobs_pb2_grpc, models_pb2, models_pb2_grpc,
                               reward_pb2_grpc, tensor_pb2)
 from relreward.datasets import source_of
-from relreward.errors import InvalidInput, RelrewardError, Unavailable, error_for, is_retryable
+from relreward.errors import InvalidInput, RelrewardError, Unavailable, Unimplemented, error_for, is_retryable
 from relreward.results import Dataset, GradientResult, Job, JobEvent, JobState, Manifest, Model, ScoreResult
 from relreward.specs import job_spec, manifest as manifest_of
 
@@ -317,6 +317,10 @@ def download_model(cfg: Any, name: str, out_dir: str | pathlib.Path, overwrite: 
         got = download.finish()
     finally:
         download.close()
+    if torchscript and got.module is None:
+        # A server from before the export ignores the request's `torchscript`.
+        raise Unimplemented(f"export_model: the server sent no module.pt (it predates model export); the plain "
+                            f"download is in {out_dir}")
     return dataclasses.replace(got, model=Model.from_proto(got.model))
 
 
