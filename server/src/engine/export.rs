@@ -106,7 +106,7 @@ fn trace(
     })?;
     let err =
         if got.size() == want.size() { got.f_sub(&want)?.f_abs()?.f_max()?.double_value(&[]) } else { f64::INFINITY };
-    if !(err <= CHECK_TOLERANCE) {
+    if err.is_nan() || err > CHECK_TOLERANCE {
         return Err(Error::internal(
             "checking the traced export",
             format!(
