@@ -51,9 +51,11 @@ use std::path::{Path, PathBuf};
 use relreward_proto::schema::manifest::{
     Architecture, DiffusionManifest, Normalizer, Parametrization, ScheduleSpec, Space,
 };
+use safetensors::tensor::{Dtype, SafeTensors, TensorView};
 use serde_json::{Map, Value, json};
 
 use crate::diffuser_import::{Mismatch, NamedTensor, check_shapes};
+use crate::values::f16_to_f32;
 
 /// The model's configuration, beside its weights.
 pub const CONFIG: &str = "config.json";
@@ -1006,94 +1008,27 @@ pub fn schedule_betas(kind: &str, start: f64, end: f64, t: usize) -> Option<Vec<
 // ---------------------------------------------------------------------------------------------
 // safetensors
 
-/// One tensor's entry in a safetensors header.
-#[derive(Debug, Clone)]
-struct Stored {
-    dtype: String,
-    shape: Vec<u64>,
-    start: usize,
-    end: usize,
+/// The file's tensors by name (the `safetensors` crate: the format's maintained reader, which
+/// checks the header, offsets and sizes).
+fn safetensors_tensors<'a>(bytes: &'a [u8], file: &str) -> Result<SafeTensors<'a>, ImportError> {
+    SafeTensors::deserialize(bytes).map_err(|e| ImportError(format!("{file}: not a safetensors file: {e}")))
 }
 
-/// Reads a safetensors file's header: name -> entry, and where the data starts.
-fn safetensors_header(bytes: &[u8], file: &str) -> Result<(BTreeMap<String, Stored>, usize), ImportError> {
-    let bad = |why: String| ImportError(format!("{file}: not a safetensors file: {why}"));
-    let len = bytes.get(..8).ok_or_else(|| bad("shorter than its 8-byte header length".into()))?;
-    let len = usize::try_from(u64::from_le_bytes(len.try_into().expect("8 bytes"))).unwrap_or(usize::MAX);
-    let data_start =
-        len.checked_add(8).filter(|&s| s <= bytes.len()).ok_or_else(|| bad("header past the end".into()))?;
-    let header: Map<String, Value> =
-        serde_json::from_slice(&bytes[8..data_start]).map_err(|e| bad(format!("header is not a JSON object: {e}")))?;
-    let data_len = bytes.len() - data_start;
-    let mut out = BTreeMap::new();
-    for (name, entry) in header {
-        if name == "__metadata__" {
-            continue;
+/// One stored tensor as float32 values (F32, F16, BF16 and F64 are read; other dtypes refused).
+fn stored_values(name: &str, t: &TensorView<'_>, file: &str) -> Result<Vec<f32>, ImportError> {
+    let data = t.data();
+    Ok(match t.dtype() {
+        Dtype::F32 => data.chunks_exact(4).map(|c| f32::from_le_bytes(c.try_into().expect("4 bytes"))).collect(),
+        Dtype::F64 => data.chunks_exact(8).map(|c| f64::from_le_bytes(c.try_into().expect("8 bytes")) as f32).collect(),
+        Dtype::F16 => data.chunks_exact(2).map(|c| f16_to_f32(u16::from_le_bytes([c[0], c[1]]))).collect(),
+        Dtype::BF16 => {
+            data.chunks_exact(2).map(|c| f32::from_bits(u32::from(u16::from_le_bytes([c[0], c[1]])) << 16)).collect()
         }
-        let field = |k: &str| entry.get(k).cloned().unwrap_or(Value::Null);
-        let dtype = field("dtype").as_str().map(str::to_owned);
-        let shape: Option<Vec<u64>> = field("shape").as_array().and_then(|a| a.iter().map(Value::as_u64).collect());
-        let offsets: Option<[usize; 2]> = field("data_offsets")
-            .as_array()
-            .and_then(|a| {
-                a.iter().map(|v| v.as_u64().and_then(|n| usize::try_from(n).ok())).collect::<Option<Vec<_>>>()
-            })
-            .and_then(|o| <[usize; 2]>::try_from(o).ok());
-        let (Some(dtype), Some(shape), Some([start, end])) = (dtype, shape, offsets) else {
-            return Err(bad(format!("tensor '{name}': no dtype, shape and data_offsets")));
-        };
-        if start > end || end > data_len {
-            return Err(bad(format!(
-                "tensor '{name}': data_offsets [{start}, {end}] outside the {data_len} data bytes"
-            )));
-        }
-        out.insert(name, Stored { dtype, shape, start, end });
-    }
-    Ok((out, data_start))
-}
-
-/// IEEE half precision to single.
-fn f16_to_f32(h: u16) -> f32 {
-    let sign = if h & 0x8000 != 0 { -1.0f32 } else { 1.0 };
-    let exponent = i32::from((h >> 10) & 0x1f);
-    let mantissa = f32::from(h & 0x3ff);
-    match exponent {
-        0 => sign * mantissa * 2f32.powi(-24),
-        31 if mantissa == 0.0 => sign * f32::INFINITY,
-        31 => f32::NAN,
-        e => sign * (1.0 + mantissa / 1024.0) * 2f32.powi(e - 15),
-    }
-}
-
-/// A stored tensor's values as float32 (F32, F16, BF16 and F64 are read; the byte count is
-/// checked against the shape).
-fn stored_values(bytes: &[u8], data_start: usize, name: &str, t: &Stored, file: &str) -> Result<Vec<f32>, ImportError> {
-    let data = &bytes[data_start + t.start..data_start + t.end];
-    let width = match t.dtype.as_str() {
-        "F32" => 4,
-        "F16" | "BF16" => 2,
-        "F64" => 8,
         other => {
             return fail(format!(
-                "{file}: tensor '{name}' is {other}; relreward reads float weights (F32, F16, BF16, F64)"
+                "{file}: tensor '{name}' is {other:?}; relreward reads float weights (F32, F16, BF16, F64)"
             ));
         }
-    };
-    let n = t.shape.iter().try_fold(1u64, |a, &d| a.checked_mul(d)).and_then(|n| usize::try_from(n).ok());
-    if n.and_then(|n| n.checked_mul(width)) != Some(data.len()) {
-        return fail(format!(
-            "{file}: tensor '{name}' holds {} bytes, not the {} {}-byte values of shape {:?}",
-            data.len(),
-            n.map_or("?".into(), |n| n.to_string()),
-            width,
-            t.shape
-        ));
-    }
-    Ok(match width {
-        4 => data.chunks_exact(4).map(|c| f32::from_le_bytes(c.try_into().expect("4 bytes"))).collect(),
-        8 => data.chunks_exact(8).map(|c| f64::from_le_bytes(c.try_into().expect("8 bytes")) as f32).collect(),
-        _ if t.dtype == "F16" => data.chunks_exact(2).map(|c| f16_to_f32(u16::from_le_bytes([c[0], c[1]]))).collect(),
-        _ => data.chunks_exact(2).map(|c| f32::from_bits(u32::from(u16::from_le_bytes([c[0], c[1]])) << 16)).collect(),
     })
 }
 
@@ -1245,8 +1180,9 @@ fn read_tensors(path: &Path, plan: &Plan) -> Result<Vec<NamedTensor>, ImportErro
         return fail(format!("{file}: no such file{hint}"));
     }
     let bytes = std::fs::read(path).map_err(|e| ImportError(format!("{file}: {e}")))?;
-    let (stored, data_start) = safetensors_header(&bytes, &file)?;
-    let found: BTreeMap<String, Vec<u64>> = stored.iter().map(|(k, v)| (k.clone(), v.shape.clone())).collect();
+    let stored = safetensors_tensors(&bytes, &file)?;
+    let found: BTreeMap<String, Vec<u64>> =
+        stored.tensors().into_iter().map(|(k, v)| (k, v.shape().iter().map(|&d| d as u64).collect())).collect();
     let expected: BTreeMap<String, Vec<u64>> = plan.table.iter().map(|e| (e.source.clone(), e.shape.clone())).collect();
     let mismatch = check_shapes(&found, &expected);
     if !mismatch.is_empty() {
@@ -1254,7 +1190,8 @@ fn read_tensors(path: &Path, plan: &Plan) -> Result<Vec<NamedTensor>, ImportErro
     }
     let mut out = Vec::with_capacity(plan.table.len());
     for entry in &plan.table {
-        let mut values = stored_values(&bytes, data_start, &entry.source, &stored[&entry.source], &file)?;
+        let view = stored.tensor(&entry.source).map_err(|e| ImportError(format!("{file}: {e}")))?;
+        let mut values = stored_values(&entry.source, &view, &file)?;
         if let Some(bad) = values.iter().position(|v| !v.is_finite()) {
             return fail(format!("{file}: tensor '{}' holds a non-finite value at flat index {bad}", entry.source));
         }
@@ -1760,16 +1697,5 @@ mod tests {
         }
         assert_eq!(schedule_betas("linear", 0.1, 0.2, 1).unwrap(), vec![0.1]);
         assert!(schedule_betas("exp", 0.0, 0.0, 3).is_none());
-    }
-
-    #[test]
-    fn half_precision_values_convert() {
-        for (bits, want) in
-            [(0x3c00u16, 1.0f32), (0xc000, -2.0), (0x3800, 0.5), (0x0001, 5.960_464_5e-8), (0x7bff, 65504.0)]
-        {
-            assert_eq!(f16_to_f32(bits), want, "{bits:#x}");
-        }
-        assert_eq!(f16_to_f32(0x7c00), f32::INFINITY);
-        assert!(f16_to_f32(0x7e00).is_nan());
     }
 }
