@@ -148,7 +148,7 @@ steer: build
 ## PointMaze umaze per goal (default the four of docs/results.md): generate.py data, one
 ## `relreward extract --discriminator`, then the arms rho, discriminator (logit), env (ceiling),
 ## constant (floor), 2 seeds each, 20 evaluation episodes per agent on reserved seeds
-## (experiments/pointmaze/rl.py; RL_ARGS adds its flags, e.g. RL_ARGS="--goals 3,1 --steps 14000").
+## (experiments/pointmaze/rl.py; RL_ARGS adds its flags, e.g. RL_ARGS="--goals 3,1 --seeds 3").
 ## Writes rl-pointmaze-out/ (results.md, results.json, curves.png). Method: docs/pointmaze_rl.md.
 RL_ARGS ?=
 rl-pointmaze: build
