@@ -124,16 +124,19 @@ def prepare(cfg: Config, server) -> dict[tuple[int, int], dict[str, Any]]:
     key = {k: getattr(cfg, k) for k in ("base_transitions", "expert_transitions", "extract_size", "data_seed")}
     key["goals"] = [list(g) for g in cfg.goals]
     done = cfg.work / "prepare.json"
+    with relreward.Client(server.addr) as client:
+        return _prepare(cfg, server, client, key, done)
+
+
+def _prepare(cfg: Config, server, client, key: dict, done: Path) -> dict[tuple[int, int], dict[str, Any]]:
+    import relreward
     if done.exists():
         prev = json.loads(done.read_text())
-        client = relreward.Client(server.addr)
         try:
             same = prev["key"] == key and all(
                 client.get_model(name).sha256 == sha for m in prev["models"].values() for name, sha in m["sha256"].items())
         except relreward.NotFound:  # a model is gone
             same = False
-        finally:
-            client.close()
         if same:
             cfg.log("extract: reusing WORK/prepare.json (same data settings and goals, models unchanged)")
             return {tuple(int(v) for v in g.split(",")): m for g, m in prev["models"].items()}
@@ -172,12 +175,8 @@ def prepare(cfg: Config, server) -> dict[tuple[int, int], dict[str, Any]]:
                         "extract": {k: rw.get(k) for k in ("balanced_accuracy", "auc", "argmax_cell", "goal_recovered")}
                         | {"discriminator_auc": rw["discriminator"]["auc"],
                            "discriminator_balanced_accuracy": rw["discriminator"]["balanced_accuracy"]}}
-    client = relreward.Client(server.addr)
-    try:
-        for m in models.values():
-            m["sha256"] = {m[arm]: client.get_model(m[arm]).sha256 for arm in ("rho", "discriminator")}
-    finally:
-        client.close()
+    for m in models.values():
+        m["sha256"] = {m[arm]: client.get_model(m[arm]).sha256 for arm in ("rho", "discriminator")}
     done.write_text(json.dumps({"key": key, "models": {f"{g[0]},{g[1]}": m for g, m in models.items()}}, indent=1)
                     + "\n")
     return models

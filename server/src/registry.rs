@@ -438,9 +438,10 @@ pub fn load_diffusion_copy(record: &ModelRecord, dir: &Path, device: Device) -> 
 /// A stored native model traced into a TorchScript module at `out` (blocking; on the CPU,
 /// from a private copy: nothing served is locked meanwhile). See [`crate::engine::export`] for
 /// what the module computes. A TorchScript diffusion model is refused: its stored file is
-/// already the module.
+/// already the module. The caller has checked the blob's files against their digests (the
+/// download does, `stored_files`), so they are not hashed a second time here.
 pub fn export_torchscript(record: &ModelRecord, dir: &Path, out: &Path) -> Result<()> {
-    let (path, _) = verified_file(record, dir)?;
+    let path = dir.join(&record.file);
     match (record.kind, record.format) {
         (_, ModelFormat::Torchscript) => Err(Error::FailedPrecondition(format!(
             "torchscript: model '{}' is stored as TorchScript already; its module.pt is the export",
