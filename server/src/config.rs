@@ -28,6 +28,7 @@ pub struct Config {
     pub engine: EngineConfig,
     pub serving: ServingConfig,
     pub metrics: MetricsConfig,
+    pub oip_http: OipHttpConfig,
     pub log: LogConfig,
     pub security: SecurityConfig,
 }
@@ -274,6 +275,15 @@ pub struct ServingConfig {
 #[serde(deny_unknown_fields)]
 pub struct MetricsConfig {
     /// IP:port of the metrics endpoint; empty disables it. Port 0 picks a free port (logged).
+    pub listen: String,
+}
+
+/// The Open Inference Protocol over HTTP/JSON (KServe v2 REST, `crate::oip_http`).
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct OipHttpConfig {
+    /// IP:port of the HTTP listener; empty disables it. Port 0 picks a free port (printed).
+    /// Same tokens and TLS as `server.listen`, and the same rule for non-loopback addresses.
     pub listen: String,
 }
 
@@ -539,6 +549,17 @@ impl Config {
                 "metrics.listen",
                 format!("'{}' is not an IP:port socket address (or empty to disable)", self.metrics.listen),
             );
+        }
+        if !self.oip_http.listen.is_empty() {
+            let Ok(addr) = self.oip_http.listen.parse::<SocketAddr>() else {
+                return invalid(
+                    "oip_http.listen",
+                    format!("'{}' is not an IP:port socket address (or empty to disable)", self.oip_http.listen),
+                );
+            };
+            if let Some(message) = self.unauthenticated_exposure(addr) {
+                return invalid("oip_http.listen", message);
+            }
         }
         if !matches!(self.log.format.as_str(), "human" | "json") {
             return invalid("log.format", format!("'{}' is neither \"human\" nor \"json\"", self.log.format));

@@ -2,6 +2,8 @@
 //! them and serves those rewards over gRPC.
 //!
 //! Module map, a layering: each module may import the ones below it, never one above:
+//! - [`oip_http`]: the Open Inference Protocol over HTTP/JSON (KServe v2 REST), its own
+//!   listener: routes become [`api::oip`]'s requests, authorized by [`security`]'s policy.
 //! - [`security`]: who may call what (bearer tokens, scopes, one tower layer in front of
 //!   every service) and TLS; sits above [`api`], which it never imports.
 //! - [`api`]: tonic services (relreward.v1 and the Open Inference Protocol); validate and
@@ -61,6 +63,7 @@ pub mod fields;
 pub mod jobs;
 pub mod limits;
 pub mod metrics;
+pub mod oip_http;
 pub mod registry;
 pub mod sampling;
 pub mod security;
@@ -84,7 +87,9 @@ pub use config::Config;
 ///
 /// Unless `metrics.listen` is empty, also serves Prometheus metrics there (bound first, so a
 /// taken port fails the start at once) and prints `relreward-server metrics on
-/// http://ADDR/metrics` on stdout, the line after `main`'s `listening on` line.
+/// http://ADDR/metrics` on stdout, the line after `main`'s `listening on` line. Likewise
+/// `oip_http.listen` (KServe v2 REST): `relreward-server oip_http on http[s]://ADDR`, after
+/// the metrics line.
 pub async fn run(
     config: Config,
     listener: TcpListener,
@@ -107,6 +112,7 @@ pub async fn run(
         "access control"
     );
     let metrics_listener = bind_metrics(&config).await?;
+    let oip_http_listener = bind_oip_http(&config, security.http_tls.is_some()).await?;
     // Resolves `engine.device` (a device that is not there stops the start here).
     let device = engine::init(&config.engine)?;
     let store = store::Store::open(&config).await?;
@@ -143,6 +149,27 @@ pub async fn run(
     if let Some(listener) = metrics_listener {
         let refresh = scrape_refresh(metrics.clone(), store.clone(), registry.clone());
         metrics_tasks.spawn(metrics::serve_http(listener, metrics.clone(), refresh, metrics_tasks.token().clone()));
+    }
+
+    // The OIP over HTTP (serving roles only): stopped with the gRPC listener, after the drain.
+    let oip_http_tasks = group("oip_http");
+    let draining = CancellationToken::new();
+    if let Some(listener) = oip_http_listener {
+        let service = std::sync::Arc::new(oip_http::OipHttp::new(
+            api::oip::Inference::new(serving.clone()),
+            security.layer.policy(),
+            config.server.max_request_bytes,
+            config.serving.default_deadline_ms,
+            draining.clone(),
+        ));
+        let tls = security.http_tls.clone().map(tokio_rustls::TlsAcceptor::from);
+        oip_http_tasks.spawn(oip_http::serve(
+            listener,
+            tls,
+            service,
+            config.server.max_connections,
+            oip_http_tasks.token().clone(),
+        ));
     }
 
     // A worker ("work") answers health checks only, for its orchestrator's probes.
@@ -231,6 +258,7 @@ pub async fn run(
         health.set_service_status(*name, ServingStatus::NotServing).await;
     }
     health.set_service_status("", ServingStatus::NotServing).await;
+    draining.cancel();
     // The drain: everything is still served (new connections and calls too) while health says
     // NOT_SERVING, so that load balancers and clients polling health see it and stop sending
     // before the listener closes; closing at once, they saw only UNAVAILABLE.
@@ -244,6 +272,7 @@ pub async fn run(
     }
     tracing::info!("closing the listener and draining in-flight calls");
     stop_accepting.cancel();
+    oip_http_tasks.token().cancel();
     streams.token().cancel();
     let grace = Duration::from_secs(config.server.shutdown_grace_secs);
     job_manager.shutdown(grace).await;
@@ -260,6 +289,7 @@ pub async fn run(
     // run held), then the metrics endpoint.
     streams.stop(STOP_BOUND).await;
     sampling.stop(STOP_BOUND).await;
+    oip_http_tasks.stop(STOP_BOUND).await;
     serving.stop(STOP_BOUND).await;
     metrics_tasks.stop(STOP_BOUND).await;
     server_token.cancel();
@@ -285,6 +315,22 @@ async fn bind_metrics(config: &Config) -> anyhow::Result<Option<TcpListener>> {
     tracing::info!(%local, "metrics endpoint listening");
     // The second machine-readable line on stdout (tests bind port 0 and read it).
     println!("relreward-server metrics on http://{local}/metrics");
+    Ok(Some(listener))
+}
+
+/// Binds `oip_http.listen` (None when empty: disabled) and announces the address on stdout,
+/// the line after the metrics line (or after `listening on` when metrics are off).
+async fn bind_oip_http(config: &Config, tls: bool) -> anyhow::Result<Option<TcpListener>> {
+    let addr = config.oip_http.listen.as_str();
+    // A worker ("work") serves no API.
+    if addr.is_empty() || !config.role().serves() {
+        return Ok(None);
+    }
+    let listener =
+        TcpListener::bind(addr).await.map_err(|e| anyhow::anyhow!("cannot listen on {addr} (oip_http.listen): {e}"))?;
+    let local = listener.local_addr()?;
+    tracing::info!(%local, tls, "OIP over HTTP (KServe v2 REST) listening");
+    println!("relreward-server oip_http on {}://{local}", if tls { "https" } else { "http" });
     Ok(Some(listener))
 }
 

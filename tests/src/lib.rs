@@ -57,6 +57,8 @@ pub struct TestServer {
     access: Access,
     /// The metrics address the server printed on its second stdout line, once it has.
     metrics_addr: Arc<OnceLock<SocketAddr>>,
+    /// The OIP HTTP listener's base URL (`http[s]://ADDR`) the server printed, once it has.
+    oip_http_url: Arc<OnceLock<String>>,
     _tmp: Option<tempfile::TempDir>,
 }
 
@@ -122,22 +124,28 @@ impl TestServer {
         let (tx, rx) = std::sync::mpsc::channel();
         let metrics_addr = Arc::new(OnceLock::new());
         let metrics_line = Arc::clone(&metrics_addr);
+        let oip_http_url = Arc::new(OnceLock::new());
+        let oip_http_line = Arc::clone(&oip_http_url);
         std::thread::spawn(move || {
             let mut lines = BufReader::new(stdout).lines();
             if let Some(Ok(line)) = lines.next() {
                 let _ = tx.send(line);
             }
-            // The second line, when the metrics endpoint is on (see `metrics_addr`).
-            if let Some(Ok(line)) = lines.next()
-                && let Some(addr) = line
+            // The next lines, when the metrics endpoint (see `metrics_addr`) or the OIP's HTTP
+            // listener (`oip_http_addr`) is on; then keep draining so the server never blocks
+            // on a full pipe.
+            for line in lines.map_while(Result::ok) {
+                if let Some(addr) = line
                     .strip_prefix("relreward-server metrics on http://")
                     .and_then(|a| a.strip_suffix("/metrics"))
                     .and_then(|a| a.parse().ok())
-            {
-                let _ = metrics_line.set(addr);
+                {
+                    let _ = metrics_line.set(addr);
+                }
+                if let Some(url) = line.strip_prefix("relreward-server oip_http on ") {
+                    let _ = oip_http_line.set(url.to_owned());
+                }
             }
-            // Keep draining so the server never blocks on a full pipe.
-            for _ in lines {}
         });
         let line = rx.recv_timeout(Duration::from_secs(60)).unwrap_or_else(|_| {
             let _ = child.kill();
@@ -148,7 +156,7 @@ impl TestServer {
             .and_then(|a| a.parse().ok())
             .unwrap_or_else(|| panic!("unexpected first line: {line}"));
         let access = Access::default();
-        Self { child: Some(child), addr, data_dir, log, env, args, access, metrics_addr, _tmp: None }
+        Self { child: Some(child), addr, data_dir, log, env, args, access, metrics_addr, oip_http_url, _tmp: None }
     }
 
     /// Address of the Prometheus endpoint, for a server started with
@@ -161,6 +169,18 @@ impl TestServer {
             std::thread::sleep(Duration::from_millis(50));
         }
         panic!("server did not report a metrics address (is metrics.listen set?); log:\n{}", self.log())
+    }
+
+    /// Base URL (`http://ADDR` or `https://ADDR`) of the OIP's HTTP listener, for a server
+    /// started with `RELREWARD__OIP_HTTP__LISTEN` set; waits for the line announcing it.
+    pub fn oip_http_url(&self) -> String {
+        for _ in 0..1200 {
+            if let Some(url) = self.oip_http_url.get() {
+                return url.clone();
+            }
+            std::thread::sleep(Duration::from_millis(50));
+        }
+        panic!("server did not report an oip_http address (is oip_http.listen set?); log:\n{}", self.log())
     }
 
     pub fn endpoint(&self) -> String {

@@ -16,6 +16,10 @@
 //!   no diffusion model; `t` given once (shape [1] or []) or as [B, 1] gives the same numbers
 //!   as one per item.
 //! - RPCs of the protocol that relreward leaves out answer UNIMPLEMENTED.
+//! - The same protocol over HTTP/JSON (`oip_http.listen`, KServe v2 REST): `tritonclient.http`
+//!   (tests/python/oip_http_client.py), with binary and JSON tensors, compressed bodies, and
+//!   `curl`, answers exactly as gRPC does (which equals the native API, above); refusals carry
+//!   the HTTP status of the gRPC code and a JSON error naming the field.
 
 use std::time::Duration;
 
@@ -114,7 +118,10 @@ async fn train(client: &Client, spec: pb::JobSpec) {
 /// A server with the dataset "lines", diffusion models "lines-base" and "lines-expert" and the
 /// reward model "lines-reward" between them.
 async fn setup() -> (TestServer, Client) {
-    let server = TestServer::start_with_env(&[("RELREWARD__SERVING__MAX_REQUEST_ITEMS", &MAX_ITEMS.to_string())]);
+    let server = TestServer::start_with_env(&[
+        ("RELREWARD__SERVING__MAX_REQUEST_ITEMS", &MAX_ITEMS.to_string()),
+        ("RELREWARD__OIP_HTTP__LISTEN", "127.0.0.1:0"),
+    ]);
     let client = server.client().await;
     upload_lines(&client, "lines", &LINES).await;
     let (base, expert) = (diffusion_spec("lines-base", 1), diffusion_spec("lines-expert", 2));
@@ -796,6 +803,116 @@ async fn unimplemented_rpcs(server: &TestServer) {
     }
 }
 
+/// (e) The OIP over HTTP/JSON: tritonclient.http, urllib and curl (oip_http_client.py).
+async fn http_answers_as_grpc(server: &TestServer, client: &Client) {
+    let url = server.oip_http_url();
+    assert!(url.starts_with("http://"), "{url}");
+    let out = std::process::Command::new(python())
+        .arg(repo_root().join("tests/python/oip_http_client.py"))
+        .args(["--http", &url, "--grpc", &server.addr.to_string()])
+        .args(["--model", "lines-reward", "--diffusion-model", "lines-base"])
+        .output()
+        .expect("python");
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "oip_http_client.py failed:\n{stderr}\nserver log:\n{}", server.log());
+    let s: serde_json::Value = serde_json::from_slice(&out.stdout).expect("JSON summary");
+
+    for (key, want) in [
+        ("server_live", true),
+        ("server_ready", true),
+        ("model_ready", true),
+        ("model_ready_version_1", true),
+        ("model_ready_version_2", false),
+        ("unknown_model_ready", false),
+        ("diffusion_model_ready", false),
+        ("config_grpc_equal", true),
+        ("curl_same", true),
+        ("after_refusals_same", true),
+    ] {
+        assert_eq!(s[key], want, "{key}");
+    }
+    assert_eq!(
+        s["server_metadata"],
+        serde_json::json!({"name": "relreward", "version": env!("CARGO_PKG_VERSION"), "extensions": ["binary_tensor_data"]})
+    );
+    let (h, d) = (i64::from(HORIZON), DIM as i64);
+    assert_eq!(
+        s["model_metadata"],
+        serde_json::json!({
+            "name": "lines-reward", "versions": ["1"], "platform": "relreward_native",
+            "inputs": [{"name": "x", "datatype": "FP32", "shape": [-1, h, d]}, {"name": "t", "datatype": "INT64", "shape": [-1]}],
+            "outputs": [{"name": "reward", "datatype": "FP32", "shape": [-1]}, {"name": "grad_x", "datatype": "FP32", "shape": [-1, h, d]}],
+        })
+    );
+    let config = &s["model_config"];
+    assert_eq!(config["max_batch_size"], MAX_ITEMS);
+    assert_eq!(
+        config["input"][0],
+        serde_json::json!({"name": "x", "data_type": "TYPE_FP32", "dims": [h, d], "optional": false})
+    );
+    assert_eq!(config["input"][1]["reshape"], serde_json::json!({"shape": []}));
+    assert_eq!(config["dynamic_batching"]["default_queue_policy"]["timeout_action"], "REJECT");
+    let index = s["repository_index"].as_array().expect("index");
+    assert_eq!(index.len(), 1, "reward models only: {index:?}");
+    assert_eq!(index[0]["name"], "lines-reward");
+    assert_eq!(index[0]["state"], "READY");
+
+    // gRPC's answer is the native API's (checked in (a)); here, against native directly too.
+    let x: Vec<f32> = u32s(&s["x"]).into_iter().map(f32::from_bits).collect();
+    let t: Vec<i64> = s["t"].as_array().expect("t").iter().map(|v| v.as_i64().expect("i64")).collect();
+    let (_, gradient_rewards, gradient) = native(client, &x, &t).await;
+    assert_eq!(u32s(&s["reward"]), bits(&gradient_rewards), "OIP reward vs native");
+    assert_eq!(u32s(&s["grad_x"]), bits(&gradient), "OIP grad_x vs native Gradient");
+    for form in ["binary", "json", "mixed", "unnamed", "gzip", "deflate"] {
+        assert_eq!(s["same_as_grpc"][form], true, "{form} over HTTP differs from gRPC");
+    }
+    assert_eq!(
+        s["json_response"],
+        serde_json::json!({"model_name": "lines-reward", "model_version": "1", "id": "req-1"})
+    );
+    assert_eq!(s["json_output_keys"], serde_json::json!(["data", "datatype", "name", "shape"]));
+    assert_eq!(s["curl_outputs"], serde_json::json!(["reward"]));
+
+    // Refusals: tritonclient's exceptions (HTTP status, JSON error) ...
+    let refusal = |k: &str| {
+        let r = &s["refusals"][k];
+        (r["status"].as_str().unwrap_or("none").to_owned(), r["message"].as_str().unwrap_or("").to_owned())
+    };
+    for (key, status, needle) in [
+        ("unknown_model", "404", "no-such-model"),
+        ("diffusion_model", "409", "diffusion"),
+        ("fp64", "400", "x: datatype"),
+        ("t_shape", "400", "t: expected shape"),
+        ("metadata_unknown_version", "404", "version"),
+    ] {
+        let (got, message) = refusal(key);
+        assert_eq!(got, status, "{key}: {message}");
+        assert!(message.contains(needle), "{key}: {message}");
+    }
+    // ... and plain HTTP's.
+    for (key, status, needle) in [
+        ("malformed_json", 400, "request body: not a KServe v2 inference request"),
+        ("unknown_field", 400, "unknown field `outptus`"),
+        ("short_data", 400, "x: data holds 1 values"),
+        ("unknown_route", 404, "no endpoint"),
+        ("wrong_method", 405, "takes POST"),
+        ("unsupported_encoding", 415, "Content-Encoding"),
+        ("bad_gzip", 400, "cannot be decompressed"),
+    ] {
+        let r = &s["raw"][key];
+        assert_eq!(r[0], status, "{key}: {r}");
+        let message = r[1]["error"].as_str().unwrap_or_else(|| panic!("{key}: no JSON error: {r}"));
+        assert!(message.contains(needle), "{key}: {message}");
+    }
+    assert_eq!(s["raw"]["index_ready"][0], 200);
+    assert_eq!(s["raw"]["live"][0], 200);
+
+    // The HTTP inferences count in the model's statistics like gRPC's.
+    let stats = &s["statistics"]["model_stats"][0];
+    assert_eq!(stats["name"], "lines-reward");
+    assert!(stats["inference_stats"]["success"]["count"].as_u64().expect("count") >= 8, "{stats}");
+}
+
 #[tokio::test(flavor = "multi_thread")]
 async fn open_inference_protocol_serves_rewards_like_the_native_api() {
     let (server, client) = setup().await;
@@ -810,6 +927,8 @@ async fn open_inference_protocol_serves_rewards_like_the_native_api() {
     rust_client_and_bad_inputs(&server, &client).await;
     config_statistics_and_index(&server, &client).await;
     unimplemented_rpcs(&server).await;
+    // Last: its inferences add to the statistics counted exactly above.
+    http_answers_as_grpc(&server, &client).await;
 
     // Health knows the service by its name.
     let mut health = tonic_health::pb::health_client::HealthClient::new(client.channel());

@@ -463,6 +463,11 @@ fn all_interfaces_need_tokens_or_an_explicit_opt_out() {
     assert!(line.is_some_and(|l| l.contains("listening on [::]:")), "{log}");
     assert!(log.contains("plaintext"), "tokens over plaintext on a public address deserve a warning: {log}");
 
+    // The OIP's HTTP listener follows the same rule, named by its own key.
+    let (line, status, log) = start_raw(&["--listen", "127.0.0.1:0"], &[("RELREWARD__OIP_HTTP__LISTEN", "0.0.0.0:0")]);
+    assert_eq!((line, status), (None, Some(2)), "{log}");
+    assert!(log.contains("oip_http.listen") && log.contains("security.allow_unauthenticated = true"), "{log}");
+
     // A token pasted where its hash belongs stops the start, naming the entry.
     std::fs::write(
         tmp.path().join("bad.toml"),
@@ -559,7 +564,10 @@ async fn try_health(endpoint: &str, options: &ConnectOptions) -> Result<(), Stri
 async fn tls_serves_tokens_and_oip_and_refuses_plaintext_and_unknown_cas() {
     let pki = Pki::new();
     let t = tokens();
-    let server = TestServer::start_with_config(&format!("{}\n{}", t.config, pki.tls_section(false)), &[]);
+    let server = TestServer::start_with_config(
+        &format!("{}\n{}", t.config, pki.tls_section(false)),
+        &[("RELREWARD__OIP_HTTP__LISTEN", "127.0.0.1:0")],
+    );
     let https = format!("https://{}", server.addr);
     let http = format!("http://{}", server.addr);
     let tls = |ca: &str| Some(pki.tls(ca, None));
@@ -627,12 +635,44 @@ async fn tls_serves_tokens_and_oip_and_refuses_plaintext_and_unknown_cas() {
     assert!(!out.status.success() && stderr(&out).contains("UNAUTHENTICATED"), "{}", stderr(&out));
     let out = cli(&["--ca-cert", &pki.s("rogue-ca.pem"), "--token", &t.read, "dataset", "list"], &[]);
     assert!(!out.status.success(), "a rogue CA must not verify the server");
+
+    // The OIP over HTTP: the same TLS and tokens (KServe v2 REST through curl).
+    let url = server.oip_http_url();
+    assert!(url.starts_with("https://"), "{url}");
+    let plain = url.replacen("https://", "http://", 1);
+    let stats = "/v2/models/stats";
+    assert_eq!(
+        curl(&url, stats, &["--cacert", &pki.s("ca.pem"), "-H", &format!("Authorization: Bearer {}", t.read)]).0,
+        200
+    );
+    let (status, body) = curl(&url, stats, &["--cacert", &pki.s("ca.pem")]);
+    assert_eq!(status, 401, "{body}");
+    assert!(body.contains("authorization: missing"), "{body}");
+    let (status, body) = curl(&url, stats, &["--cacert", &pki.s("ca.pem"), "-H", "Authorization: Bearer nope"]);
+    assert_eq!(status, 401, "{body}");
+    assert_eq!(curl(&url, stats, &["--cacert", &pki.s("rogue-ca.pem")]).0, 0, "a rogue CA must not verify the server");
+    assert_eq!(curl(&plain, stats, &[]).0, 0, "plaintext to the TLS listener");
+}
+
+/// `curl` against `base` + `path` with `args`: the HTTP status (0 when no response came, e.g.
+/// a failed handshake) and the body.
+fn curl(base: &str, path: &str, args: &[&str]) -> (u16, String) {
+    let out = Command::new("curl")
+        .args(["-sS", "--max-time", "20", "-o", "-", "-w", "\n%{http_code}"])
+        .args(args)
+        .arg(format!("{base}{path}"))
+        .output()
+        .expect("curl");
+    let text = String::from_utf8_lossy(&out.stdout).into_owned();
+    let (body, code) = text.rsplit_once('\n').unwrap_or(("", &text));
+    (code.trim().parse().unwrap_or(0), body.to_owned())
 }
 
 #[tokio::test(flavor = "multi_thread")]
 async fn mutual_tls_needs_a_client_certificate_from_the_ca() {
     let pki = Pki::new();
-    let server = TestServer::start_with_config(&pki.tls_section(true), &[]);
+    let server =
+        TestServer::start_with_config(&pki.tls_section(true), &[("RELREWARD__OIP_HTTP__LISTEN", "127.0.0.1:0")]);
     let https = format!("https://{}", server.addr);
     let with = |client: Option<&str>| ConnectOptions { token: None, tls: Some(pki.tls("ca.pem", client)) };
 
@@ -654,6 +694,19 @@ async fn mutual_tls_needs_a_client_certificate_from_the_ca() {
     assert!(!cli(&["health"]).status.success(), "no client certificate");
     let out = cli(&["--client-cert", &pki.s("client.pem"), "health"]);
     assert_eq!(out.status.code(), Some(2), "--client-cert without --client-key is a usage error: {}", stderr(&out));
+
+    // The OIP over HTTP asks for the same client certificate.
+    let url = server.oip_http_url();
+    let ca = ["--cacert", &pki.s("ca.pem")];
+    let (status, body) = curl(
+        &url,
+        "/v2/health/live",
+        &[&ca[..], &["--cert", &pki.s("client.pem"), "--key", &pki.s("client.key")]].concat(),
+    );
+    assert_eq!(status, 200, "{body}");
+    assert_eq!(curl(&url, "/v2/health/live", &ca).0, 0, "no client certificate");
+    let rogue = ["--cert", &pki.s("rogue-client.pem"), "--key", &pki.s("rogue-client.key")];
+    assert_eq!(curl(&url, "/v2/health/live", &[&ca[..], &rogue[..]].concat()).0, 0, "a certificate from another CA");
 }
 
 /// `engine.device` (issue 21): a CUDA device that libtorch does not see stops the start before

@@ -344,7 +344,7 @@ fn check_repository(name: &str) -> Result<()> {
 }
 
 impl Inference {
-    async fn infer(
+    pub(crate) async fn infer(
         &self,
         req: pb::ModelInferRequest,
         deadline: Option<std::time::Instant>,
@@ -381,7 +381,7 @@ impl Inference {
         Ok(response)
     }
 
-    async fn metadata(&self, req: pb::ModelMetadataRequest) -> Result<pb::ModelMetadataResponse> {
+    pub(crate) async fn metadata(&self, req: pb::ModelMetadataRequest) -> Result<pb::ModelMetadataResponse> {
         check_version(&req.name, &req.version)?;
         let model = self.serving.reward(&req.name).await?;
         let batched = |item: &[i64]| std::iter::once(-1).chain(item.iter().copied()).collect::<Vec<_>>();
@@ -397,7 +397,7 @@ impl Inference {
         })
     }
 
-    async fn config(&self, req: pb::ModelConfigRequest) -> Result<pb::ModelConfigResponse> {
+    pub(crate) async fn config(&self, req: pb::ModelConfigRequest) -> Result<pb::ModelConfigResponse> {
         check_version(&req.name, &req.version)?;
         let model = self.serving.reward(&req.name).await?;
         let serving = self.serving.config();
@@ -459,7 +459,7 @@ impl Inference {
         Ok(pb::ModelConfigResponse { config: Some(config) })
     }
 
-    async fn statistics(&self, req: pb::ModelStatisticsRequest) -> Result<pb::ModelStatisticsResponse> {
+    pub(crate) async fn statistics(&self, req: pb::ModelStatisticsRequest) -> Result<pb::ModelStatisticsResponse> {
         check_version(if req.name.is_empty() { "any model" } else { &req.name }, &req.version)?;
         let metrics = self.serving.metrics();
         if !req.name.is_empty() {
@@ -496,7 +496,7 @@ impl Inference {
         }
     }
 
-    async fn index(&self, req: pb::RepositoryIndexRequest) -> Result<pb::RepositoryIndexResponse> {
+    pub(crate) async fn index(&self, req: pb::RepositoryIndexRequest) -> Result<pb::RepositoryIndexResponse> {
         check_repository(&req.repository_name)?;
         let mut models = Vec::new();
         for name in self.reward_models().await? {
@@ -518,7 +518,7 @@ impl Inference {
     }
 
     /// Ready iff the registry can load `name` as a reward or discriminator model.
-    async fn ready(&self, req: pb::ModelReadyRequest) -> Result<bool> {
+    pub(crate) async fn ready(&self, req: pb::ModelReadyRequest) -> Result<bool> {
         if check_version(&req.name, &req.version).is_err() {
             return Ok(false);
         }

@@ -140,6 +140,11 @@ impl AuthLayer {
     pub fn is_open(&self) -> bool {
         matches!(*self.policy, Policy::Open)
     }
+
+    /// The policy itself, for a listener that is not a tower stack (`crate::oip_http`).
+    pub fn policy(&self) -> Arc<Policy> {
+        self.policy.clone()
+    }
 }
 
 impl<S> tower_layer::Layer<S> for AuthLayer {

@@ -49,6 +49,8 @@ pub struct Security {
     pub layer: AuthLayer,
     /// `None`: plaintext.
     pub tls: Option<ServerTlsConfig>,
+    /// The same for the OIP's HTTP listener (`crate::oip_http`).
+    pub http_tls: Option<std::sync::Arc<rustls::ServerConfig>>,
     /// Settings that are allowed but risky, for the log at start.
     pub warnings: Vec<String>,
 }
@@ -94,6 +96,16 @@ impl Security {
                  path; configure security.tls (or terminate TLS in front of the server)"
             ));
         }
+        if let Ok(http) = config.oip_http.listen.parse::<SocketAddr>()
+            && !table.is_empty()
+            && !http.ip().to_canonical().is_loopback()
+            && !sec.tls.enabled()
+        {
+            warnings.push(format!(
+                "tokens are required but oip_http.listen = {http} is plaintext: they cross the network readable by \
+                 anyone on the path; configure security.tls (or terminate TLS in front of the server)"
+            ));
+        }
         let expired = table.expired_names(SystemTime::now());
         if !expired.is_empty() {
             warnings.push(format!("security.tokens: already expired, refused: {}", expired.join(", ")));
@@ -107,8 +119,9 @@ impl Security {
             ));
         }
         let tls = tls::server_config(&sec.tls)?;
+        let http_tls = tls::http_server_config(&sec.tls)?;
         let policy = if table.is_empty() { Policy::Open } else { Policy::Tokens(table) };
-        Ok(Self { layer: AuthLayer::new(policy), tls, warnings })
+        Ok(Self { layer: AuthLayer::new(policy), tls, http_tls, warnings })
     }
 }
 

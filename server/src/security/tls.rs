@@ -1,4 +1,6 @@
-//! TLS for the gRPC listener from `[security.tls]`: rustls through tonic (`tls-ring`).
+//! TLS for the listeners from `[security.tls]`: rustls on ring, through tonic (`tls-ring`) for
+//! gRPC and through tokio-rustls for the OIP's HTTP listener ([`http_server_config`]), from the
+//! same files with the same rules (mutual TLS included).
 //!
 //! The files are read and the rustls configuration is built at start, so a missing file, a
 //! key that does not match its certificate or a malformed PEM stops the server with the key
@@ -51,4 +53,45 @@ pub fn server_config(tls: &TlsConfig) -> Result<Option<ServerTlsConfig>, Securit
         )
     })?;
     Ok(Some(config))
+}
+
+/// The same settings as [`server_config`] for an HTTP/1.1 listener (`crate::oip_http`), or
+/// `None` for plaintext. Called after [`server_config`] has accepted the files, so an error
+/// here is one rustls finds that tonic did not.
+pub fn http_server_config(tls: &TlsConfig) -> Result<Option<std::sync::Arc<rustls::ServerConfig>>, SecurityError> {
+    use rustls::pki_types::pem::PemObject;
+    use rustls::pki_types::{CertificateDer, PrivateKeyDer};
+    if !tls.enabled() {
+        return Ok(None);
+    }
+    let bad = |key: &'static str| move |e: rustls::pki_types::pem::Error| SecurityError::new(key, format!("{e}"));
+    let cert = read("security.tls.cert", &tls.cert)?;
+    let chain =
+        CertificateDer::pem_slice_iter(&cert).collect::<Result<Vec<_>, _>>().map_err(bad("security.tls.cert"))?;
+    let key = PrivateKeyDer::from_pem_slice(&read("security.tls.key", &tls.key)?).map_err(bad("security.tls.key"))?;
+    let provider = std::sync::Arc::new(rustls::crypto::ring::default_provider());
+    let builder = rustls::ServerConfig::builder_with_provider(provider.clone())
+        .with_safe_default_protocol_versions()
+        .map_err(|e| SecurityError::new("security.tls", e.to_string()))?;
+    let builder = if tls.client_ca.as_os_str().is_empty() {
+        builder.with_no_client_auth()
+    } else {
+        let ca = read("security.tls.client_ca", &tls.client_ca)?;
+        let mut roots = rustls::RootCertStore::empty();
+        for c in CertificateDer::pem_slice_iter(&ca) {
+            let c = c.map_err(bad("security.tls.client_ca"))?;
+            roots.add(c).map_err(|e| SecurityError::new("security.tls.client_ca", e.to_string()))?;
+        }
+        // Required, as on the gRPC listener.
+        let verifier =
+            rustls::server::WebPkiClientVerifier::builder_with_provider(std::sync::Arc::new(roots), provider)
+                .build()
+                .map_err(|e| SecurityError::new("security.tls.client_ca", e.to_string()))?;
+        builder.with_client_cert_verifier(verifier)
+    };
+    let mut config = builder
+        .with_single_cert(chain, key)
+        .map_err(|e| SecurityError::new("security.tls", format!("cannot use the certificate and key: {e}")))?;
+    config.alpn_protocols = vec![b"http/1.1".to_vec()];
+    Ok(Some(std::sync::Arc::new(config)))
 }
