@@ -122,6 +122,7 @@ bench: build
 	tests/bench/training.sh
 	tests/bench/cluster.sh
 	tests/bench/amortised.sh
+	tests/bench/oip_http.sh
 
 ## soak: concurrent Score, GradientStream, Sample, uploads and a training job for SOAK_SECS
 ## (default 600) against one loopback server; see docs/reliability.md.
