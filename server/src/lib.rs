@@ -157,6 +157,7 @@ pub async fn run(
     if let Some(listener) = oip_http_listener {
         let service = std::sync::Arc::new(oip_http::OipHttp::new(
             api::oip::Inference::new(serving.clone()),
+            metrics.clone(),
             security.layer.policy(),
             config.server.max_request_bytes,
             config.serving.default_deadline_ms,

@@ -10,6 +10,8 @@
 //!   add up, per model, to the cumulative [`ModelStats`] the Open Inference Protocol's
 //!   ModelStatistics reports (Triton's counts and nanoseconds, which a histogram cannot give
 //!   back exactly).
+//! - The OIP over HTTP (`crate::oip_http`) counts its requests by route and HTTP status
+//!   ([`Metrics::observe_http`]); their queries count in serving's metrics like gRPC's.
 //! - [`serve_http`]: `GET /metrics` over HTTP/1.1; jobs by state and loaded models are read
 //!   when scraped.
 use std::collections::{HashMap, HashSet};
@@ -51,6 +53,8 @@ struct Inner {
     registry: Registry,
     requests: IntCounterVec,
     request_seconds: HistogramVec,
+    http_requests: IntCounterVec,
+    http_request_seconds: HistogramVec,
     queue_seconds: HistogramVec,
     compute_seconds: HistogramVec,
     batch_items: HistogramVec,
@@ -136,6 +140,16 @@ impl Metrics {
                 &["method"],
             )
             .expect("metric"),
+            http_requests: IntCounterVec::new(
+                Opts::new("oip_http_requests_total", "OIP over HTTP requests by route and HTTP status"),
+                &["route", "status"],
+            )
+            .expect("metric"),
+            http_request_seconds: HistogramVec::new(
+                seconds("oip_http_request_seconds", "OIP over HTTP request duration (body read to answer)"),
+                &["route"],
+            )
+            .expect("metric"),
             queue_seconds: HistogramVec::new(
                 seconds("serving_queue_seconds", "time a Score/Gradient query waited for its batch"),
                 &["model"],
@@ -171,6 +185,8 @@ impl Metrics {
         for c in [
             Box::new(inner.requests.clone()) as Box<dyn prometheus::core::Collector>,
             Box::new(inner.request_seconds.clone()),
+            Box::new(inner.http_requests.clone()),
+            Box::new(inner.http_request_seconds.clone()),
             Box::new(inner.queue_seconds.clone()),
             Box::new(inner.compute_seconds.clone()),
             Box::new(inner.batch_items.clone()),
@@ -189,6 +205,12 @@ impl Metrics {
     pub fn observe_call(&self, method: &str, code: &str, seconds: f64) {
         self.inner.requests.with_label_values(&[method, code]).inc();
         self.inner.request_seconds.with_label_values(&[method]).observe(seconds);
+    }
+
+    /// One answered request of the OIP over HTTP (`crate::oip_http`).
+    pub fn observe_http(&self, route: &str, status: u16, seconds: f64) {
+        self.inner.http_requests.with_label_values(&[route, &status.to_string()]).inc();
+        self.inner.http_request_seconds.with_label_values(&[route]).observe(seconds);
     }
 
     /// One merged batch of `queries` queries and `items` items computed in `seconds`.

@@ -52,6 +52,7 @@ use tracing::Instrument;
 
 use crate::api::oip::Inference;
 use crate::error::{Error, brief, quote};
+use crate::metrics::Metrics;
 use crate::security::Policy;
 
 /// The header of the binary tensor extension: the JSON part's length in bytes.
@@ -64,6 +65,7 @@ const CLOSE_GRACE: Duration = Duration::from_secs(5);
 /// What one listener needs to answer requests.
 pub struct OipHttp {
     inference: Inference,
+    metrics: Metrics,
     policy: Arc<Policy>,
     max_request_bytes: usize,
     default_deadline: Option<Duration>,
@@ -75,13 +77,14 @@ pub struct OipHttp {
 impl OipHttp {
     pub fn new(
         inference: Inference,
+        metrics: Metrics,
         policy: Arc<Policy>,
         max_request_bytes: usize,
         default_deadline_ms: u64,
         draining: CancellationToken,
     ) -> Self {
         let default_deadline = (default_deadline_ms > 0).then(|| Duration::from_millis(default_deadline_ms));
-        Self { inference, policy, max_request_bytes, default_deadline, draining }
+        Self { inference, metrics, policy, max_request_bytes, default_deadline, draining }
     }
 }
 
@@ -207,6 +210,21 @@ impl Route {
             Self::Config { .. } => "/inference.GRPCInferenceService/ModelConfig",
             Self::Infer { .. } => "/inference.GRPCInferenceService/ModelInfer",
             Self::Index => "/inference.GRPCInferenceService/RepositoryIndex",
+        }
+    }
+
+    /// The `route` label of `relreward_oip_http_requests_total`.
+    fn label(&self) -> &'static str {
+        match self {
+            Self::Live => "live",
+            Self::Ready => "ready",
+            Self::ServerMetadata => "server_metadata",
+            Self::Stats { .. } => "stats",
+            Self::Metadata { .. } => "metadata",
+            Self::ModelReady { .. } => "model_ready",
+            Self::Config { .. } => "config",
+            Self::Infer { .. } => "infer",
+            Self::Index => "index",
         }
     }
 
@@ -369,7 +387,10 @@ impl OipHttp {
         let encoding = accepted_encoding(request.headers());
         let path = request.uri().path().to_owned();
         let span = tracing::info_span!("oip_http", method = %request.method(), path = %quote(&path), %remote);
+        let start = Instant::now();
+        let label = route(&path).map_or("unknown", |r| r.label());
         let reply = self.answer(request, &path).instrument(span).await;
+        self.metrics.observe_http(label, reply.status.as_u16(), start.elapsed().as_secs_f64());
         finish(reply, encoding)
     }
 

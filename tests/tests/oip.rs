@@ -121,6 +121,7 @@ async fn setup() -> (TestServer, Client) {
     let server = TestServer::start_with_env(&[
         ("RELREWARD__SERVING__MAX_REQUEST_ITEMS", &MAX_ITEMS.to_string()),
         ("RELREWARD__OIP_HTTP__LISTEN", "127.0.0.1:0"),
+        ("RELREWARD__METRICS__LISTEN", "127.0.0.1:0"),
     ]);
     let client = server.client().await;
     upload_lines(&client, "lines", &LINES).await;
@@ -906,6 +907,20 @@ async fn http_answers_as_grpc(server: &TestServer, client: &Client) {
     }
     assert_eq!(s["raw"]["index_ready"][0], 200);
     assert_eq!(s["raw"]["live"][0], 200);
+
+    // Requests are counted by route and status in the Prometheus metrics.
+    let scrape = std::process::Command::new("curl")
+        .args(["-sS", &format!("http://{}/metrics", server.metrics_addr())])
+        .output()
+        .expect("curl");
+    let text = String::from_utf8_lossy(&scrape.stdout);
+    let count = |route: &str, status: u16| {
+        let prefix = format!("relreward_oip_http_requests_total{{route=\"{route}\",status=\"{status}\"}} ");
+        text.lines().find_map(|l| l.strip_prefix(&prefix)).map_or(0, |v| v.parse::<u64>().expect("count"))
+    };
+    assert!(count("infer", 200) >= 8, "{text}");
+    assert_eq!(count("unknown", 404), 1, "{text}");
+    assert_eq!(count("infer", 405), 1, "{text}");
 
     // The HTTP inferences count in the model's statistics like gRPC's.
     let stats = &s["statistics"]["model_stats"][0];

@@ -448,9 +448,22 @@ async fn poll_health(
 #[tokio::test(flavor = "multi_thread")]
 async fn shutdown_reports_not_serving_through_the_drain_then_closes() {
     const DRAIN: Duration = Duration::from_secs(2);
-    let mut server = TestServer::start_with_env(&[("RELREWARD__SERVER__SHUTDOWN_DRAIN_SECS", "2")]);
+    let mut server = TestServer::start_with_env(&[
+        ("RELREWARD__SERVER__SHUTDOWN_DRAIN_SECS", "2"),
+        ("RELREWARD__OIP_HTTP__LISTEN", "127.0.0.1:0"),
+    ]);
     let channel = channel(&server).await;
     let endpoint = server.endpoint();
+    // The OIP over HTTP's readiness follows health: 200, then 503 through the drain.
+    let ready_url = format!("{}/v2/health/ready", server.oip_http_url());
+    let http_ready = move || {
+        let out = std::process::Command::new("curl")
+            .args(["-s", "-o", "/dev/null", "-w", "%{http_code}", "--max-time", "5", &ready_url])
+            .output()
+            .expect("curl");
+        String::from_utf8_lossy(&out.stdout).into_owned()
+    };
+    assert_eq!(http_ready(), "200");
     let poller = tokio::spawn(poll_health(channel, ["", "relreward.v1.RewardService"], Duration::from_secs(30)));
     tokio::time::sleep(Duration::from_millis(300)).await;
 
@@ -466,6 +479,7 @@ async fn shutdown_reports_not_serving_through_the_drain_then_closes() {
         .list_datasets(pb::ListDatasetsRequest::default())
         .await
         .expect("a new call mid-drain is answered");
+    assert_eq!(tokio::task::spawn_blocking(http_ready.clone()).await.expect("curl"), "503", "HTTP readiness mid-drain");
 
     let (clean, server) = stopped.await.expect("terminate");
     let took = signalled.elapsed();
