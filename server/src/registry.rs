@@ -9,7 +9,8 @@
 //! - Loading: the record's manifest (JSON) becomes an engine manifest. A diffusion model's
 //!   file is a native architecture's safetensors weights ([`NativeDenoiser`]) or a TorchScript
 //!   module ([`TorchScriptDenoiser`], validated again with one forward pass); a reward model's
-//!   is its network's safetensors weights (plus Algorithm 2's step tables beside them).
+//!   is its network's safetensors weights (plus Algorithm 2's step tables beside them), or a
+//!   bring-your-own TorchScript module ([`TorchScriptReward`], validated again as at upload).
 //! - Integrity: the stored file's sha256 is recomputed on every load and compared with the
 //!   record's; a mismatch (or a missing file, or an unreadable manifest) is `DataLoss` and the
 //!   model is never served.
@@ -40,11 +41,11 @@ use crate::config::ModelsConfig;
 use crate::engine::denoiser::{Denoiser, ValidationProbe};
 use crate::engine::diffusion::DiffusionModel;
 use crate::engine::export;
-use crate::engine::manifest::DiffusionManifest;
+use crate::engine::manifest::{DiffusionManifest, RewardUploadManifest};
 use crate::engine::nets::NativeDenoiser;
-use crate::engine::relative_reward::RewardManifest;
+use crate::engine::relative_reward::{RewardManifest, RewardSource};
 use crate::engine::reward_model::RewardModel;
-use crate::engine::torchscript::TorchScriptDenoiser;
+use crate::engine::torchscript::{TorchScriptDenoiser, TorchScriptReward};
 use crate::error::{Error, Result};
 use crate::store::digests::{self, Verified, sha256_file};
 use crate::store::{ModelFormat, ModelKind, ModelRecord, Store};
@@ -389,6 +390,19 @@ impl ModelRegistry {
 }
 
 impl ModelRegistry {
+    /// Loads a bring-your-own reward's module at `path` on the registry's device and validates
+    /// it against `manifest` (see [`TorchScriptReward::load_and_validate`]: a forward and a
+    /// backward to x on zeros of the declared shape) on a blocking thread. Returns its
+    /// parameter count.
+    pub async fn validate_torchscript_reward(&self, path: PathBuf, manifest: RewardUploadManifest) -> Result<u64> {
+        let device = self.inner.device;
+        tokio::task::spawn_blocking(move || {
+            TorchScriptReward::load_and_validate(&path, &manifest, device).map(|r| r.parameter_count())
+        })
+        .await
+        .map_err(|e| Error::internal("module validation task", e))?
+    }
+
     /// Checks uploaded native weights against their manifest before registration (blocking
     /// work on a worker thread): the strict load names every missing, unexpected or mis-shaped
     /// tensor; every weight must be finite (the error names the first tensor holding a NaN or
@@ -443,8 +457,13 @@ pub fn load_diffusion_copy(record: &ModelRecord, dir: &Path, device: Device) -> 
 pub fn export_torchscript(record: &ModelRecord, dir: &Path, out: &Path) -> Result<()> {
     let path = dir.join(&record.file);
     match (record.kind, record.format) {
-        (_, ModelFormat::Torchscript) => Err(Error::FailedPrecondition(format!(
+        (ModelKind::Diffusion, ModelFormat::Torchscript) => Err(Error::FailedPrecondition(format!(
             "torchscript: model '{}' is stored as TorchScript already; its module.pt is the export",
+            record.name
+        ))),
+        (_, ModelFormat::Torchscript) => Err(Error::FailedPrecondition(format!(
+            "torchscript: model '{}' is a bring-your-own TorchScript reward; its module.pt, as uploaded, is the \
+             module (over normalized x, as its manifest's signature says)",
             record.name
         ))),
         (ModelKind::Reward | ModelKind::Discriminator, ModelFormat::Native) => {
@@ -542,14 +561,20 @@ fn load_reward(record: &ModelRecord, dir: &Path, device: Device) -> Result<Loade
     let (path, size) = verified_file(record, dir)?;
     let manifest: RewardManifest = serde_json::from_value(record.manifest.clone())
         .map_err(|e| lost(record, format!("its stored manifest is unreadable: {e}")))?;
-    if record.format != ModelFormat::Native {
-        return Err(lost(record, "reward models are stored as native weights, this record says otherwise".into()));
+    match (record.format, &manifest.architecture) {
+        (ModelFormat::Native, RewardSource::Native(_)) | (ModelFormat::Torchscript, RewardSource::Uploaded(_)) => {}
+        (format, architecture) => {
+            return Err(lost(
+                record,
+                format!("its record's format {format:?} does not fit its manifest's {architecture}"),
+            ));
+        }
     }
     let model = RewardModel::load(manifest.clone(), &path, dir, device).map_err(|e| match e {
         Error::DataLoss(m) | Error::InvalidArgument(m) => lost(record, m),
         other => other,
     })?;
-    let bytes = model.parameter_count().saturating_mul(4).max(size);
+    let bytes = model.parameter_bytes().max(size);
     let served = ServedReward {
         name: record.name.clone(),
         blob_key: record.blob_key.clone(),

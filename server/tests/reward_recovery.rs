@@ -87,8 +87,13 @@ async fn upload_samples(client: &Client, name: &str, mean: &[f32], seed: u64) {
 }
 
 async fn upload_model(client: &Client, path: &Path, name: &str) {
-    let header =
-        pb::UploadModelHeader { name: name.into(), manifest: Some(manifest()), description: String::new(), format: 0 };
+    let header = pb::UploadModelHeader {
+        name: name.into(),
+        manifest: Some(manifest()),
+        description: String::new(),
+        format: 0,
+        reward: None,
+    };
     client.upload_model(header, path, Arc::new(UploadProgress::default())).await.expect("upload model");
 }
 

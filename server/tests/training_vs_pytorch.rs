@@ -355,7 +355,7 @@ fn guided_sampling_matches_pytorch_step_by_step() {
     let (_, reward_spec) = reward_net(&arch, &item, &reward_path, &mut rng);
     let reward = RewardModel::load(
         RewardManifest {
-            architecture: arch,
+            architecture: arch.into(),
             space: m.space.clone(),
             normalizer: Normalizer::Identity,
             n_timesteps: big_t,

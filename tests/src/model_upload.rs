@@ -52,7 +52,13 @@ pub fn sample_manifest(shape: &[u64]) -> pb::DiffusionManifest {
 }
 
 pub fn header(name: &str, manifest: Option<pb::DiffusionManifest>) -> pb::UploadModelHeader {
-    pb::UploadModelHeader { name: name.into(), manifest, description: format!("fixture {name}"), format: 0 }
+    pb::UploadModelHeader {
+        name: name.into(),
+        manifest,
+        description: format!("fixture {name}"),
+        format: 0,
+        reward: None,
+    }
 }
 
 pub fn msg(m: Message) -> pb::UploadModelRequest {

@@ -106,6 +106,7 @@ async fn native_weights_register_through_model_import() {
         manifest: Some(manifest),
         description: String::new(),
         format: format as i32,
+        reward: None,
     };
     let mut bare = manifest.clone();
     bare.architecture = None;

@@ -51,8 +51,13 @@ async fn analytic_gaussian_registered_by_upload_samples_its_distribution() {
         normalizer: Some(pb::Normalizer { kind: Some(pb::normalizer::Kind::Identity(pb::normalizer::Identity {})) }),
         architecture: None,
     };
-    let header =
-        pb::UploadModelHeader { name: "gauss".into(), manifest: Some(manifest), description: String::new(), format: 0 };
+    let header = pb::UploadModelHeader {
+        name: "gauss".into(),
+        manifest: Some(manifest),
+        description: String::new(),
+        format: 0,
+        reward: None,
+    };
     client
         .upload_model(header, &tmp.path().join("model.pt"), Arc::new(UploadProgress::default()))
         .await

@@ -9,7 +9,7 @@ use std::path::Path;
 
 use anyhow::{Context, Result};
 use relreward_client::pb;
-use relreward_proto::schema::manifest::{DEFAULT_COSINE_S, DiffusionManifest};
+use relreward_proto::schema::manifest::{DEFAULT_COSINE_S, DiffusionManifest, RewardUploadManifest};
 use relreward_proto::schema::{Format, parse_text as parse_document};
 use serde::de::DeserializeOwned;
 use serde_json::{Value, json};
@@ -41,6 +41,14 @@ pub fn load_text(text: &str, path: &Path) -> Result<pb::DiffusionManifest> {
 pub fn load(path: &Path) -> Result<pb::DiffusionManifest> {
     let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
     load_text(&text, path)
+}
+
+/// A bring-your-own reward's manifest file (`model upload --reward`) as the proto, after the
+/// schema's checks (signature, n_timesteps, space, normalizer, base_model).
+pub fn load_reward(path: &Path) -> Result<pb::RewardUploadManifest> {
+    let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+    let name = path.display().to_string();
+    Ok(RewardUploadManifest::parse(&text, Some(&name))?.to_proto())
 }
 
 /// A TrainDiffusion architecture as a manifest's (the same three messages), e.g. to print it

@@ -362,9 +362,12 @@ impl Client {
     // -----------------------------------------------------------------------------------------
     // Models
 
-    /// Registers the TorchScript module at `path`: `header` (name, manifest, description), the
-    /// file's bytes in chunks of [`DEFAULT_CHUNK_BYTES`], then its sha256. The file is read on
-    /// a blocking thread; `progress` counts the bytes handed to the transport.
+    /// Registers the model file at `path`: `header` (name, manifest, description, format), the
+    /// file's bytes in chunks of [`DEFAULT_CHUNK_BYTES`], then its sha256. A diffusion model's
+    /// header carries `manifest`; a bring-your-own TorchScript reward's carries `reward` (a
+    /// `RewardUploadManifest`, e.g. `relreward_proto::schema::manifest::RewardUploadManifest`'s
+    /// `to_proto`) and no `manifest`. The file is read on a blocking thread; `progress` counts
+    /// the bytes handed to the transport.
     pub async fn upload_model(
         &self,
         header: pb::UploadModelHeader,

@@ -118,6 +118,31 @@ impl Space {
         }
     }
 
+    /// Positive dimensions whose element count fits tch's sizes; messages name `field` (the
+    /// space's path, e.g. "manifest.space").
+    pub fn validate_at(&self, field: &str) -> Result<(), Invalid> {
+        match self {
+            Self::Trajectory { horizon, action_dim, obs_dim } => {
+                if *horizon == 0 || action_dim.checked_add(*obs_dim).is_none_or(|d| d == 0) {
+                    return invalid(format!(
+                        "{field}: horizon {horizon}, action_dim {action_dim}, obs_dim {obs_dim}: horizon and action_dim + obs_dim must be positive"
+                    ));
+                }
+            }
+            Self::Sample { shape } => {
+                if shape.is_empty() || shape.contains(&0) {
+                    return invalid(format!("{field}.shape: {shape:?} must be non-empty with positive dimensions"));
+                }
+            }
+        }
+        // Regression inputs in fuzz/regressions/manifest_parse: huge dimensions overflowed the
+        // coordinate count and, cast to i64, became negative sizes.
+        if self.checked_item_elements().is_none() {
+            return invalid(format!("{field}: {self:?} has more elements per item than fit in 64 bits"));
+        }
+        Ok(())
+    }
+
     /// Elements of one item, `None` when the count does not fit in an `i64` (tch's sizes).
     fn checked_item_elements(&self) -> Option<usize> {
         let n = match self {
@@ -511,27 +536,7 @@ impl DiffusionManifest {
             return invalid(format!("{field}.n_timesteps: {t} is outside 1..={MAX_TIMESTEPS}"));
         }
         self.schedule.validate(&format!("{field}.schedule"), t)?;
-        match &self.space {
-            Space::Trajectory { horizon, action_dim, obs_dim } => {
-                if *horizon == 0 || action_dim.checked_add(*obs_dim).is_none_or(|d| d == 0) {
-                    return invalid(format!(
-                        "{field}.space: horizon {horizon}, action_dim {action_dim}, obs_dim {obs_dim}: horizon and action_dim + obs_dim must be positive"
-                    ));
-                }
-            }
-            Space::Sample { shape } => {
-                if shape.is_empty() || shape.contains(&0) {
-                    return invalid(format!(
-                        "{field}.space.shape: {shape:?} must be non-empty with positive dimensions"
-                    ));
-                }
-            }
-        }
-        // Regression inputs in fuzz/regressions/manifest_parse: huge dimensions overflowed the
-        // coordinate count and, cast to i64, became negative sizes.
-        if self.space.checked_item_elements().is_none() {
-            return invalid(format!("{field}.space: {:?} has more elements per item than fit in 64 bits", self.space));
-        }
+        self.space.validate_at(&format!("{field}.space"))?;
         self.normalizer.validate(&format!("{field}.normalizer"), self.space.coordinates())?;
         if let Some(arch) = &self.architecture {
             self.validate_architecture(arch, field)?;
@@ -617,9 +622,161 @@ impl DiffusionManifest {
     }
 }
 
+/// How the server calls a bring-your-own TorchScript reward (`relreward.v1.RewardSignature`).
+/// In both, `x` is float32 `[B, *item_shape]` in normalized units and `t` int64 `[B]`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum RewardSignature {
+    /// `forward(x, t) -> rho [B]`.
+    Rho,
+    /// Diffuser's ValueFunction: `forward(x, cond: Dict[str, Tensor], t) -> [B, 1]`, called
+    /// with an empty `cond`.
+    ValueFunction,
+}
+
+impl RewardSignature {
+    pub fn to_proto(self) -> pb::RewardSignature {
+        match self {
+            Self::Rho => pb::RewardSignature::Rho,
+            Self::ValueFunction => pb::RewardSignature::ValueFunction,
+        }
+    }
+
+    /// From the wire, required: the server cannot guess how to call a module.
+    pub fn from_proto(v: i32, field: &str) -> Result<Self, Invalid> {
+        const VALUES: &str = "REWARD_SIGNATURE_RHO (1: forward(x, t) -> [B]) or REWARD_SIGNATURE_VALUE_FUNCTION (2: \
+                              Diffuser's forward(x, cond, t) -> [B, 1])";
+        match known(field, v, VALUES)? {
+            pb::RewardSignature::Rho => Ok(Self::Rho),
+            pb::RewardSignature::ValueFunction => Ok(Self::ValueFunction),
+            pb::RewardSignature::Unspecified => invalid(format!("{field}: unspecified; set {VALUES}")),
+        }
+    }
+}
+
+impl std::fmt::Display for RewardSignature {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Self::Rho => "rho",
+            Self::ValueFunction => "value_function",
+        })
+    }
+}
+
+/// The manifest of a bring-your-own TorchScript reward (`UploadModelHeader.reward`): what the
+/// server needs to call the module and to serve it as it serves trained rewards. What a
+/// trained reward's manifest also holds (its architecture, objective, training data and
+/// losses) it need not state: the module is its own architecture, and how it was trained is
+/// its author's business.
+///
+/// ```toml
+/// signature = "value_function"            # or "rho"
+/// n_timesteps = 20
+/// space = { kind = "trajectory", horizon = 32, action_dim = 2, obs_dim = 4 }
+/// normalizer = { kind = "limits", min = [..], max = [..] }   # default identity
+/// base_model = "hopper-base"              # optional: must then agree with it
+/// ```
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RewardUploadManifest {
+    pub signature: RewardSignature,
+    pub n_timesteps: usize,
+    pub space: Space,
+    #[serde(default)]
+    pub normalizer: Normalizer,
+    #[serde(default, skip_serializing_if = "String::is_empty")]
+    pub base_model: String,
+}
+
+impl RewardUploadManifest {
+    /// Parses a manifest file, TOML or JSON, and validates it (as [`DiffusionManifest::parse`]).
+    pub fn parse(text: &str, name: Option<&str>) -> Result<Self, Invalid> {
+        let format = super::Format::guess(name, text);
+        let m: Self = super::parse_text(text, format, name.unwrap_or("reward manifest"))?;
+        m.validate_at("reward manifest")?;
+        Ok(m)
+    }
+
+    /// T, the space and the normalizer's lengths; messages name `field.*`.
+    pub fn validate_at(&self, field: &str) -> Result<(), Invalid> {
+        let t = self.n_timesteps;
+        if t == 0 || t > MAX_TIMESTEPS {
+            return invalid(format!("{field}.n_timesteps: {t} is outside 1..={MAX_TIMESTEPS}"));
+        }
+        self.space.validate_at(&format!("{field}.space"))?;
+        self.normalizer.validate(&format!("{field}.normalizer"), self.space.coordinates())
+    }
+
+    pub fn to_proto(&self) -> pb::RewardUploadManifest {
+        use pb::diffusion_manifest::Space as S;
+        use pb::reward_upload_manifest::Space as R;
+        pb::RewardUploadManifest {
+            signature: self.signature.to_proto() as i32,
+            space: Some(match self.space.to_proto() {
+                S::Trajectory(t) => R::Trajectory(t),
+                S::Sample(s) => R::Sample(s),
+            }),
+            normalizer: Some(self.normalizer.to_proto()),
+            n_timesteps: wire_u32(self.n_timesteps),
+            base_model: self.base_model.clone(),
+        }
+    }
+
+    /// From the wire, validated; `field` is the manifest's path in the request
+    /// ("header.reward") and every message names the field below it.
+    pub fn from_proto(m: pb::RewardUploadManifest, field: &str) -> Result<Self, Invalid> {
+        use pb::diffusion_manifest::Space as S;
+        use pb::reward_upload_manifest::Space as R;
+        if m.n_timesteps == 0 {
+            return invalid(format!("{field}.n_timesteps: missing or 0; set T, the diffusion steps it was made for"));
+        }
+        let space = m.space.map(|s| match s {
+            R::Trajectory(t) => S::Trajectory(t),
+            R::Sample(s) => S::Sample(s),
+        });
+        let manifest = Self {
+            signature: RewardSignature::from_proto(m.signature, &format!("{field}.signature"))?,
+            n_timesteps: m.n_timesteps as usize,
+            space: Space::from_proto(space, &format!("{field}.space"))?,
+            normalizer: Normalizer::from_proto(m.normalizer, &format!("{field}.normalizer"))?,
+            base_model: m.base_model,
+        };
+        manifest.validate_at(field)?;
+        Ok(manifest)
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn reward_upload_manifest_round_trips_and_names_fields() {
+        let text = r#"
+            signature = "value_function"
+            n_timesteps = 20
+            space = { kind = "trajectory", horizon = 8, action_dim = 1, obs_dim = 2 }
+            normalizer = { kind = "gaussian", mean = [0, 1, 2], std = [1, 1, 2] }
+        "#;
+        let m = RewardUploadManifest::parse(text, Some("r.toml")).expect("parses");
+        assert_eq!(m.space.item_shape(), vec![8, 3]);
+        assert_eq!(RewardUploadManifest::from_proto(m.to_proto(), "header.reward").expect("wire"), m);
+        let mut wire = m.to_proto();
+        wire.signature = 0;
+        let err = RewardUploadManifest::from_proto(wire, "header.reward").expect_err("unspecified");
+        assert!(err.0.starts_with("header.reward.signature: unspecified"), "{}", err.0);
+        let mut wire = m.to_proto();
+        wire.normalizer = None;
+        let err = RewardUploadManifest::from_proto(wire, "header.reward").expect_err("no normalizer");
+        assert!(err.0.starts_with("header.reward.normalizer: missing"), "{}", err.0);
+        let mut wire = m.to_proto();
+        wire.space = None;
+        let err = RewardUploadManifest::from_proto(wire, "header.reward").expect_err("no space");
+        assert!(err.0.starts_with("header.reward.space: missing"), "{}", err.0);
+        let short = text.replace("std = [1, 1, 2]", "std = [1, 1]");
+        let err = RewardUploadManifest::parse(&short, None).expect_err("short std");
+        assert!(err.0.contains("reward manifest.normalizer.std: 2 values"), "{}", err.0);
+    }
 
     const TOML: &str = r#"
         parametrization = "x0"

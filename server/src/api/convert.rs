@@ -8,7 +8,7 @@ use relreward_proto::v1 as pb;
 use super::timestamp;
 use crate::engine::manifest::DiffusionManifest;
 use crate::engine::nets::reward::RewardArchitecture;
-use crate::engine::relative_reward::RewardManifest;
+use crate::engine::relative_reward::{RewardManifest, RewardSource};
 use crate::engine::schedule::Schedule;
 use crate::error::{Error, Result};
 use crate::store::{ModelFormat, ModelKind, ModelRecord, Provenance};
@@ -101,7 +101,7 @@ pub fn model_to_proto(r: &ModelRecord) -> Result<pb::Model> {
                 expert_model: m.expert_model.clone(),
                 architecture: m.architecture.to_string(),
                 window: match &m.architecture {
-                    RewardArchitecture::WindowedMlp { window, .. } => *window as u32,
+                    RewardSource::Native(RewardArchitecture::WindowedMlp { window, .. }) => *window as u32,
                     _ => 0,
                 },
                 input_shape: m.space.item_shape().iter().map(|&d| d as u64).collect(),

@@ -1,5 +1,6 @@
 //! `relreward.v1.ModelService`: register diffusion models (TorchScript modules or native
-//! safetensors weights), get, list, delete.
+//! safetensors weights) and bring-your-own rewards (TorchScript modules), get, list, delete,
+//! download.
 //!
 //! Upload protocol (one client stream): a `header` (name, manifest, description, format), the
 //! file's bytes in `chunk`s, then a `commit` with the file's sha256. The order of checks is
@@ -7,12 +8,14 @@
 //!
 //! 1. the header: format (a TorchScript upload also needs `models.allow_torchscript_upload`,
 //!    off by default: a TorchScript file is a program; native weights are data), name, no
-//!    existing model of that name, the manifest converted and validated, its architecture
-//!    present exactly when the format is native;
+//!    existing model of that name, the manifest converted and validated: a diffusion
+//!    manifest's architecture present exactly when the format is native; a reward's
+//!    (`header.reward`) TorchScript only, its base model, if named, agreeing with it;
 //! 2. the bytes, streamed into a staging file, hashed, bounded by `models.max_upload_bytes`;
 //! 3. the commit digest;
 //! 4. the file itself, on a blocking thread: a module loaded and run once on zeros of the
-//!    declared shape (`engine::torchscript`); native weights loaded strictly into the
+//!    declared shape (`engine::torchscript`; a reward's also differentiated once with respect
+//!    to x); native weights loaded strictly into the
 //!    architecture (every tensor named, float32, of its shape, nothing extra) and run once the
 //!    same way (`ModelRegistry::validate_native`);
 //! 5. `manifest.json` written next to the file, the staging directory published and the record
@@ -41,6 +44,8 @@ use tonic::{Request, Response, Status, Streaming};
 use super::convert::{diffusion_manifest_from_proto, model_kind_filter_from_proto, model_to_proto};
 use super::{next_upload, page_limit};
 use crate::config::ModelsConfig;
+use crate::engine::manifest::{DiffusionManifest, RewardUploadManifest};
+use crate::engine::relative_reward::RewardManifest;
 use crate::error::{Error, Result};
 use crate::fields::{self, validate_name};
 use crate::jobs::JobManager;
@@ -129,22 +134,14 @@ impl Models {
         if self.store.meta.get_model(&header.name).await?.is_some() {
             return Err(Error::AlreadyExists(format!("header.name: model '{}' already exists", header.name)));
         }
-        let manifest = diffusion_manifest_from_proto(header.manifest, "header.manifest")?;
-        let file_name = match (format, &manifest.architecture) {
-            (ModelFormat::Torchscript, None) => MODULE_FILE,
-            (ModelFormat::Native, Some(_)) => WEIGHTS_FILE,
-            (ModelFormat::Torchscript, Some(_)) => {
-                return Err(Error::invalid(
-                    "header.manifest.architecture: set, but header.format is TorchScript, whose module is its own \
-                     architecture; send safetensors weights with header.format = MODEL_FORMAT_NATIVE, or leave the \
-                     architecture unset",
-                ));
+        let (manifest, file_name) = match header.reward {
+            Some(reward) => {
+                (Manifest::Reward(self.reward_manifest(reward, header.manifest, format).await?), MODULE_FILE)
             }
-            (ModelFormat::Native, None) => {
-                return Err(Error::invalid(
-                    "header.manifest.architecture: missing; native weights (header.format = MODEL_FORMAT_NATIVE) \
-                     need the built-in architecture they belong to: temporal_unet, mlp or unet2d",
-                ));
+            None => {
+                let manifest = diffusion_manifest_from_proto(header.manifest, "header.manifest")?;
+                let file_name = diffusion_file_name(format, &manifest)?;
+                (Manifest::Diffusion(manifest), file_name)
             }
         };
 
@@ -202,17 +199,26 @@ impl Models {
             )));
         }
 
-        let parameter_count = match format {
-            ModelFormat::Torchscript => self.registry.validate_torchscript(file_path, manifest.clone()).await?,
-            ModelFormat::Native => self.registry.validate_native(file_path, manifest.clone()).await?,
+        let (kind, parameter_count, manifest_json) = match manifest {
+            Manifest::Diffusion(manifest) => {
+                let parameter_count = match format {
+                    ModelFormat::Torchscript => self.registry.validate_torchscript(file_path, manifest.clone()).await?,
+                    ModelFormat::Native => self.registry.validate_native(file_path, manifest.clone()).await?,
+                };
+                (ModelKind::Diffusion, parameter_count, serde_json::to_value(&manifest))
+            }
+            Manifest::Reward(manifest) => {
+                let parameter_count = self.registry.validate_torchscript_reward(file_path, manifest.clone()).await?;
+                (ModelKind::Reward, parameter_count, serde_json::to_value(RewardManifest::uploaded(&manifest)))
+            }
         };
-        let manifest_json = serde_json::to_value(&manifest).map_err(|e| Error::internal("encoding manifest", e))?;
+        let manifest_json = manifest_json.map_err(|e| Error::internal("encoding manifest", e))?;
         let text = serde_json::to_vec_pretty(&manifest_json).map_err(|e| Error::internal("encoding manifest", e))?;
         tokio::task::block_in_place(|| std::fs::write(staging.path().join(MANIFEST_FILE), text))?;
 
         let record = ModelRecord {
             name: header.name,
-            kind: ModelKind::Diffusion,
+            kind,
             format,
             manifest: manifest_json,
             parameter_count,
@@ -232,9 +238,71 @@ impl Models {
             bytes = record.size_bytes,
             parameters = parameter_count,
             format = ?format,
-            "diffusion model registered"
+            kind = ?kind,
+            "model registered"
         );
         model_to_proto(&record)
+    }
+
+    /// A bring-your-own reward's header checked and converted: TorchScript only, no diffusion
+    /// manifest beside it, the manifest valid, and its base model (when named) an existing
+    /// diffusion model with the same item shape, T and normalizer.
+    async fn reward_manifest(
+        &self,
+        reward: pb::RewardUploadManifest,
+        diffusion: Option<pb::DiffusionManifest>,
+        format: ModelFormat,
+    ) -> Result<RewardUploadManifest> {
+        if diffusion.is_some() {
+            return Err(Error::invalid(
+                "header.manifest: set together with header.reward; a reward upload sends its RewardUploadManifest \
+                 alone (header.manifest is a diffusion model's)",
+            ));
+        }
+        if format != ModelFormat::Torchscript {
+            return Err(Error::invalid(
+                "header.format: MODEL_FORMAT_NATIVE with header.reward; a bring-your-own reward is a TorchScript \
+                 module (native reward weights come from training jobs)",
+            ));
+        }
+        let manifest = RewardUploadManifest::from_proto(reward, "header.reward")?;
+        if manifest.base_model.is_empty() {
+            return Ok(manifest);
+        }
+        let field = "header.reward.base_model";
+        validate_name(field, &manifest.base_model)?;
+        let base = self
+            .store
+            .meta
+            .get_model(&manifest.base_model)
+            .await?
+            .ok_or_else(|| Error::NotFound(format!("{field}: model '{}' not found", manifest.base_model)))?;
+        if base.kind != ModelKind::Diffusion {
+            return Err(Error::invalid(format!("{field}: model '{}' is not a diffusion model", base.name)));
+        }
+        let base_manifest: DiffusionManifest = serde_json::from_value(base.manifest)
+            .map_err(|e| Error::DataLoss(format!("model '{}': its stored manifest is unreadable: {e}", base.name)))?;
+        let (ours, theirs) = (manifest.space.item_shape(), base_manifest.space.item_shape());
+        if ours != theirs {
+            return Err(Error::invalid(format!(
+                "header.reward.space: items of shape {ours:?}, but base model '{}' has {theirs:?}",
+                base.name
+            )));
+        }
+        if manifest.n_timesteps != base_manifest.n_timesteps {
+            return Err(Error::invalid(format!(
+                "header.reward.n_timesteps: {}, but base model '{}' has T = {}",
+                manifest.n_timesteps, base.name, base_manifest.n_timesteps
+            )));
+        }
+        if manifest.normalizer != base_manifest.normalizer {
+            return Err(Error::invalid(format!(
+                "header.reward.normalizer: differs from base model '{}''s; a reward takes its base model's \
+                 normalized units",
+                base.name
+            )));
+        }
+        Ok(manifest)
     }
 
     async fn list(&self, req: pb::ListModelsRequest) -> Result<pb::ListModelsResponse> {
@@ -319,6 +387,30 @@ impl Models {
         self.registry.invalidate(name);
         tracing::info!(model = name, "model deleted");
         Ok(())
+    }
+}
+
+/// What an upload registers.
+enum Manifest {
+    Diffusion(DiffusionManifest),
+    Reward(RewardUploadManifest),
+}
+
+/// A diffusion model's file name for its format: native weights need the manifest to name
+/// their architecture, a TorchScript module must not (it is its own).
+fn diffusion_file_name(format: ModelFormat, manifest: &DiffusionManifest) -> Result<&'static str> {
+    match (format, &manifest.architecture) {
+        (ModelFormat::Torchscript, None) => Ok(MODULE_FILE),
+        (ModelFormat::Native, Some(_)) => Ok(WEIGHTS_FILE),
+        (ModelFormat::Torchscript, Some(_)) => Err(Error::invalid(
+            "header.manifest.architecture: set, but header.format is TorchScript, whose module is its own \
+             architecture; send safetensors weights with header.format = MODEL_FORMAT_NATIVE, or leave the \
+             architecture unset",
+        )),
+        (ModelFormat::Native, None) => Err(Error::invalid(
+            "header.manifest.architecture: missing; native weights (header.format = MODEL_FORMAT_NATIVE) \
+             need the built-in architecture they belong to: temporal_unet, mlp or unet2d",
+        )),
     }
 }
 

@@ -3,8 +3,10 @@
 //! architecture). Its types, defaults and checks are the shared schema's
 //! (`relreward_proto::schema::manifest`, one definition for the server, the CLI and the Python
 //! package's tests); the engine adds what needs libtorch: the schedule's arithmetic
-//! (`schedule.rs`) and the normalizer's on tensors (`normalizer.rs`).
+//! (`schedule.rs`) and the normalizer's on tensors (`normalizer.rs`). A bring-your-own
+//! reward's upload manifest ([`RewardUploadManifest`]) is the shared schema's too.
 
 pub use relreward_proto::schema::manifest::{
-    Architecture, DiffusionManifest, MAX_TIMESTEPS, Parametrization, ScheduleSpec, Space,
+    Architecture, DiffusionManifest, MAX_TIMESTEPS, Parametrization, RewardSignature, RewardUploadManifest,
+    ScheduleSpec, Space,
 };

@@ -41,7 +41,7 @@ use serde::{Deserialize, Serialize};
 use tch::{Device, Kind, Tensor};
 
 use super::diffusion::DiffusionModel;
-use super::manifest::Space;
+use super::manifest::{RewardSignature, RewardUploadManifest, Space};
 use super::nets::reward::{RewardArchitecture, RewardNet};
 use super::normalizer::{Normalize, Normalizer};
 use super::threads::side_by_side;
@@ -254,7 +254,9 @@ pub fn alignment_loss(
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct RewardManifest {
-    pub architecture: RewardArchitecture,
+    /// What computes rho: a built-in network (its weights beside the manifest), or an uploaded
+    /// TorchScript module (a bring-your-own reward).
+    pub architecture: RewardSource,
     /// The space of the diffusion models it was extracted from (its input layout).
     pub space: Space,
     /// Their normalizer: rho takes normalized inputs.
@@ -333,6 +335,62 @@ fn is_one(w: &f64) -> bool {
     *w == 1.0
 }
 
+/// What computes a stored reward: a built-in architecture with safetensors weights (what
+/// training jobs write), or a bring-your-own TorchScript module. Stored under the manifest's
+/// `architecture` key in either form, so the manifests of trained rewards read as before:
+/// `{"kind": "windowed_mlp", ...}` or `{"kind": "torchscript", "signature": "rho" |
+/// "value_function"}`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(untagged)]
+pub enum RewardSource {
+    Native(RewardArchitecture),
+    Uploaded(UploadedReward),
+}
+
+/// A bring-your-own reward's module (see [`RewardSource`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case", deny_unknown_fields)]
+pub enum UploadedReward {
+    /// `module.pt`, called as its signature says.
+    Torchscript { signature: RewardSignature },
+}
+
+impl From<RewardArchitecture> for RewardSource {
+    fn from(a: RewardArchitecture) -> Self {
+        Self::Native(a)
+    }
+}
+
+impl std::fmt::Display for RewardSource {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Self::Native(a) => a.fmt(f),
+            Self::Uploaded(UploadedReward::Torchscript { signature }) => write!(f, "torchscript({signature})"),
+        }
+    }
+}
+
+impl RewardManifest {
+    /// The stored manifest of a bring-your-own reward: what its upload states, the rest empty
+    /// (no training data, objective [`Objective::Uploaded`], no losses).
+    pub fn uploaded(m: &RewardUploadManifest) -> Self {
+        Self {
+            architecture: RewardSource::Uploaded(UploadedReward::Torchscript { signature: m.signature }),
+            space: m.space.clone(),
+            normalizer: m.normalizer.clone(),
+            n_timesteps: m.n_timesteps,
+            base_model: m.base_model.clone(),
+            expert_model: String::new(),
+            datasets: Vec::new(),
+            objective: Objective::Uploaded,
+            step_normalization: false,
+            inpaint_condition: false,
+            final_loss: 0.0,
+            eval_loss: None,
+        }
+    }
+}
+
 /// How rho was trained.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(tag = "kind", rename_all = "snake_case")]
@@ -350,6 +408,9 @@ pub enum Objective {
     },
     /// Binary cross-entropy, expert = 1 vs base = 0 (the paper's baseline).
     Discriminator,
+    /// Not trained here: a bring-your-own reward uploaded as TorchScript (its `final_loss` is
+    /// 0 and means nothing).
+    Uploaded,
 }
 
 #[cfg(test)]
@@ -548,5 +609,19 @@ mod tests {
         assert!(e.allclose(&Tensor::from_slice(&[1.5f32, 0.0]).reshape([1, 1, 2]), 1e-6, 1e-6, false), "{e}");
         assert!(al.to_base(&e).allclose(&x, 1e-6, 1e-6, false));
         assert!(Alignment::between(&base, &base).is_none());
+    }
+
+    /// Trained rewards' stored manifests read as native architectures, as before
+    /// `RewardSource`; a bring-your-own reward's as `{"kind": "torchscript", "signature"}`.
+    #[test]
+    fn reward_source_reads_old_manifests_and_writes_torchscript() {
+        let native: RewardSource = serde_json::from_str(r#"{"kind": "mlp", "hidden": [8]}"#).expect("native");
+        assert_eq!(native, RewardSource::Native(RewardArchitecture::Mlp { hidden: vec![8] }));
+        let byo = RewardSource::Uploaded(UploadedReward::Torchscript { signature: RewardSignature::ValueFunction });
+        let text = serde_json::to_string(&byo).expect("json");
+        assert_eq!(text, r#"{"kind":"torchscript","signature":"value_function"}"#);
+        assert_eq!(serde_json::from_str::<RewardSource>(&text).expect("back"), byo);
+        assert_eq!(byo.to_string(), "torchscript(value_function)");
+        assert!(serde_json::from_str::<RewardSource>(r#"{"kind": "torchscript"}"#).is_err(), "signature required");
     }
 }

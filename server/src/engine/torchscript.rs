@@ -1,21 +1,25 @@
-//! [`TorchScriptDenoiser`]: an uploaded TorchScript module, called as `forward(x, t)` with `x`
-//! float32 `[B, *item_shape]` and `t` int64 `[B]`, implementing [`Denoiser`].
+//! Uploaded TorchScript modules: [`TorchScriptDenoiser`], a diffusion model's network called
+//! as `forward(x, t)` with `x` float32 `[B, *item_shape]` and `t` int64 `[B]`, implementing
+//! [`Denoiser`]; and [`TorchScriptReward`], a bring-your-own reward called as `forward(x, t)
+//! -> [B]` or as Diffuser's value function `forward(x, cond, t) -> [B, 1]` (the manifest's
+//! [`RewardSignature`]), served through [`super::reward_model::RewardModel`].
 //!
 //! A TorchScript file is a program (PyTorch's SECURITY.md): loading and calling it runs its
 //! author's code inside the server, which is why uploads are off unless
 //! `models.allow_torchscript_upload` is set. What this module can do is refuse files that do not
-//! honour their manifest before they are registered: [`TorchScriptDenoiser::load_and_validate`]
-//! loads the module and runs one forward pass on zeros of the declared shape.
+//! honour their manifest before they are registered: `load_and_validate` loads the module
+//! ([`LoadedModule`], shared by both kinds) and runs one forward pass on zeros of the declared
+//! shape; a reward also one backward to `x`, since its gradient is served.
 //!
 //! Error messages never contain the file's path (a server-side location) and keep only the
 //! part of libtorch's message that concerns the module, not the C++ backtrace behind it.
 
 use std::path::Path;
 
-use tch::{CModule, Device, Kind, TchError, Tensor};
+use tch::{CModule, Device, IValue, Kind, TchError, Tensor};
 
 use super::denoiser::{Denoiser, ValidationProbe};
-use super::manifest::DiffusionManifest;
+use super::manifest::{DiffusionManifest, RewardSignature, RewardUploadManifest};
 use super::nets::inputs::check_inputs;
 use crate::error::{Error, Result};
 
@@ -44,25 +48,7 @@ impl TorchScriptDenoiser {
     /// Loads the module onto `device` in eval mode, without running it. A file libtorch cannot
     /// read as TorchScript is InvalidArgument ("module: ..."); a missing file is internal.
     pub fn load(path: &Path, manifest: &DiffusionManifest, device: Device) -> Result<Self> {
-        // A missing or unreadable file is the server's problem, not the module's.
-        std::fs::metadata(path)?;
-        let mut module = CModule::load_on_device(path, device).map_err(|e| {
-            Error::invalid(format!("module: not a loadable TorchScript file: {}", module_message(&e, path)))
-        })?;
-        module
-            .f_set_eval()
-            .map_err(|e| Error::invalid(format!("module: cannot switch to eval mode: {}", module_message(&e, path))))?;
-        let parameters = module
-            .named_parameters()
-            .map_err(|e| Error::invalid(format!("module: cannot list its parameters: {}", module_message(&e, path))))?;
-        let mut parameter_count = 0u64;
-        let mut parameter_bytes = 0u64;
-        for (_, p) in &parameters {
-            let numel = u64::try_from(p.numel()).unwrap_or(u64::MAX);
-            let width = p.f_kind().map(|k| k.elt_size_in_bytes()).unwrap_or(4) as u64;
-            parameter_count = parameter_count.saturating_add(numel);
-            parameter_bytes = parameter_bytes.saturating_add(numel.saturating_mul(width));
-        }
+        let LoadedModule { module, parameter_count, parameter_bytes } = LoadedModule::load(path, device)?;
         Ok(Self { module, item_shape: manifest.space.item_shape(), device, parameter_count, parameter_bytes })
     }
 
@@ -129,6 +115,225 @@ impl Denoiser for TorchScriptDenoiser {
 
     fn parameter_count(&self) -> u64 {
         self.parameter_count
+    }
+}
+
+/// A TorchScript file loaded onto a device in eval mode, with its parameter count and bytes:
+/// what both kinds of upload start from.
+struct LoadedModule {
+    module: CModule,
+    parameter_count: u64,
+    parameter_bytes: u64,
+}
+
+impl LoadedModule {
+    fn load(path: &Path, device: Device) -> Result<Self> {
+        // A missing or unreadable file is the server's problem, not the module's.
+        std::fs::metadata(path)?;
+        let mut module = CModule::load_on_device(path, device).map_err(|e| {
+            Error::invalid(format!("module: not a loadable TorchScript file: {}", module_message(&e, path)))
+        })?;
+        module
+            .f_set_eval()
+            .map_err(|e| Error::invalid(format!("module: cannot switch to eval mode: {}", module_message(&e, path))))?;
+        let parameters = module
+            .named_parameters()
+            .map_err(|e| Error::invalid(format!("module: cannot list its parameters: {}", module_message(&e, path))))?;
+        let mut parameter_count = 0u64;
+        let mut parameter_bytes = 0u64;
+        for (_, p) in &parameters {
+            let numel = u64::try_from(p.numel()).unwrap_or(u64::MAX);
+            let width = p.f_kind().map(|k| k.elt_size_in_bytes()).unwrap_or(4) as u64;
+            parameter_count = parameter_count.saturating_add(numel);
+            parameter_bytes = parameter_bytes.saturating_add(numel.saturating_mul(width));
+        }
+        Ok(Self { module, parameter_count, parameter_bytes })
+    }
+}
+
+/// A bring-your-own reward: an uploaded TorchScript module computing a scalar per item, over
+/// `x` in normalized units. Behind [`super::reward_model::RewardModel`], so Score, Gradient,
+/// guidance and OIP serve it as they serve a trained [`super::nets::RewardNet`].
+pub struct TorchScriptReward {
+    module: CModule,
+    signature: RewardSignature,
+    item_shape: Vec<i64>,
+    device: Device,
+    parameter_count: u64,
+    parameter_bytes: u64,
+}
+
+impl std::fmt::Debug for TorchScriptReward {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("TorchScriptReward")
+            .field("signature", &self.signature)
+            .field("item_shape", &self.item_shape)
+            .field("device", &self.device)
+            .field("parameter_count", &self.parameter_count)
+            .finish_non_exhaustive()
+    }
+}
+
+impl TorchScriptReward {
+    /// Loads the module onto `device` in eval mode, without running it (as
+    /// [`TorchScriptDenoiser::load`]).
+    pub fn load(path: &Path, signature: RewardSignature, item_shape: &[i64], device: Device) -> Result<Self> {
+        let LoadedModule { module, parameter_count, parameter_bytes } = LoadedModule::load(path, device)?;
+        Ok(Self { module, signature, item_shape: item_shape.to_vec(), device, parameter_count, parameter_bytes })
+    }
+
+    /// [`Self::load`], then on zeros `[2, *item_shape]` with `t = [0, T - 1]`: one forward
+    /// under `no_grad`, whose output must be float32 of the signature's shape (`[2]`, or
+    /// `[2, 1]` for a value function) and finite; then one forward and backward with `x`
+    /// requiring grad, whose gradient must exist (the output depends on `x` differentiably)
+    /// and be finite. Every failure is InvalidArgument naming what was expected and found.
+    pub fn load_and_validate(path: &Path, manifest: &RewardUploadManifest, device: Device) -> Result<Self> {
+        manifest.validate_at("header.reward").map_err(|e| Error::invalid(e.0))?;
+        let reward = Self::load(path, manifest.signature, &manifest.space.item_shape(), device)?;
+        reward.validate(manifest.n_timesteps, path)?;
+        Ok(reward)
+    }
+
+    fn validate(&self, n_timesteps: usize, path: &Path) -> Result<()> {
+        let probe = ValidationProbe::new(&self.item_shape, n_timesteps, self.device)?;
+        let (shape, last) = (&probe.shape, probe.last);
+        let call = self.call_text();
+        let raised = |e: TchError| {
+            Error::invalid(format!(
+                "module: {call} on zeros {shape:?} with t = [0, {last}] raised: {}",
+                module_message(&e, path)
+            ))
+        };
+        let out = tch::no_grad(|| self.call(&probe.x, &probe.t)).map_err(raised)?;
+        let want = self.output_shape(2);
+        let (out_shape, out_kind) = (out.size(), out.f_kind()?);
+        if out_shape != want {
+            return Err(Error::invalid(format!(
+                "module: {call} returned shape {out_shape:?} for input shape {shape:?}; a reward of signature {} \
+                 must return {want:?} (one value per item)",
+                self.signature
+            )));
+        }
+        if out_kind != Kind::Float {
+            return Err(Error::invalid(format!(
+                "module: {call} returned dtype {out_kind:?} for float32 input; expected float32"
+            )));
+        }
+        probe.check_finite(&out, &format!("module: {call}"))?;
+        let grad = tch::with_grad(|| -> Result<Option<Tensor>> {
+            let x = probe.x.f_detach_copy()?.f_set_requires_grad(true)?;
+            let y = self.call(&x, &probe.t).map_err(raised)?;
+            if !y.requires_grad() {
+                return Ok(None);
+            }
+            let sum = y.f_sum(None::<Kind>)?;
+            let grads = Tensor::f_run_backward(&[&sum], &[&x], false, true).map_err(|e| {
+                Error::invalid(format!(
+                    "module: the backward of {call} to x failed (gradients are served): {}",
+                    module_message(&e, path)
+                ))
+            })?;
+            Ok(grads.into_iter().next().filter(Tensor::defined))
+        })?;
+        let Some(grad) = grad else {
+            return Err(Error::invalid(format!(
+                "module: {call}'s output does not depend differentiably on x (computed without grad, detached, or \
+                 not from x); Gradient and guidance need grad_x of the reward"
+            )));
+        };
+        probe.check_finite(&grad, &format!("module: the gradient of {call} with respect to x"))
+    }
+
+    /// The module's call for the manifest's signature (see [`RewardSignature`]); no checks.
+    fn call(&self, x: &Tensor, t: &Tensor) -> std::result::Result<Tensor, TchError> {
+        match self.signature {
+            RewardSignature::Rho => self.module.forward_ts(&[x, t]),
+            RewardSignature::ValueFunction => {
+                // cond: always an empty Dict[str, Tensor] (the only dict type libtorch's C API
+                // builds; Diffuser's ValueFunction never reads it: the proto's RewardSignature).
+                let inputs = [
+                    IValue::Tensor(x.shallow_clone()),
+                    IValue::GenericDict(Vec::new()),
+                    IValue::Tensor(t.shallow_clone()),
+                ];
+                match self.module.forward_is(&inputs)? {
+                    IValue::Tensor(out) => Ok(out),
+                    other => Err(TchError::Kind(format!("forward returned {}, not a tensor", ivalue_kind(&other)))),
+                }
+            }
+        }
+    }
+
+    fn call_text(&self) -> &'static str {
+        match self.signature {
+            RewardSignature::Rho => "forward(x, t)",
+            RewardSignature::ValueFunction => "forward(x, cond, t)",
+        }
+    }
+
+    fn output_shape(&self, batch: i64) -> Vec<i64> {
+        match self.signature {
+            RewardSignature::Rho => vec![batch],
+            RewardSignature::ValueFunction => vec![batch, 1],
+        }
+    }
+
+    /// The reward `[B]` of `x` float32 `[B, *item_shape]` (normalized units) at `t` int64 `[B]`;
+    /// differentiable with respect to `x` when grad mode is on. A value function's `[B, 1]` is
+    /// squeezed (Diffuser's ValueGuide). A module failing, or answering another shape than it
+    /// did at validation, is FailedPrecondition: the model cannot serve this request.
+    pub fn rho(&self, x: &Tensor, t: &Tensor) -> Result<Tensor> {
+        let batch = check_inputs("reward", x, t, &self.item_shape, Kind::Float)?;
+        let out = self.call(x, t).map_err(|e| {
+            Error::FailedPrecondition(format!(
+                "the TorchScript reward failed on input {:?}: {}",
+                x.size(),
+                module_message(&e, Path::new(""))
+            ))
+        })?;
+        let want = self.output_shape(batch);
+        if out.size() != want || out.f_kind()? != Kind::Float {
+            return Err(Error::FailedPrecondition(format!(
+                "the TorchScript reward returned {:?} {:?} for a batch of {batch}; expected float32 {want:?}",
+                out.f_kind()?,
+                out.size()
+            )));
+        }
+        Ok(out.f_reshape([batch])?)
+    }
+
+    pub fn signature(&self) -> RewardSignature {
+        self.signature
+    }
+
+    pub fn item_shape(&self) -> &[i64] {
+        &self.item_shape
+    }
+
+    pub fn parameter_count(&self) -> u64 {
+        self.parameter_count
+    }
+
+    /// As [`TorchScriptDenoiser::parameter_bytes`].
+    pub fn parameter_bytes(&self) -> u64 {
+        self.parameter_bytes
+    }
+}
+
+/// What a non-tensor output was, for messages.
+fn ivalue_kind(v: &IValue) -> &'static str {
+    match v {
+        IValue::None => "None",
+        IValue::Tuple(_) => "a tuple",
+        IValue::GenericList(_)
+        | IValue::TensorList(_)
+        | IValue::DoubleList(_)
+        | IValue::IntList(_)
+        | IValue::BoolList(_) => "a list",
+        IValue::GenericDict(_) => "a dict",
+        IValue::Double(_) | IValue::Int(_) | IValue::Bool(_) => "a number",
+        IValue::String(_) => "a string",
+        _ => "a non-tensor value",
     }
 }
 
@@ -245,6 +450,104 @@ pub(crate) mod tests {
             TorchScriptDenoiser::load_and_validate(&p("absent.pt"), &manifest(vec![3]), cpu),
             Err(Error::Internal(_))
         ));
+    }
+
+    /// Scripts bring-your-own reward modules with PyTorch into a fresh directory: rho(x, t) =
+    /// (t + 1) sum x^2 and the value function (t + 1) sum x as [B, 1] (analytic gradients
+    /// 2 (t + 1) x and t + 1), and three that must be refused.
+    fn byo_fixtures() -> tempfile::TempDir {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let script = r#"
+import sys
+from typing import Dict
+import torch
+
+class Rho(torch.nn.Module):
+    def forward(self, x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+        return (t.float() + 1) * (x * x).flatten(1).sum(1)
+
+class Value(torch.nn.Module):
+    def forward(self, x: torch.Tensor, cond: Dict[str, torch.Tensor], t: torch.Tensor) -> torch.Tensor:
+        return ((t.float() + 1) * x.flatten(1).sum(1)).unsqueeze(1)
+
+class Detached(torch.nn.Module):
+    def forward(self, x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+        return x.detach().flatten(1).sum(1)
+
+class Column(torch.nn.Module):
+    def forward(self, x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+        return x.flatten(1).sum(1, keepdim=True)
+
+for name, m in (("rho", Rho()), ("value", Value()), ("detached", Detached()), ("column", Column())):
+    torch.jit.script(m).save(f"{sys.argv[1]}/{name}.pt")
+"#;
+        let path = dir.path().join("make.py");
+        std::fs::write(&path, script).expect("write script");
+        let out = Command::new(repo().join(".venv/bin/python")).arg(&path).arg(dir.path()).output().expect("python");
+        assert!(out.status.success(), "scripting failed: {}", String::from_utf8_lossy(&out.stderr));
+        dir
+    }
+
+    fn upload(signature: RewardSignature) -> RewardUploadManifest {
+        RewardUploadManifest {
+            signature,
+            n_timesteps: 5,
+            space: Space::Sample { shape: vec![2, 3] },
+            normalizer: Normalizer::Identity,
+            base_model: String::new(),
+        }
+    }
+
+    /// Both signatures served through `RewardModel` (rho, gradient, windows), and refusals
+    /// naming the problem.
+    #[test]
+    fn byo_rewards_are_served_through_reward_model_and_bad_ones_refused() {
+        use crate::engine::relative_reward::RewardManifest;
+        use crate::engine::reward_model::RewardModel;
+        let dir = byo_fixtures();
+        let p = |name: &str| dir.path().join(name);
+        let x =
+            Tensor::from_slice(&[0.5f32, -1.0, 2.0, 0.0, 1.5, -0.25, 1.0, 1.0, -2.0, 0.3, 0.7, 0.1]).reshape([2, 2, 3]);
+        let t = Tensor::from_slice(&[0i64, 4]);
+        let t1 = (t.to_kind(Kind::Float) + 1.0).reshape([2, 1, 1]);
+        for (file, signature) in [("rho.pt", RewardSignature::Rho), ("value.pt", RewardSignature::ValueFunction)] {
+            let m = upload(signature);
+            let model =
+                RewardModel::load(RewardManifest::uploaded(&m), &p(file), dir.path(), Device::Cpu).expect("load");
+            assert_eq!((model.item_shape(), model.window()), (&[2i64, 3][..], None));
+            let (want, want_grad) = match signature {
+                RewardSignature::Rho => {
+                    ((&x * &x * &t1).sum_dim_intlist([1i64, 2].as_slice(), false, Kind::Float), &x * &t1 * 2.0)
+                }
+                RewardSignature::ValueFunction => {
+                    ((&x * &t1).sum_dim_intlist([1i64, 2].as_slice(), false, Kind::Float), x.ones_like() * &t1)
+                }
+            };
+            let rho = tch::no_grad(|| model.rho(&x, &t)).expect("rho");
+            assert!(rho.allclose(&want, 1e-6, 1e-6, false), "{signature}: {rho} vs {want}");
+            let (rho, grad) = tch::no_grad(|| model.grad(&x, &t)).expect("grad");
+            assert!(
+                rho.allclose(&want, 1e-6, 1e-6, false) && grad.allclose(&want_grad, 1e-6, 1e-6, false),
+                "{signature}"
+            );
+            assert_eq!(model.per_window(&x, &t).expect("windows").size(), [2, 1]);
+            assert!(matches!(model.per_step(&x, &t), Err(Error::InvalidArgument(_))));
+        }
+        let refused = |file: &str, signature| match TorchScriptReward::load_and_validate(
+            &p(file),
+            &upload(signature),
+            Device::Cpu,
+        ) {
+            Err(Error::InvalidArgument(m)) => m,
+            other => panic!("{file}: expected InvalidArgument, got {other:?}"),
+        };
+        assert!(refused("detached.pt", RewardSignature::Rho).contains("does not depend differentiably on x"));
+        let m = refused("column.pt", RewardSignature::Rho);
+        assert!(m.contains("returned shape [2, 1]") && m.contains("must return [2]"), "{m}");
+        let m = refused("rho.pt", RewardSignature::ValueFunction);
+        assert!(m.contains("forward(x, cond, t)") && m.contains("raised"), "{m}");
+        let m = refused("value.pt", RewardSignature::Rho);
+        assert!(m.contains("forward(x, t)") && m.contains("raised"), "{m}");
     }
 
     #[test]

@@ -242,7 +242,7 @@ pub fn run(ctx: &mut JobContext, job: &RewardJob) -> std::result::Result<String,
 
     let models_only = matches!(job.algorithm, RewardAlgorithm::ModelsOnly { .. });
     let manifest = RewardManifest {
-        architecture: job.architecture.clone(),
+        architecture: job.architecture.clone().into(),
         space,
         normalizer,
         n_timesteps,
@@ -417,7 +417,7 @@ pub fn run_discriminator(ctx: &mut JobContext, job: &DiscriminatorJob) -> std::r
         },
     )?;
     let manifest = RewardManifest {
-        architecture: job.architecture.clone(),
+        architecture: job.architecture.clone().into(),
         space,
         normalizer,
         n_timesteps: model.manifest.n_timesteps,

@@ -27,7 +27,7 @@ const T: usize = 10;
 
 fn manifest() -> RewardManifest {
     RewardManifest {
-        architecture: RewardArchitecture::WindowedMlp { window: 4, hidden: vec![16, 16] },
+        architecture: RewardArchitecture::WindowedMlp { window: 4, hidden: vec![16, 16] }.into(),
         space: Space::Trajectory { horizon: H as usize, action_dim: 1, obs_dim: 2 },
         // Different scales per coordinate, so raw and normalized gradients differ.
         normalizer: Normalizer::Limits { min: vec![-2.0, 0.0, -10.0], max: vec![2.0, 1.0, 30.0] },
@@ -60,7 +60,8 @@ async fn fixture(tune: impl FnOnce(&mut ServingConfig)) -> Fixture {
     let store = Store::open(&config).await.expect("store");
 
     let m = manifest();
-    let net = RewardNet::new(&m.architecture, &[H, D], Device::Cpu).expect("net");
+    let arch = RewardArchitecture::WindowedMlp { window: 4, hidden: vec![16, 16] };
+    let net = RewardNet::new(&arch, &[H, D], Device::Cpu).expect("net");
     let weights = tmp.path().join("weights.safetensors");
     net.save(&weights).expect("save");
     register(&store, "rho", &weights, ModelKind::Reward, serde_json::to_value(&m).expect("json")).await;

@@ -24,7 +24,9 @@ use super::{Ctx, Report, UsageError};
 #[derive(Debug, Subcommand)]
 pub enum ModelCommand {
     /// Register a diffusion model with its manifest: a TorchScript module, or native safetensors
-    /// weights when the manifest names an `architecture`.
+    /// weights when the manifest names an `architecture`; with --reward, a bring-your-own
+    /// TorchScript reward (rho(x, t) -> [B], or Diffuser's value function forward(x, cond, t)
+    /// -> [B, 1]) served like trained rewards.
     Upload(ModelUploadArgs),
     /// Convert a model into native weights (safetensors), checking every tensor: a Diffuser
     /// TemporalUnet state_dict exported to .npz, or a folder written by diffusers'
@@ -59,11 +61,17 @@ pub struct ModelUploadArgs {
     #[arg(long)]
     name: String,
     /// The model's manifest, TOML or JSON (parametrization, schedule, n_timesteps, space,
-    /// normalizer, clip_denoised; architecture for native weights).
+    /// normalizer, clip_denoised; architecture for native weights). With --reward, a reward
+    /// manifest: signature ("rho" | "value_function"), n_timesteps, space, normalizer, and
+    /// optionally base_model.
     #[arg(long, value_name = "MANIFEST.toml|json")]
     manifest: PathBuf,
     #[arg(long, default_value = "")]
     description: String,
+    /// The file is a bring-your-own TorchScript reward over normalized x (needs a server with
+    /// models.allow_torchscript_upload); --manifest is its reward manifest.
+    #[arg(long)]
+    reward: bool,
 }
 
 /// `model import`: the source decides the form. A file is a `.npz` state_dict (the flags under
@@ -180,7 +188,13 @@ pub async fn run(ctx: &Ctx, command: ModelCommand) -> Result<Report> {
 // Commands
 
 async fn upload(ctx: &Ctx, args: ModelUploadArgs) -> Result<Report> {
-    let ModelUploadArgs { file, name, manifest, description } = args;
+    let ModelUploadArgs { file, name, manifest, description, reward } = args;
+    if reward {
+        // A bad manifest is reported before anything is sent.
+        let man = manifest::load_reward(&manifest)?;
+        let model = send_model(ctx, &file, name, Upload::Reward(man), description).await?;
+        return Ok(Report::ok(format_model(&model), model_json(&model)));
+    }
     // A bad manifest is reported before anything is sent.
     let man = manifest::load(&manifest)?;
     let is_safetensors = file.extension().is_some_and(|e| e.eq_ignore_ascii_case("safetensors"));
@@ -192,20 +206,33 @@ async fn upload(ctx: &Ctx, args: ModelUploadArgs) -> Result<Report> {
             file.display()
         );
     }
-    let model = send_model(ctx, &file, name, man, description).await?;
+    let model = send_model(ctx, &file, name, Upload::Diffusion(man), description).await?;
     Ok(Report::ok(format_model(&model), model_json(&model)))
 }
 
+/// What `send_model` registers.
+enum Upload {
+    Diffusion(pb::DiffusionManifest),
+    /// A bring-your-own TorchScript reward.
+    Reward(pb::RewardUploadManifest),
+}
+
 /// Streams a model file with its manifest, with a progress bar; the format follows the
-/// manifest (native weights when it names an architecture, see `manifest`).
+/// manifest (native weights when a diffusion manifest names an architecture, see `manifest`;
+/// a reward is always TorchScript).
 async fn send_model(
     ctx: &Ctx,
     file: &std::path::Path,
     name: String,
-    manifest: pb::DiffusionManifest,
+    upload: Upload,
     description: String,
 ) -> Result<pb::Model> {
-    let format = if manifest.architecture.is_some() { pb::ModelFormat::Native } else { pb::ModelFormat::Torchscript };
+    let (manifest, reward) = match upload {
+        Upload::Diffusion(m) => (Some(m), None),
+        Upload::Reward(r) => (None, Some(r)),
+    };
+    let native = manifest.as_ref().is_some_and(|m| m.architecture.is_some());
+    let format = if native { pb::ModelFormat::Native } else { pb::ModelFormat::Torchscript };
     let size = std::fs::metadata(file).with_context(|| format!("{}", file.display()))?.len();
     let client = ctx.connect().await?;
     let progress = Arc::new(UploadProgress::default());
@@ -214,7 +241,7 @@ async fn send_model(
     let (done_tx, done_rx) = oneshot::channel();
     let ticker = tokio::spawn(drive_progress(bar.clone(), Arc::clone(&progress), done_rx));
     let started = Instant::now();
-    let header = pb::UploadModelHeader { name, manifest: Some(manifest), description, format: format as i32 };
+    let header = pb::UploadModelHeader { name, manifest, description, format: format as i32, reward };
     let result = client.upload_model(header, file, Arc::clone(&progress)).await;
     let _ = done_tx.send(());
     let _ = ticker.await;
@@ -298,7 +325,7 @@ async fn import(ctx: &Ctx, args: ModelImportArgs) -> Result<Report> {
     };
     let model = match name {
         Some(name) => Some(
-            send_model(ctx, staged.path(), name, manifest, description)
+            send_model(ctx, staged.path(), name, Upload::Diffusion(manifest), description)
                 .await
                 .with_context(|| format!("{} was not written", out.display()))?,
         ),

@@ -30,7 +30,7 @@ from relreward.v1 import (datasets_pb2, datasets_pb2_grpc, jobs_pb2, jobs_pb2_gr
 from relreward.datasets import source_of
 from relreward.errors import InvalidInput, RelrewardError, Unavailable, Unimplemented, error_for, is_retryable
 from relreward.results import Dataset, GradientResult, Job, JobEvent, JobState, Manifest, Model, ScoreResult
-from relreward.specs import job_spec, manifest as manifest_of
+from relreward.specs import job_spec, manifest as manifest_of, reward_manifest
 
 R = TypeVar("R")
 Plan = Generator[Any, Any, R]
@@ -275,10 +275,12 @@ def manifest_message(manifest: Manifest | Mapping[str, Any] | models_pb2.Diffusi
 
 
 def upload_model(cfg: Any, path: str | pathlib.Path, name: str, manifest: Any, description: str, chunk_bytes: int,
-                 progress: c.Progress | bool | None) -> Plan[Model]:
+                 progress: c.Progress | bool | None, reward: bool = False) -> Plan[Model]:
+    """``reward``: ``manifest`` is a bring-your-own reward's (:func:`relreward.specs.reward_manifest`)."""
     path = pathlib.Path(path)
     name = c.text("name", name)
-    header = c.upload_header(name, manifest_message(manifest), c.text("description", description))
+    message = reward_manifest(manifest) if reward else manifest_message(manifest)
+    header = c.upload_header(name, message, c.text("description", description))
     callback, bar = c.progress_callback(progress, path.stat().st_size, name)
     failure = c.UploadFailure()
     try:

@@ -346,9 +346,14 @@ def dataset_messages(name: str, source: UploadSource, description: str, chunk_by
         failure.error = e
 
 
-def upload_header(name: str, manifest: models_pb2.DiffusionManifest, description: str) -> models_pb2.UploadModelHeader:
-    """The upload's header; one rule gives its format: native safetensors weights when the
-    manifest names an architecture, a TorchScript module otherwise."""
+def upload_header(name: str, manifest: models_pb2.DiffusionManifest | models_pb2.RewardUploadManifest,
+                  description: str) -> models_pb2.UploadModelHeader:
+    """The upload's header; one rule gives its format: native safetensors weights when a
+    diffusion manifest names an architecture, a TorchScript module otherwise (a reward's
+    manifest goes in ``reward``: a bring-your-own reward is always TorchScript)."""
+    if isinstance(manifest, models_pb2.RewardUploadManifest):
+        return models_pb2.UploadModelHeader(name=name, reward=manifest, description=description,
+                                            format=models_pb2.MODEL_FORMAT_TORCHSCRIPT)
     fmt = models_pb2.MODEL_FORMAT_NATIVE if manifest.WhichOneof("architecture") else models_pb2.MODEL_FORMAT_TORCHSCRIPT
     return models_pb2.UploadModelHeader(name=name, manifest=manifest, description=description, format=fmt)
 

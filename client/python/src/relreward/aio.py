@@ -178,6 +178,13 @@ class AsyncClient:
                            progress: c.Progress | bool | None = None) -> Model:
         return await self._run(calls.upload_model(self, path, name, manifest, description, chunk_bytes, progress))
 
+    @_doc(Client.upload_reward, "the file is read on the event loop's thread between chunks.")
+    async def upload_reward(self, path: str | pathlib.Path, name: str, manifest: Mapping[str, Any] | Any,
+                            *, description: str = "", chunk_bytes: int = c.DEFAULT_CHUNK_BYTES,
+                            progress: c.Progress | bool | None = None) -> Model:
+        return await self._run(calls.upload_model(self, path, name, manifest, description, chunk_bytes, progress,
+                                                  reward=True))
+
     @_doc(Client.get_model)
     async def get_model(self, name: str) -> Model:
         return await self._run(calls.get_model(self, name))

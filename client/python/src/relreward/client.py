@@ -188,6 +188,25 @@ class Client:
         against the manifest. Needs an ``admin`` token where tokens are on. Never retried."""
         return self._run(calls.upload_model(self, path, name, manifest, description, chunk_bytes, progress))
 
+    def upload_reward(self, path: str | pathlib.Path, name: str, manifest: Mapping[str, Any] | Any,
+                      *, description: str = "", chunk_bytes: int = c.DEFAULT_CHUNK_BYTES,
+                      progress: c.Progress | bool | None = None) -> Model:
+        """Registers a bring-your-own reward: a TorchScript module (``torch.jit.script`` or
+        ``torch.jit.trace`` output, saved) served by ``score``, ``gradient``, ``gradient_stream``,
+        guided ``sample`` and OIP exactly as trained rewards are. ``manifest``: a dict (see
+        :func:`relreward.specs.reward_manifest`) or a ``RewardUploadManifest`` message;
+        ``signature`` "rho" calls ``forward(x, t) -> [B]``, "value_function" Diffuser's
+        ``forward(x, cond: Dict[str, Tensor], t) -> [B, 1]`` with an empty ``cond``; ``x`` is
+        float32 ``[B, *item_shape]`` in the diffusion models' normalized units (raw inputs are
+        mapped through the manifest's normalizer), ``t`` int64 ``[B]``. The server runs it
+        forward and backward once on zeros before registering it, and refuses (InvalidInput
+        naming the problem, nothing stored) a module that raises, returns another shape, a
+        non-float32 or non-finite value, or an output that does not depend on ``x``
+        differentiably. Needs ``models.allow_torchscript_upload`` and an ``admin`` token where
+        tokens are on. Never retried."""
+        return self._run(calls.upload_model(self, path, name, manifest, description, chunk_bytes, progress,
+                                            reward=True))
+
     def get_model(self, name: str) -> Model:
         """The model (a :class:`relreward.Model`): kind, format, manifest (diffusion) or reward
         info (input shape, T, normalizer); ``model.item_shape`` and ``model.n_timesteps`` say

@@ -285,6 +285,18 @@ def manifest(m: Any) -> models_pb2.DiffusionManifest:
                                        clip_denoised=bool(m.get("clip_denoised", False)))
     if (s := _schedule(m.get("schedule"))) is not None:
         out.schedule.CopyFrom(s)
+    _space_and_normalizer(out, m)
+    if m.get("architecture") is not None:
+        arch = dict(m["architecture"])
+        kind = str(arch.pop("kind", None))
+        message = _denoiser_architecture(kind, arch)  # names an unknown kind
+        getattr(out, kind).CopyFrom(message)
+    return out
+
+
+def _space_and_normalizer(out: Any, m: Mapping[str, Any]) -> None:
+    """Sets ``out``'s space oneof (trajectory | sample) and normalizer from a manifest dict's
+    ``space`` and ``normalizer`` (a DiffusionManifest's and a RewardUploadManifest's alike)."""
     space = dict(m.get("space") or {})
     kind = space.pop("kind", None)
     if kind == "trajectory":
@@ -305,9 +317,36 @@ def manifest(m: Any) -> models_pb2.DiffusionManifest:
         out.normalizer.identity.SetInParent()
     elif nk is not None:
         raise ValueError(f"normalizer kind {nk!r}: expected limits, gaussian or identity")
-    if m.get("architecture") is not None:
-        arch = dict(m["architecture"])
-        kind = str(arch.pop("kind", None))
-        message = _denoiser_architecture(kind, arch)  # names an unknown kind
-        getattr(out, kind).CopyFrom(message)
+
+
+_SIGNATURES = {"rho": models_pb2.REWARD_SIGNATURE_RHO, "value_function": models_pb2.REWARD_SIGNATURE_VALUE_FUNCTION}
+
+
+def reward_manifest(m: Any) -> models_pb2.RewardUploadManifest:
+    """A bring-your-own reward's RewardUploadManifest from a message or a dict in the CLI's
+    reward manifest form (``relreward model upload --reward``)::
+
+        {"signature": "value_function",        # or "rho"
+         "n_timesteps": 20,
+         "space": {"kind": "trajectory", "horizon": 32, "action_dim": 2, "obs_dim": 4},
+         "normalizer": {"kind": "limits", "min": [...], "max": [...]},   # or gaussian, identity
+         "base_model": "hopper-base"}          # optional
+
+    ``signature`` "rho": the module is ``forward(x, t) -> [B]``; "value_function": Diffuser's
+    ``forward(x, cond: Dict[str, Tensor], t) -> [B, 1]``, called with an empty ``cond``. ``x``
+    is in the diffusion models' normalized units; the normalizer maps raw units to them.
+    """
+    if isinstance(m, models_pb2.RewardUploadManifest):
+        return m
+    m = dict(m)
+    unknown = set(m) - {"signature", "n_timesteps", "space", "normalizer", "base_model"}
+    if unknown:
+        raise InvalidInput(f"reward manifest: unknown field(s) {sorted(unknown)}; expected signature, n_timesteps, "
+                           f"space, normalizer and optionally base_model")
+    signature = m.get("signature")
+    if signature not in _SIGNATURES:
+        raise InvalidInput(f"reward manifest.signature: {signature!r}; expected 'rho' or 'value_function'")
+    out = models_pb2.RewardUploadManifest(signature=_SIGNATURES[signature], n_timesteps=int(m.get("n_timesteps", 0)),
+                                          base_model=str(m.get("base_model", "")))
+    _space_and_normalizer(out, m)
     return out
