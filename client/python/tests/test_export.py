@@ -198,3 +198,30 @@ def test_async_export_and_refusals(client, models, server, tmp_path):
         assert client.download_model("export-ts", tmp_path / "ts").module == tmp_path / "ts" / "module.pt"
     finally:
         client.delete_model("export-ts")
+
+
+def test_cli_export_writes_the_same_files_and_module(client, models, server, tmp_path):
+    """`relreward model export NAME --out DIR`: the weights, manifest and module.pt the Python
+    client's export writes, and a module that gives Score; a second export into the same folder
+    is refused unless --force; an unknown model is refused by name."""
+    name = models["value_function"]
+    out = tmp_path / "cli"
+    report = server.cli_json("model", "export", name, "--out", str(out))
+    assert report["model"]["name"] == name
+    assert sorted(p.name for p in out.iterdir()) == ["manifest.json", "module.pt", "weights.safetensors"]
+    rho = torch.jit.load(str(out / "module.pt"))
+    got = client.export_model(name, tmp_path / "py")
+    shape, T = got.model.item_shape, got.model.n_timesteps
+    rng = np.random.default_rng(3)
+    x = rng.uniform(-0.9, 0.9, (4, *shape)).astype(np.float32)
+    t = rng.integers(0, T, 4)
+    with torch.no_grad():
+        values = rho(torch.from_numpy(x), torch.from_numpy(t)).numpy()
+    np.testing.assert_allclose(values, client.score(name, x, t).rewards, rtol=1e-5, atol=1e-5)
+    assert (out / "weights.safetensors").read_bytes() == got.path.read_bytes()
+
+    again = server.cli("model", "export", name, "--out", str(out), check=False)
+    assert again.returncode != 0 and "--force" in again.stderr, again.stderr
+    server.cli("model", "export", name, "--out", str(out), "--force")
+    missing = server.cli("model", "export", "no-such-model", "--out", str(tmp_path / "none"), check=False)
+    assert missing.returncode != 0 and "no-such-model" in missing.stderr, missing.stderr
