@@ -12,7 +12,7 @@ The manifest takes everything from the scheduler's config:
 - schedule: the scheduler's own betas, listed explicitly (`{"kind": "betas"}`), so any
   beta_schedule (linear, scaled_linear, squaredcos_cap_v2, trained_betas) is reproduced exactly;
 - n_timesteps: num_train_timesteps; parametrization: prediction_type "epsilon" -> epsilon,
-  "sample" -> x0 ("v_prediction" is refused: relreward has no v parametrization);
+  "sample" -> x0, "v_prediction" -> v;
 - clip_denoised: clip_sample (clip_sample_range must be 1, thresholding off);
 - space: the UNet's [in_channels, sample_size, sample_size]; normalizer: identity (diffusers
   models take their inputs already scaled).
@@ -48,9 +48,9 @@ class Denoiser(torch.nn.Module):
 
 def manifest_of(unet, sched):
     cfg = sched.config
-    prediction = {"epsilon": "epsilon", "sample": "x0"}.get(cfg.prediction_type)
+    prediction = {"epsilon": "epsilon", "sample": "x0", "v_prediction": "v"}.get(cfg.prediction_type)
     if prediction is None:
-        sys.exit(f"prediction_type {cfg.prediction_type!r}: relreward takes epsilon or sample")
+        sys.exit(f"prediction_type {cfg.prediction_type!r}: relreward takes epsilon, sample or v_prediction")
     if cfg.thresholding or (cfg.clip_sample and cfg.clip_sample_range != 1.0):
         sys.exit("thresholding and clip_sample_range != 1 have no relreward equivalent")
     size = unet.config.sample_size

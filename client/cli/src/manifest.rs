@@ -70,6 +70,7 @@ pub fn parametrization_name(p: pb::Parametrization) -> Option<&'static str> {
     match p {
         pb::Parametrization::Epsilon => Some("epsilon"),
         pb::Parametrization::X0 => Some("x0"),
+        pb::Parametrization::V => Some("v"),
         pb::Parametrization::Unspecified => None,
     }
 }
@@ -104,7 +105,7 @@ pub fn schedule_text(s: Option<&pb::Schedule>) -> String {
 /// The manifest with the file's fields:
 ///
 /// ```json
-/// {"parametrization": "epsilon" | "x0" | null, "schedule": {..} | null, "n_timesteps": T,
+/// {"parametrization": "epsilon" | "x0" | "v" | null, "schedule": {..} | null, "n_timesteps": T,
 ///  "clip_denoised": bool,
 ///  "space": {"kind": "trajectory", "horizon": H, "action_dim": A, "obs_dim": O}
 ///         | {"kind": "sample", "shape": [..]} | null,
@@ -272,8 +273,8 @@ mod tests {
         for name in ["m.json", "m"] {
             assert_eq!(load_text(text, Path::new(name)).expect("valid").n_timesteps, 4);
         }
-        let err = load_text(r#"{"parametrization": "v"}"#, Path::new("m.json")).expect_err("bad");
-        assert!(err.to_string().contains("m.json (JSON): unknown variant `v`"), "{err}");
+        let err = load_text(r#"{"parametrization": "w"}"#, Path::new("m.json")).expect_err("bad");
+        assert!(err.to_string().contains("m.json (JSON): unknown variant `w`"), "{err}");
         assert!(err.to_string().contains("line 1"), "{err}");
     }
 

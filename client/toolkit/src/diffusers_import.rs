@@ -33,10 +33,11 @@
 //!   1e-5, `freq_shift = 0` (either `flip_sin_to_cos`, as above), no class embedding.
 //! - `DDPMScheduler`: any `beta_schedule` diffusers has (linear, scaled_linear,
 //!   squaredcos_cap_v2, sigmoid, laplace, trained_betas), written to the manifest as the
-//!   explicit float32 betas diffusers uses; `prediction_type` epsilon or sample (relreward's x0);
+//!   explicit float32 betas diffusers uses; `prediction_type` epsilon, sample (relreward's x0)
+//!   or v_prediction (relreward's v);
 //!   `clip_sample` with range 1 (relreward's `clip_denoised`); `variance_type` fixed_small or
-//!   fixed_small_log (the posterior variance relreward's sampler adds). v_prediction,
-//!   thresholding, zero-SNR rescaling and the other variances are refused.
+//!   fixed_small_log (the posterior variance relreward's sampler adds). Thresholding,
+//!   zero-SNR rescaling and the other variances are refused.
 //!
 //! A field a config leaves out takes diffusers' default (as `from_pretrained` does); a field
 //! this module does not know is refused, since it could change what the network computes.
@@ -903,11 +904,12 @@ fn scheduler_plan(path: &Path) -> Result<SchedulerPlan, ImportError> {
     let parametrization = match prediction.as_str() {
         Some("epsilon") => Some(Parametrization::Epsilon),
         Some("sample") => Some(Parametrization::X0),
+        Some("v_prediction") => Some(Parametrization::V),
         _ => {
             cfg.problem(
                 "prediction_type",
                 &prediction,
-                "relreward's parametrizations are epsilon and x0 (diffusers' \"sample\")",
+                "relreward's parametrizations are epsilon, x0 (diffusers' \"sample\") and v (\"v_prediction\")",
             );
             None
         }
@@ -1404,6 +1406,13 @@ mod tests {
         let m = &imported.manifest;
         assert_eq!(m.space, Space::Sample { shape: vec![2, 8, 12] });
         assert_eq!(m.parametrization, Parametrization::X0);
+        // v_prediction is relreward's v.
+        let mut v_sched = sched.clone();
+        v_sched["prediction_type"] = json!("v_prediction");
+        std::fs::write(root.join("scheduler").join(SCHEDULER_CONFIG), v_sched.to_string()).unwrap();
+        let v_imported = import_folder(&locate(root, None, None).unwrap(), &Hints::default()).unwrap();
+        assert_eq!(v_imported.manifest.parametrization, Parametrization::V);
+        std::fs::write(root.join("scheduler").join(SCHEDULER_CONFIG), sched.to_string()).unwrap();
         assert!(!m.clip_denoised);
         let ScheduleSpec::Betas { betas } = &m.schedule else { panic!() };
         // diffusers' default: linear from 1e-4 to 0.02 (not scaled by 1000 / T).
@@ -1570,9 +1579,10 @@ mod tests {
             assert!(err.contains(needle), "{needle:?} not in:\n{err}");
         }
 
-        // The scheduler: v_prediction, thresholding, a variance relreward does not sample with.
+        // The scheduler: an unknown prediction type, thresholding, a variance relreward does not
+        // sample with.
         let mut sched = scheduler_config();
-        sched["prediction_type"] = json!("v_prediction");
+        sched["prediction_type"] = json!("flow");
         sched["thresholding"] = json!(true);
         sched["variance_type"] = json!("fixed_large");
         sched["clip_sample_range"] = json!(2.0);
@@ -1580,7 +1590,7 @@ mod tests {
         let err = refused(import_dir(dir.path(), &trajectory_hints()));
         for needle in [
             "scheduler_config.json: not an importable DDPMScheduler",
-            "prediction_type: \"v_prediction\" is not supported",
+            "prediction_type: \"flow\" is not supported",
             "thresholding: true is not supported",
             "variance_type: \"fixed_large\" is not supported",
             "clip_sample_range: 2.0 is not supported",

@@ -56,6 +56,10 @@ pub enum Parametrization {
     Epsilon,
     /// The network predicts x0 (Diffuser's maze and locomotion configs).
     X0,
+    /// The network predicts the velocity v = sqrt(abar_t) eps - sqrt(1 - abar_t) x0 (Salimans
+    /// & Ho 2022; diffusers' `prediction_type = "v_prediction"`).
+    #[serde(alias = "v_prediction")]
+    V,
 }
 
 /// Which beta schedule, before T is applied.
@@ -379,15 +383,17 @@ impl Parametrization {
         match self {
             Self::Epsilon => pb::Parametrization::Epsilon,
             Self::X0 => pb::Parametrization::X0,
+            Self::V => pb::Parametrization::V,
         }
     }
 
     /// From the wire; UNSPECIFIED is `None` (the caller decides whether that is allowed).
     pub fn from_proto(v: i32, field: &str) -> Result<Option<Self>, Invalid> {
-        const VALUES: &str = "PARAMETRIZATION_EPSILON (1) or PARAMETRIZATION_X0 (2)";
+        const VALUES: &str = "PARAMETRIZATION_EPSILON (1), PARAMETRIZATION_X0 (2) or PARAMETRIZATION_V (3)";
         Ok(match known(field, v, VALUES)? {
             pb::Parametrization::Epsilon => Some(Self::Epsilon),
             pb::Parametrization::X0 => Some(Self::X0),
+            pb::Parametrization::V => Some(Self::V),
             pb::Parametrization::Unspecified => None,
         })
     }
@@ -395,7 +401,7 @@ impl Parametrization {
     /// From the wire, required (a model must say what its net predicts).
     pub fn required_from_proto(v: i32, field: &str) -> Result<Self, Invalid> {
         Self::from_proto(v, field)?.ok_or_else(|| {
-            Invalid(format!("{field}: unspecified; set PARAMETRIZATION_EPSILON (1) or PARAMETRIZATION_X0 (2)"))
+            Invalid(format!("{field}: unspecified; set PARAMETRIZATION_EPSILON (1), PARAMETRIZATION_X0 (2) or PARAMETRIZATION_V (3)"))
         })
     }
 }

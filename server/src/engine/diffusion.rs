@@ -153,6 +153,7 @@ impl DiffusionModel {
                 Self::check_same(x_t, pred, "prediction")?;
                 pred.shallow_clone()
             }
+            Parametrization::V => self.x0_from_v(x_t, t, pred)?,
         };
         Ok(if clip { x0.f_clamp(-1.0, 1.0)? } else { x0 })
     }
@@ -166,7 +167,37 @@ impl DiffusionModel {
                 Ok(pred.shallow_clone())
             }
             Parametrization::X0 => self.eps_from_x0(x_t, t, pred),
+            Parametrization::V => self.eps_from_v(x_t, t, pred),
         }
+    }
+
+    /// x0 = sqrt(abar_t) x_t - sqrt(1 - abar_t) v (no net call). With x_t = sqrt(abar) x0 +
+    /// sqrt(1 - abar) eps and v = sqrt(abar) eps - sqrt(1 - abar) x0 this is exact, and
+    /// well-conditioned at every t (no division, unlike the eps -> x0 conversion).
+    pub fn x0_from_v(&self, x_t: &Tensor, t: &Tensor, v: &Tensor) -> Result<Tensor> {
+        self.check_xt(x_t, t)?;
+        Self::check_same(x_t, v, "v")?;
+        let a = self.coef(Table::SqrtAlphasCumprod, t, x_t)?;
+        let b = self.coef(Table::SqrtOneMinusAlphasCumprod, t, x_t)?;
+        Ok(x_t.f_mul(&a)?.f_sub(&v.f_mul(&b)?)?)
+    }
+
+    /// eps = sqrt(abar_t) v + sqrt(1 - abar_t) x_t (no net call).
+    pub fn eps_from_v(&self, x_t: &Tensor, t: &Tensor, v: &Tensor) -> Result<Tensor> {
+        self.check_xt(x_t, t)?;
+        Self::check_same(x_t, v, "v")?;
+        let a = self.coef(Table::SqrtAlphasCumprod, t, x_t)?;
+        let b = self.coef(Table::SqrtOneMinusAlphasCumprod, t, x_t)?;
+        Ok(v.f_mul(&a)?.f_add(&x_t.f_mul(&b)?)?)
+    }
+
+    /// The velocity target v = sqrt(abar_t) eps - sqrt(1 - abar_t) x0 (no net call).
+    pub fn v_target(&self, x0: &Tensor, t: &Tensor, eps: &Tensor) -> Result<Tensor> {
+        self.check_xt(x0, t)?;
+        Self::check_same(x0, eps, "noise")?;
+        let a = self.coef(Table::SqrtAlphasCumprod, t, x0)?;
+        let b = self.coef(Table::SqrtOneMinusAlphasCumprod, t, x0)?;
+        Ok(eps.f_mul(&a)?.f_sub(&x0.f_mul(&b)?)?)
     }
 
     /// Mean of q(x_{t-1} | x_t, x0) = coef1_t x0 + coef2_t x_t (no net call).
@@ -239,7 +270,8 @@ impl DiffusionModel {
 
     /// The DDPM training loss at given (x0, t, noise): mean squared error between the net's
     /// prediction at x_t = q_sample(x0, t, noise) and its target (`noise` for eps models, `x0`
-    /// for x0 models). Differentiable with respect to the net's parameters in grad mode.
+    /// for x0 models, v = sqrt(abar_t) noise - sqrt(1 - abar_t) x0 for v models, as diffusers'
+    /// training scripts form it with `get_velocity`). Differentiable with respect to the net's parameters in grad mode.
     ///
     /// `action_weight = Some((w, action_dim))` is Diffuser's `action_weight`: the per-element
     /// weight of the first transition's action coordinates `[.., 0, :action_dim]` is `w`
@@ -269,10 +301,11 @@ impl DiffusionModel {
         let x_t = self.q_sample(x0, t, noise)?;
         let pred = self.predict(&x_t, t)?;
         let target = match self.parametrization() {
-            Parametrization::Epsilon => noise,
-            Parametrization::X0 => x0,
+            Parametrization::Epsilon => noise.shallow_clone(),
+            Parametrization::X0 => x0.shallow_clone(),
+            Parametrization::V => self.v_target(x0, t, noise)?,
         };
-        let sq = pred.f_sub(target)?.f_square()?;
+        let sq = pred.f_sub(&target)?.f_square()?;
         let sq = match weights {
             Some(w) => sq.f_mul(&w)?,
             None => sq,
@@ -299,11 +332,23 @@ pub(crate) mod testing {
         sqrt_abar: Tensor,
         one_minus_abar: Tensor,
         sqrt_one_minus_abar: Tensor,
-        predict_x0: bool,
+        predict: super::super::manifest::Parametrization,
     }
 
     impl AnalyticGaussian {
         pub(crate) fn new(schedule: &Schedule, mean: &[f32], item_shape: &[i64], predict_x0: bool) -> Self {
+            use super::super::manifest::Parametrization as P;
+            Self::predicting(schedule, mean, item_shape, if predict_x0 { P::X0 } else { P::Epsilon })
+        }
+
+        /// The same exact denoiser with any parametrization's output (v from the exact eps
+        /// and x0).
+        pub(crate) fn predicting(
+            schedule: &Schedule,
+            mean: &[f32],
+            item_shape: &[i64],
+            predict: super::super::manifest::Parametrization,
+        ) -> Self {
             let abar: Vec<f64> = schedule.values(Table::AlphasCumprod).to_vec();
             Self {
                 mean: Tensor::from_slice(mean).reshape(item_shape),
@@ -312,7 +357,7 @@ pub(crate) mod testing {
                     .to_kind(Kind::Float),
                 sqrt_one_minus_abar: Tensor::from_slice(&abar.iter().map(|a| (1.0 - a).sqrt()).collect::<Vec<_>>())
                     .to_kind(Kind::Float),
-                predict_x0,
+                predict,
             }
         }
     }
@@ -322,10 +367,14 @@ pub(crate) mod testing {
             let mut shape = vec![1i64; x.dim()];
             shape[0] = x.size()[0];
             let sa = self.sqrt_abar.index_select(0, t).reshape(&shape);
-            Ok(if self.predict_x0 {
-                &sa * x + self.one_minus_abar.index_select(0, t).reshape(&shape) * &self.mean
-            } else {
-                self.sqrt_one_minus_abar.index_select(0, t).reshape(&shape) * (x - &sa * &self.mean)
+            use super::super::manifest::Parametrization as P;
+            let x0 = &sa * x + self.one_minus_abar.index_select(0, t).reshape(&shape) * &self.mean;
+            let sb = self.sqrt_one_minus_abar.index_select(0, t).reshape(&shape);
+            let eps = &sb * (x - &sa * &self.mean);
+            Ok(match self.predict {
+                P::X0 => x0,
+                P::Epsilon => eps,
+                P::V => &sa * eps - sb * x0,
             })
         }
 
@@ -358,7 +407,7 @@ mod tests {
     fn model(parametrization: Parametrization, mean: &[f32], clip: bool) -> DiffusionModel {
         let m = manifest(parametrization, Space::Trajectory { horizon: 4, action_dim: 1, obs_dim: 2 }, clip);
         let s = Schedule::new(&m.schedule, m.n_timesteps).expect("schedule");
-        let net = AnalyticGaussian::new(&s, mean, &[4, 3], parametrization == Parametrization::X0);
+        let net = AnalyticGaussian::predicting(&s, mean, &[4, 3], parametrization);
         DiffusionModel::new(m, Box::new(net)).expect("model")
     }
 
@@ -427,18 +476,47 @@ mod tests {
     #[test]
     fn both_parametrizations_give_the_same_quantities() {
         let e = model(Parametrization::Epsilon, &MEAN, false);
-        let x0m = model(Parametrization::X0, &MEAN, false);
         let (x, t) = inputs(4);
         let t = t.narrow(0, 1, 5);
         let x = x.narrow(0, 1, 5);
-        for (name, a, b) in [
-            ("x0_hat", e.x0_hat(&x, &t, false), x0m.x0_hat(&x, &t, false)),
-            ("eps_hat", e.eps_hat(&x, &t), x0m.eps_hat(&x, &t)),
-            ("mu", e.posterior_mean(&x, &t, false), x0m.posterior_mean(&x, &t, false)),
-        ] {
-            let (a, b) = (a.expect(name), b.expect(name));
-            assert!(max_diff(&a, &b) < 2e-3, "{name}: {}", max_diff(&a, &b));
+        for other in [Parametrization::X0, Parametrization::V] {
+            let o = model(other, &MEAN, false);
+            for (name, a, b) in [
+                ("x0_hat", e.x0_hat(&x, &t, false), o.x0_hat(&x, &t, false)),
+                ("eps_hat", e.eps_hat(&x, &t), o.eps_hat(&x, &t)),
+                ("mu", e.posterior_mean(&x, &t, false), o.posterior_mean(&x, &t, false)),
+            ] {
+                let (a, b) = (a.expect(name), b.expect(name));
+                assert!(max_diff(&a, &b) < 2e-3, "{other:?} {name}: {}", max_diff(&a, &b));
+            }
         }
+    }
+
+    #[test]
+    fn v_conversions_follow_the_definitions() {
+        // v = sqrt(abar) eps - sqrt(1 - abar) x0; x0 = sqrt(abar) x_t - sqrt(1 - abar) v;
+        // eps = sqrt(abar) v + sqrt(1 - abar) x_t, by hand in f64 against the float32 tables.
+        let m = model(Parametrization::V, &MEAN, false);
+        let (x0, t) = inputs(12);
+        let noise = Rng::new(13).randn(&[6, 4, 3], tch::Device::Cpu);
+        let x_t = m.q_sample(&x0, &t, &noise).expect("x_t");
+        let v = m.v_target(&x0, &t, &noise).expect("v");
+        let sa = per_t(&TS, |i| m.schedule.values(Table::AlphasCumprod)[i].sqrt());
+        let sb = per_t(&TS, |i| (1.0 - m.schedule.values(Table::AlphasCumprod)[i]).sqrt());
+        let (x0d, nd, xd) = (x0.to_kind(Kind::Double), noise.to_kind(Kind::Double), x_t.to_kind(Kind::Double));
+        let want_v = &sa * &nd - &sb * &x0d;
+        assert!(max_diff(&v.to_kind(Kind::Double), &want_v) < 1e-5);
+        // Exact inverses, at every t (no division anywhere).
+        assert!(max_diff(&m.x0_from_v(&x_t, &t, &v).expect("x0"), &x0) < 1e-5);
+        assert!(max_diff(&m.eps_from_v(&x_t, &t, &v).expect("eps"), &noise) < 1e-5);
+        let vd = v.to_kind(Kind::Double);
+        let want_x0 = &sa * &xd - &sb * &vd;
+        assert!(max_diff(&m.x0_from_prediction(&x_t, &t, &v, false).expect("x0").to_kind(Kind::Double), &want_x0) < 1e-5);
+        let want_eps = &sa * &vd + &sb * &xd;
+        assert!(max_diff(&m.eps_from_prediction(&x_t, &t, &v).expect("eps").to_kind(Kind::Double), &want_eps) < 1e-5);
+        // The training loss regresses onto v.
+        let want = (m.predict(&x_t, &t).expect("pred") - &v).square().mean(Kind::Float).double_value(&[]);
+        assert!((m.loss(&x0, &t, &noise, None).expect("loss").double_value(&[]) - want).abs() < 1e-6);
     }
 
     #[test]

@@ -6,10 +6,12 @@
 //! - [`normalizer`]: raw units <-> normalized units, with the Jacobian for gradients.
 //! - [`manifest`]: what a diffusion model is (parametrization, schedule, layout, normalizer).
 //! - [`schedule`]: DDPM beta schedules and every derived quantity, in float64.
-//! - [`denoiser`]: the [`denoiser::Denoiser`] trait: (x_t, t) -> eps or x0 prediction.
+//! - [`denoiser`]: the [`denoiser::Denoiser`] trait: (x_t, t) -> eps, x0 or v prediction.
 //! - [`diffusion`]: [`diffusion::DiffusionModel`]: x0_hat, eps_hat, posterior mean and variance,
 //!   score, forward process.
-//! - [`sampling`]: ancestral sampling with inpainting conditions and classifier guidance.
+//! - [`sampling`]: DDPM ancestral and DDIM sampling with inpainting conditions and classifier
+//!   guidance.
+//! - [`ddim`]: DDIM's step subset and coefficients, as diffusers' DDIMScheduler forms them.
 //! - [`optim`]: Adam and EMA whose state checkpoints can hold.
 //! - [`relative_reward`]: the gradient-alignment objective of Algorithm 1.
 //! - [`reward_trainer`]: [`reward_trainer::RelativeRewardTrainer`], Algorithms 1 and 2 as one
@@ -27,6 +29,7 @@
 //! - [`export`]: a stored native network traced into a TorchScript module for PyTorch users.
 
 pub mod data;
+pub mod ddim;
 pub mod denoiser;
 pub mod diffusion;
 pub mod export;

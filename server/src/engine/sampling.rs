@@ -1,6 +1,6 @@
-//! DDPM ancestral sampling with inpainting conditions and classifier guidance by a
-//! differentiable reward (REFERENCE section 2; Diffuser's `p_sample_loop` with
-//! `n_step_guided_p_sample`).
+//! DDPM ancestral sampling (the default) or DDIM ([`GuidedSampler::with_ddim`]) with
+//! inpainting conditions and classifier guidance by a differentiable reward (REFERENCE
+//! section 2; Diffuser's `p_sample_loop` with `n_step_guided_p_sample`).
 //!
 //! One sampling run, for t = T-1 down to 0, all batch elements at the same t:
 //!
@@ -9,6 +9,19 @@
 //!    despite the flag's name); g = 0 when t < t_stopgrad; x += omega g; re-apply conditions.
 //! 2. x = mu(x, t) + [t > 0] exp(0.5 posterior_log_variance_clipped[t]) z, z ~ N(0, I);
 //!    re-apply conditions.
+//!
+//! DDIM (see [`super::ddim`] for the step subset and coefficients) runs over its subset
+//! t_1 > .. > t_n instead, one denoiser call per step: x0 and eps from the net, then
+//! x = sqrt(a') x0 + sqrt(1 - a' - sigma^2) eps + sigma z (z drawn only when sigma > 0);
+//! re-apply conditions. Guidance enters a DDIM step through eps, as Dhariwal & Nichol's
+//! eq. 14 (their Algorithm 2) does: eps <- eps - omega sqrt(1 - abar_t) grad_x rho(x_t, t),
+//! then x0 = (x_t - sqrt(1 - abar_t) eps) / sqrt(abar_t) (clamped with clip_denoised). Why eps
+//! and not Diffuser's x += omega g: a DDIM step is a deterministic map of (x0, eps), and
+//! -eps / sqrt(1 - abar) is the score, so shifting eps is adding omega grad rho to the
+//! score, i.e. sampling p(x) exp(omega rho(x)) whatever the step sizes; moving x by a fixed
+//! omega g would act more or less strongly as the subset is coarser or finer. Hence one
+//! gradient per step (n_guide_steps 1) and no variance scaling (scale_grad_by_std false): a
+//! DDIM run refuses other values, naming them.
 //!
 //! x_T ~ N(0, I) with the conditions applied. All noise comes from the caller's
 //! [`Rng`], never from libtorch's global generator, so a seed fixes the samples whatever other
@@ -24,6 +37,7 @@
 
 use tch::{Device, Kind, Tensor};
 
+use super::ddim::{Ddim, coefs};
 use super::diffusion::DiffusionModel;
 use super::manifest::Space;
 use super::rng::Rng;
@@ -99,6 +113,8 @@ pub struct GuidedSampler<'a> {
     model: &'a DiffusionModel,
     conditions: Vec<Condition>,
     guidance: Option<Guidance<'a>>,
+    /// DDIM instead of DDPM ancestral sampling.
+    ddim: Option<Ddim>,
     device: Device,
 }
 
@@ -123,7 +139,7 @@ impl Prepared {
 impl<'a> GuidedSampler<'a> {
     /// Plain sampling on the CPU; add conditions and guidance with the builder methods.
     pub fn new(model: &'a DiffusionModel) -> Self {
-        Self { model, conditions: Vec::new(), guidance: None, device: Device::Cpu }
+        Self { model, conditions: Vec::new(), guidance: None, ddim: None, device: Device::Cpu }
     }
 
     pub fn with_conditions(mut self, conditions: Vec<Condition>) -> Self {
@@ -133,6 +149,12 @@ impl<'a> GuidedSampler<'a> {
 
     pub fn with_guidance(mut self, guidance: Guidance<'a>) -> Self {
         self.guidance = Some(guidance);
+        self
+    }
+
+    /// Samples with DDIM over a subset of the model's steps instead of DDPM.
+    pub fn with_ddim(mut self, ddim: Ddim) -> Self {
+        self.ddim = Some(ddim);
         self
     }
 
@@ -154,6 +176,9 @@ impl<'a> GuidedSampler<'a> {
         }
         let guidance = self.checked_guidance()?;
         let prepared = self.prepare_conditions(n as i64)?;
+        if let Some(ddim) = self.ddim {
+            return self.sample_ddim(n, rng, on_step, ddim, guidance, &prepared);
+        }
         let model = self.model;
         let big_t = model.n_timesteps();
         let mut shape = vec![n as i64];
@@ -196,12 +221,85 @@ impl<'a> GuidedSampler<'a> {
         Ok(Sampled { x, rewards: last_rewards })
     }
 
+    /// DDIM over `ddim`'s subset (see the module's doc): the same noise stream layout as DDPM
+    /// (x_T first, then one draw per step that adds noise).
+    fn sample_ddim(
+        &self,
+        n: usize,
+        rng: &mut Rng,
+        on_step: &mut StepCallback<'_>,
+        ddim: Ddim,
+        guidance: Option<Guidance<'a>>,
+        prepared: &Prepared,
+    ) -> Result<Sampled> {
+        let model = self.model;
+        let big_t = model.n_timesteps();
+        ddim.check(big_t, "ddim")?;
+        let abar = model.schedule.values(Table::AlphasCumprod);
+        let clip = model.clip_denoised();
+        let mut shape = vec![n as i64];
+        shape.extend(model.item_shape());
+
+        let _no_grad = tch::no_grad_guard();
+        let mut x = rng.randn(&shape, self.device);
+        prepared.apply(&x)?;
+        let mut last_rewards = None;
+        for i in ddim.timesteps(big_t) {
+            let t = Tensor::f_full([n as i64], i as i64, (Kind::Int64, self.device))?;
+            let c = coefs(abar[i], ddim.abar_prev(i, abar), ddim.eta);
+            let pred = model.predict(&x, &t)?;
+            let mut eps = model.eps_from_prediction(&x, &t, &pred)?;
+            let mut rewards = None;
+            let x0 = match &guidance {
+                Some(g) if i >= g.t_stopgrad => {
+                    let (y, grad) = reward_gradient(g.reward, &x, &t, n as i64)?;
+                    rewards = Some(y);
+                    eps = eps.f_sub(&grad.f_mul_scalar(g.omega * (1.0 - abar[i]).sqrt())?)?;
+                    let x0 = model.x0_from_eps(&x, &t, &eps)?;
+                    if clip { x0.f_clamp(-1.0, 1.0)? } else { x0 }
+                }
+                other => {
+                    if let Some(g) = other {
+                        rewards = Some(reward_value(g.reward, &x, &t, n as i64)?);
+                    }
+                    // Unguided: x0 straight from the net's output, as diffusers forms it
+                    // (for x0 and v nets no round trip through eps).
+                    model.x0_from_prediction(&x, &t, &pred, clip)?
+                }
+            };
+            let mut next = x0.f_mul_scalar(c.x0_coef)?.f_add(&eps.f_mul_scalar(c.eps_coef)?)?;
+            if c.sigma > 0.0 {
+                let noise = rng.randn(&shape, self.device);
+                next = next.f_add(&noise.f_mul_scalar(c.sigma)?)?;
+            }
+            x = next;
+            prepared.apply(&x)?;
+            on_step(&Step { t: i, x: &x, rewards: rewards.as_ref() })?;
+            last_rewards = rewards;
+        }
+        Ok(Sampled { x, rewards: last_rewards })
+    }
+
     /// The guidance that actually acts, after validation: `None` when there is nothing to
     /// differentiate (no reward, omega = 0 or no guide steps).
     fn checked_guidance(&self) -> Result<Option<Guidance<'a>>> {
         let Some(g) = self.guidance else { return Ok(None) };
         if !g.omega.is_finite() {
             return Err(Error::invalid(format!("guidance.omega: {} is not finite", g.omega)));
+        }
+        if self.ddim.is_some() && g.omega != 0.0 {
+            // The module's doc says why DDIM guides once per step, through eps.
+            if g.n_guide_steps > 1 {
+                return Err(Error::invalid(format!(
+                    "n_guide_steps: {} with DDIM; DDIM guides through eps once per step (omit it or set 1)",
+                    g.n_guide_steps
+                )));
+            }
+            if g.scale_grad_by_std {
+                return Err(Error::invalid(
+                    "scale_grad_by_std: not with DDIM, whose guidance scales the gradient by sqrt(1 - abar_t) through eps",
+                ));
+            }
         }
         Ok((g.omega != 0.0 && g.n_guide_steps > 0).then_some(g))
     }
@@ -490,6 +588,146 @@ mod tests {
             .expect_err("aborted");
         assert!(matches!(err, Error::Unavailable(_)));
         assert_eq!(calls, 3);
+    }
+
+    mod ddim {
+        use super::*;
+        use crate::engine::ddim::{Ddim, Spacing};
+
+        const MEAN: [f64; 3] = [1.0, -2.0, 0.5];
+
+        fn run(m: &DiffusionModel, d: Ddim, guidance: Option<Guidance<'_>>, seed: u64) -> Result<Sampled> {
+            let mut s = GuidedSampler::new(m).with_ddim(d);
+            if let Some(g) = guidance {
+                s = s.with_guidance(g);
+            }
+            s.sample(4, &mut Rng::new(seed))
+        }
+
+        fn trailing(n_steps: usize, eta: f64) -> Ddim {
+            Ddim { n_steps, eta, spacing: Spacing::Trailing, set_alpha_to_one: true }
+        }
+
+        /// The analytic model's exact (x0, eps) at (x, t), by hand in f64.
+        fn exact(m: &DiffusionModel, x: &Tensor, t: usize) -> (Tensor, Tensor) {
+            let a = m.schedule.values(Table::AlphasCumprod)[t];
+            let mean = Tensor::from_slice(&MEAN).unsqueeze(0);
+            let x0 = x * a.sqrt() + &mean * (1.0 - a);
+            let eps = (x - &mean * a.sqrt()) * (1.0 - a).sqrt();
+            (x0, eps)
+        }
+
+        fn max_diff(a: &Tensor, b: &Tensor) -> f64 {
+            (a.to_kind(Kind::Double) - b.to_kind(Kind::Double)).abs().max().double_value(&[])
+        }
+
+        #[test]
+        fn two_steps_equal_the_hand_computed_ddim_updates() {
+            let m = sample_model();
+            let abar = m.schedule.values(Table::AlphasCumprod).to_vec();
+            // Leading, n = 2, T = 50: t = 25 -> 0, then 0 -> final (alpha one, no noise). (From
+            // t = 49 the cosine schedule's abar is ~1e-5, and x0 = (x - sqrt(1 - abar) eps) /
+            // sqrt(abar) in float32 would measure that division, not the step.)
+            let leading = |eta| Ddim { spacing: Spacing::Leading, ..trailing(2, eta) };
+            for eta in [0.0, 0.7] {
+                let got = run(&m, leading(eta), None, 17).expect("ddim").x;
+                let mut rng = Rng::new(17);
+                let x_t = rng.randn(&[4, 3], Device::Cpu).to_kind(Kind::Double);
+                let (a, ap) = (abar[25], abar[0]);
+                let (x0, eps) = exact(&m, &x_t, 25);
+                let var = (1.0 - ap) / (1.0 - a) * (1.0 - a / ap);
+                let sigma = eta * var.sqrt();
+                let mut x1 = x0 * ap.sqrt() + eps * (1.0 - ap - sigma * sigma).sqrt();
+                if eta > 0.0 {
+                    x1 += rng.randn(&[4, 3], Device::Cpu).to_kind(Kind::Double) * sigma;
+                }
+                let (want, _) = exact(&m, &x1, 0);
+                assert!(max_diff(&got, &want) < 1e-5, "eta {eta}: {}", max_diff(&got, &want));
+            }
+            // eta > 0 draws noise, eta = 0 does not: the two differ.
+            let a = run(&m, leading(0.0), None, 17).expect("a").x;
+            let b = run(&m, leading(0.7), None, 17).expect("b").x;
+            assert!(max_diff(&a, &b) > 1e-3);
+        }
+
+        #[test]
+        fn every_parametrization_takes_the_same_ddim_path() {
+            let build = |p: Parametrization| {
+                let man = DiffusionManifest {
+                    parametrization: p,
+                    schedule: ScheduleSpec::Cosine { s: 0.008 },
+                    n_timesteps: T,
+                    clip_denoised: false,
+                    space: Space::Sample { shape: vec![3] },
+                    normalizer: Normalizer::Identity,
+                    architecture: None,
+                };
+                let s = Schedule::new(&man.schedule, T).expect("schedule");
+                let mean: Vec<f32> = MEAN.iter().map(|&v| v as f32).collect();
+                DiffusionModel::new(man, Box::new(AnalyticGaussian::predicting(&s, &mean, &[3], p))).expect("model")
+            };
+            let d = Ddim { n_steps: 10, eta: 0.3, spacing: Spacing::Leading, set_alpha_to_one: false };
+            let e = run(&build(Parametrization::Epsilon), d, None, 3).expect("eps").x;
+            for p in [Parametrization::X0, Parametrization::V] {
+                let o = run(&build(p), d, None, 3).expect("other").x;
+                assert!(max_diff(&e, &o) < 1e-4, "{p:?}: {}", max_diff(&e, &o));
+            }
+        }
+
+        #[test]
+        fn guidance_shifts_eps_by_the_scaled_gradient() {
+            // One trailing step from t = 49 to the end: x = x0(eps') with
+            // eps' = eps - omega sqrt(1 - a) w, so guided - plain = omega (1 - a) / sqrt(a) w.
+            let m = sample_model();
+            let reward = w3();
+            let a = m.schedule.values(Table::AlphasCumprod)[T - 1];
+            let plain = run(&m, trailing(1, 0.0), None, 9).expect("plain");
+            let g = |omega: f64, t_stopgrad: usize| Guidance {
+                reward: &reward,
+                omega,
+                n_guide_steps: 1,
+                t_stopgrad,
+                scale_grad_by_std: false,
+            };
+            let guided = run(&m, trailing(1, 0.0), Some(g(0.02, 0)), 9).expect("guided");
+            let w = Tensor::from_slice(&[1.0f64, 2.0, -1.0]).unsqueeze(0);
+            let want = &w * (0.02 * (1.0 - a) / a.sqrt());
+            let diff = guided.x.to_kind(Kind::Double) - plain.x.to_kind(Kind::Double);
+            assert!(max_diff(&diff, &want.expand([4, 3], false)) < 1e-4 * (1.0 + want.abs().max().double_value(&[])));
+            assert_eq!(guided.rewards.expect("rewards").size(), vec![4]);
+            // t_stopgrad above the only step: unguided, rewards still reported.
+            let stopped = run(&m, trailing(1, 0.0), Some(g(0.02, T)), 9).expect("stopped");
+            assert!(bitwise_equal(&stopped.x, &plain.x) && stopped.rewards.is_some());
+            // DDIM guides once per step through eps: other settings are refused by name.
+            let err = run(&m, trailing(1, 0.0), Some(Guidance { n_guide_steps: 2, ..g(0.02, 0) }), 9)
+                .expect_err("steps")
+                .to_string();
+            assert!(err.contains("n_guide_steps: 2 with DDIM"), "{err}");
+            let err = run(&m, trailing(1, 0.0), Some(Guidance { scale_grad_by_std: true, ..g(0.02, 0) }), 9)
+                .expect_err("scale")
+                .to_string();
+            assert!(err.contains("scale_grad_by_std"), "{err}");
+            let err = run(&m, trailing(0, 0.0), None, 9).expect_err("n").to_string();
+            assert!(err.contains("ddim.n_steps: 0"), "{err}");
+        }
+
+        #[test]
+        fn ddim_calls_back_once_per_subset_step_and_keeps_conditions() {
+            let m = traj_model();
+            let start = Tensor::from_slice(&[0.25f32, -0.75]);
+            let mut seen = Vec::new();
+            let out = GuidedSampler::new(&m)
+                .with_conditions(vec![Condition { index: 0, state: start.shallow_clone() }])
+                .with_ddim(Ddim { n_steps: 5, eta: 1.0, spacing: Spacing::Leading, set_alpha_to_one: true })
+                .sample_with(8, &mut Rng::new(2), &mut |s| {
+                    seen.push(s.t);
+                    Ok(())
+                })
+                .expect("sample");
+            assert_eq!(seen, vec![40, 30, 20, 10, 0]);
+            let obs0 = out.x.narrow(1, 0, 1).narrow(2, 1, 2).reshape([8, 2]);
+            assert!(bitwise_equal(&obs0, &start.unsqueeze(0).expand([8, 2], false)));
+        }
     }
 
     struct Detached;

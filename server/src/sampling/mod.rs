@@ -1,11 +1,12 @@
-//! Sample: ancestral sampling from a diffusion model, plain, with inpainting conditions, or
-//! guided by a reward model (Diffuser's guided planning), behind its own workers beside
-//! [`crate::serving`]. The door (`api::rewards`) hands over a request and gets back a stream
+//! Sample: ancestral (DDPM) or DDIM sampling from a diffusion model, plain, with inpainting
+//! conditions, or guided by a reward model (Diffuser's guided planning), behind its own
+//! workers beside [`crate::serving`]. The door (`api::rewards`) hands over a request and gets back a stream
 //! of host rows: it never touches a tensor or a model's lock.
 //!
 //! - [`Sampling::submit`]: the one place that validates a Sample request, in this order: the
 //!   model's name and the model; omega and the guide steps; n and the batch size; the input
-//!   units and `t_stopgrad`; each condition (trajectories only, index within the horizon and
+//!   units and `t_stopgrad`; the sampler (`ddim`: its steps, eta and spacing, and the
+//!   guidance settings DDIM does not take); each condition (trajectories only, index within the horizon and
 //!   given once, one observation of finite values, normalized on its floats and then within
 //!   range); the guiding reward (its name, then the same diffusion steps, item shape and
 //!   normalizer as the model). Then the run is queued: a bounded queue of
@@ -30,6 +31,7 @@ use relreward_proto::v1 as pb;
 use tokio::sync::{Semaphore, mpsc};
 use tokio_stream::wrappers::ReceiverStream;
 
+use crate::engine::ddim::{Ddim, Spacing};
 use crate::engine::manifest::Space;
 use crate::engine::normalizer::{Normalize, Normalizer};
 use crate::error::{Error, Result, brief};
@@ -81,6 +83,8 @@ struct Plan {
     n_guide_steps: usize,
     t_stopgrad: usize,
     scale_grad_by_std: bool,
+    /// DDIM instead of DDPM.
+    ddim: Option<Ddim>,
 }
 
 /// The handle the door holds: validates, queues, and stops the workers at shutdown.
@@ -168,6 +172,7 @@ fn plan(req: &pb::SampleRequest, space: &Space, n_timesteps: usize, normalizer: 
     let units = Units::from_wire("input_units", req.input_units)?;
     let t_stopgrad = req.t_stopgrad.unwrap_or(0);
     fields::diffusion_time("t_stopgrad", i64::from(t_stopgrad), n_timesteps)?;
+    let ddim = req.ddim.as_ref().map(|d| ddim_options(d, req, n_timesteps)).transpose()?;
     let mut conditions = Vec::with_capacity(req.conditions.len());
     for (i, c) in req.conditions.iter().enumerate() {
         let Space::Trajectory { horizon, obs_dim, action_dim } = space else {
@@ -218,7 +223,41 @@ fn plan(req: &pb::SampleRequest, space: &Space, n_timesteps: usize, normalizer: 
         n_guide_steps: n_guide_steps as usize,
         t_stopgrad: t_stopgrad as usize,
         scale_grad_by_std: req.scale_grad_by_std,
+        ddim,
     })
+}
+
+/// The DDIM options of a request, checked against the model's T, with the guidance settings
+/// DDIM does not take refused by name (it guides once per step through eps; see
+/// `engine::sampling`).
+fn ddim_options(d: &pb::Ddim, req: &pb::SampleRequest, n_timesteps: usize) -> Result<Ddim> {
+    let spacing = match fields::known(
+        "ddim.timestep_spacing",
+        d.timestep_spacing,
+        "TIMESTEP_SPACING_LEADING (the default), TIMESTEP_SPACING_TRAILING or TIMESTEP_SPACING_LINSPACE",
+    )? {
+        pb::TimestepSpacing::Unspecified | pb::TimestepSpacing::Leading => Spacing::Leading,
+        pb::TimestepSpacing::Trailing => Spacing::Trailing,
+        pb::TimestepSpacing::Linspace => Spacing::Linspace,
+    };
+    let ddim = Ddim {
+        n_steps: if d.n_steps == 0 { n_timesteps } else { d.n_steps as usize },
+        eta: d.eta,
+        spacing,
+        set_alpha_to_one: d.set_alpha_to_one.unwrap_or(true),
+    };
+    ddim.check(n_timesteps, "ddim")?;
+    if let Some(k) = req.n_guide_steps.filter(|&k| k > 1) {
+        return Err(Error::invalid(format!(
+            "n_guide_steps: {k} with ddim; DDIM guides through eps once per step (omit n_guide_steps or set 1)"
+        )));
+    }
+    if req.scale_grad_by_std {
+        return Err(Error::invalid(
+            "scale_grad_by_std: not with ddim, whose guidance scales the gradient by sqrt(1 - abar_t) through eps",
+        ));
+    }
+    Ok(ddim)
 }
 
 /// An observation in raw units normalized as the observation part of a full

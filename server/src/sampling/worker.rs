@@ -1,7 +1,8 @@
 //! The sampling workers: named threads (`sample-N`) that take queued runs in arrival order and
 //! compute them, one at a time each, under an inference slot.
 //!
-//! A run samples in batches of `batch` with the engine's [`GuidedSampler`] under the model's
+//! A run samples in batches of `batch` with the engine's [`GuidedSampler`] (DDPM, or DDIM when
+//! the request asked) under the model's
 //! lock, on the engine's device, its noise from its own seeded [`Rng`] (so a seed fixes the
 //! samples). Each batch is checked finite (in normalized and in raw units), copied to the
 //! host once, and sent as rows; the worker waits for the client to read (backpressure), and
@@ -174,6 +175,9 @@ impl Run {
             .collect();
         let per_call = self.reward.as_deref().map(PerCall);
         let mut sampler = GuidedSampler::new(&model).on_device(crate::engine::device()).with_conditions(conditions);
+        if let Some(d) = plan.ddim {
+            sampler = sampler.with_ddim(d);
+        }
         if let Some(r) = &per_call {
             sampler = sampler.with_guidance(Guidance {
                 reward: r,

@@ -49,6 +49,50 @@ pub struct SampleArgs {
     /// Write the samples to this .npz file.
     #[arg(long, value_name = "FILE.npz")]
     pub out: Option<PathBuf>,
+    /// The sampler: ddpm (all T steps, the default) or ddim (--steps, --eta, --timestep-spacing).
+    #[arg(long, value_name = "NAME", default_value = "ddpm", value_parser = ["ddpm", "ddim"])]
+    pub sampler: String,
+    /// DDIM: denoising steps, 1 to T [default: T].
+    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u32).range(1..), allow_negative_numbers = true)]
+    pub steps: Option<u32>,
+    /// DDIM: eta in [0, 1] (0: deterministic) [default: 0].
+    #[arg(long, value_name = "E", allow_negative_numbers = true)]
+    pub eta: Option<f64>,
+    /// DDIM: how the steps are spaced over 0..T, as diffusers names it [default: leading].
+    #[arg(long, value_name = "S", value_parser = ["leading", "trailing", "linspace"])]
+    pub timestep_spacing: Option<String>,
+    /// DDIM: the last step ends at abar_0 instead of 1 (diffusers' set_alpha_to_one = false).
+    #[arg(long)]
+    pub no_alpha_to_one: bool,
+}
+
+/// `--sampler ddim` with its options as the request's `ddim`; DDIM's flags without it are a
+/// usage error (they would be ignored).
+fn ddim_request(args: &SampleArgs) -> Result<Option<pb::Ddim>, UsageError> {
+    if args.sampler != "ddim" {
+        let given = [
+            ("--steps", args.steps.is_some()),
+            ("--eta", args.eta.is_some()),
+            ("--timestep-spacing", args.timestep_spacing.is_some()),
+            ("--no-alpha-to-one", args.no_alpha_to_one),
+        ];
+        if let Some((flag, _)) = given.iter().find(|(_, set)| *set) {
+            return Err(UsageError(format!("{flag} only applies to DDIM: add --sampler ddim")));
+        }
+        return Ok(None);
+    }
+    let spacing = match args.timestep_spacing.as_deref() {
+        None | Some("leading") => pb::TimestepSpacing::Leading,
+        Some("trailing") => pb::TimestepSpacing::Trailing,
+        Some("linspace") => pb::TimestepSpacing::Linspace,
+        Some(other) => return Err(UsageError(format!("--timestep-spacing {other}: expected leading, trailing or linspace"))),
+    };
+    Ok(Some(pb::Ddim {
+        n_steps: args.steps.unwrap_or(0),
+        eta: args.eta.unwrap_or(0.0),
+        timestep_spacing: spacing as i32,
+        set_alpha_to_one: args.no_alpha_to_one.then_some(false),
+    }))
 }
 
 /// `--condition INDEX=v1,v2,..`.
@@ -171,7 +215,24 @@ fn sample_fields(args: &SampleArgs) -> Vec<(&'static str, String)> {
         ("conditions", "--condition".to_owned()),
         ("n", format!("--n {}", args.n)),
         ("batch_size", opt("--batch-size", args.batch_size.map(|v| v.to_string()))),
+        ("ddim.n_steps", opt("--steps", args.steps.map(|v| v.to_string()))),
+        ("ddim.eta", opt("--eta", args.eta.map(|v| v.to_string()))),
+        ("ddim.timestep_spacing", opt("--timestep-spacing", args.timestep_spacing.clone())),
+        ("ddim", "--sampler ddim".to_owned()),
     ]
+}
+
+/// "ddpm", or "ddim, N steps (leading), eta E".
+fn sampler_text(args: &SampleArgs) -> String {
+    if args.sampler != "ddim" {
+        return args.sampler.clone();
+    }
+    format!(
+        "ddim, {} steps ({}), eta {}",
+        args.steps.map_or_else(|| "T".to_owned(), |s| s.to_string()),
+        args.timestep_spacing.as_deref().unwrap_or("leading"),
+        args.eta.unwrap_or(0.0)
+    )
 }
 
 /// One sample as it arrived: raw values, normalized values and its reward (guided sampling).
@@ -179,6 +240,7 @@ type Sampled = (Vec<f32>, Vec<f32>, Option<f64>);
 
 pub async fn sample(ctx: &Ctx, args: SampleArgs) -> Result<Report> {
     check_guidance(&args)?;
+    let ddim = ddim_request(&args)?;
     check_out(args.out.as_deref())?;
     let client = ctx.connect().await?;
     let base = client.get_model(&args.base).await.with_context(|| format!("--base {}", args.base))?;
@@ -203,6 +265,7 @@ pub async fn sample(ctx: &Ctx, args: SampleArgs) -> Result<Report> {
         n: args.n,
         seed: args.seed,
         batch_size: args.batch_size.unwrap_or(0),
+        ddim,
     };
     let n = args.n as usize;
     let bar = item_bar(ctx.json, n as u64, "samples");
@@ -256,6 +319,7 @@ pub async fn sample(ctx: &Ctx, args: SampleArgs) -> Result<Report> {
         ("base", args.base.clone()),
         ("samples", format!("{n}, each {shape:?}")),
         ("seed", args.seed.map_or_else(|| "-".to_owned(), |s| s.to_string())),
+        ("sampler", sampler_text(&args)),
     ];
     if let (Some(r), Some(w)) = (&args.reward, args.scale) {
         fields.push(("guidance", format!("{r}, scale {w}")));
@@ -272,6 +336,10 @@ pub async fn sample(ctx: &Ctx, args: SampleArgs) -> Result<Report> {
         "n_guide_steps": args.n_guide_steps,
         "scale_grad_by_std": args.scale_grad_by_std,
         "conditions": args.conditions.iter().map(|c| json!({ "index": c.index, "state": c.state })).collect::<Vec<_>>(),
+        "sampler": args.sampler,
+        "steps": args.steps,
+        "eta": args.eta,
+        "timestep_spacing": args.timestep_spacing,
         "count": n,
         "shape": shape,
         "seed": args.seed,

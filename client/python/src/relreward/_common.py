@@ -257,6 +257,31 @@ def sample_request(model: str, reward_model: str | None, omega: float, n: int, s
     return req
 
 
+_SPACINGS = {None: reward_pb2.TIMESTEP_SPACING_UNSPECIFIED, "leading": reward_pb2.TIMESTEP_SPACING_LEADING,
+             "trailing": reward_pb2.TIMESTEP_SPACING_TRAILING, "linspace": reward_pb2.TIMESTEP_SPACING_LINSPACE}
+
+
+def ddim_options(sampler: str, steps: int | None, eta: float | None, timestep_spacing: str | None,
+                 set_alpha_to_one: bool | None) -> reward_pb2.Ddim | None:
+    """SampleRequest.ddim for ``sampler="ddim"``, None for "ddpm"; DDIM's options without it are
+    refused (they would be ignored), as are samplers and spacings the server does not offer."""
+    if sampler not in ("ddpm", "ddim"):
+        raise InvalidInput(f"sampler {sampler!r}: expected 'ddpm' or 'ddim'")
+    if sampler == "ddpm":
+        given = [k for k, v in (("steps", steps), ("eta", eta), ("timestep_spacing", timestep_spacing),
+                                ("set_alpha_to_one", set_alpha_to_one)) if v is not None]
+        if given:
+            raise InvalidInput(f"{given[0]}: only applies to sampler='ddim'")
+        return None
+    if timestep_spacing not in _SPACINGS:
+        raise InvalidInput(f"timestep_spacing {timestep_spacing!r}: expected 'leading', 'trailing' or 'linspace'")
+    d = reward_pb2.Ddim(n_steps=unsigned("steps", steps or 0), eta=float(eta or 0.0),
+                        timestep_spacing=_SPACINGS[timestep_spacing])
+    if set_alpha_to_one is not None:
+        d.set_alpha_to_one = bool(set_alpha_to_one)
+    return d
+
+
 def sample_of(r: reward_pb2.SampleResponse) -> Sample:
     return Sample(r.index, _tensor.decode(r.x), _tensor.decode(r.x_normalized),
                   r.reward if r.HasField("reward") else None)

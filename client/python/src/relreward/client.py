@@ -361,15 +361,23 @@ class Client:
     def sample_iter(self, model: str, *, reward_model: str | None = None, omega: float = 0.0, n: int = 1,
                     seed: int | None = None, n_guide_steps: int | None = None, t_stopgrad: int | None = None,
                     scale_grad_by_std: bool = False, conditions: Mapping[int, Any] | Sequence[tuple[int, Any]] | None = None,
-                    units: str = "raw", batch_size: int = 0) -> Iterator[Sample]:
-        """DDPM samples (:class:`relreward.Sample`) from diffusion model ``model`` as each
+                    units: str = "raw", batch_size: int = 0, sampler: str = "ddpm", steps: int | None = None,
+                    eta: float | None = None, timestep_spacing: str | None = None,
+                    set_alpha_to_one: bool | None = None) -> Iterator[Sample]:
+        """DDPM (or DDIM) samples (:class:`relreward.Sample`) from diffusion model ``model`` as each
         finishes (any order; see ``Sample.index``), guided by ``reward_model`` with scale
         ``omega`` (0: unguided, rewards still reported). ``conditions``: ``{horizon index:
         state [obs_dim]}`` inpainted after every step, in ``units``; ``n_guide_steps`` gradient
         steps per denoising step; no guidance below ``t_stopgrad``; ``seed`` makes it
-        reproducible. Not retried."""
+        reproducible. ``sampler="ddim"`` samples with DDIM as diffusers' DDIMScheduler does
+        (``steps`` of the model's T, default T; ``eta`` in [0, 1], default 0;
+        ``timestep_spacing`` "leading" (default), "trailing" or "linspace"; ``set_alpha_to_one``
+        default True); with DDIM, guidance shifts eps by -omega sqrt(1 - abar_t) grad rho once
+        per step (Dhariwal & Nichol eq. 14), so ``n_guide_steps`` stays 1 and
+        ``scale_grad_by_std`` False. Not retried."""
         return self._iter(calls.sample_iter(self, model, reward_model, omega, n, seed, n_guide_steps, t_stopgrad,
-                                            scale_grad_by_std, conditions, units, batch_size))
+                                            scale_grad_by_std, conditions, units, batch_size,
+                                            c.ddim_options(sampler, steps, eta, timestep_spacing, set_alpha_to_one)))
 
     def sample(self, model: str, **kwargs: Any) -> SampleBatch:
         """All samples of :meth:`sample_iter` stacked in index order: ``x`` and

@@ -56,14 +56,14 @@ def _schedule(kind: str | Mapping[str, Any] | None) -> models_pb2.Schedule | Non
 
 _PARAM: dict[str | None, models_pb2.Parametrization] = {
     None: models_pb2.PARAMETRIZATION_UNSPECIFIED, "epsilon": models_pb2.PARAMETRIZATION_EPSILON,
-    "x0": models_pb2.PARAMETRIZATION_X0}
+    "x0": models_pb2.PARAMETRIZATION_X0, "v": models_pb2.PARAMETRIZATION_V}
 
 
 def _param(p: str | None) -> models_pb2.Parametrization:
     try:
         return _PARAM[p]
     except KeyError:
-        raise ValueError(f"parametrization {p!r}: expected 'x0' or 'epsilon'") from None
+        raise ValueError(f"parametrization {p!r}: expected 'x0', 'epsilon' or 'v'") from None
 
 
 @dataclass
