@@ -401,7 +401,9 @@ impl Parametrization {
     /// From the wire, required (a model must say what its net predicts).
     pub fn required_from_proto(v: i32, field: &str) -> Result<Self, Invalid> {
         Self::from_proto(v, field)?.ok_or_else(|| {
-            Invalid(format!("{field}: unspecified; set PARAMETRIZATION_EPSILON (1), PARAMETRIZATION_X0 (2) or PARAMETRIZATION_V (3)"))
+            Invalid(format!(
+                "{field}: unspecified; set PARAMETRIZATION_EPSILON (1), PARAMETRIZATION_X0 (2) or PARAMETRIZATION_V (3)"
+            ))
         })
     }
 }

@@ -511,7 +511,9 @@ mod tests {
         assert!(max_diff(&m.eps_from_v(&x_t, &t, &v).expect("eps"), &noise) < 1e-5);
         let vd = v.to_kind(Kind::Double);
         let want_x0 = &sa * &xd - &sb * &vd;
-        assert!(max_diff(&m.x0_from_prediction(&x_t, &t, &v, false).expect("x0").to_kind(Kind::Double), &want_x0) < 1e-5);
+        assert!(
+            max_diff(&m.x0_from_prediction(&x_t, &t, &v, false).expect("x0").to_kind(Kind::Double), &want_x0) < 1e-5
+        );
         let want_eps = &sa * &vd + &sb * &xd;
         assert!(max_diff(&m.eps_from_prediction(&x_t, &t, &v).expect("eps").to_kind(Kind::Double), &want_eps) < 1e-5);
         // The training loss regresses onto v.

@@ -85,7 +85,9 @@ fn ddim_request(args: &SampleArgs) -> Result<Option<pb::Ddim>, UsageError> {
         None | Some("leading") => pb::TimestepSpacing::Leading,
         Some("trailing") => pb::TimestepSpacing::Trailing,
         Some("linspace") => pb::TimestepSpacing::Linspace,
-        Some(other) => return Err(UsageError(format!("--timestep-spacing {other}: expected leading, trailing or linspace"))),
+        Some(other) => {
+            return Err(UsageError(format!("--timestep-spacing {other}: expected leading, trailing or linspace")));
+        }
     };
     Ok(Some(pb::Ddim {
         n_steps: args.steps.unwrap_or(0),
