@@ -9,10 +9,12 @@
 //! One step from x_t at diffusion index t (0-based, as relreward and diffusers index their
 //! tables), with a = abar_t and a' = abar_prev:
 //!
-//!     x0 = the net's x0 estimate (clamped to [-1, 1] with the manifest's clip_denoised)
-//!     eps = the net's eps estimate (never clamped: diffusers' use_clipped_model_output false)
-//!     sigma = eta sqrt((1 - a') / (1 - a) (1 - a / a'))
-//!     x_prev = sqrt(a') x0 + sqrt(1 - a' - sigma^2) eps + sigma z
+//! ```text
+//! x0 = the net's x0 estimate (clamped to [-1, 1] with the manifest's clip_denoised)
+//! eps = the net's eps estimate (never clamped: diffusers' use_clipped_model_output false)
+//! sigma = eta sqrt((1 - a') / (1 - a) (1 - a / a'))
+//! x_prev = sqrt(a') x0 + sqrt(1 - a' - sigma^2) eps + sigma z
+//! ```
 //!
 //! Two diffusers conventions are kept on purpose, although they surprise: the step from t
 //! lands on prev = t - floor(T / n) whatever the spacing (for "trailing" and "linspace" with
