@@ -91,6 +91,11 @@ def test_no_public_method_returns_a_protobuf_message(client, server, tiny, finis
         value, and iterators are drained below."""
         base = client.get_model(tiny.base)
         weights = client.download_model(tiny.base, tmp_path / f"base-{tag}").path
+        # A bring-your-own reward: the tiny reward's export (raw units, so the identity normalizer).
+        module = client.export_model(tiny.reward, tmp_path / f"byo-{tag}").module
+        byo = {"signature": "rho", "n_timesteps": tiny.n_timesteps, "normalizer": {"kind": "identity"},
+               "space": {"kind": "trajectory", "horizon": tiny.horizon, "action_dim": 2,
+                         "obs_dim": tiny.transition_dim - 2}}
         return {
             "health": lambda c: c.health(),
             "upload_dataset": lambda c: c.upload_dataset(f"py-walk-{tag}", np.zeros((4, 3), np.float32)),
@@ -98,6 +103,7 @@ def test_no_public_method_returns_a_protobuf_message(client, server, tiny, finis
             "list_datasets": lambda c: c.list_datasets(),
             "delete_dataset": lambda c: c.delete_dataset(f"py-walk-{tag}"),
             "upload_model": lambda c: c.upload_model(weights, f"py-walk-{tag}", base.manifest),
+            "upload_reward": lambda c: c.upload_reward(module, f"py-walk-byo-{tag}", byo),
             "get_model": lambda c: c.get_model(tiny.reward),
             "list_models": lambda c: c.list_models(),
             "delete_model": lambda c: c.delete_model(f"py-walk-{tag}"),
