@@ -181,12 +181,8 @@ impl<'a> GuidedSampler<'a> {
         }
         let model = self.model;
         let big_t = model.n_timesteps();
-        let mut shape = vec![n as i64];
-        shape.extend(model.item_shape());
-
         let _no_grad = tch::no_grad_guard();
-        let mut x = rng.randn(&shape, self.device);
-        prepared.apply(&x)?;
+        let (shape, mut x) = self.initial_state(n, rng, &prepared)?;
         let mut last_rewards = None;
         for i in (0..big_t).rev() {
             let t = Tensor::f_full([n as i64], i as i64, (Kind::Int64, self.device))?;
@@ -221,6 +217,16 @@ impl<'a> GuidedSampler<'a> {
         Ok(Sampled { x, rewards: last_rewards })
     }
 
+    /// The batch's shape and x_T: the run's first draw from `rng` (both samplers), with the
+    /// conditions applied.
+    fn initial_state(&self, n: usize, rng: &mut Rng, prepared: &Prepared) -> Result<(Vec<i64>, Tensor)> {
+        let mut shape = vec![n as i64];
+        shape.extend(self.model.item_shape());
+        let x = rng.randn(&shape, self.device);
+        prepared.apply(&x)?;
+        Ok((shape, x))
+    }
+
     /// DDIM over `ddim`'s subset (see the module's doc): the same noise stream layout as DDPM
     /// (x_T first, then one draw per step that adds noise).
     fn sample_ddim(
@@ -237,12 +243,8 @@ impl<'a> GuidedSampler<'a> {
         ddim.check(big_t, "ddim")?;
         let abar = model.schedule.values(Table::AlphasCumprod);
         let clip = model.clip_denoised();
-        let mut shape = vec![n as i64];
-        shape.extend(model.item_shape());
-
         let _no_grad = tch::no_grad_guard();
-        let mut x = rng.randn(&shape, self.device);
-        prepared.apply(&x)?;
+        let (shape, mut x) = self.initial_state(n, rng, prepared)?;
         let mut last_rewards = None;
         for i in ddim.timesteps(big_t) {
             let t = Tensor::f_full([n as i64], i as i64, (Kind::Int64, self.device))?;
