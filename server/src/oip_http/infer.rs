@@ -351,14 +351,7 @@ mod tests {
     use serde_json::json;
 
     use super::*;
-
-    fn headers(pairs: &[(&'static str, &str)]) -> HeaderMap {
-        let mut h = HeaderMap::new();
-        for (k, v) in pairs {
-            h.insert(*k, HeaderValue::from_str(v).expect("value"));
-        }
-        h
-    }
+    use crate::oip_http::tests::headers;
 
     #[test]
     fn json_inputs_become_raw_contents_flat_or_nested() {
