@@ -192,6 +192,18 @@ pub fn decode_finite_f32(t: &Tensor) -> Result<Vec<f32>, CodecError> {
     }
 }
 
+/// Decodes an integer tensor (int32, int64 or uint8) to int64 values (class labels).
+pub fn decode_i64(t: &Tensor) -> Result<Vec<i64>, CodecError> {
+    let dtype = validate_among(t, &[Dtype::Int32, Dtype::Int64, Dtype::Uint8], "int32, int64 or uint8")?;
+    Ok(match dtype {
+        Dtype::Int64 => t.data.chunks_exact(8).map(|c| i64::from_le_bytes(c.try_into().unwrap_or([0; 8]))).collect(),
+        Dtype::Int32 => {
+            t.data.chunks_exact(4).map(|c| i64::from(i32::from_le_bytes(c.try_into().unwrap_or([0; 4])))).collect()
+        }
+        _ => t.data.iter().map(|&b| i64::from(b)).collect(),
+    })
+}
+
 /// Decodes a bool or uint8 tensor as flags (non-zero is true).
 pub fn decode_flags(t: &Tensor) -> Result<Vec<bool>, CodecError> {
     validate_among(t, &[Dtype::Bool, Dtype::Uint8], "bool or uint8")?;

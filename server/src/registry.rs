@@ -414,18 +414,21 @@ impl ModelRegistry {
             let Some(architecture) = manifest.architecture.as_ref() else {
                 return Err(Error::invalid("header.manifest.architecture: missing; native weights need one"));
             };
-            let net = NativeDenoiser::load(architecture, &manifest.space, &path, device).map_err(|e| match e {
-                Error::InvalidArgument(m) | Error::DataLoss(m) => {
-                    Error::invalid(format!("chunk: the uploaded weights do not fit header.manifest.architecture: {m}"))
-                }
-                other => other,
-            })?;
+            let net =
+                NativeDenoiser::load(architecture, &manifest.space, &path, manifest.conditioning.as_ref(), device)
+                    .map_err(|e| match e {
+                        Error::InvalidArgument(m) | Error::DataLoss(m) => Error::invalid(format!(
+                            "chunk: the uploaded weights do not fit header.manifest.architecture: {m}"
+                        )),
+                        other => other,
+                    })?;
             net.weights().check_finite().map_err(|e| match e {
                 Error::InvalidArgument(m) => Error::invalid(format!("chunk: the uploaded {m}")),
                 other => other,
             })?;
-            let probe = ValidationProbe::new(net.item_shape(), manifest.n_timesteps, device)?;
-            let out = tch::no_grad(|| net.forward(&probe.x, &probe.t))?;
+            let probe =
+                ValidationProbe::new(net.item_shape(), manifest.n_timesteps, manifest.conditioning.as_ref(), device)?;
+            let out = tch::no_grad(|| net.forward(&probe.x, &probe.t, probe.cond.as_ref()))?;
             probe.check_finite(&out, "chunk: the uploaded weights' forward")?;
             Ok(net.parameter_count())
         })
@@ -479,10 +482,11 @@ pub fn export_torchscript(record: &ModelRecord, dir: &Path, out: &Path) -> Resul
             let arch = manifest.architecture.as_ref().ok_or_else(|| {
                 lost(record, "its stored manifest names no architecture (native models need one)".into())
             })?;
-            let mut net = NativeDenoiser::load(arch, &manifest.space, &path, Device::Cpu)?;
+            let mut net =
+                NativeDenoiser::load(arch, &manifest.space, &path, manifest.conditioning.as_ref(), Device::Cpu)?;
             net.freeze();
             let item_shape = net.item_shape().to_vec();
-            export::trace_denoiser(&net, &item_shape, manifest.n_timesteps, out)
+            export::trace_denoiser(&net, &item_shape, manifest.n_timesteps, manifest.conditioning.as_ref(), out)
         }
     }
 }
@@ -542,7 +546,7 @@ fn build_diffusion(record: &ModelRecord, dir: &Path, device: Device) -> Result<(
             let arch = manifest.architecture.as_ref().ok_or_else(|| {
                 lost(record, "its stored manifest names no architecture (native models need one)".into())
             })?;
-            let net = NativeDenoiser::load(arch, &manifest.space, &path, device)?;
+            let net = NativeDenoiser::load(arch, &manifest.space, &path, manifest.conditioning.as_ref(), device)?;
             let bytes = net.parameter_count().saturating_mul(4);
             (Box::new(net), bytes)
         }
@@ -678,7 +682,7 @@ mod tests {
         let (store, _) = open_store(tmp.path()).await;
         let arch = Architecture::Mlp { hidden: vec![16] };
         let space = Space::Sample { shape: vec![3] };
-        let net = NativeDenoiser::new(&arch, &space, Device::Cpu).expect("net");
+        let net = NativeDenoiser::new(&arch, &space, None, Device::Cpu).expect("net");
         let weights = tmp.path().join("weights.safetensors");
         net.save(&weights).expect("save");
         let manifest = serde_json::json!({
@@ -699,7 +703,7 @@ mod tests {
         let a = reg.get_diffusion("a").await.expect("a");
         let x = Tensor::zeros([2, 3], (Kind::Float, Device::Cpu));
         let t = Tensor::from_slice(&[0i64, 99]);
-        let want = tch::no_grad(|| net.forward(&x, &t)).expect("forward");
+        let want = tch::no_grad(|| net.forward(&x, &t, None)).expect("forward");
         let got = tch::no_grad(|| a.lock().predict(&x, &t)).expect("predict");
         assert_eq!((&got - &want).abs().max().double_value(&[]), 0.0, "weights loaded exactly");
 

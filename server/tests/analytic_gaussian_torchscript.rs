@@ -21,7 +21,7 @@ use tch::{Kind, Tensor};
 struct TorchScriptDenoiser(tch::CModule);
 
 impl Denoiser for TorchScriptDenoiser {
-    fn forward(&self, x: &Tensor, t: &Tensor) -> Result<Tensor> {
+    fn forward(&self, x: &Tensor, t: &Tensor, _cond: Option<&Tensor>) -> Result<Tensor> {
         Ok(self.0.forward_ts(&[x, t])?)
     }
 

@@ -69,7 +69,7 @@ fn an_imported_diffuser_temporal_unet_matches_pytorch() {
 
     let architecture = Architecture::TemporalUnet { dim: 8, dim_mults: vec![1, 2] };
     let space = Space::Trajectory { horizon: 8, action_dim: 2, obs_dim: 3 };
-    let net = NativeDenoiser::load(&architecture, &space, &d.join("weights.safetensors"), Device::Cpu)
+    let net = NativeDenoiser::load(&architecture, &space, &d.join("weights.safetensors"), None, Device::Cpu)
         .expect("the imported weights load strictly");
     let check: BTreeMap<String, Tensor> =
         Tensor::read_safetensors(d.join("check.safetensors")).expect("check file").into_iter().collect();

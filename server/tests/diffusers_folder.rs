@@ -69,9 +69,14 @@ fn check_case(dir: &Path, source: &str, name: &str, args: &[&str], clipped: bool
     let manifest = DiffusionManifest::parse(&text, Some("manifest.toml")).expect("the written manifest is valid");
     assert_eq!(manifest.clip_denoised, clipped, "{name}: clip_sample carried over");
     let architecture = manifest.architecture.clone().expect("a native manifest");
-    let net =
-        NativeDenoiser::load(&architecture, &manifest.space, &dir.join(format!("{name}.safetensors")), Device::Cpu)
-            .expect("the imported weights load strictly");
+    let net = NativeDenoiser::load(
+        &architecture,
+        &manifest.space,
+        &dir.join(format!("{name}.safetensors")),
+        None,
+        Device::Cpu,
+    )
+    .expect("the imported weights load strictly");
     let epsilon = manifest.parametrization == Parametrization::Epsilon;
     let model = DiffusionModel::new(manifest, Box::new(net)).expect("model");
 

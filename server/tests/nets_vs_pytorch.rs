@@ -54,7 +54,7 @@ fn nets_match_pytorch_in_both_directions() {
     let mut jobs = Vec::new();
     let mut expected = Vec::new();
     for (i, case) in cases.iter().enumerate() {
-        let d = NativeDenoiser::new(&case.architecture, &case.space, Device::Cpu).expect("build");
+        let d = NativeDenoiser::new(&case.architecture, &case.space, None, Device::Cpu).expect("build");
         randomize(d.weights().var_store(), &mut rng);
         let weights = dir.path().join(format!("weights-{i}.safetensors"));
         d.save(&weights).expect("save weights");
@@ -96,7 +96,7 @@ fn nets_match_pytorch_in_both_directions() {
 
         // PyTorch weights, Rust forward.
         let torch_weights = dir.path().join(format!("torch-weights-{i}.safetensors"));
-        let d = NativeDenoiser::load(&case.architecture, &case.space, &torch_weights, Device::Cpu)
+        let d = NativeDenoiser::load(&case.architecture, &case.space, &torch_weights, None, Device::Cpu)
             .expect("PyTorch's state dict loads strictly");
         let y_rust = tch::no_grad(|| d.forward(x, t)).expect("rust forward");
         let diff = max_diff(&y_rust, output("y_torch"));

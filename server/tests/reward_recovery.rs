@@ -58,6 +58,7 @@ fn manifest() -> pb::DiffusionManifest {
         })),
         normalizer: Some(pb::Normalizer { kind: Some(pb::normalizer::Kind::Identity(pb::normalizer::Identity {})) }),
         architecture: None,
+        conditioning: None,
     }
 }
 

@@ -73,6 +73,7 @@ fn manifest(
         space: Space::Trajectory { horizon, action_dim: 2, obs_dim: 4 },
         normalizer: Normalizer::Identity,
         architecture: Some(architecture),
+        conditioning: None,
     }
 }
 
@@ -83,7 +84,7 @@ fn diffusion(
     rng: &mut Rng,
 ) -> (DiffusionModel, Vec<(String, Tensor)>, serde_json::Value) {
     let arch = m.architecture.clone().expect("native");
-    let denoiser = NativeDenoiser::new(&arch, &m.space, Device::Cpu).expect("denoiser");
+    let denoiser = NativeDenoiser::new(&arch, &m.space, None, Device::Cpu).expect("denoiser");
     randomize(denoiser.weights().var_store(), rng);
     denoiser.save(path).expect("save denoiser");
     // Shares storage with the network: what jobs/diffusion.rs hands its TrainLoop.
@@ -326,7 +327,7 @@ fn ddpm_steps_match_pytorch() {
         let weight = (*action_weight != 1.0).then_some((*action_weight, 2usize));
         let trained = train(&params, |k| {
             let (x0, t, noise) = &batches[k];
-            model.loss(x0, t, noise, weight).expect("loss")
+            model.loss(x0, t, noise, weight, None).expect("loss")
         });
         jobs.push(json!({
             "kind": "ddpm", "model": spec, "batches": paths, "action_weight": action_weight, "lr": LR,

@@ -17,7 +17,9 @@
 use std::collections::BTreeMap;
 
 use relreward_server::engine::diffusion::DiffusionModel;
-use relreward_server::engine::manifest::{Architecture, DiffusionManifest, Parametrization, ScheduleSpec, Space};
+use relreward_server::engine::manifest::{
+    Architecture, Conditioning, DiffusionManifest, Parametrization, ScheduleSpec, Space,
+};
 use relreward_server::engine::nets::NativeDenoiser;
 use relreward_server::engine::normalizer::Normalizer;
 use relreward_server::engine::optim::named_parameters;
@@ -41,6 +43,7 @@ struct Case {
     architecture: Architecture,
     shape: Vec<usize>,
     parametrization: Parametrization,
+    conditioning: Option<Conditioning>,
 }
 
 fn unet2d(block_out_channels: &[usize], layers_per_block: usize, attention: bool, groups: usize) -> Architecture {
@@ -60,16 +63,33 @@ fn unet2d_matches_diffusers_forward_and_training_step() {
             architecture: unet2d(&[16, 32], 1, true, 8),
             shape: vec![1, 8, 8],
             parametrization: Parametrization::Epsilon,
+            conditioning: None,
         },
         Case {
             architecture: unet2d(&[16, 16, 32], 2, false, 4),
             shape: vec![3, 8, 12],
             parametrization: Parametrization::X0,
+            conditioning: None,
         },
         Case {
             architecture: unet2d(&[8], 1, true, 2),
             shape: vec![2, 5, 3],
             parametrization: Parametrization::Epsilon,
+            conditioning: None,
+        },
+        // Class-conditional (diffusers' num_class_embeds) and embedding-conditional
+        // (class_embed_type "identity": width 4 * 16).
+        Case {
+            architecture: unet2d(&[16, 32], 1, true, 8),
+            shape: vec![1, 8, 8],
+            parametrization: Parametrization::Epsilon,
+            conditioning: Some(Conditioning::Labels { num_classes: 11, null_class: Some(10) }),
+        },
+        Case {
+            architecture: unet2d(&[16, 32], 1, false, 4),
+            shape: vec![2, 4, 8],
+            parametrization: Parametrization::V,
+            conditioning: Some(Conditioning::Embedding { dim: 64 }),
         },
     ];
     let dir = tempfile::tempdir().expect("tempdir");
@@ -78,7 +98,8 @@ fn unet2d_matches_diffusers_forward_and_training_step() {
     let mut rust = Vec::new();
     for (i, case) in cases.iter().enumerate() {
         let space = Space::Sample { shape: case.shape.clone() };
-        let d = NativeDenoiser::new(&case.architecture, &space, Device::Cpu).expect("build");
+        let conditioning = case.conditioning.as_ref();
+        let d = NativeDenoiser::new(&case.architecture, &space, conditioning, Device::Cpu).expect("build");
         randomize(d.weights().var_store(), &mut rng);
         let weights = dir.path().join(format!("weights-{i}.safetensors"));
         d.save(&weights).expect("save weights");
@@ -91,16 +112,26 @@ fn unet2d_matches_diffusers_forward_and_training_step() {
         let x0 = rng.randn(&shape, Device::Cpu).tanh();
         let noise = rng.randn(&shape, Device::Cpu);
         let t_train = rng.randint(T as u64, 3, Device::Cpu);
+        // Two distinct conditions per pass, so the embedding's rows differ within a batch.
+        let (cond, cond_train) = match case.conditioning {
+            None => (None, None),
+            Some(Conditioning::Labels { .. }) => {
+                (Some(Tensor::from_slice(&[3i64, 10, 0])), Some(Tensor::from_slice(&[7i64, 7, 2])))
+            }
+            Some(Conditioning::Embedding { dim }) => {
+                (Some(rng.randn(&[3, dim as i64], Device::Cpu)), Some(rng.randn(&[3, dim as i64], Device::Cpu)))
+            }
+        };
         let inputs = dir.path().join(format!("inputs-{i}.safetensors"));
-        Tensor::write_safetensors(
-            &[("x", &x), ("t", &t), ("x0", &x0), ("noise", &noise), ("t_train", &t_train)],
-            &inputs,
-        )
-        .expect("write inputs");
+        let mut named = vec![("x", &x), ("t", &t), ("x0", &x0), ("noise", &noise), ("t_train", &t_train)];
+        if let (Some(c), Some(ct)) = (&cond, &cond_train) {
+            named.extend([("cond", c), ("cond_train", ct)]);
+        }
+        Tensor::write_safetensors(&named, &inputs).expect("write inputs");
 
         let y = tch::no_grad(|| {
             use relreward_server::engine::denoiser::Denoiser;
-            d.forward(&x, &t)
+            d.forward(&x, &t, cond.as_ref())
         })
         .expect("rust forward");
         assert!(y.abs().max().double_value(&[]) > 1e-3, "case {i}: output is trivially zero");
@@ -113,15 +144,17 @@ fn unet2d_matches_diffusers_forward_and_training_step() {
             space: space.clone(),
             normalizer: Normalizer::Identity,
             architecture: Some(case.architecture.clone()),
+            conditioning: case.conditioning,
         };
         let model = DiffusionModel::new(manifest, Box::new(d)).expect("model");
-        let loss = model.loss(&x0, &t_train, &noise, None).expect("loss");
+        let loss = model.loss(&x0, &t_train, &noise, None, cond_train.as_ref()).expect("loss");
         loss.backward();
         let grads: BTreeMap<String, Tensor> = params.iter().map(|(n, p)| (n.clone(), p.grad().copy())).collect();
-        rust.push((x, t, y, loss.double_value(&[]), grads, space));
+        rust.push((x, t, cond, y, loss.double_value(&[]), grads, space));
 
         // The architecture's own fields (diffusers' names) with the image's shape.
         let mut config = serde_json::to_value(&case.architecture).expect("architecture json");
+        config["conditioning"] = serde_json::to_value(case.conditioning).expect("conditioning json");
         config["channels"] = json!(case.shape[0]);
         config["height"] = json!(case.shape[1]);
         config["width"] = json!(case.shape[2]);
@@ -137,7 +170,7 @@ fn unet2d_matches_diffusers_forward_and_training_step() {
     }
     run_reference("tests/python/unet2d_reference.py", &jobs, dir.path());
 
-    for (i, (case, (x, t, y, loss, grads, space))) in cases.iter().zip(&rust).enumerate() {
+    for (i, (case, (x, t, cond, y, loss, grads, space))) in cases.iter().zip(&rust).enumerate() {
         let outputs: BTreeMap<String, Tensor> =
             Tensor::read_safetensors(dir.path().join(format!("output-{i}.safetensors")))
                 .expect("read output")
@@ -168,10 +201,11 @@ fn unet2d_matches_diffusers_forward_and_training_step() {
 
         // diffusers' weights, relreward's forward.
         let torch_weights = dir.path().join(format!("torch-weights-{i}.safetensors"));
-        let d = NativeDenoiser::load(arch, space, &torch_weights, Device::Cpu).expect("diffusers' state dict loads");
+        let d = NativeDenoiser::load(arch, space, &torch_weights, case.conditioning.as_ref(), Device::Cpu)
+            .expect("diffusers' state dict loads");
         let y_rust = tch::no_grad(|| {
             use relreward_server::engine::denoiser::Denoiser;
-            d.forward(x, t)
+            d.forward(x, t, cond.as_ref())
         })
         .expect("rust forward");
         let diff = relative_diff(&y_rust, &outputs["y_torch"]);

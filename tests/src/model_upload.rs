@@ -48,6 +48,7 @@ pub fn sample_manifest(shape: &[u64]) -> pb::DiffusionManifest {
         space: Some(pb::diffusion_manifest::Space::Sample(pb::diffusion_manifest::Sample { shape: shape.to_vec() })),
         normalizer: Some(pb::Normalizer { kind: Some(pb::normalizer::Kind::Identity(pb::normalizer::Identity {})) }),
         architecture: None,
+        conditioning: None,
     }
 }
 

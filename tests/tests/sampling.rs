@@ -50,6 +50,7 @@ async fn analytic_gaussian_registered_by_upload_samples_its_distribution() {
         })),
         normalizer: Some(pb::Normalizer { kind: Some(pb::normalizer::Kind::Identity(pb::normalizer::Identity {})) }),
         architecture: None,
+        conditioning: None,
     };
     let header = pb::UploadModelHeader {
         name: "gauss".into(),

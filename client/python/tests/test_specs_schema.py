@@ -71,6 +71,7 @@ def test_a_manifest_with_the_schemas_fields_converts_whole():
         "space": {"kind": "trajectory", "horizon": defaults["horizon"], "action_dim": 2, "obs_dim": 4},
         "normalizer": {"kind": "identity"},
         "architecture": defaults["architecture"],
+        "conditioning": {"kind": "labels", "num_classes": 11, "null_class": 10},
     }
     assert set(m) == set(SCHEMA["manifest"]["fields"])
     message = specs.manifest(m)

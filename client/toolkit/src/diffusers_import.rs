@@ -1090,6 +1090,7 @@ pub fn import_folder(folder: &Folder, hints: &Hints) -> Result<Imported, ImportE
         space,
         normalizer: hints.normalizer.clone().unwrap_or_default(),
         architecture: Some(plan.architecture.clone()),
+        conditioning: None,
     };
     manifest.validate().map_err(|e| {
         ImportError(format!("the manifest derived from {} is not valid: {e}", folder.model_dir.display()))

@@ -16,6 +16,9 @@
 //! architecture = { kind = "temporal_unet", dim = 32, dim_mults = [1, 4, 8] }
 //! # or { kind = "mlp", hidden = [..] } or { kind = "unet2d", block_out_channels = [..],
 //! #    layers_per_block, attention, norm_num_groups, attention_head_dim }
+//! # conditional models only (unet2d or TorchScript):
+//! conditioning = { kind = "labels", num_classes = 11, null_class = 10 }
+//! # or { kind = "embedding", dim = 128 }
 //! ```
 //!
 //! One rule decides what an uploaded model is: a manifest with an `architecture` describes
@@ -306,6 +309,15 @@ fn default_unet2d_attention_head_dim() -> usize {
 }
 
 impl Architecture {
+    /// The architecture's `kind` in files ("temporal_unet", "mlp", "unet2d"), for messages.
+    pub fn kind_name(&self) -> &'static str {
+        match self {
+            Self::TemporalUnet { .. } => "temporal_unet",
+            Self::Mlp { .. } => "mlp",
+            Self::Unet2d { .. } => "unet2d",
+        }
+    }
+
     /// The default denoiser for a dataset of trajectories (`true`) or of samples.
     pub fn default_for(trajectories: bool) -> Self {
         if trajectories {
@@ -505,6 +517,86 @@ impl Space {
     }
 }
 
+/// Upper bound on class labels and embedding widths: far above any class count or text
+/// embedding in use, low enough that an embedding table stays within the parameter budget.
+pub const MAX_CONDITION_SIZE: usize = 1 << 20;
+
+/// A conditional denoiser's extra input, one per item (`relreward.v1.Conditioning`): class
+/// labels or embedding vectors. Classifier-free guidance needs the null condition: `null_class`
+/// for labels, the zero vector for embeddings.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case", deny_unknown_fields)]
+pub enum Conditioning {
+    /// int64 labels in `0..num_classes` (diffusers' `num_class_embeds`: the table's rows).
+    Labels {
+        num_classes: usize,
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        null_class: Option<usize>,
+    },
+    /// float32 vectors `[dim]` (diffusers' `class_embed_type = "identity"` in a unet2d).
+    Embedding { dim: usize },
+}
+
+impl Conditioning {
+    pub fn validate_at(&self, field: &str) -> Result<(), Invalid> {
+        match *self {
+            Self::Labels { num_classes, null_class } => {
+                if num_classes == 0 || num_classes > MAX_CONDITION_SIZE {
+                    return invalid(format!(
+                        "{field}.labels.num_classes: {num_classes} is outside 1..={MAX_CONDITION_SIZE}"
+                    ));
+                }
+                if let Some(null) = null_class
+                    && null >= num_classes
+                {
+                    return invalid(format!(
+                        "{field}.labels.null_class: {null} is not a label (labels are 0..{num_classes})"
+                    ));
+                }
+            }
+            Self::Embedding { dim } => {
+                if dim == 0 || dim > MAX_CONDITION_SIZE {
+                    return invalid(format!("{field}.embedding.dim: {dim} is outside 1..={MAX_CONDITION_SIZE}"));
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Whether classifier-free guidance can form the unconditional prediction.
+    pub fn has_null(&self) -> bool {
+        match self {
+            Self::Labels { null_class, .. } => null_class.is_some(),
+            Self::Embedding { .. } => true,
+        }
+    }
+
+    pub fn to_proto(&self) -> pb::Conditioning {
+        use pb::conditioning::{Embedding, Kind, Labels};
+        let kind = match *self {
+            Self::Labels { num_classes, null_class } => {
+                Kind::Labels(Labels { num_classes: wire_u32(num_classes), null_class: null_class.map(wire_u32) })
+            }
+            Self::Embedding { dim } => Kind::Embedding(Embedding { dim: wire_u32(dim) }),
+        };
+        pb::Conditioning { kind: Some(kind) }
+    }
+
+    /// From the wire, validated; `field` names the message in the request.
+    pub fn from_proto(c: pb::Conditioning, field: &str) -> Result<Self, Invalid> {
+        use pb::conditioning::Kind;
+        let c = match c.kind {
+            None => return invalid(format!("{field}: set labels or embedding (or leave conditioning unset)")),
+            Some(Kind::Labels(l)) => {
+                Self::Labels { num_classes: l.num_classes as usize, null_class: l.null_class.map(|n| n as usize) }
+            }
+            Some(Kind::Embedding(e)) => Self::Embedding { dim: e.dim as usize },
+        };
+        c.validate_at(field)?;
+        Ok(c)
+    }
+}
+
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct DiffusionManifest {
@@ -519,6 +611,9 @@ pub struct DiffusionManifest {
     /// Set for native models; absent for TorchScript, whose module is the architecture.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub architecture: Option<Architecture>,
+    /// Conditional models only: the input the denoiser takes beside (x, t).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub conditioning: Option<Conditioning>,
 }
 
 impl DiffusionManifest {
@@ -548,6 +643,19 @@ impl DiffusionManifest {
         self.normalizer.validate(&format!("{field}.normalizer"), self.space.coordinates())?;
         if let Some(arch) = &self.architecture {
             self.validate_architecture(arch, field)?;
+        }
+        if let Some(c) = &self.conditioning {
+            c.validate_at(&format!("{field}.conditioning"))?;
+            // Native conditioning is built into the unet2d alone (its embedding-width rule is
+            // checked where the network is planned, the server's `nets::unet2d`).
+            if let Some(arch) = &self.architecture
+                && !matches!(arch, Architecture::Unet2d { .. })
+            {
+                return invalid(format!(
+                    "{field}.conditioning: the native {} takes no condition; only unet2d is conditional (or upload a TorchScript module)",
+                    arch.kind_name()
+                ));
+            }
         }
         Ok(())
     }
@@ -602,6 +710,7 @@ impl DiffusionManifest {
             space: Some(self.space.to_proto()),
             normalizer: Some(self.normalizer.to_proto()),
             architecture: self.architecture.as_ref().map(Architecture::to_proto),
+            conditioning: self.conditioning.as_ref().map(Conditioning::to_proto),
         }
     }
 
@@ -624,6 +733,10 @@ impl DiffusionManifest {
             space: Space::from_proto(m.space, &format!("{field}.space"))?,
             normalizer: Normalizer::from_proto(m.normalizer, &format!("{field}.normalizer"))?,
             architecture: m.architecture.map(Architecture::from_proto),
+            conditioning: m
+                .conditioning
+                .map(|c| Conditioning::from_proto(c, &format!("{field}.conditioning")))
+                .transpose()?,
         };
         manifest.validate_at(field)?;
         Ok(manifest)

@@ -12,10 +12,10 @@ use super::job::{
     KindDefaults, Optimization, REWARD_OPTIMIZATION, RewardAlgorithm, RewardArchitecture, RewardJob, Target,
 };
 use super::job::{
-    DEFAULT_CLIP_DENOISED, DEFAULT_HORIZON, DEFAULT_N_TIMESTEPS, DEFAULT_NUM_CHAINS, DEFAULT_PARAMETRIZATION,
-    DEFAULT_SCHEDULE,
+    DEFAULT_CLIP_DENOISED, DEFAULT_CONDITION_DROPOUT, DEFAULT_HORIZON, DEFAULT_N_TIMESTEPS, DEFAULT_NUM_CHAINS,
+    DEFAULT_PARAMETRIZATION, DEFAULT_SCHEDULE,
 };
-use super::manifest::{Architecture, DiffusionManifest, Normalizer, Parametrization, Space};
+use super::manifest::{Architecture, Conditioning, DiffusionManifest, Normalizer, Parametrization, Space};
 
 /// The field names of a serialized value, in order.
 fn fields(v: impl serde::Serialize) -> Value {
@@ -41,6 +41,9 @@ pub fn summary() -> Value {
         clip_denoised: DEFAULT_CLIP_DENOISED,
         normalizer_datasets: Vec::new(),
         pooled_normalizer: false,
+        conditional: true,
+        condition_dropout: Some(DEFAULT_CONDITION_DROPOUT),
+        num_classes: Some(10),
     };
     // Every optional field set, so that each is named.
     let reward = RewardJob {
@@ -71,6 +74,8 @@ pub fn summary() -> Value {
         space: trajectory,
         normalizer: Normalizer::Identity,
         architecture: Some(Architecture::default_for(true)),
+        // Set so that the field is named (a temporal_unet takes none: not a valid manifest).
+        conditioning: Some(Conditioning::Labels { num_classes: 11, null_class: Some(10) }),
     };
     let reward_architectures: Map<String, Value> =
         [ArchKind::WindowedMlp, ArchKind::ValueFunction, ArchKind::ConvEncoder, ArchKind::Mlp]

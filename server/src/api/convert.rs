@@ -141,6 +141,7 @@ mod tests {
             space: Some(S::Trajectory(Trajectory { horizon: 8, action_dim: 2, obs_dim: 1 })),
             normalizer: Some(Normalizer::to_proto(&Normalizer::Limits { min: vec![0.0; 3], max: vec![1.0; 3] })),
             architecture: None,
+            conditioning: None,
         }
     }
 

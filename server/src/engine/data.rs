@@ -20,6 +20,8 @@ pub struct TrainingData {
     horizon: Option<i64>,
     train: Vec<i64>,
     held_out: Vec<i64>,
+    /// Class labels of sample datasets, int64 [N] (conditional training).
+    labels: Option<Tensor>,
 }
 
 /// Start indices of every length-`horizon` window lying inside one episode. `ends_after[i]`
@@ -72,7 +74,19 @@ impl TrainingData {
         let n_held = if items.len() >= 20 { ((items.len() as f64) * HELD_OUT).ceil() as usize } else { 0 };
         let held_out = items.split_off(items.len() - n_held);
         let normalized = tch::no_grad(|| normalizer.normalize(rows, item_dims).to_kind(Kind::Float));
-        Ok(Self { rows: normalized, horizon: horizon.map(|h| h as i64), train: items, held_out })
+        Ok(Self { rows: normalized, horizon: horizon.map(|h| h as i64), train: items, held_out, labels: None })
+    }
+
+    /// The same items with a label each (int64 `[N]`, one per row of a sample dataset), drawn
+    /// along with their rows by [`Self::labeled_batch`].
+    pub fn with_labels(self, labels: Tensor) -> Result<Self> {
+        if self.horizon.is_some() || labels.size() != [self.rows.size()[0]] || labels.kind() != Kind::Int64 {
+            return Err(Error::internal(
+                "training data",
+                format!("labels {:?} for {} sample rows", labels.size(), self.rows.size()[0]),
+            ));
+        }
+        Ok(Self { labels: Some(labels.to_device(self.rows.device())), ..self })
     }
 
     pub fn train_len(&self) -> usize {
@@ -81,7 +95,7 @@ impl TrainingData {
 
     /// The same items with their rows on `device` (batches are gathered there).
     pub fn to_device(self, device: tch::Device) -> Self {
-        Self { rows: self.rows.to_device(device), ..self }
+        Self { rows: self.rows.to_device(device), labels: self.labels.map(|l| l.to_device(device)), ..self }
     }
 
     fn gather(&self, starts: &[i64]) -> Tensor {
@@ -97,15 +111,32 @@ impl TrainingData {
         }
     }
 
+    fn labels_of(&self, picks: &[i64]) -> Option<Tensor> {
+        let labels = self.labels.as_ref()?;
+        let idx = super::upload(&Tensor::from_slice(picks), labels.device()).expect("an int64 upload");
+        Some(labels.index_select(0, &idx))
+    }
+
     /// A training batch of `batch` items drawn uniformly with replacement.
     pub fn batch(&self, rng: &mut Rng, batch: usize) -> Tensor {
+        self.labeled_batch(rng, batch).0
+    }
+
+    /// [`Self::batch`] with the items' labels (None without labels); the same draws.
+    pub fn labeled_batch(&self, rng: &mut Rng, batch: usize) -> (Tensor, Option<Tensor>) {
         let picks: Vec<i64> = (0..batch).map(|_| self.train[rng.below(self.train.len() as u64) as usize]).collect();
-        self.gather(&picks)
+        (self.gather(&picks), self.labels_of(&picks))
     }
 
     /// The first `max` held-out items (the same every call), or `None` if nothing was held out.
     pub fn held_out(&self, max: usize) -> Option<Tensor> {
-        (!self.held_out.is_empty()).then(|| self.gather(&self.held_out[..self.held_out.len().min(max)]))
+        self.labeled_held_out(max).map(|(x, _)| x)
+    }
+
+    /// [`Self::held_out`] with the items' labels.
+    pub fn labeled_held_out(&self, max: usize) -> Option<(Tensor, Option<Tensor>)> {
+        let picks = &self.held_out[..self.held_out.len().min(max)];
+        (!picks.is_empty()).then(|| (self.gather(picks), self.labels_of(picks)))
     }
 }
 

@@ -16,10 +16,11 @@
 //! choice and is what the sampler uses. `eps_hat` and `score` are never clipped: for an
 //! x0-predicting net they are derived from its raw x0 prediction.
 
-use tch::{Kind, Tensor};
+use tch::{Device, Kind, Tensor};
 
 use super::denoiser::Denoiser;
-use super::manifest::{DiffusionManifest, Parametrization, Space};
+use super::manifest::{Conditioning, DiffusionManifest, Parametrization, Space};
+use super::nets::inputs::check_condition;
 use super::schedule::{Schedule, Table};
 use crate::error::{Error, Result};
 
@@ -68,6 +69,26 @@ impl DiffusionModel {
         self.net.as_ref()
     }
 
+    pub fn conditioning(&self) -> Option<&Conditioning> {
+        self.manifest.conditioning.as_ref()
+    }
+
+    /// `n` copies of the model's null condition (the unconditional input of classifier-free
+    /// guidance): its null label, or zero embeddings. A model without one refuses, naming
+    /// `field`.
+    pub fn null_condition(&self, n: i64, device: Device, field: &str) -> Result<Tensor> {
+        match self.manifest.conditioning {
+            None => Err(Error::invalid(format!("{field}: the model is unconditional"))),
+            Some(Conditioning::Labels { null_class: Some(null), .. }) => {
+                Ok(Tensor::f_full([n], null as i64, (Kind::Int64, device))?)
+            }
+            Some(Conditioning::Labels { null_class: None, num_classes }) => Err(Error::invalid(format!(
+                "{field}: needs the unconditional prediction, but the model (labels 0..{num_classes}) has no null label"
+            ))),
+            Some(Conditioning::Embedding { dim }) => Ok(Tensor::f_zeros([n, dim as i64], (Kind::Float, device))?),
+        }
+    }
+
     /// Checks that `x` (named `name` in messages) is float32 `[B, *item_shape]` with B >= 1 and
     /// returns B.
     pub fn check_x(&self, x: &Tensor, name: &str) -> Result<i64> {
@@ -108,12 +129,20 @@ impl DiffusionModel {
         Ok(self.schedule.extract(table, t, x.dim())?.f_to_device(x.device())?)
     }
 
-    /// The network's raw output (eps or x0, per the manifest's parametrization), in the
-    /// caller's grad mode. A net whose output does not match its input's shape does not match
-    /// its manifest: `FailedPrecondition`.
+    /// The network's raw output (eps, x0 or v, per the manifest's parametrization), in the
+    /// caller's grad mode, for an unconditional model (a conditional one refuses: its callers
+    /// go through [`Self::predict_given`] or a [`super::recipe::Recipe`]). A net whose output
+    /// does not match its input's shape does not match its manifest: `FailedPrecondition`.
     pub fn predict(&self, x: &Tensor, t: &Tensor) -> Result<Tensor> {
-        self.check_xt(x, t)?;
-        let out = self.net.forward(x, t)?;
+        self.predict_given(x, t, None)
+    }
+
+    /// [`Self::predict`] under the condition `cond` of each item (a conditional model's int64
+    /// labels `[B]` or float32 embeddings `[B, dim]`; `None` for an unconditional model).
+    pub fn predict_given(&self, x: &Tensor, t: &Tensor, cond: Option<&Tensor>) -> Result<Tensor> {
+        let b = self.check_xt(x, t)?;
+        check_condition("model", cond, self.manifest.conditioning.as_ref(), b)?;
+        let out = self.net.forward(x, t, cond)?;
         if out.size() != x.size() || out.f_kind()? != Kind::Float {
             return Err(Error::FailedPrecondition(format!(
                 "denoiser returned {:?} {:?} for input float32 {:?}: the model does not match its manifest",
@@ -168,6 +197,21 @@ impl DiffusionModel {
             }
             Parametrization::X0 => self.eps_from_x0(x_t, t, pred),
             Parametrization::V => self.eps_from_v(x_t, t, pred),
+        }
+    }
+
+    /// The raw prediction of the model's parametrization that corresponds to `eps` at
+    /// (x_t, t): eps itself, x0 = [`Self::x0_from_eps`], or v from that x0 and eps (no net
+    /// call). What a recipe combined in eps hands back to the sampler.
+    pub fn prediction_from_eps(&self, x_t: &Tensor, t: &Tensor, eps: &Tensor) -> Result<Tensor> {
+        match self.parametrization() {
+            Parametrization::Epsilon => {
+                self.check_xt(x_t, t)?;
+                Self::check_same(x_t, eps, "eps")?;
+                Ok(eps.shallow_clone())
+            }
+            Parametrization::X0 => self.x0_from_eps(x_t, t, eps),
+            Parametrization::V => self.v_target(&self.x0_from_eps(x_t, t, eps)?, t, eps),
         }
     }
 
@@ -278,7 +322,17 @@ impl DiffusionModel {
     /// instead of 1, and the loss is the mean of weight * squared error over all elements
     /// (Diffuser's `WeightedL2` with `loss_discount = 1` and no per-dimension weights; its
     /// conditioning of x_t during training is not applied here). Trajectory models only.
-    pub fn loss(&self, x0: &Tensor, t: &Tensor, noise: &Tensor, action_weight: Option<(f64, usize)>) -> Result<Tensor> {
+    ///
+    /// `cond`: each item's condition for a conditional model (the training labels, some
+    /// replaced by the null label for classifier-free guidance), `None` otherwise.
+    pub fn loss(
+        &self,
+        x0: &Tensor,
+        t: &Tensor,
+        noise: &Tensor,
+        action_weight: Option<(f64, usize)>,
+        cond: Option<&Tensor>,
+    ) -> Result<Tensor> {
         let weights = match action_weight {
             None => None,
             Some((w, action_dim)) => {
@@ -299,7 +353,7 @@ impl DiffusionModel {
             }
         };
         let x_t = self.q_sample(x0, t, noise)?;
-        let pred = self.predict(&x_t, t)?;
+        let pred = self.predict_given(&x_t, t, cond)?;
         let target = match self.parametrization() {
             Parametrization::Epsilon => noise.shallow_clone(),
             Parametrization::X0 => x0.shallow_clone(),
@@ -363,7 +417,7 @@ pub(crate) mod testing {
     }
 
     impl Denoiser for AnalyticGaussian {
-        fn forward(&self, x: &Tensor, t: &Tensor) -> Result<Tensor> {
+        fn forward(&self, x: &Tensor, t: &Tensor, _cond: Option<&Tensor>) -> Result<Tensor> {
             let mut shape = vec![1i64; x.dim()];
             shape[0] = x.size()[0];
             let sa = self.sqrt_abar.index_select(0, t).reshape(&shape);
@@ -401,6 +455,7 @@ mod tests {
             space,
             normalizer: Normalizer::Identity,
             architecture: None,
+            conditioning: None,
         }
     }
 
@@ -518,7 +573,7 @@ mod tests {
         assert!(max_diff(&m.eps_from_prediction(&x_t, &t, &v).expect("eps").to_kind(Kind::Double), &want_eps) < 1e-5);
         // The training loss regresses onto v.
         let want = (m.predict(&x_t, &t).expect("pred") - &v).square().mean(Kind::Float).double_value(&[]);
-        assert!((m.loss(&x0, &t, &noise, None).expect("loss").double_value(&[]) - want).abs() < 1e-6);
+        assert!((m.loss(&x0, &t, &noise, None, None).expect("loss").double_value(&[]) - want).abs() < 1e-6);
     }
 
     #[test]
@@ -573,17 +628,17 @@ mod tests {
         let noise = Rng::new(9).randn(&[6, 4, 3], tch::Device::Cpu);
         let x_t = m.q_sample(&x0, &t, &noise).expect("x_t");
         let sq = (m.predict(&x_t, &t).expect("pred") - &noise).square();
-        let plain = m.loss(&x0, &t, &noise, None).expect("loss").double_value(&[]);
+        let plain = m.loss(&x0, &t, &noise, None, None).expect("loss").double_value(&[]);
         assert!((plain - sq.mean(Kind::Float).double_value(&[])).abs() < 1e-6);
-        let same = m.loss(&x0, &t, &noise, Some((1.0, 1))).expect("loss").double_value(&[]);
+        let same = m.loss(&x0, &t, &noise, Some((1.0, 1)), None).expect("loss").double_value(&[]);
         assert!((same - plain).abs() < 1e-6);
-        let weighted = m.loss(&x0, &t, &noise, Some((10.0, 1))).expect("loss").double_value(&[]);
+        let weighted = m.loss(&x0, &t, &noise, Some((10.0, 1)), None).expect("loss").double_value(&[]);
         let extra = 9.0 * sq.narrow(1, 0, 1).narrow(2, 0, 1).sum(Kind::Float).double_value(&[]) / sq.numel() as f64;
         assert!((weighted - (plain + extra)).abs() < 1e-5, "{weighted} vs {}", plain + extra);
         // x0 parametrization: the target is x0.
         let mx = model(Parametrization::X0, &MEAN, false);
         let want = (mx.predict(&x_t, &t).expect("pred") - &x0).square().mean(Kind::Float).double_value(&[]);
-        assert!((mx.loss(&x0, &t, &noise, None).expect("loss").double_value(&[]) - want).abs() < 1e-6);
+        assert!((mx.loss(&x0, &t, &noise, None, None).expect("loss").double_value(&[]) - want).abs() < 1e-6);
     }
 
     #[test]
@@ -600,7 +655,7 @@ mod tests {
         assert!(err.contains("0..50") && err.contains("max 50"), "{err}");
         let err = m.q_sample(&x, &t, &x.narrow(1, 0, 3)).expect_err("noise").to_string();
         assert!(err.contains("noise: expected float32 [6, 4, 3]"), "{err}");
-        let err = m.loss(&x, &t, &x, Some((1.0, 4))).expect_err("action_dim").to_string();
+        let err = m.loss(&x, &t, &x, Some((1.0, 4)), None).expect_err("action_dim").to_string();
         assert!(err.contains("action_dim 4"), "{err}");
         let sample = {
             let man = manifest(Parametrization::Epsilon, Space::Sample { shape: vec![2] }, false);
@@ -608,13 +663,13 @@ mod tests {
             DiffusionModel::new(man, Box::new(AnalyticGaussian::new(&s, &[0.0, 0.0], &[2], false))).expect("model")
         };
         let x2 = Tensor::zeros([6, 2], (Kind::Float, tch::Device::Cpu));
-        let err = sample.loss(&x2, &t, &x2, Some((1.0, 1))).expect_err("sample").to_string();
+        let err = sample.loss(&x2, &t, &x2, Some((1.0, 1)), None).expect_err("sample").to_string();
         assert!(err.contains("only trajectory models"), "{err}");
     }
 
     struct WrongShape;
     impl Denoiser for WrongShape {
-        fn forward(&self, x: &Tensor, _t: &Tensor) -> Result<Tensor> {
+        fn forward(&self, x: &Tensor, _t: &Tensor, _cond: Option<&Tensor>) -> Result<Tensor> {
             Ok(x.narrow(0, 0, 1))
         }
         fn parameter_count(&self) -> u64 {

@@ -23,6 +23,7 @@ use std::path::Path;
 use tch::{CModule, Device, Kind, Tensor};
 
 use super::denoiser::Denoiser;
+use super::manifest::Conditioning;
 use super::normalizer::Normalize;
 use super::reward_model::RewardModel;
 use crate::error::{Error, Result};
@@ -49,13 +50,36 @@ pub fn trace_reward(model: &RewardModel, out: &Path) -> Result<()> {
     let probe = Tensor::f_zeros(&probe_shape, (Kind::Float, Device::Cpu))?;
     let offset = manifest.normalizer.unnormalize(&probe, dims);
     let scale = manifest.normalizer.jacobian(&probe, dims);
-    let forward = |x: &Tensor, t: &Tensor| model.rho(&x.f_sub(&offset)?.f_mul(&scale)?, t);
-    trace("RewardRho", model.item_shape(), model.n_timesteps(), &forward, out)
+    let forward = |x: &Tensor, t: &Tensor, _: Option<&Tensor>| model.rho(&x.f_sub(&offset)?.f_mul(&scale)?, t);
+    trace("RewardRho", model.item_shape(), model.n_timesteps(), None, &forward, out)
 }
 
-/// The denoiser network over normalized inputs, traced and saved to `out` (see the module doc).
-pub fn trace_denoiser(net: &dyn Denoiser, item_shape: &[i64], n_timesteps: usize, out: &Path) -> Result<()> {
-    trace("Denoiser", item_shape, n_timesteps, &|x, t| net.forward(x, t), out)
+/// The denoiser network over normalized inputs, traced and saved to `out` (see the module doc):
+/// `forward(x, t)`, or `forward(x, t, cond)` for a conditional model (the upload contract).
+pub fn trace_denoiser(
+    net: &dyn Denoiser,
+    item_shape: &[i64],
+    n_timesteps: usize,
+    conditioning: Option<&Conditioning>,
+    out: &Path,
+) -> Result<()> {
+    trace("Denoiser", item_shape, n_timesteps, conditioning, &|x, t, c| net.forward(x, t, c), out)
+}
+
+/// A condition per item, deterministic like [`inputs`]: labels cycling through the classes, or
+/// embeddings of a sine ramp.
+fn condition(c: &Conditioning, batch: i64, phase: f64) -> Result<Tensor> {
+    Ok(match *c {
+        Conditioning::Labels { num_classes, .. } => {
+            let labels: Vec<i64> = (0..batch).map(|i| (i + phase as i64) % num_classes as i64).collect();
+            Tensor::from_slice(&labels)
+        }
+        Conditioning::Embedding { dim } => Tensor::f_arange(batch * dim as i64, (Kind::Float, Device::Cpu))?
+            .f_mul_scalar(0.3)?
+            .f_add_scalar(phase)?
+            .f_sin()?
+            .f_reshape([batch, dim as i64])?,
+    })
 }
 
 /// Inputs for `batch` items, deterministic and without touching libtorch's global generator
@@ -75,22 +99,26 @@ fn trace(
     name: &str,
     item_shape: &[i64],
     n_timesteps: usize,
-    forward: &dyn Fn(&Tensor, &Tensor) -> Result<Tensor>,
+    conditioning: Option<&Conditioning>,
+    forward: &dyn Fn(&Tensor, &Tensor, Option<&Tensor>) -> Result<Tensor>,
     out: &Path,
 ) -> Result<()> {
     let (x, t) = inputs(item_shape, n_timesteps, TRACE_BATCH, 0.0)?;
+    let cond = conditioning.map(|c| condition(c, TRACE_BATCH, 0.0)).transpose()?;
     // The pass once outside the tracer, so that an error is ours (with its message) and the
     // traced pass below can only repeat a pass that worked.
-    let _ = forward(&x, &t)?;
+    let _ = forward(&x, &t, cond.as_ref())?;
     let failed = RefCell::new(None);
-    let mut closure = |inputs: &[Tensor]| match forward(&inputs[0], &inputs[1]) {
+    let mut closure = |inputs: &[Tensor]| match forward(&inputs[0], &inputs[1], inputs.get(2)) {
         Ok(y) => vec![y],
         Err(e) => {
             *failed.borrow_mut() = Some(e);
             Vec::new()
         }
     };
-    let traced = CModule::create_by_tracing(name, "forward", &[x, t], &mut closure);
+    let mut traced_inputs = vec![x, t];
+    traced_inputs.extend(cond);
+    let traced = CModule::create_by_tracing(name, "forward", &traced_inputs, &mut closure);
     if let Some(e) = failed.into_inner() {
         return Err(e);
     }
@@ -100,8 +128,11 @@ fn trace(
     // The file as a user will load it, on a batch size it was not traced with.
     let loaded = CModule::load(out).map_err(|e| Error::internal("loading the traced export back", e))?;
     let (x, t) = inputs(item_shape, n_timesteps, CHECK_BATCH, 1.0)?;
-    let want = tch::no_grad(|| forward(&x, &t))?;
-    let got = tch::no_grad(|| loaded.forward_ts(&[&x, &t])).map_err(|e| {
+    let cond = conditioning.map(|c| condition(c, CHECK_BATCH, 1.0)).transpose()?;
+    let want = tch::no_grad(|| forward(&x, &t, cond.as_ref()))?;
+    let mut check_inputs = vec![&x, &t];
+    check_inputs.extend(cond.as_ref());
+    let got = tch::no_grad(|| loaded.forward_ts(&check_inputs)).map_err(|e| {
         Error::internal("checking the traced export", format!("it does not run on a batch of {CHECK_BATCH}: {e}"))
     })?;
     let err =

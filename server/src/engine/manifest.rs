@@ -7,6 +7,6 @@
 //! reward's upload manifest ([`RewardUploadManifest`]) is the shared schema's too.
 
 pub use relreward_proto::schema::manifest::{
-    Architecture, DiffusionManifest, MAX_TIMESTEPS, Parametrization, RewardSignature, RewardUploadManifest,
-    ScheduleSpec, Space,
+    Architecture, Conditioning, DiffusionManifest, MAX_TIMESTEPS, Parametrization, RewardSignature,
+    RewardUploadManifest, ScheduleSpec, Space,
 };

@@ -6,11 +6,15 @@
 //! - [`normalizer`]: raw units <-> normalized units, with the Jacobian for gradients.
 //! - [`manifest`]: what a diffusion model is (parametrization, schedule, layout, normalizer).
 //! - [`schedule`]: DDPM beta schedules and every derived quantity, in float64.
-//! - [`denoiser`]: the [`denoiser::Denoiser`] trait: (x_t, t) -> eps, x0 or v prediction.
+//! - [`denoiser`]: the [`denoiser::Denoiser`] trait: (x_t, t[, condition]) -> eps, x0 or v
+//!   prediction.
 //! - [`diffusion`]: [`diffusion::DiffusionModel`]: x0_hat, eps_hat, posterior mean and variance,
 //!   score, forward process.
 //! - [`sampling`]: DDPM ancestral and DDIM sampling with inpainting conditions and classifier
 //!   guidance.
+//! - [`recipe`]: how a conditional model's prediction is formed per step: classifier-free
+//!   guidance and Safe Latent Diffusion's guidance away from a concept ([`recipe::Recipe`]),
+//!   applied to a batch of chains by a [`recipe::RecipeRun`].
 //! - [`ddim`]: DDIM's step subset and coefficients, as diffusers' DDIMScheduler forms them.
 //! - [`optim`]: Adam and EMA whose state checkpoints can hold.
 //! - [`relative_reward`]: the gradient-alignment objective of Algorithm 1.
@@ -37,6 +41,7 @@ pub mod manifest;
 pub mod nets;
 pub mod normalizer;
 pub mod optim;
+pub mod recipe;
 pub mod relative_reward;
 pub mod reward_model;
 pub mod reward_trainer;

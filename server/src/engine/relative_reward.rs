@@ -427,7 +427,7 @@ mod tests {
     }
 
     impl Denoiser for Nonlinear {
-        fn forward(&self, x: &Tensor, t: &Tensor) -> Result<Tensor> {
+        fn forward(&self, x: &Tensor, t: &Tensor, _cond: Option<&Tensor>) -> Result<Tensor> {
             let tt = t.to_kind(Kind::Float).reshape([-1, 1, 1]) * 0.05;
             Ok((x.matmul(&self.w) + tt).tanh())
         }
@@ -446,7 +446,7 @@ mod tests {
     }
 
     impl Denoiser for InOtherUnits {
-        fn forward(&self, x: &Tensor, t: &Tensor) -> Result<Tensor> {
+        fn forward(&self, x: &Tensor, t: &Tensor, _cond: Option<&Tensor>) -> Result<Tensor> {
             let x_shared = self.shared.normalize(&self.other.unnormalize(x, 1), 1);
             let x0 = self.inner.x0_hat(&x_shared, t, false)?;
             Ok(self.other.normalize(&self.shared.unnormalize(&x0, 1), 1))
@@ -468,6 +468,7 @@ mod tests {
             space: SPACE,
             normalizer,
             architecture: None,
+            conditioning: None,
         }
     }
 

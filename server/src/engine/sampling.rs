@@ -33,6 +33,12 @@
 //! At steps with t < t_stopgrad, where g would be zeroed, the gradient is not computed: rho is
 //! evaluated without grad only to report it (x is unchanged either way, exactly as in Diffuser).
 //!
+//! A conditional model samples through a [`Recipe`] ([`GuidedSampler::with_recipe`]; one
+//! prompt per sample given to [`GuidedSampler::sample_prompted`]): every step asks the
+//! recipe's run for the prediction (classifier-free and safety guidance, see
+//! [`super::recipe`]) where an unconditional model is asked directly; everything else is the
+//! same.
+//!
 //! Samples come back in normalized units; unnormalizing is the caller's job.
 
 use tch::{Device, Kind, Tensor};
@@ -40,6 +46,7 @@ use tch::{Device, Kind, Tensor};
 use super::ddim::{Ddim, coefs};
 use super::diffusion::DiffusionModel;
 use super::manifest::Space;
+use super::recipe::{Recipe, RecipeRun, check_conditions};
 use super::rng::Rng;
 use super::schedule::Table;
 use crate::error::{Error, Result};
@@ -115,7 +122,25 @@ pub struct GuidedSampler<'a> {
     guidance: Option<Guidance<'a>>,
     /// DDIM instead of DDPM ancestral sampling.
     ddim: Option<Ddim>,
+    /// A conditional model's recipe (None: an unconditional model, asked directly).
+    recipe: Option<&'a Recipe>,
     device: Device,
+}
+
+/// Where a step's prediction comes from: the model itself, or a recipe's run over the batch's
+/// prompts.
+enum Predictor<'a> {
+    Model(&'a DiffusionModel),
+    Recipe(RecipeRun<'a>),
+}
+
+impl Predictor<'_> {
+    fn predict(&mut self, x: &Tensor, t: &Tensor) -> Result<Tensor> {
+        match self {
+            Self::Model(m) => m.predict(x, t),
+            Self::Recipe(run) => run.predict(x, t),
+        }
+    }
 }
 
 /// Conditions checked and shaped for a batch of `n`: (index, state `[n, 1, obs_dim]`).
@@ -139,7 +164,7 @@ impl Prepared {
 impl<'a> GuidedSampler<'a> {
     /// Plain sampling on the CPU; add conditions and guidance with the builder methods.
     pub fn new(model: &'a DiffusionModel) -> Self {
-        Self { model, conditions: Vec::new(), guidance: None, ddim: None, device: Device::Cpu }
+        Self { model, conditions: Vec::new(), guidance: None, ddim: None, recipe: None, device: Device::Cpu }
     }
 
     pub fn with_conditions(mut self, conditions: Vec<Condition>) -> Self {
@@ -158,6 +183,13 @@ impl<'a> GuidedSampler<'a> {
         self
     }
 
+    /// Samples a conditional model through `recipe` (validated by the caller against the
+    /// model); prompts go to [`Self::sample_prompted`].
+    pub fn with_recipe(mut self, recipe: &'a Recipe) -> Self {
+        self.recipe = Some(recipe);
+        self
+    }
+
     /// The device the denoiser (and reward) run on.
     pub fn on_device(mut self, device: Device) -> Self {
         self.device = device;
@@ -171,13 +203,37 @@ impl<'a> GuidedSampler<'a> {
 
     /// Draws `n` samples, calling `on_step` after every denoising step (t = T-1 down to 0).
     pub fn sample_with(&self, n: usize, rng: &mut Rng, on_step: &mut StepCallback<'_>) -> Result<Sampled> {
+        self.sample_prompted(n, None, rng, on_step)
+    }
+
+    /// [`Self::sample_with`] for a conditional model: `prompts` holds each sample's condition
+    /// (int64 labels `[n]` or float32 embeddings `[n, dim]`); with no recipe set, the plain
+    /// conditional prediction is used.
+    pub fn sample_prompted(
+        &self,
+        n: usize,
+        prompts: Option<&Tensor>,
+        rng: &mut Rng,
+        on_step: &mut StepCallback<'_>,
+    ) -> Result<Sampled> {
         if n == 0 {
             return Err(Error::invalid("n: at least one sample is needed"));
         }
         let guidance = self.checked_guidance()?;
         let prepared = self.prepare_conditions(n as i64)?;
+        let plain = Recipe::conditional();
+        let mut predictor = match (self.model.conditioning(), prompts) {
+            (None, None) if self.recipe.is_none() => Predictor::Model(self.model),
+            (None, _) => return Err(Error::invalid("prompts: the model is unconditional")),
+            (Some(_), None) => return Err(Error::invalid("prompts: missing; the model is conditional")),
+            (Some(c), Some(p)) => {
+                check_conditions(p, c, "prompts", Some(n as i64))?;
+                let recipe = self.recipe.unwrap_or(&plain);
+                Predictor::Recipe(RecipeRun::new(self.model, recipe, &p.f_to_device(self.device)?)?)
+            }
+        };
         if let Some(ddim) = self.ddim {
-            return self.sample_ddim(n, rng, on_step, ddim, guidance, &prepared);
+            return self.sample_ddim(n, rng, on_step, ddim, guidance, &prepared, &mut predictor);
         }
         let model = self.model;
         let big_t = model.n_timesteps();
@@ -203,7 +259,9 @@ impl<'a> GuidedSampler<'a> {
                     rewards = Some(reward_value(g.reward, &x, &t, n as i64)?);
                 }
             }
-            let mean = model.model_mean(&x, &t)?;
+            let pred = predictor.predict(&x, &t)?;
+            let x0 = model.x0_from_prediction(&x, &t, &pred, model.clip_denoised())?;
+            let mean = model.q_posterior_mean(&x0, &x, &t)?;
             x = if i > 0 {
                 let noise = rng.randn(&shape, self.device);
                 mean.f_add(&noise.f_mul_scalar((0.5 * log_var).exp())?)?
@@ -237,6 +295,7 @@ impl<'a> GuidedSampler<'a> {
         ddim: Ddim,
         guidance: Option<Guidance<'a>>,
         prepared: &Prepared,
+        predictor: &mut Predictor<'_>,
     ) -> Result<Sampled> {
         let model = self.model;
         let big_t = model.n_timesteps();
@@ -249,7 +308,7 @@ impl<'a> GuidedSampler<'a> {
         for i in ddim.timesteps(big_t) {
             let t = Tensor::f_full([n as i64], i as i64, (Kind::Int64, self.device))?;
             let c = coefs(abar[i], ddim.abar_prev(i, abar), ddim.eta);
-            let pred = model.predict(&x, &t)?;
+            let pred = predictor.predict(&x, &t)?;
             let mut eps = model.eps_from_prediction(&x, &t, &pred)?;
             let mut rewards = None;
             let x0 = match &guidance {
@@ -406,6 +465,7 @@ mod tests {
             space,
             normalizer: Normalizer::Identity,
             architecture: None,
+            conditioning: None,
         };
         let s = Schedule::new(&m.schedule, T).expect("schedule");
         let net = AnalyticGaussian::new(&s, mean, &m.space.item_shape(), false);
@@ -662,6 +722,7 @@ mod tests {
                     clip_denoised: false,
                     space: Space::Sample { shape: vec![3] },
                     normalizer: Normalizer::Identity,
+                    conditioning: None,
                     architecture: None,
                 };
                 let s = Schedule::new(&man.schedule, T).expect("schedule");

@@ -257,6 +257,7 @@ mod tests {
             space: Space::Sample { shape: vec![2] },
             normalizer: Normalizer::Identity,
             architecture: None,
+            conditioning: None,
         };
         let s = Schedule::new(&manifest.schedule, 10).expect("schedule");
         let model = |mean: &[f32]| {

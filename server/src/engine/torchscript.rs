@@ -1,5 +1,6 @@
 //! Uploaded TorchScript modules: [`TorchScriptDenoiser`], a diffusion model's network called
-//! as `forward(x, t)` with `x` float32 `[B, *item_shape]` and `t` int64 `[B]`, implementing
+//! as `forward(x, t)` with `x` float32 `[B, *item_shape]` and `t` int64 `[B]` (a conditional
+//! one as `forward(x, t, cond)`, cond per the manifest's `conditioning`), implementing
 //! [`Denoiser`]; and [`TorchScriptReward`], a bring-your-own reward called as `forward(x, t)
 //! -> [B]` or as Diffuser's value function `forward(x, cond, t) -> [B, 1]` (the manifest's
 //! [`RewardSignature`]), served through [`super::reward_model::RewardModel`].
@@ -19,8 +20,8 @@ use std::path::Path;
 use tch::{CModule, Device, IValue, Kind, TchError, Tensor};
 
 use super::denoiser::{Denoiser, ValidationProbe};
-use super::manifest::{DiffusionManifest, RewardSignature, RewardUploadManifest};
-use super::nets::inputs::check_inputs;
+use super::manifest::{Conditioning, DiffusionManifest, RewardSignature, RewardUploadManifest};
+use super::nets::inputs::{check_condition, check_inputs};
 use crate::error::{Error, Result};
 
 /// Longest module message passed on to the client.
@@ -29,6 +30,8 @@ const MAX_MESSAGE_CHARS: usize = 600;
 pub struct TorchScriptDenoiser {
     module: CModule,
     item_shape: Vec<i64>,
+    /// A conditional module is called as forward(x, t, cond).
+    conditioning: Option<Conditioning>,
     device: Device,
     parameter_count: u64,
     parameter_bytes: u64,
@@ -49,7 +52,14 @@ impl TorchScriptDenoiser {
     /// read as TorchScript is InvalidArgument ("module: ..."); a missing file is internal.
     pub fn load(path: &Path, manifest: &DiffusionManifest, device: Device) -> Result<Self> {
         let LoadedModule { module, parameter_count, parameter_bytes } = LoadedModule::load(path, device)?;
-        Ok(Self { module, item_shape: manifest.space.item_shape(), device, parameter_count, parameter_bytes })
+        Ok(Self {
+            module,
+            item_shape: manifest.space.item_shape(),
+            conditioning: manifest.conditioning,
+            device,
+            parameter_count,
+            parameter_bytes,
+        })
     }
 
     /// [`Self::load`], then one forward pass under `no_grad` on zeros `[2, *item_shape]` with
@@ -64,28 +74,37 @@ impl TorchScriptDenoiser {
     }
 
     fn validate(&self, n_timesteps: usize, path: &Path) -> Result<()> {
-        let probe = ValidationProbe::new(&self.item_shape, n_timesteps, self.device)?;
+        let probe = ValidationProbe::new(&self.item_shape, n_timesteps, self.conditioning.as_ref(), self.device)?;
         let (shape, last) = (&probe.shape, probe.last);
-        let out = tch::no_grad(|| self.module.forward_ts(&[&probe.x, &probe.t])).map_err(|e| {
+        let call = if self.conditioning.is_some() { "forward(x, t, cond)" } else { "forward(x, t)" };
+        let out = tch::no_grad(|| self.call(&probe.x, &probe.t, probe.cond.as_ref())).map_err(|e| {
             Error::invalid(format!(
-                "module: forward(x, t) on zeros {shape:?} with t = [0, {last}] raised: {}",
+                "module: {call} on zeros {shape:?} with t = [0, {last}]{} raised: {}",
+                if probe.cond.is_some() { " and the null condition" } else { "" },
                 module_message(&e, path)
             ))
         })?;
         let (out_shape, out_kind) = (out.size(), out.f_kind()?);
         if out_shape != *shape {
             return Err(Error::invalid(format!(
-                "module: forward(x, t) returned shape {out_shape:?} for input shape {shape:?}; the manifest's space \
+                "module: {call} returned shape {out_shape:?} for input shape {shape:?}; the manifest's space \
                  declares items of shape {:?}, and a denoiser's output must have its input's shape",
                 self.item_shape
             )));
         }
         if out_kind != Kind::Float {
             return Err(Error::invalid(format!(
-                "module: forward(x, t) returned dtype {out_kind:?} for float32 input; expected float32"
+                "module: {call} returned dtype {out_kind:?} for float32 input; expected float32"
             )));
         }
-        probe.check_finite(&out, "module: forward(x, t)")
+        probe.check_finite(&out, &format!("module: {call}"))
+    }
+
+    fn call(&self, x: &Tensor, t: &Tensor, cond: Option<&Tensor>) -> std::result::Result<Tensor, TchError> {
+        match cond {
+            Some(c) => self.module.forward_ts(&[x, t, c]),
+            None => self.module.forward_ts(&[x, t]),
+        }
     }
 
     /// Bytes of the module's parameters (buffers are not visible through libtorch's C API; the
@@ -100,12 +119,13 @@ impl TorchScriptDenoiser {
 }
 
 impl Denoiser for TorchScriptDenoiser {
-    fn forward(&self, x: &Tensor, t: &Tensor) -> Result<Tensor> {
-        check_inputs("denoiser", x, t, &self.item_shape, Kind::Float)?;
+    fn forward(&self, x: &Tensor, t: &Tensor, cond: Option<&Tensor>) -> Result<Tensor> {
+        let batch = check_inputs("denoiser", x, t, &self.item_shape, Kind::Float)?;
+        check_condition("denoiser", cond, self.conditioning.as_ref(), batch)?;
         let size = x.size();
         // The module passed validation at registration, so a failure now depends on the input
         // (or the module's own code): the model cannot serve this request.
-        self.module.forward_ts(&[x, t]).map_err(|e| {
+        self.call(x, t, cond).map_err(|e| {
             Error::FailedPrecondition(format!(
                 "the TorchScript module failed on input {size:?}: {}",
                 module_message(&e, Path::new(""))
@@ -195,7 +215,7 @@ impl TorchScriptReward {
     }
 
     fn validate(&self, n_timesteps: usize, path: &Path) -> Result<()> {
-        let probe = ValidationProbe::new(&self.item_shape, n_timesteps, self.device)?;
+        let probe = ValidationProbe::new(&self.item_shape, n_timesteps, None, self.device)?;
         let (shape, last) = (&probe.shape, probe.last);
         let call = self.call_text();
         let raised = |e: TchError| {
@@ -406,6 +426,7 @@ pub(crate) mod tests {
             space: Space::Sample { shape },
             normalizer: Normalizer::Identity,
             architecture: None,
+            conditioning: None,
         }
     }
 
@@ -557,11 +578,11 @@ for name, m in (("rho", Rho()), ("value", Value()), ("detached", Detached()), ("
         let good = TorchScriptDenoiser::load(&dir.path().join("gaussian.pt"), &manifest(vec![3]), cpu).expect("load");
         let x = Tensor::zeros([5, 3], (Kind::Float, cpu));
         let t = Tensor::from_slice(&[0i64, 1, 2, 3, 4]);
-        assert_eq!(good.forward(&x, &t).expect("forward").size(), vec![5, 3]);
-        assert!(matches!(good.forward(&x.narrow(1, 0, 2), &t), Err(Error::InvalidArgument(_))));
-        assert!(matches!(good.forward(&x, &t.to_kind(Kind::Float)), Err(Error::InvalidArgument(_))));
+        assert_eq!(good.forward(&x, &t, None).expect("forward").size(), vec![5, 3]);
+        assert!(matches!(good.forward(&x.narrow(1, 0, 2), &t, None), Err(Error::InvalidArgument(_))));
+        assert!(matches!(good.forward(&x, &t.to_kind(Kind::Float), None), Err(Error::InvalidArgument(_))));
         let raises = TorchScriptDenoiser::load(&dir.path().join("raises.pt"), &manifest(vec![3]), cpu).expect("load");
-        match raises.forward(&x, &t) {
+        match raises.forward(&x, &t, None) {
             Err(Error::FailedPrecondition(m)) => assert!(m.contains("deliberate failure"), "{m}"),
             other => panic!("expected FailedPrecondition, got {other:?}"),
         }

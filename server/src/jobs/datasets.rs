@@ -52,3 +52,15 @@ pub(crate) fn load_rows(store_dir: &Path, ds: &DatasetRecord, horizon: usize) ->
         }
     }
 }
+
+/// A sample dataset's class labels as int64 `[N]`, or None when it has none. Reads the file
+/// [`load_rows`] verified (call it after that).
+pub(crate) fn load_labels(store_dir: &Path, ds: &DatasetRecord) -> Result<Option<Tensor>> {
+    let Some(a) = array(ds, "labels") else { return Ok(None) };
+    let dtype = relreward_proto::tensor::parse_dtype(&a.dtype)
+        .ok_or_else(|| Error::DataLoss(format!("dataset '{}': unknown stored dtype {}", ds.name, a.dtype)))?;
+    let labels = npy::read(&store_dir.join(&a.file), dtype, &a.shape)?
+        .to_i64()
+        .ok_or_else(|| Error::DataLoss(format!("dataset '{}': labels stored as {}", ds.name, a.dtype)))?;
+    Ok(Some(Tensor::from_slice(&labels)))
+}

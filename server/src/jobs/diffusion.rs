@@ -3,11 +3,11 @@
 //! checkpoints, registering the EMA model when it succeeds.
 
 use super::context::{JobContext, Stop};
-use super::datasets::{array, load_rows};
+use super::datasets::{array, load_labels, load_rows};
 use super::training::TrainLoop;
 use crate::engine::data::TrainingData;
 use crate::engine::diffusion::DiffusionModel;
-use crate::engine::manifest::{Architecture, DiffusionManifest, Space};
+use crate::engine::manifest::{Architecture, Conditioning, DiffusionManifest, Space};
 use crate::engine::nets::native::NativeDenoiser;
 use crate::engine::normalizer::Normalizer;
 use crate::engine::rng::Rng;
@@ -48,6 +48,12 @@ pub async fn validate_inputs(store: &Store, job: &DiffusionJob) -> Result<()> {
             job.action_weight, ds.name
         )));
     }
+    if job.conditional && array(&ds, "labels").is_none() {
+        return Err(Error::invalid(format!(
+            "spec.diffusion.conditional: dataset '{}' has no 'labels' array to condition on (upload one with the samples)",
+            ds.name
+        )));
+    }
     let manifest = manifest_for(job, &ds, &pooled)?;
     // The network is planned (sizes, parameter count) here, so that an architecture the server
     // cannot build is refused at submission rather than failing the accepted job.
@@ -55,7 +61,10 @@ pub async fn validate_inputs(store: &Store, job: &DiffusionJob) -> Result<()> {
         .validate()
         .map_err(Error::from)
         .and_then(|()| match &manifest.architecture {
-            Some(arch) => NativeDenoiser::planned_parameter_count(arch, &manifest.space).map(|_| ()),
+            Some(arch) => {
+                NativeDenoiser::planned_parameter_count(arch, &manifest.space, manifest.conditioning.as_ref())
+                    .map(|_| ())
+            }
             None => Ok(()),
         })
         .map_err(|e| job_field(e, &job.architecture))?;
@@ -152,6 +161,26 @@ fn manifest_for(job: &DiffusionJob, ds: &DatasetRecord, pooled: &[DatasetRecord]
             (Space::Sample { shape }, Normalizer::Gaussian { mean: s.mean, std: s.std })
         }
     };
+    let conditioning = match job.conditional {
+        false => None,
+        true => {
+            // The largest label over the dataset and the pooled ones that have labels (a base
+            // and an expert model trained over each other's data share one class count).
+            let largest = std::iter::once(ds)
+                .chain(pooled)
+                .filter_map(|d| array(d, "labels").and_then(|a| a.stats.as_ref()).and_then(|s| s.max.first()))
+                .fold(0.0f64, |m, &v| m.max(v)) as usize;
+            let classes = job.num_classes.unwrap_or(largest + 1);
+            if classes <= largest {
+                return Err(Error::invalid(format!(
+                    "spec.diffusion.num_classes: {classes}, but dataset '{}' (or a normalizer dataset) holds label {largest}",
+                    ds.name
+                )));
+            }
+            // Labels 0..C are the classes, C is the null label the dropout trains.
+            Some(Conditioning::Labels { num_classes: classes + 1, null_class: Some(classes) })
+        }
+    };
     Ok(DiffusionManifest {
         parametrization: job.parametrization,
         schedule: job.schedule.clone(),
@@ -160,7 +189,21 @@ fn manifest_for(job: &DiffusionJob, ds: &DatasetRecord, pooled: &[DatasetRecord]
         space,
         normalizer,
         architecture: Some(job.architecture.clone()),
+        conditioning,
     })
+}
+
+/// Classifier-free guidance's condition dropout: each label replaced by `null` with
+/// probability `p`, drawn from the loop's stream (one uniform per item, so a resumed job draws
+/// the same).
+fn drop_labels(labels: &tch::Tensor, p: f64, null: i64, rng: &mut Rng) -> Result<tch::Tensor> {
+    if p == 0.0 {
+        return Ok(labels.shallow_clone());
+    }
+    let n = labels.size()[0];
+    let keep: Vec<bool> = (0..n).map(|_| rng.uniform() >= p).collect();
+    let keep = crate::engine::upload(&tch::Tensor::from_slice(&keep), labels.device())?;
+    Ok(labels.f_where_scalarother(&keep, null)?)
 }
 
 /// Statistics of the union of datasets from each one's (rows, stats): min of mins, max of
@@ -222,20 +265,30 @@ pub fn run(ctx: &mut JobContext, job: &DiffusionJob) -> std::result::Result<Stri
     let manifest = manifest_for(job, &ds, &pooled)?;
     let dir = ctx.block_on(store.blobs.local_dir(&ds.blob_key))?;
     let (rows, starts) = load_rows(&dir, &ds, job.horizon)?;
-    let data = TrainingData::new(
+    let mut data = TrainingData::new(
         &rows,
         &manifest.normalizer,
         manifest.space.normalizer_dims(),
         starts.as_ref().map(|_| job.horizon),
         starts,
         spec.seed,
-    )?
-    .to_device(crate::engine::device());
+    )?;
+    // (dropout probability, null label) of conditional training.
+    let dropout = match manifest.conditioning {
+        Some(Conditioning::Labels { null_class: Some(null), .. }) => {
+            let labels = load_labels(&dir, &ds)?
+                .ok_or_else(|| Error::NotFound(format!("dataset '{}' lost its labels", ds.name)))?;
+            data = data.with_labels(labels)?;
+            Some((job.condition_dropout.unwrap_or(0.0), null as i64))
+        }
+        _ => None,
+    };
+    let data = data.to_device(crate::engine::device());
 
     let device = crate::engine::device();
     let arch = manifest.architecture.clone().ok_or_else(|| Error::internal("diffusion job", "no architecture"))?;
     tch::manual_seed(spec.seed as i64); // initialization only; every later draw uses the loop's Rng
-    let denoiser = NativeDenoiser::new(&arch, &manifest.space, device)?;
+    let denoiser = NativeDenoiser::new(&arch, &manifest.space, manifest.conditioning.as_ref(), device)?;
     let mut train = TrainLoop::new(denoiser.weights().var_store(), opt, spec.seed);
     let model = DiffusionModel::new(manifest.clone(), Box::new(denoiser))?;
     if train.resume(ctx)?.is_none() {
@@ -254,24 +307,29 @@ pub fn run(ctx: &mut JobContext, job: &DiffusionJob) -> std::result::Result<Stri
         _ => None,
     };
     let t_max = manifest.n_timesteps as u64;
-    let held_out = data.held_out(EVAL_ITEMS);
+    let held_out = data.labeled_held_out(EVAL_ITEMS);
     let batch = opt.batch_size;
     train.run(
         ctx,
         |rng| {
-            let x0 = data.batch(rng, batch);
+            let (x0, labels) = data.labeled_batch(rng, batch);
             let t = rng.randint(t_max, batch, device);
             let noise = rng.randn(&x0.size(), device);
-            model.loss(&x0, &t, &noise, action_weight)
+            let cond = match (labels, dropout) {
+                (Some(labels), Some((p, null))) => Some(drop_labels(&labels, p, null, rng)?),
+                _ => None,
+            };
+            model.loss(&x0, &t, &noise, action_weight, cond.as_ref())
         },
         || {
-            let Some(x) = &held_out else { return Ok(None) };
-            // A fixed draw of t and noise, so successive held-out losses are comparable.
+            let Some((x, labels)) = &held_out else { return Ok(None) };
+            // A fixed draw of t and noise, so successive held-out losses are comparable; the
+            // held-out loss is the conditional one (no dropout).
             let mut eval_rng = Rng::new(spec.seed ^ 0xe7a1);
             let n = x.size()[0] as usize;
             let t = eval_rng.randint(t_max, n, device);
             let noise = eval_rng.randn(&x.size(), device);
-            Ok(Some(tch::no_grad(|| model.loss(x, &t, &noise, action_weight))?.double_value(&[])))
+            Ok(Some(tch::no_grad(|| model.loss(x, &t, &noise, action_weight, labels.as_ref()))?.double_value(&[])))
         },
     )?;
 

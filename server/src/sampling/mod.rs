@@ -8,7 +8,8 @@
 //!   units and `t_stopgrad`; the sampler (`ddim`: its steps, eta and spacing, and the
 //!   guidance settings DDIM does not take); each condition (trajectories only, index within the horizon and
 //!   given once, one observation of finite values, normalized on its floats and then within
-//!   range); the guiding reward (its name, then the same diffusion steps, item shape and
+//!   range); a conditional model's prompts, guidance scale and safety guidance
+//!   ([`prompts`], against the manifest's conditioning); the guiding reward (its name, then the same diffusion steps, item shape and
 //!   normalizer as the model). Then the run is queued: a bounded queue of
 //!   [`QUEUE_CAPACITY`] runs waiting (RESOURCE_EXHAUSTED beyond it, UNAVAILABLE once the
 //!   server is stopping).
@@ -21,6 +22,7 @@
 //! - A run's stream ends after its last row, or with its error: a run that stops without
 //!   finishing (a failure, a stop at shutdown) never ends its stream as if it had finished.
 
+mod prompts;
 mod worker;
 
 use std::sync::Arc;
@@ -85,6 +87,8 @@ struct Plan {
     scale_grad_by_std: bool,
     /// DDIM instead of DDPM.
     ddim: Option<Ddim>,
+    /// A conditional model's prompts and recipe (None: unconditional).
+    recipe: Option<prompts::RecipePlan>,
 }
 
 /// The handle the door holds: validates, queues, and stops the workers at shutdown.
@@ -114,7 +118,8 @@ impl Sampling {
         validate_name("model", &req.model)?;
         let model = self.inner.registry.get_diffusion(&req.model).await?;
         let manifest = &model.manifest;
-        let plan = plan(req, &manifest.space, manifest.n_timesteps, &manifest.normalizer)?;
+        let mut plan = plan(req, &manifest.space, manifest.n_timesteps, &manifest.normalizer)?;
+        plan.recipe = prompts::plan(req, manifest.conditioning.as_ref(), plan.n)?;
         let reward =
             guiding_reward(&self.inner.registry, req, &manifest.space, manifest.n_timesteps, &manifest.normalizer)
                 .await?;
@@ -224,6 +229,7 @@ fn plan(req: &pb::SampleRequest, space: &Space, n_timesteps: usize, normalizer: 
         t_stopgrad: t_stopgrad as usize,
         scale_grad_by_std: req.scale_grad_by_std,
         ddim,
+        recipe: None,
     })
 }
 

@@ -174,7 +174,14 @@ impl Run {
             .map(|(index, v)| Condition { index: *index, state: Tensor::from_slice(v) })
             .collect();
         let per_call = self.reward.as_deref().map(PerCall);
+        let recipe = plan.recipe.as_ref().map(|r| r.recipe());
+        if let Some(r) = &recipe {
+            r.validate(&model, "recipe")?;
+        }
         let mut sampler = GuidedSampler::new(&model).on_device(crate::engine::device()).with_conditions(conditions);
+        if let Some(r) = &recipe {
+            sampler = sampler.with_recipe(r);
+        }
         if let Some(d) = plan.ddim {
             sampler = sampler.with_ddim(d);
         }
@@ -206,7 +213,8 @@ impl Run {
                 }
                 Ok(())
             };
-            let sampled = sampler.sample_with(b, &mut rng, &mut stop_if_gone)?;
+            let prompts = plan.recipe.as_ref().map(|r| r.prompts.tensor(done, b));
+            let sampled = sampler.sample_prompted(b, prompts.as_ref(), &mut rng, &mut stop_if_gone)?;
             if !bool::try_from(sampled.x.f_isfinite()?.f_all()?).unwrap_or(false) {
                 // Refused rather than sent as Inf or NaN. With guidance acting, omega is the
                 // likely cause; without it, the model itself diverged.

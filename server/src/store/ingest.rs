@@ -28,7 +28,13 @@ enum Role {
     EndsAfter,
     /// Episode starts at each flagged row (episode_starts).
     StartsAt,
+    /// Class labels of a sample dataset (`labels`): integers in 0..=MAX_LABEL, whose
+    /// statistics (one coordinate: min, max, mean, std) are kept as a float array's are.
+    Labels,
 }
+
+/// Largest class label a dataset may hold (the manifest's limit on classes, less one).
+const MAX_LABEL: i64 = (relreward_proto::schema::manifest::MAX_CONDITION_SIZE - 1) as i64;
 
 /// Running per-coordinate min, max, mean and variance (Welford's algorithm, in f64, so a
 /// million rows of float32 lose no precision the way a naive sum of squares would).
@@ -142,7 +148,7 @@ impl DatasetIngest {
             let role = role_of(kind, &spec.name).ok_or_else(|| {
                 let allowed = match kind {
                     DatasetKind::Trajectories => TRAJECTORY_ARRAYS.join(", "),
-                    DatasetKind::Samples => "samples".to_owned(),
+                    DatasetKind::Samples => "samples, labels".to_owned(),
                 };
                 Error::invalid(format!("{field}.name: not an array of a {kind:?} dataset (allowed: {allowed})"))
             })?;
@@ -169,7 +175,7 @@ impl DatasetIngest {
             let file_name = format!("{}.npy", spec.name);
             let mut file = BufWriter::with_capacity(1 << 20, File::create(staging.path().join(&file_name))?);
             file.write_all(&npy::header(dtype, &spec.shape))?;
-            let moments = (role == Role::Values).then(|| Moments::new(row_elems));
+            let moments = matches!(role, Role::Values | Role::Labels).then(|| Moments::new(row_elems));
             arrays.push(ArrayState {
                 name: spec.name.clone(),
                 dtype,
@@ -185,6 +191,9 @@ impl DatasetIngest {
         }
         if num_rows == 0 {
             return Err(Error::invalid("header.arrays: N = 0 rows; empty datasets are not stored"));
+        }
+        if kind == DatasetKind::Samples && !arrays.iter().any(|a| a.name == "samples") {
+            return Err(Error::invalid("header.arrays: a samples dataset needs 'samples'"));
         }
         if kind == DatasetKind::Trajectories {
             for required in &TRAJECTORY_ARRAYS[..2] {
@@ -282,6 +291,21 @@ impl DatasetIngest {
                     other => Error::invalid(format!("{field}.data: {other}")),
                 })?;
             }
+            Role::Labels => {
+                let first_row = a.rows_done;
+                let labels = tensor::decode_i64(&data).map_err(|e| Error::invalid(format!("{field}.data: {e}")))?;
+                let moments =
+                    a.moments.as_mut().ok_or_else(|| Error::internal("ingest", "label array without moments"))?;
+                for (i, &label) in labels.iter().enumerate() {
+                    if !(0..=MAX_LABEL).contains(&label) {
+                        return Err(Error::invalid(format!(
+                            "{field}.data: label {label} at row {} is outside 0..={MAX_LABEL}",
+                            first_row + i as u64
+                        )));
+                    }
+                    moments.push_row(&[label as f64]);
+                }
+            }
             Role::EndsAfter | Role::StartsAt => {
                 let bits = if a.role == Role::EndsAfter { &mut self.ends_after } else { &mut self.starts_at };
                 for (i, &b) in data.data.iter().enumerate() {
@@ -355,6 +379,7 @@ fn role_of(kind: DatasetKind, name: &str) -> Option<Role> {
         }
         (DatasetKind::Trajectories, "terminals" | "timeouts") => Some(Role::EndsAfter),
         (DatasetKind::Trajectories, "episode_starts") => Some(Role::StartsAt),
+        (DatasetKind::Samples, "labels") => Some(Role::Labels),
         _ => None,
     }
 }
@@ -368,6 +393,11 @@ fn check_array_shape(kind: DatasetKind, role: Role, field: &str, dtype: Dtype, s
             "{field}.dtype: {} but values must be float32 or float64",
             tensor::dtype_name(dtype)
         ))),
+        Role::Labels if !matches!(dtype, Dtype::Int32 | Dtype::Int64 | Dtype::Uint8) => Err(Error::invalid(format!(
+            "{field}.dtype: {} but class labels must be int32, int64 or uint8",
+            tensor::dtype_name(dtype)
+        ))),
+        Role::Labels if shape.len() != 1 => Err(Error::invalid(format!("{field}.shape: {dims} must be [N]"))),
         Role::EndsAfter | Role::StartsAt if !is_flag => Err(Error::invalid(format!(
             "{field}.dtype: {} but episode flags must be bool or uint8",
             tensor::dtype_name(dtype)

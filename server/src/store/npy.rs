@@ -60,6 +60,23 @@ impl Array {
         }
     }
 
+    /// The values as int64 (integer arrays: int32, int64, uint8); `None` for the others.
+    pub fn to_i64(&self) -> Option<Vec<i64>> {
+        match self.dtype {
+            Dtype::Int64 => Some(
+                self.data
+                    .chunks_exact(8)
+                    .map(|c| i64::from_le_bytes([c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7]]))
+                    .collect(),
+            ),
+            Dtype::Int32 => Some(
+                self.data.chunks_exact(4).map(|c| i64::from(i32::from_le_bytes([c[0], c[1], c[2], c[3]]))).collect(),
+            ),
+            Dtype::Uint8 => Some(self.data.iter().map(|&b| i64::from(b)).collect()),
+            _ => None,
+        }
+    }
+
     /// The values as flags (non-zero is true); `None` for non-flag arrays.
     pub fn to_flags(&self) -> Option<Vec<bool>> {
         matches!(self.dtype, Dtype::Bool | Dtype::Uint8).then(|| self.data.iter().map(|&b| b != 0).collect())

@@ -229,6 +229,9 @@ fn diffusion_json(d: &pb::TrainDiffusion) -> Value {
         "action_weight": d.action_weight,
         "clip_denoised": d.clip_denoised,
         "pooled_normalizer": d.pooled_normalizer,
+        "conditional": d.conditional,
+        "condition_dropout": d.condition_dropout,
+        "num_classes": d.num_classes,
     })
 }
 

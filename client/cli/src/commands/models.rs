@@ -803,6 +803,7 @@ mod tests {
                 space: Some(Space::Trajectory(Trajectory { horizon: 8, action_dim: 2, obs_dim: 4 })),
                 normalizer: None,
                 architecture: None,
+                conditioning: None,
             }),
             reward: None,
             parameter_count: 1234,
@@ -855,6 +856,7 @@ mod tests {
             clip_denoised: true,
             space: Space::Trajectory { horizon: 8, action_dim: 2, obs_dim: 3 },
             normalizer: Normalizer::Identity,
+            conditioning: None,
             architecture: Some(Architecture::TemporalUnet { dim: 8, dim_mults: vec![1, 2] }),
         };
         for name in ["w.manifest.toml", "m.json"] {

@@ -64,6 +64,37 @@ pub struct SampleArgs {
     /// DDIM: the last step ends at abar_0 instead of 1 (diffusers' set_alpha_to_one = false).
     #[arg(long)]
     pub no_alpha_to_one: bool,
+    /// Conditional models: the class label of every sample, or one per sample (L1,L2,..).
+    #[arg(long, value_name = "L[,L..]", value_delimiter = ',', allow_negative_numbers = true)]
+    pub labels: Vec<i64>,
+    /// Conditional models: classifier-free guidance scale s [default: 1, the conditional model alone].
+    #[arg(long, value_name = "S", allow_negative_numbers = true)]
+    pub guidance_scale: Option<f64>,
+    /// Conditional models: Safe Latent Diffusion's guidance away from these class labels.
+    #[arg(long, value_name = "L[,L..]", value_delimiter = ',', allow_negative_numbers = true)]
+    pub safety_concept: Vec<i64>,
+    /// With --safety-concept: diffusers' preset of warm-up, scale, threshold and momentum.
+    #[arg(long, value_name = "NAME", default_value = "medium", value_parser = ["weak", "medium", "strong", "max"])]
+    pub safety_preset: String,
+}
+
+/// diffusers' Safe Stable Diffusion presets: (warmup_steps, scale, threshold, momentum_scale,
+/// momentum_beta), as the Python client's `SAFETY_PRESETS`.
+fn safety_preset(name: &str, concept: &[i64]) -> pb::SafetyGuidance {
+    let (warmup_steps, scale, threshold, momentum_scale, momentum_beta) = match name {
+        "weak" => (15, 20.0, 0.0, 0.0, 0.0),
+        "strong" => (7, 2000.0, 0.025, 0.5, 0.7),
+        "max" => (0, 5000.0, 1.0, 0.5, 0.7),
+        _ => (10, 1000.0, 0.01, 0.3, 0.4),
+    };
+    pb::SafetyGuidance {
+        concept: Some(pb::Prompts { labels: concept.to_vec(), embeddings: None }),
+        scale,
+        warmup_steps,
+        threshold,
+        momentum_scale,
+        momentum_beta,
+    }
 }
 
 /// `--sampler ddim` with its options as the request's `ddim`; DDIM's flags without it are a
@@ -221,6 +252,10 @@ fn sample_fields(args: &SampleArgs) -> Vec<(&'static str, String)> {
         ("ddim.eta", opt("--eta", args.eta.map(|v| v.to_string()))),
         ("ddim.timestep_spacing", opt("--timestep-spacing", args.timestep_spacing.clone())),
         ("ddim", "--sampler ddim".to_owned()),
+        ("prompts", "--labels".to_owned()),
+        ("guidance_scale", opt("--guidance-scale", args.guidance_scale.map(|v| v.to_string()))),
+        ("safety.concept", "--safety-concept".to_owned()),
+        ("safety", format!("--safety-preset {}", args.safety_preset)),
     ]
 }
 
@@ -268,6 +303,9 @@ pub async fn sample(ctx: &Ctx, args: SampleArgs) -> Result<Report> {
         seed: args.seed,
         batch_size: args.batch_size.unwrap_or(0),
         ddim,
+        prompts: (!args.labels.is_empty()).then(|| pb::Prompts { labels: args.labels.clone(), embeddings: None }),
+        guidance_scale: args.guidance_scale,
+        safety: (!args.safety_concept.is_empty()).then(|| safety_preset(&args.safety_preset, &args.safety_concept)),
     };
     let n = args.n as usize;
     let bar = item_bar(ctx.json, n as u64, "samples");

@@ -68,6 +68,9 @@ pub fn diffusion_spec(config: TrainConfig, args: &TrainDiffusionArgs) -> Result<
         action_weight: d.action_weight,
         clip_denoised: d.clip_denoised,
         pooled_normalizer: d.pooled_normalizer,
+        conditional: d.conditional,
+        condition_dropout: d.condition_dropout,
+        num_classes: d.num_classes,
         normalizer_datasets: if args.normalizer_datasets.is_empty() {
             d.normalizer_datasets.unwrap_or_default()
         } else {

@@ -419,10 +419,11 @@ def gradient(cfg: Any, model: str, x: Any, t: Any, omega: float | None, units: s
 
 def sample_iter(cfg: Any, model: str, reward_model: str | None, omega: float, n: int, seed: int | None,
                 n_guide_steps: int | None, t_stopgrad: int | None, scale_grad_by_std: bool, conditions: Any,
-                units: str, batch_size: int, ddim: Any = None) -> Plan[None]:
+                units: str, batch_size: int, ddim: Any = None, prompts: Any = None,
+                guidance_scale: float | None = None, safety: Any = None) -> Plan[None]:
     """Emits each sample as it finishes (not retried)."""
     request = c.sample_request(model, reward_model, omega, n, seed, n_guide_steps, t_stopgrad, scale_grad_by_std,
-                               conditions, units, batch_size)
+                               conditions, units, batch_size, prompts, guidance_scale, safety)
     if ddim is not None:
         request.ddim.CopyFrom(ddim)
     yield Open("Sample", request, cfg.timeout)

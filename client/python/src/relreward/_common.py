@@ -241,9 +241,25 @@ def gradient_result(r: reward_pb2.GradientResponse) -> GradientResult:
     return GradientResult(_tensor.decode(r.gradient), _tensor.decode(r.rewards))
 
 
+def prompts_message(field: str, value: Any) -> reward_pb2.Prompts:
+    """``Prompts`` from class labels (an int, a sequence or an integer array) or embeddings (a
+    float array ``[dim]`` or ``[k, dim]``); errors name ``field``."""
+    arr = np.asarray(value)
+    if arr.dtype.kind in "iub":
+        if arr.ndim > 1:
+            raise InvalidInput(f"{field}: labels must be an int or a 1-D sequence, got shape {arr.shape}")
+        return reward_pb2.Prompts(labels=[int(v) for v in arr.reshape(-1)])
+    if arr.dtype.kind == "f":
+        if arr.ndim not in (1, 2):
+            raise InvalidInput(f"{field}: embeddings must be [dim] or [k, dim], got shape {arr.shape}")
+        return reward_pb2.Prompts(embeddings=_tensor.encode(arr))
+    raise InvalidInput(f"{field}: expected class labels (integers) or embeddings (floats), got {arr.dtype}")
+
+
 def sample_request(model: str, reward_model: str | None, omega: float, n: int, seed: int | None,
                    n_guide_steps: int | None, t_stopgrad: int | None, scale_grad_by_std: bool,
-                   conditions: Any, input_units: str, batch_size: int) -> reward_pb2.SampleRequest:
+                   conditions: Any, input_units: str, batch_size: int, prompts: Any = None,
+                   guidance_scale: float | None = None, safety: Any = None) -> reward_pb2.SampleRequest:
     req = reward_pb2.SampleRequest(model=text("model", model), reward_model=text("reward_model", reward_model or ""),
                                    omega=omega, n=unsigned("n", n), scale_grad_by_std=scale_grad_by_std,
                                    input_units=units(input_units), batch_size=unsigned("batch_size", batch_size))
@@ -254,6 +270,12 @@ def sample_request(model: str, reward_model: str | None, omega: float, n: int, s
     items = conditions.items() if hasattr(conditions, "items") else (conditions or ())
     for index, state in items:
         req.conditions.add(index=unsigned(f"conditions index {index!r}", index), state=_tensor.encode(state))
+    if prompts is not None:
+        req.prompts.CopyFrom(prompts_message("prompts", prompts))
+    if guidance_scale is not None:
+        req.guidance_scale = float(guidance_scale)
+    if safety is not None:
+        req.safety.CopyFrom(safety.to_proto() if hasattr(safety, "to_proto") else safety)
     return req
 
 

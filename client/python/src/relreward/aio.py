@@ -265,10 +265,12 @@ class AsyncClient:
                     scale_grad_by_std: bool = False, conditions: Mapping[int, Any] | Sequence[tuple[int, Any]] | None = None,
                     units: str = "raw", batch_size: int = 0, sampler: str = "ddpm", steps: int | None = None,
                     eta: float | None = None, timestep_spacing: str | None = None,
-                    set_alpha_to_one: bool | None = None) -> AsyncIterator[Sample]:
+                    set_alpha_to_one: bool | None = None, prompts: Any = None, guidance_scale: float | None = None,
+                    safety: Any = None) -> AsyncIterator[Sample]:
         return self._iter(calls.sample_iter(self, model, reward_model, omega, n, seed, n_guide_steps, t_stopgrad,
                                             scale_grad_by_std, conditions, units, batch_size,
-                                            c.ddim_options(sampler, steps, eta, timestep_spacing, set_alpha_to_one)))
+                                            c.ddim_options(sampler, steps, eta, timestep_spacing, set_alpha_to_one),
+                                            prompts, guidance_scale, safety))
 
     @_doc(Client.sample)
     async def sample(self, model: str, **kwargs: Any) -> SampleBatch:

@@ -363,7 +363,8 @@ class Client:
                     scale_grad_by_std: bool = False, conditions: Mapping[int, Any] | Sequence[tuple[int, Any]] | None = None,
                     units: str = "raw", batch_size: int = 0, sampler: str = "ddpm", steps: int | None = None,
                     eta: float | None = None, timestep_spacing: str | None = None,
-                    set_alpha_to_one: bool | None = None) -> Iterator[Sample]:
+                    set_alpha_to_one: bool | None = None, prompts: Any = None, guidance_scale: float | None = None,
+                    safety: Any = None) -> Iterator[Sample]:
         """DDPM (or DDIM) samples (:class:`relreward.Sample`) from diffusion model ``model`` as each
         finishes (any order; see ``Sample.index``), guided by ``reward_model`` with scale
         ``omega`` (0: unguided, rewards still reported). ``conditions``: ``{horizon index:
@@ -374,10 +375,16 @@ class Client:
         ``timestep_spacing`` "leading" (default), "trailing" or "linspace"; ``set_alpha_to_one``
         default True); with DDIM, guidance shifts eps by -omega sqrt(1 - abar_t) grad rho once
         per step (Dhariwal & Nichol eq. 14), so ``n_guide_steps`` stays 1 and
-        ``scale_grad_by_std`` False. Not retried."""
+        ``scale_grad_by_std`` False. A conditional model (its manifest's conditioning) takes
+        ``prompts``: one class label (an int) or embedding for every sample, or one per sample
+        (a sequence of ``n``); ``guidance_scale`` s forms pred(null) + s (pred(c) - pred(null))
+        (classifier-free guidance; default 1: the conditional model alone); ``safety`` (a
+        :class:`relreward.SafetyGuidance`) adds Safe Latent Diffusion's guidance away from a
+        concept. Not retried."""
         return self._iter(calls.sample_iter(self, model, reward_model, omega, n, seed, n_guide_steps, t_stopgrad,
                                             scale_grad_by_std, conditions, units, batch_size,
-                                            c.ddim_options(sampler, steps, eta, timestep_spacing, set_alpha_to_one)))
+                                            c.ddim_options(sampler, steps, eta, timestep_spacing, set_alpha_to_one),
+                                            prompts, guidance_scale, safety))
 
     def sample(self, model: str, **kwargs: Any) -> SampleBatch:
         """All samples of :meth:`sample_iter` stacked in index order: ``x`` and

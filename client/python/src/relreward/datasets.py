@@ -320,16 +320,30 @@ def trajectories(data: Mapping[str, Any]) -> UploadSource:
     return UploadSource(TRAJECTORIES, arrays, [k for k in keys if k not in used])
 
 
-def samples(array: Any) -> UploadSource:
+def samples(array: Any, labels: Any = None) -> UploadSource:
     """A samples upload of one float array ``[N, ...]`` (at least 2-D), sent in its own dtype
-    (float32 or float64: a samples dataset keeps its precision)."""
+    (float32 or float64: a samples dataset keeps its precision), and optionally each sample's
+    class label ``labels`` ``[N]`` (integers >= 0, sent as int64 unless int32 or uint8), what
+    class-conditional training (``DiffusionJob(conditional=True)``) conditions on."""
     if not hasattr(array, "shape"):
         array = np.asarray(array)
     if not _is_float(array):
         raise ValueError(f"samples have dtype {array.dtype}; they must be float32 or float64")
     if len(array.shape) < 2:
         raise ValueError(f"samples have shape {tuple(array.shape)}; expected [N, ...] with at least 2 dimensions")
-    return UploadSource(SAMPLES, [("samples", array)])
+    arrays = [("samples", array)]
+    if labels is not None:
+        labels = np.asarray(labels)
+        if labels.dtype.kind not in "iu" and labels.dtype != np.bool_:
+            raise ValueError(f"labels have dtype {labels.dtype}; class labels must be integers")
+        if labels.shape != (array.shape[0],):
+            raise ValueError(f"labels have shape {labels.shape}; expected [{array.shape[0]}] (one per sample)")
+        if labels.size and int(labels.min()) < 0:
+            raise ValueError(f"labels hold {int(labels.min())}; class labels must be >= 0")
+        if labels.dtype not in (np.dtype(np.int32), np.dtype(np.int64), np.dtype(np.uint8)):
+            labels = labels.astype(np.int64)
+        arrays.append(("labels", labels))
+    return UploadSource(SAMPLES, arrays)
 
 
 def _minari_flat(episodes: Iterable[tuple[str, Any]]) -> dict[str, np.ndarray]:
@@ -630,8 +644,10 @@ def _source_of_loaded(data: Any, kind: str | None, key: str | None) -> UploadSou
         pick = key or ("samples" if "samples" in mapping else (names[0] if len(names) == 1 else None))
         if pick is None or pick not in mapping:
             raise ValueError(f"which array? pass key= (the input holds {', '.join(map(repr, names))})")
-        src = samples(mapping[pick])
-        src.ignored = [k for k in names if k != pick]
+        # A "labels" array beside the samples travels with them (class-conditional training).
+        labels = mapping["labels"] if "labels" in mapping and pick != "labels" else None
+        src = samples(mapping[pick], labels)
+        src.ignored = [k for k in names if k not in (pick, "labels" if labels is not None else None)]
         return src
     if kind == "trajectories":
         raise ValueError("a trajectories upload needs a mapping with 'observations' and 'actions'")

@@ -313,12 +313,14 @@ class Manifest(_Plain):
     """A diffusion model's manifest, the CLI's manifest-file form: ``parametrization`` ("x0",
     "epsilon" or None), ``schedule``, ``n_timesteps`` (T), ``clip_denoised``, ``space``,
     ``normalizer``, and for native weights ``architecture`` (``{"kind": "temporal_unet",
-    "dim": 32, "dim_mults": [1, 4, 8]}``, ...; None for a TorchScript module).
+    "dim": 32, "dim_mults": [1, 4, 8]}``, ...; None for a TorchScript module), and for a
+    conditional model ``conditioning`` (``{"kind": "labels", "num_classes": 11, "null_class":
+    10}`` or ``{"kind": "embedding", "dim": 128}``; None for an unconditional one).
 
     ``upload_model`` takes one as its ``manifest`` (``dataclasses.replace`` makes a changed
     copy); ``as_dict()`` is the dict form it also takes."""
 
-    _omit_none: ClassVar[tuple[str, ...]] = ("architecture",)
+    _omit_none: ClassVar[tuple[str, ...]] = ("architecture", "conditioning")
 
     parametrization: str | None
     schedule: Schedule | None
@@ -327,6 +329,7 @@ class Manifest(_Plain):
     space: Space | None
     normalizer: Normalizer
     architecture: Mapping[str, Any] | None = None
+    conditioning: Mapping[str, Any] | None = None
 
     @classmethod
     def from_proto(cls, m: models_pb2.DiffusionManifest) -> Manifest:
@@ -334,9 +337,13 @@ class Manifest(_Plain):
         p = _enum_name(models_pb2.Parametrization, m.parametrization, "PARAMETRIZATION_")
         arch_kind = m.WhichOneof("architecture")
         arch = {"kind": arch_kind, **_message_fields(getattr(m, arch_kind))} if arch_kind else None
+        cond = None
+        if m.HasField("conditioning") and (kind := m.conditioning.WhichOneof("kind")):
+            cond = {"kind": kind, **_message_fields(getattr(m.conditioning, kind))}
         return cls(None if p == "unspecified" else p,
                    Schedule.from_proto(m.schedule) if m.HasField("schedule") else None,
-                   m.n_timesteps, m.clip_denoised, Space.from_proto(m), Normalizer.from_proto(m.normalizer), arch)
+                   m.n_timesteps, m.clip_denoised, Space.from_proto(m), Normalizer.from_proto(m.normalizer), arch,
+                   cond)
 
     def to_proto(self) -> models_pb2.DiffusionManifest:
         """The ``DiffusionManifest`` message of these fields (what ``upload_model`` sends)."""
@@ -512,7 +519,8 @@ def _spec_of(s: jobs_pb2.JobSpec) -> specs.DiffusionJob | specs.RewardJob | spec
             architecture=(arch, _set_fields(getattr(d, arch))) if arch else None,
             action_weight=_optional(d, "action_weight"), clip_denoised=_optional(d, "clip_denoised"),
             normalizer_datasets=list(d.normalizer_datasets), pooled_normalizer=_optional(d, "pooled_normalizer"),
-            **base)
+            conditional=_optional(d, "conditional"), condition_dropout=_optional(d, "condition_dropout"),
+            num_classes=_optional(d, "num_classes"), **base)
     if kind == "reward":
         r = s.reward
         target = _enum_name(jobs_pb2.RewardTarget, r.target, "REWARD_TARGET_")

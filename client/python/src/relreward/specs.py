@@ -1,4 +1,5 @@
-"""Typed training job specs: :class:`DiffusionJob`, :class:`RewardJob`, :class:`DiscriminatorJob`.
+"""Typed training job specs: :class:`DiffusionJob`, :class:`RewardJob`, :class:`DiscriminatorJob`;
+and :class:`SafetyGuidance`, Safe Latent Diffusion's settings for ``Client.sample``.
 
 Each builds a ``relreward.v1.JobSpec`` (:meth:`to_proto`); fields left ``None`` take the
 server's defaults (see jobs.proto). ``Client.submit_job`` also accepts a plain dict in the
@@ -14,7 +15,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 from google.protobuf import json_format
 
-from relreward.v1 import jobs_pb2, models_pb2
+from relreward.v1 import jobs_pb2, models_pb2, reward_pb2
 from relreward.errors import InvalidInput
 
 
@@ -90,6 +91,13 @@ class DiffusionJob:
     normalizer_datasets: Sequence[str] = ()
     #: Sample datasets: one mean and std over every element (images) instead of per coordinate.
     pooled_normalizer: bool | None = None
+    #: Class-conditional training (unet2d on a samples dataset with ``labels``): labels
+    #: 0..C-1 plus the null label C, which replaces a label with probability
+    #: ``condition_dropout`` (server default 0.1) for classifier-free guidance; C =
+    #: ``num_classes`` (default: the largest label + 1).
+    conditional: bool | None = None
+    condition_dropout: float | None = None
+    num_classes: int | None = None
 
     def to_proto(self) -> jobs_pb2.JobSpec:
         """The ``relreward.v1.JobSpec`` message this spec stands for (unset fields left unset)."""
@@ -97,7 +105,8 @@ class DiffusionJob:
                                     normalizer_datasets=list(self.normalizer_datasets))
         if self.pooled_normalizer is not None:
             d.pooled_normalizer = self.pooled_normalizer
-        for name in ("n_timesteps", "horizon", "action_weight", "clip_denoised"):
+        for name in ("n_timesteps", "horizon", "action_weight", "clip_denoised", "conditional", "condition_dropout",
+                     "num_classes"):
             if getattr(self, name) is not None:
                 setattr(d, name, getattr(self, name))
         if (s := _schedule(self.schedule)) is not None:
@@ -276,6 +285,9 @@ def manifest(m: Any) -> models_pb2.DiffusionManifest:
 
     ``architecture`` (temporal_unet, mlp or unet2d) only for native safetensors weights: a
     manifest with one describes native weights, one without a TorchScript module.
+    ``conditioning`` for a conditional model: ``{"kind": "labels", "num_classes": 11,
+    "null_class": 10}`` or ``{"kind": "embedding", "dim": 128}`` (a TorchScript module is
+    then called as forward(x, t, cond)).
     """
     if isinstance(m, models_pb2.DiffusionManifest):
         return m
@@ -291,6 +303,15 @@ def manifest(m: Any) -> models_pb2.DiffusionManifest:
         kind = str(arch.pop("kind", None))
         message = _denoiser_architecture(kind, arch)  # names an unknown kind
         getattr(out, kind).CopyFrom(message)
+    if m.get("conditioning") is not None:
+        cond = dict(m["conditioning"])
+        kind = cond.pop("kind", None)
+        if kind == "labels":
+            out.conditioning.labels.CopyFrom(models_pb2.Conditioning.Labels(**cond))
+        elif kind == "embedding":
+            out.conditioning.embedding.CopyFrom(models_pb2.Conditioning.Embedding(**cond))
+        else:
+            raise ValueError(f"conditioning kind {kind!r}: expected labels or embedding")
     return out
 
 
@@ -350,3 +371,46 @@ def reward_manifest(m: Any) -> models_pb2.RewardUploadManifest:
                                           base_model=str(m.get("base_model", "")))
     _space_and_normalizer(out, m)
     return out
+
+
+#: diffusers' Safe Stable Diffusion presets: (warmup_steps, scale, threshold, momentum_scale,
+#: momentum_beta).
+SAFETY_PRESETS = {
+    "weak": (15, 20.0, 0.0, 0.0, 0.0),
+    "medium": (10, 1000.0, 0.01, 0.3, 0.4),
+    "strong": (7, 2000.0, 0.025, 0.5, 0.7),
+    "max": (0, 5000.0, 1.0, 0.5, 0.7),
+}
+
+
+@dataclass
+class SafetyGuidance:
+    """Safe Latent Diffusion's guidance away from ``concept`` (Schramowski et al. 2023, section
+    3; the server's formulas are in reward.proto's ``SafetyGuidance``), for ``Client.sample(...,
+    safety=...)``: ``concept`` is one class label or several (an int or a list), or embeddings
+    ``[dim]`` / ``[k, dim]``; ``scale`` s_S, ``warmup_steps`` delta, ``threshold`` lambda,
+    ``momentum_scale`` s_m, ``momentum_beta`` beta_m. :meth:`preset` gives diffusers' settings."""
+
+    concept: Any
+    scale: float = 1000.0
+    warmup_steps: int = 10
+    threshold: float = 0.01
+    momentum_scale: float = 0.3
+    momentum_beta: float = 0.4
+
+    @classmethod
+    def preset(cls, name: str, concept: Any) -> "SafetyGuidance":
+        """diffusers' preset ``name`` ("weak", "medium", "strong" or "max") for ``concept``."""
+        try:
+            warmup, scale, threshold, m_scale, m_beta = SAFETY_PRESETS[name]
+        except KeyError:
+            raise InvalidInput(f"safety preset {name!r}: expected one of {', '.join(SAFETY_PRESETS)}") from None
+        return cls(concept, scale, warmup, threshold, m_scale, m_beta)
+
+    def to_proto(self) -> reward_pb2.SafetyGuidance:
+        """The ``relreward.v1.SafetyGuidance`` message."""
+        from relreward._common import prompts_message
+        return reward_pb2.SafetyGuidance(concept=prompts_message("safety.concept", self.concept),
+                                         scale=float(self.scale), warmup_steps=int(self.warmup_steps),
+                                         threshold=float(self.threshold), momentum_scale=float(self.momentum_scale),
+                                         momentum_beta=float(self.momentum_beta))

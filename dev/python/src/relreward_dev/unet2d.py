@@ -3,7 +3,9 @@
 tests/python/unet2d_reference.py drives for server/tests/unet2d_vs_diffusers.rs and that
 tests/bench/unet2d.py times.
 
-Module map: ``build`` (a UNet2DModel from the config relreward's manifest carries),
+Module map: ``build`` (a UNet2DModel from the config relreward's manifest carries; a
+conditional one, ``config["conditioning"]`` = relreward's manifest conditioning, takes
+``num_class_embeds`` for labels or ``class_embed_type="identity"`` for embeddings),
 ``scheduler`` (DDPM linear betas 1e-4 to 0.02 scaled by 1000 / T).
 """
 
@@ -25,7 +27,17 @@ def build(config):
         norm_num_groups=config["norm_num_groups"],
         attention_head_dim=config["attention_head_dim"],
         add_attention=attention,
+        **class_embedding(config.get("conditioning")),
     )
+
+
+def class_embedding(conditioning):
+    """UNet2DModel's keyword arguments for relreward's manifest `conditioning` (None: none)."""
+    if conditioning is None:
+        return {}
+    if conditioning["kind"] == "labels":
+        return {"num_class_embeds": conditioning["num_classes"]}
+    return {"class_embed_type": "identity"}
 
 
 def scheduler(n_timesteps):

@@ -196,7 +196,20 @@ pub struct DiffusionJob {
     /// Sample datasets: one mean and std over every element (see the proto).
     #[serde(default)]
     pub pooled_normalizer: bool,
+    /// Class-conditional training on the datasets' labels (see the proto); the two settings
+    /// below apply only with it (and are refused without it).
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub conditional: bool,
+    /// Probability of the null label in training (classifier-free guidance).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub condition_dropout: Option<f64>,
+    /// Real classes C (None: the largest label of the datasets + 1).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub num_classes: Option<usize>,
 }
+
+/// Ho & Salimans' condition dropout (their 0.1 to 0.2; diffusers' training examples 0.1).
+pub const DEFAULT_CONDITION_DROPOUT: f64 = 0.1;
 
 /// Extract a relative reward from a base and an expert diffusion model.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -548,7 +561,18 @@ impl JobSpec {
                     clip_denoised: d.clip_denoised.unwrap_or(DEFAULT_CLIP_DENOISED),
                     normalizer_datasets: d.normalizer_datasets,
                     pooled_normalizer: d.pooled_normalizer.unwrap_or(false),
+                    conditional: d.conditional.unwrap_or(false),
+                    condition_dropout: match d.conditional {
+                        Some(true) => Some(d.condition_dropout.unwrap_or(DEFAULT_CONDITION_DROPOUT)),
+                        _ => d.condition_dropout,
+                    },
+                    num_classes: d.num_classes.map(|c| c as usize),
                 };
+                if let (true, true) = (*trajectories, job.conditional) {
+                    return invalid(format!(
+                        "spec.diffusion.conditional: '{name}' holds trajectories; class-conditional training takes a sample dataset with labels"
+                    ));
+                }
                 (Optimization::from_proto(&o, DIFFUSION_OPTIMIZATION), JobKind::Diffusion(job))
             }
             (Kind::Reward(r), Facts::Models { space }) => {
@@ -619,6 +643,9 @@ impl JobSpec {
                 clip_denoised: Some(d.clip_denoised),
                 normalizer_datasets: d.normalizer_datasets.clone(),
                 pooled_normalizer: Some(d.pooled_normalizer),
+                conditional: Some(d.conditional),
+                condition_dropout: d.condition_dropout,
+                num_classes: d.num_classes.map(wire_u32),
             }),
             JobKind::Reward(r) => pb::job_spec::Kind::Reward(pb::TrainReward {
                 base_model: r.base_model.clone(),
@@ -690,6 +717,32 @@ impl JobSpec {
                     return invalid(format!(
                         "spec.diffusion.action_weight: {} must be positive",
                         given_number(d.action_weight)
+                    ));
+                }
+                // Settings of conditional training without it are refused, not ignored.
+                if !d.conditional {
+                    let field = match (d.condition_dropout, d.num_classes) {
+                        (Some(_), _) => Some("condition_dropout"),
+                        (_, Some(_)) => Some("num_classes"),
+                        _ => None,
+                    };
+                    if let Some(field) = field {
+                        return invalid(format!(
+                            "spec.diffusion.{field}: applies to conditional training; set conditional = true"
+                        ));
+                    }
+                }
+                if let Some(p) = d.condition_dropout
+                    && !(0.0..1.0).contains(&p)
+                {
+                    return invalid(format!("spec.diffusion.condition_dropout: {} must be in [0, 1)", given_number(p)));
+                }
+                if let Some(n) = d.num_classes
+                    && (n == 0 || n >= crate::schema::manifest::MAX_CONDITION_SIZE)
+                {
+                    return invalid(format!(
+                        "spec.diffusion.num_classes: {n} is outside 1..{}",
+                        crate::schema::manifest::MAX_CONDITION_SIZE
                     ));
                 }
             }

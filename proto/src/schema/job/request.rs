@@ -110,6 +110,10 @@ pub struct DiffusionConfig {
     pub normalizer_datasets: Option<Vec<String>>,
     /// Sample datasets: one mean and std over every element (the proto's `pooled_normalizer`).
     pub pooled_normalizer: Option<bool>,
+    /// Class-conditional training on the dataset's labels, with its dropout and class count.
+    pub conditional: Option<bool>,
+    pub condition_dropout: Option<f64>,
+    pub num_classes: Option<u32>,
 }
 
 #[derive(Debug, Clone, Default, PartialEq, Deserialize)]

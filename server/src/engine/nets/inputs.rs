@@ -3,6 +3,7 @@
 
 use tch::{Kind, Tensor};
 
+use crate::engine::manifest::Conditioning;
 use crate::error::{Error, Result};
 
 /// Checks a network's inputs: `x` [B >= 1, *item_shape] of dtype `kind` and `t` int64 [B].
@@ -27,6 +28,67 @@ pub fn check_inputs(what: &str, x: &Tensor, t: &Tensor, item_shape: &[i64], kind
         )));
     }
     Ok(batch)
+}
+
+/// Checks a conditional network's `cond` for a batch of `batch` against the manifest's
+/// `conditioning`: present exactly when the model is conditional; int64 `[B]` labels in
+/// `0..num_classes` or float32 `[B, dim]` finite embeddings. Messages start with `what`.
+pub fn check_condition(
+    what: &str,
+    cond: Option<&Tensor>,
+    conditioning: Option<&Conditioning>,
+    batch: i64,
+) -> Result<()> {
+    let (cond, conditioning) = match (cond, conditioning) {
+        (None, None) => return Ok(()),
+        (Some(_), None) => {
+            return Err(Error::invalid(format!("{what} condition: given, but the model is unconditional")));
+        }
+        (None, Some(c)) => {
+            return Err(Error::invalid(format!(
+                "{what} condition: missing; the model is conditional ({})",
+                describe(c)
+            )));
+        }
+        (Some(cond), Some(c)) => (cond, c),
+    };
+    let (size, kind) = (cond.size(), cond.f_kind()?);
+    match *conditioning {
+        Conditioning::Labels { num_classes, .. } => {
+            if size != [batch] || kind != Kind::Int64 {
+                return Err(Error::invalid(format!(
+                    "{what} condition: shape {size:?} and dtype {kind:?}, expected int64 labels [{batch}]"
+                )));
+            }
+            let (lo, hi) = (cond.f_min()?.f_int64_value(&[])?, cond.f_max()?.f_int64_value(&[])?);
+            if lo < 0 || hi >= num_classes as i64 {
+                let bad = if lo < 0 { lo } else { hi };
+                return Err(Error::invalid(format!("{what} condition: label {bad} is outside 0..{num_classes}")));
+            }
+        }
+        Conditioning::Embedding { dim } => {
+            if size != [batch, dim as i64] || kind != Kind::Float {
+                return Err(Error::invalid(format!(
+                    "{what} condition: shape {size:?} and dtype {kind:?}, expected float32 embeddings [{batch}, {dim}]"
+                )));
+            }
+            if cond.f_isfinite()?.f_all()?.f_int64_value(&[])? != 1 {
+                return Err(Error::invalid(format!("{what} condition: an embedding holds NaN or infinite values")));
+            }
+        }
+    }
+    Ok(())
+}
+
+/// A conditioning in words, for messages.
+pub fn describe(c: &Conditioning) -> String {
+    match *c {
+        Conditioning::Labels { num_classes, null_class: Some(n) } => {
+            format!("labels 0..{num_classes}, null label {n}")
+        }
+        Conditioning::Labels { num_classes, null_class: None } => format!("labels 0..{num_classes}, no null label"),
+        Conditioning::Embedding { dim } => format!("embeddings of width {dim}"),
+    }
 }
 
 /// A dtype by both of its names, the wire's and libtorch's ("float32 (Float)"), as the

@@ -12,13 +12,15 @@ use std::path::Path;
 
 use tch::{Device, Kind, Tensor};
 
+use super::inputs::check_condition;
 use super::inputs::check_inputs;
 use super::mlp::MlpDenoiser;
 use super::temporal_unet::TemporalUnet;
+use super::unet2d::ClassEmbedding;
 use super::unet2d::{Unet2d, Unet2dConfig};
 use super::weights::Weights;
 use crate::engine::denoiser::Denoiser;
-use crate::engine::manifest::{Architecture, Space};
+use crate::engine::manifest::{Architecture, Conditioning, Space};
 use crate::error::{Error, Result};
 
 /// Largest network this service builds: 2^28 parameters are 1 GiB of float32 weights (and
@@ -41,6 +43,7 @@ pub struct NativeDenoiser {
     network: Network,
     architecture: Architecture,
     space: Space,
+    conditioning: Option<Conditioning>,
     item_shape: Vec<i64>,
 }
 
@@ -56,7 +59,17 @@ enum Plan {
 }
 
 impl Plan {
-    fn new(architecture: &Architecture, space: &Space) -> Result<(Self, Vec<i64>)> {
+    fn new(
+        architecture: &Architecture,
+        space: &Space,
+        conditioning: Option<&Conditioning>,
+    ) -> Result<(Self, Vec<i64>)> {
+        if conditioning.is_some() && !matches!(architecture, Architecture::Unet2d { .. }) {
+            return Err(Error::invalid(format!(
+                "conditioning: the native {} takes no condition; only unet2d is conditional",
+                architecture.kind_name()
+            )));
+        }
         let item_shape = match space {
             Space::Trajectory { horizon, action_dim, obs_dim } => {
                 let transition = action_dim
@@ -120,6 +133,15 @@ impl Plan {
                     attention: *attention,
                     norm_num_groups: to_i64(*norm_num_groups, "architecture.norm_num_groups")?,
                     attention_head_dim: to_i64(*attention_head_dim, "architecture.attention_head_dim")?,
+                    class_embedding: match conditioning {
+                        None => None,
+                        Some(Conditioning::Labels { num_classes, .. }) => Some(ClassEmbedding::Table {
+                            rows: to_i64(*num_classes, "conditioning.labels.num_classes")?,
+                        }),
+                        Some(Conditioning::Embedding { dim }) => {
+                            Some(ClassEmbedding::Identity { dim: to_i64(*dim, "conditioning.embedding.dim")? })
+                        }
+                    },
                 };
                 config.validate()?;
                 Self::Unet2d(config)
@@ -149,13 +171,23 @@ impl Plan {
 impl NativeDenoiser {
     /// Validates the architecture against the space and returns the number of parameters the
     /// network would have, without allocating it. Errors name the manifest field at fault.
-    pub fn planned_parameter_count(architecture: &Architecture, space: &Space) -> Result<u64> {
-        Plan::new(architecture, space)?.0.params()
+    pub fn planned_parameter_count(
+        architecture: &Architecture,
+        space: &Space,
+        conditioning: Option<&Conditioning>,
+    ) -> Result<u64> {
+        Plan::new(architecture, space, conditioning)?.0.params()
     }
 
-    /// A freshly initialised network (PyTorch's default initialisation) on `device`.
-    pub fn new(architecture: &Architecture, space: &Space, device: Device) -> Result<Self> {
-        let (plan, item_shape) = Plan::new(architecture, space)?;
+    /// A freshly initialised network (PyTorch's default initialisation) on `device`, taking
+    /// `conditioning`'s input when given (unet2d only).
+    pub fn new(
+        architecture: &Architecture,
+        space: &Space,
+        conditioning: Option<&Conditioning>,
+        device: Device,
+    ) -> Result<Self> {
+        let (plan, item_shape) = Plan::new(architecture, space, conditioning)?;
         let (weights, network) = Weights::build(device, plan.params()?, "NativeDenoiser", |root| {
             Ok(match &plan {
                 Plan::TemporalUnet { horizon, transition_dim, dim, dim_mults } => Network::TemporalUnet(Box::new(
@@ -165,13 +197,26 @@ impl NativeDenoiser {
                 Plan::Unet2d(config) => Network::Unet2d(Box::new(Unet2d::new(root, config)?)),
             })
         })?;
-        Ok(Self { weights, network, architecture: architecture.clone(), space: space.clone(), item_shape })
+        Ok(Self {
+            weights,
+            network,
+            architecture: architecture.clone(),
+            space: space.clone(),
+            conditioning: conditioning.copied(),
+            item_shape,
+        })
     }
 
     /// Builds the network and loads its weights from a safetensors file (strictly, see
     /// [`Weights::load_strict`]).
-    pub fn load(architecture: &Architecture, space: &Space, path: &Path, device: Device) -> Result<Self> {
-        let denoiser = Self::new(architecture, space, device)?;
+    pub fn load(
+        architecture: &Architecture,
+        space: &Space,
+        path: &Path,
+        conditioning: Option<&Conditioning>,
+        device: Device,
+    ) -> Result<Self> {
+        let denoiser = Self::new(architecture, space, conditioning, device)?;
         denoiser.weights.load_strict(path)?;
         Ok(denoiser)
     }
@@ -206,13 +251,14 @@ impl NativeDenoiser {
 }
 
 impl Denoiser for NativeDenoiser {
-    fn forward(&self, x: &Tensor, t: &Tensor) -> Result<Tensor> {
-        check_inputs("denoiser", x, t, &self.item_shape, Kind::Float)?;
+    fn forward(&self, x: &Tensor, t: &Tensor, cond: Option<&Tensor>) -> Result<Tensor> {
+        let batch = check_inputs("denoiser", x, t, &self.item_shape, Kind::Float)?;
+        check_condition("denoiser", cond, self.conditioning.as_ref(), batch)?;
         let t = t.f_to_kind(Kind::Float)?;
         match &self.network {
             Network::TemporalUnet(net) => net.forward(x, &t),
             Network::Mlp(net) => net.forward(x, &t),
-            Network::Unet2d(net) => net.forward(x, &t),
+            Network::Unet2d(net) => net.forward(x, &t, cond),
         }
     }
 
@@ -240,7 +286,7 @@ mod tests {
     }
 
     fn build(arch: &Architecture, space: &Space) -> NativeDenoiser {
-        NativeDenoiser::new(arch, space, Device::Cpu).expect("network builds")
+        NativeDenoiser::new(arch, space, None, Device::Cpu).expect("network builds")
     }
 
     /// Moves every weight off its initial value (GroupNorm's ones and zeros included) so that
@@ -334,18 +380,18 @@ mod tests {
             let d = build(&arch, &space);
             assert_eq!(
                 u128::from(d.parameter_count()),
-                u128::from(NativeDenoiser::planned_parameter_count(&arch, &space).expect("plan"))
+                u128::from(NativeDenoiser::planned_parameter_count(&arch, &space, None).expect("plan"))
             );
             let (x, t) = inputs(&d, 3);
-            let y = tch::no_grad(|| d.forward(&x, &t)).expect("forward");
+            let y = tch::no_grad(|| d.forward(&x, &t, None)).expect("forward");
             assert_eq!(y.size(), x.size(), "{arch:?}");
             assert!(y.isfinite().all().int64_value(&[]) == 1);
 
             let wrong_shape = Tensor::zeros([3, 7], (Kind::Float, Device::Cpu));
-            assert!(invalid_message(d.forward(&wrong_shape, &t)).contains("denoiser input x"));
-            assert!(invalid_message(d.forward(&x.to_kind(Kind::Double), &t)).contains("float32"));
-            assert!(invalid_message(d.forward(&x, &t.to_kind(Kind::Float))).contains("denoiser input t"));
-            assert!(invalid_message(d.forward(&x, &t.narrow(0, 0, 2))).contains("denoiser input t"));
+            assert!(invalid_message(d.forward(&wrong_shape, &t, None)).contains("denoiser input x"));
+            assert!(invalid_message(d.forward(&x.to_kind(Kind::Double), &t, None)).contains("float32"));
+            assert!(invalid_message(d.forward(&x, &t.to_kind(Kind::Float), None)).contains("denoiser input t"));
+            assert!(invalid_message(d.forward(&x, &t.narrow(0, 0, 2), None)).contains("denoiser input t"));
         }
     }
 
@@ -368,7 +414,7 @@ mod tests {
             (mlp(&[16]), Space::Sample { shape: vec![usize::MAX, 4] }, "space"),
         ];
         for (arch, space, needle) in cases {
-            let msg = invalid_message(NativeDenoiser::new(&arch, &space, Device::Cpu));
+            let msg = invalid_message(NativeDenoiser::new(&arch, &space, None, Device::Cpu));
             assert!(msg.contains(needle), "{arch:?} {space:?}: {msg} should contain {needle}");
         }
     }
@@ -389,9 +435,9 @@ mod tests {
             let leftovers = std::fs::read_dir(dir.path()).expect("list").count();
             assert_eq!(leftovers, i + 1, "no temporary file may remain");
 
-            let loaded = NativeDenoiser::load(&arch, &space, &path, Device::Cpu).expect("load");
+            let loaded = NativeDenoiser::load(&arch, &space, &path, None, Device::Cpu).expect("load");
             let (x, t) = inputs(&original, 3);
-            let run = |d: &NativeDenoiser| tch::no_grad(|| d.forward(&x, &t)).expect("forward");
+            let run = |d: &NativeDenoiser| tch::no_grad(|| d.forward(&x, &t, None)).expect("forward");
             let (a, b) = (run(&original), run(&loaded));
             assert_eq!(max_abs_diff(&a, &b), 0.0);
             // ...and the comparison is not vacuous: another initialisation differs.
@@ -489,7 +535,7 @@ mod tests {
             let d = build(&arch, &space);
             let (x, t) = inputs(&d, 3);
             let x = x.set_requires_grad(true);
-            let loss = d.forward(&x, &t).expect("forward").square().mean(Kind::Float);
+            let loss = d.forward(&x, &t, None).expect("forward").square().mean(Kind::Float);
             loss.backward();
             for (name, var) in d.weights().var_store().variables() {
                 let grad = var.grad();

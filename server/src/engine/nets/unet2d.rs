@@ -9,6 +9,10 @@
 //! Structure, for widths w = block_out_channels and L = len(w) levels:
 //! - `time_proj`: sinusoidal(w[0]) with cos first (`flip_sin_to_cos`, frequency shift 0), then
 //!   `time_embedding.linear_1` (w[0] -> 4 w[0]), SiLU, `time_embedding.linear_2` (4 w[0] -> 4 w[0]);
+//! - conditional models only, `class_embedding`: an nn.Embedding(rows, 4 w[0]) whose row for
+//!   each item's label is added to the time embedding (diffusers' `num_class_embeds`), or the
+//!   item's embedding vector of width 4 w[0] added as it is (`class_embed_type = "identity"`,
+//!   no parameters);
 //! - `conv_in`: Conv2d(C, w[0], 3, padding 1);
 //! - `down_blocks.{i}`: `layers_per_block` ResNet blocks (`resnets.{j}`), each followed by
 //!   attention (`attentions.{j}`) on the last level when attention is on; every output is kept
@@ -52,6 +56,17 @@ pub struct Unet2dConfig {
     pub attention: bool,
     pub norm_num_groups: i64,
     pub attention_head_dim: i64,
+    /// Conditional models: how the condition enters the time embedding.
+    pub class_embedding: Option<ClassEmbedding>,
+}
+
+/// How a conditional unet2d takes its condition (diffusers' `class_embed_type`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ClassEmbedding {
+    /// Labels through an nn.Embedding of `rows` rows (`num_class_embeds`).
+    Table { rows: i64 },
+    /// Vectors of width `dim` added as they are (`"identity"`); dim must be 4 w[0].
+    Identity { dim: i64 },
 }
 
 impl Unet2dConfig {
@@ -93,6 +108,21 @@ impl Unet2dConfig {
                 )));
             }
         }
+        match self.class_embedding {
+            Some(ClassEmbedding::Table { rows }) if rows <= 0 || rows > MAX_WIDTH => {
+                return Err(Error::invalid(format!(
+                    "conditioning.labels.num_classes: {rows} must be in 1..={MAX_WIDTH}"
+                )));
+            }
+            Some(ClassEmbedding::Identity { dim }) if dim != 4 * w[0] => {
+                return Err(Error::invalid(format!(
+                    "conditioning.embedding.dim: {dim} must equal the time embedding's width 4 * block_out_channels[0] = {} \
+                     (the embedding is added to it as it is, diffusers' class_embed_type \"identity\")",
+                    4 * w[0]
+                )));
+            }
+            _ => {}
+        }
         let factor = 1i64 << (w.len() - 1);
         for (size, name) in [(self.height, "height"), (self.width, "width")] {
             if size <= 0 || size % factor != 0 {
@@ -112,6 +142,9 @@ impl Unet2dConfig {
         let levels = w.len();
         let attn = |c: i64| if self.attention { attention_params(c) } else { 0 };
         let mut parts = vec![linear_params(w[0], temb), linear_params(temb, temb), conv_params(self.channels, w[0], 3)];
+        if let Some(ClassEmbedding::Table { rows }) = self.class_embedding {
+            parts.push(n(rows) * n(temb));
+        }
         let mut out = w[0];
         for (i, &width) in w.iter().enumerate() {
             let input = out;
@@ -309,6 +342,8 @@ pub struct Unet2d {
     config: Unet2dConfig,
     linear_1: Linear,
     linear_2: Linear,
+    /// `class_embedding.weight` [rows, 4 w[0]] of a label-conditional model.
+    class_table: Option<Tensor>,
     conv_in: Conv2d,
     downs: Vec<Level>,
     mid_resnets: [ResnetBlock; 2],
@@ -381,6 +416,15 @@ impl Unet2d {
             config: config.clone(),
             linear_1: Linear::new(&(p / "time_embedding" / "linear_1"), w[0], temb)?,
             linear_2: Linear::new(&(p / "time_embedding" / "linear_2"), temb, temb)?,
+            // nn.Embedding's own initialisation: N(0, 1).
+            class_table: match config.class_embedding {
+                Some(ClassEmbedding::Table { rows }) => Some((p / "class_embedding").f_var(
+                    "weight",
+                    &[rows, temb],
+                    Init::Randn { mean: 0.0, stdev: 1.0 },
+                )?),
+                _ => None,
+            },
             conv_in: Conv2d::new(&(p / "conv_in"), config.channels, w[0], 3, 1, 1)?,
             downs,
             mid_resnets,
@@ -405,9 +449,20 @@ impl Unet2d {
         Ok(Tensor::f_cat(&[args.f_cos()?, args.f_sin()?], -1)?)
     }
 
-    /// `x`: float [B, C, H, W]; `t`: float [B] (the diffusion step). Returns [B, C, H, W].
-    pub fn forward(&self, x: &Tensor, t: &Tensor) -> Result<Tensor> {
-        let emb = self.linear_2.forward(&self.linear_1.forward(&self.time_proj(t)?)?.f_silu()?)?;
+    /// `x`: float [B, C, H, W]; `t`: float [B] (the diffusion step); `cond`: a conditional
+    /// model's int64 labels [B] or float embeddings [B, 4 w[0]] (checked by the caller).
+    /// Returns [B, C, H, W].
+    pub fn forward(&self, x: &Tensor, t: &Tensor, cond: Option<&Tensor>) -> Result<Tensor> {
+        let mut emb = self.linear_2.forward(&self.linear_1.forward(&self.time_proj(t)?)?.f_silu()?)?;
+        match (self.config.class_embedding, cond) {
+            (None, None) => {}
+            (Some(ClassEmbedding::Table { .. }), Some(labels)) => {
+                let table = self.class_table.as_ref().ok_or_else(|| Error::internal("Unet2d", "no class table"))?;
+                emb = emb.f_add(&table.f_index_select(0, labels)?)?;
+            }
+            (Some(ClassEmbedding::Identity { .. }), Some(vectors)) => emb = emb.f_add(vectors)?,
+            _ => return Err(Error::invalid("denoiser condition: does not match the network's conditioning")),
+        }
         // Every ResNet block applies SiLU to the embedding before its projection.
         let emb_act = emb.f_silu()?;
         let mut h = self.conv_in.forward(x)?;
@@ -466,6 +521,7 @@ mod tests {
             attention,
             norm_num_groups: 8,
             attention_head_dim: 8,
+            class_embedding: None,
         }
     }
 
@@ -478,7 +534,7 @@ mod tests {
             let built: i64 = vs.variables().values().map(Tensor::numel).map(|n| n as i64).sum();
             assert_eq!(u128::from(built as u64), c.params(), "{c:?}");
             let x = Tensor::randn([3, 1, 8, 8], (Kind::Float, Device::Cpu));
-            let y = net.forward(&x, &Tensor::from_slice(&[0f32, 5.0, 49.0])).expect("forward");
+            let y = net.forward(&x, &Tensor::from_slice(&[0f32, 5.0, 49.0]), None).expect("forward");
             assert_eq!(y.size(), x.size());
         }
     }
