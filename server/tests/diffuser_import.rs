@@ -73,7 +73,7 @@ fn an_imported_diffuser_temporal_unet_matches_pytorch() {
         .expect("the imported weights load strictly");
     let check: BTreeMap<String, Tensor> =
         Tensor::read_safetensors(d.join("check.safetensors")).expect("check file").into_iter().collect();
-    let y = tch::no_grad(|| net.forward(&check["x"], &check["t"]).expect("forward"));
+    let y = tch::no_grad(|| net.forward(&check["x"], &check["t"], None).expect("forward"));
     let diff = (&y - &check["y"]).abs().max().double_value(&[]);
     eprintln!("max |relreward - PyTorch| = {diff:e}");
     assert!(check["y"].abs().max().double_value(&[]) > 0.1, "the reference output is trivially small");

@@ -66,7 +66,7 @@ fn nets_match_pytorch_in_both_directions() {
         let inputs = dir.path().join(format!("inputs-{i}.safetensors"));
         Tensor::write_safetensors(&[("x", &x), ("t", &t)], &inputs).expect("write inputs");
 
-        let y = tch::no_grad(|| d.forward(&x, &t)).expect("rust forward");
+        let y = tch::no_grad(|| d.forward(&x, &t, None)).expect("rust forward");
         assert!(y.abs().max().double_value(&[]) > 1e-3, "case {i}: output is trivially zero");
         expected.push((x, t, y));
         jobs.push(serde_json::json!({
@@ -98,7 +98,7 @@ fn nets_match_pytorch_in_both_directions() {
         let torch_weights = dir.path().join(format!("torch-weights-{i}.safetensors"));
         let d = NativeDenoiser::load(&case.architecture, &case.space, &torch_weights, None, Device::Cpu)
             .expect("PyTorch's state dict loads strictly");
-        let y_rust = tch::no_grad(|| d.forward(x, t)).expect("rust forward");
+        let y_rust = tch::no_grad(|| d.forward(x, t, None)).expect("rust forward");
         let diff = max_diff(&y_rust, output("y_torch"));
         eprintln!("case {i} {:?}: pytorch weights, max |rust - pytorch| = {diff:e}", case.architecture);
         assert!(diff < TOLERANCE, "case {i} {:?}: max abs difference {diff} >= {TOLERANCE}", case.architecture);

@@ -6,7 +6,7 @@ import`, as tests/python/diffusers_folder.py does for the import's own check. re
 (DDIM with eta 0 and eta > 0, several spacings; DDPM for the v model) is then replayed in
 diffusers: DDIMScheduler.from_config / DDPMScheduler on the same config, the same starting x_T and
 the same per-step noise. Both come from relreward's seeded generator (SplitMix64 and Box-Muller,
-server/src/engine/rng.rs), which `RelrewardRng` below reproduces bit for bit, so a seed fixes
+server/src/engine/rng.rs), which `relreward_dev.rng.RelrewardRng` reproduces bit for bit, so a seed fixes
 every draw on both sides. Bar: 1e-5 per step (relative where values exceed 1): a one-step run
 (trailing spacing, one step from T - 1, for each parametrization) to 1e-5, a k-step run to
 k * 1e-5 (float32 rounding accumulates along the trajectory; see `assert_close`).
@@ -30,42 +30,11 @@ from diffusers import DDIMScheduler, DDPMScheduler, UNet2DModel  # noqa: E402
 from diffusers.schedulers import scheduling_ddpm  # noqa: E402
 
 from relreward.errors import InvalidArgument, InvalidInput  # noqa: E402
+from relreward_dev.rng import RelrewardRng  # noqa: E402
 
 T = 20
 SHAPE = (2, 8, 8)
 N = 2
-
-
-class RelrewardRng:
-    """server/src/engine/rng.rs in Python: SplitMix64 states, 53-bit uniforms, Box-Muller pairs
-    in float64 (both outputs used, an odd last value takes a whole pair), cast to float32."""
-
-    MASK = (1 << 64) - 1
-    GAMMA = 0x9E3779B97F4A7C15
-
-    def __init__(self, seed: int) -> None:
-        self.state = seed & self.MASK
-
-    def next_u64(self) -> int:
-        self.state = (self.state + self.GAMMA) & self.MASK
-        z = self.state
-        z = ((z ^ (z >> 30)) * 0xBF58476D1CE4E5B9) & self.MASK
-        z = ((z ^ (z >> 27)) * 0x94D049BB133111EB) & self.MASK
-        return z ^ (z >> 31)
-
-    def uniform(self) -> float:
-        return (self.next_u64() >> 11) * (1.0 / (1 << 53))
-
-    def randn(self, shape: tuple[int, ...]) -> torch.Tensor:
-        n = math.prod(shape)
-        out = np.empty(n, np.float32)
-        for i in range(0, n, 2):
-            r = math.sqrt(-2.0 * math.log(1.0 - self.uniform()))
-            theta = math.tau * self.uniform()
-            out[i] = r * math.cos(theta)
-            if i + 1 < n:
-                out[i + 1] = r * math.sin(theta)
-        return torch.from_numpy(out.reshape(shape))
 
 
 def perturbed_unet() -> UNet2DModel:

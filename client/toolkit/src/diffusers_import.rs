@@ -30,7 +30,12 @@
 //! - `UNet2DModel` in the configuration of relreward's `unet2d` (`server/src/engine/nets/unet2d.rs`,
 //!   whose names are diffusers' own): `DownBlock2D` / `UpBlock2D`, attention (`AttnDownBlock2D`,
 //!   `AttnUpBlock2D`, `add_attention`) at the lowest resolution or nowhere, silu, GroupNorm eps
-//!   1e-5, `freq_shift = 0` (either `flip_sin_to_cos`, as above), no class embedding.
+//!   1e-5, `freq_shift = 0` (either `flip_sin_to_cos`, as above); a class embedding as
+//!   `num_class_embeds` (an nn.Embedding of labels, relreward's `labels` conditioning, with the
+//!   null label the model was trained with given by `--null-class`, if any) or
+//!   `class_embed_type = "identity"` (an embedding vector of the time embedding's width added
+//!   as it is, relreward's `embedding` conditioning, whose null is the zero vector); the
+//!   `"timestep"` and projection types are refused.
 //! - `DDPMScheduler`: any `beta_schedule` diffusers has (linear, scaled_linear,
 //!   squaredcos_cap_v2, sigmoid, laplace, trained_betas), written to the manifest as the
 //!   explicit float32 betas diffusers uses; `prediction_type` epsilon, sample (relreward's x0)
@@ -50,7 +55,7 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use relreward_proto::schema::manifest::{
-    Architecture, DiffusionManifest, Normalizer, Parametrization, ScheduleSpec, Space,
+    Architecture, Conditioning, DiffusionManifest, Normalizer, Parametrization, ScheduleSpec, Space,
 };
 use safetensors::tensor::{Dtype, SafeTensors, TensorView};
 use serde_json::{Map, Value, json};
@@ -397,6 +402,8 @@ struct Plan {
     /// diffusers' embedding has its sine and cosine halves the other way round from
     /// relreward's: swap the first time layer's input columns.
     swap_time_halves: bool,
+    /// A class-conditional UNet2DModel's conditioning (its null label from the hints).
+    conditioning: Option<Conditioning>,
 }
 
 /// The two model classes accepted.
@@ -511,6 +518,7 @@ fn unet1d_plan(mut cfg: Config) -> Result<Plan, ImportError> {
         sample_size: None,
         table,
         swap_time_halves: flip,
+        conditioning: None,
     };
     cfg.finish("not an importable UNet1DModel", plan)
 }
@@ -631,8 +639,27 @@ fn unet2d_plan(mut cfg: Config) -> Result<Plan, ImportError> {
     cfg.require("upsample_type", json!("conv"), json!("conv"), "relreward upsamples by nearest x2 then a convolution");
     cfg.require("act_fn", json!("silu"), json!("silu"), "relreward's unet2d uses silu");
     cfg.require("resnet_time_scale_shift", json!("default"), json!("default"), "relreward adds the time embedding");
-    cfg.require("class_embed_type", Value::Null, Value::Null, "relreward's models are unconditional");
-    cfg.require("num_class_embeds", Value::Null, Value::Null, "relreward's models are unconditional");
+    let class_embed_type = cfg.get("class_embed_type", Value::Null);
+    let num_class_embeds = cfg.get("num_class_embeds", Value::Null);
+    let conditioning = match (class_embed_type.as_str(), &num_class_embeds) {
+        (None, Value::Null) if class_embed_type.is_null() => Some(None),
+        (None, n) if class_embed_type.is_null() => match n.as_u64().and_then(|n| usize::try_from(n).ok()) {
+            Some(n) if n > 0 => Some(Some(ClassEmbedding::Table(n))),
+            _ => {
+                cfg.problem("num_class_embeds", n, "expected a positive number of classes");
+                None
+            }
+        },
+        (Some("identity"), _) => Some(Some(ClassEmbedding::Identity)),
+        _ => {
+            cfg.problem(
+                "class_embed_type",
+                &class_embed_type,
+                "relreward's unet2d takes num_class_embeds (labels) or \"identity\" (embeddings added as they are)",
+            );
+            None
+        }
+    };
     let eps = cfg.get("norm_eps", json!(1e-5));
     if !eps.as_f64().is_some_and(|e| (e - 1e-5).abs() < 1e-12) {
         cfg.problem("norm_eps", &eps, "relreward's GroupNorms use eps 1e-5");
@@ -747,13 +774,26 @@ fn unet2d_plan(mut cfg: Config) -> Result<Plan, ImportError> {
             size
         }
     };
-    let (Some(channels), Some(widths), Some(layers), Some(groups), Some(attention), Some(head_dim), Some(flip)) =
-        (in_channels, widths, layers, groups, attention, head_dim, flip)
+    let (
+        Some(channels),
+        Some(widths),
+        Some(layers),
+        Some(groups),
+        Some(attention),
+        Some(head_dim),
+        Some(flip),
+        Some(class_embedding),
+    ) = (in_channels, widths, layers, groups, attention, head_dim, flip, conditioning)
     else {
         return Err(cfg.error("not an importable UNet2DModel"));
     };
-    let table =
+    let mut table =
         unet2d_table(channels as u64, &widths.iter().map(|&w| w as u64).collect::<Vec<_>>(), layers as u64, attention);
+    if let Some(ClassEmbedding::Table(rows)) = class_embedding {
+        let name = "class_embedding.weight".to_owned();
+        table.push(Entry { source: name.clone(), target: name, shape: vec![rows as u64, 4 * widths[0] as u64] });
+    }
+    let temb = 4 * widths[0];
     let plan = Plan {
         class: ModelClass::Unet2d,
         levels: widths.len(),
@@ -769,6 +809,10 @@ fn unet2d_plan(mut cfg: Config) -> Result<Plan, ImportError> {
         table,
         // relreward's sinusoid is diffusers' flip_sin_to_cos = true (cosines first).
         swap_time_halves: !flip,
+        conditioning: class_embedding.map(|c| match c {
+            ClassEmbedding::Table(rows) => Conditioning::Labels { num_classes: rows, null_class: None },
+            ClassEmbedding::Identity => Conditioning::Embedding { dim: temb },
+        }),
     };
     cfg.finish("not an importable UNet2DModel", plan)
 }
@@ -1052,6 +1096,17 @@ pub struct Hints {
     /// `--normalizer`: the normalizer the model was trained under (a folder has none; identity
     /// without it).
     pub normalizer: Option<Normalizer>,
+    /// `--null-class`: a class-conditional UNet2DModel's label for "no class" (what its
+    /// classifier-free training dropped labels to), which guidance needs; a config has none.
+    pub null_class: Option<usize>,
+}
+
+/// A UNet2DModel's class embedding as its config gives it.
+#[derive(Debug, Clone, Copy)]
+enum ClassEmbedding {
+    /// `num_class_embeds` rows.
+    Table(usize),
+    Identity,
 }
 
 /// An imported model: the native tensors (relreward's names, float32) and the manifest.
@@ -1090,13 +1145,31 @@ pub fn import_folder(folder: &Folder, hints: &Hints) -> Result<Imported, ImportE
         space,
         normalizer: hints.normalizer.clone().unwrap_or_default(),
         architecture: Some(plan.architecture.clone()),
-        conditioning: None,
+        conditioning: conditioning(&plan, hints)?,
     };
     manifest.validate().map_err(|e| {
         ImportError(format!("the manifest derived from {} is not valid: {e}", folder.model_dir.display()))
     })?;
     let tensors = read_tensors(&folder.weights(), &plan)?;
     Ok(Imported { class: plan.class, manifest, tensors, schedule_source: scheduler.source })
+}
+
+/// The manifest's conditioning: the plan's, with `--null-class` (labels only).
+fn conditioning(plan: &Plan, hints: &Hints) -> Result<Option<Conditioning>, ImportError> {
+    match (plan.conditioning, hints.null_class) {
+        (None, Some(_)) => fail("--null-class applies to a class-conditional UNet2DModel (num_class_embeds)".into()),
+        (Some(Conditioning::Embedding { .. }), Some(_)) => fail(
+            "--null-class applies to labels (num_class_embeds); an \"identity\" class embedding's null is the zero vector"
+                .into(),
+        ),
+        (Some(Conditioning::Labels { num_classes, .. }), Some(null)) if null >= num_classes => {
+            fail(format!("--null-class: {null} is not one of the model's labels 0..{num_classes} (num_class_embeds)"))
+        }
+        (Some(Conditioning::Labels { num_classes, .. }), null) => {
+            Ok(Some(Conditioning::Labels { num_classes, null_class: null }))
+        }
+        (other, None) => Ok(other),
+    }
 }
 
 /// The manifest's space: the config's channels with the hints' sizes.

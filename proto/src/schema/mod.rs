@@ -1,5 +1,6 @@
 //! The service's two user-written documents, defined once for both ends: the diffusion model
-//! manifest ([`manifest`]) and the training job spec ([`job`]).
+//! manifest ([`manifest`]) and the training job spec ([`job`]); and the sampling recipe
+//! ([`recipe`]) both a Sample request and a reward job carry.
 //!
 //! Each document has one set of Rust types, used three ways: as the file a user writes (TOML or
 //! JSON, [`parse_text`]), as what the server stores (serde JSON, every field explicit), and as
@@ -13,6 +14,7 @@
 
 pub mod job;
 pub mod manifest;
+pub mod recipe;
 pub mod summary;
 
 /// A document or wire message refused by a check: the message names the field

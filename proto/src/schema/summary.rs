@@ -16,6 +16,7 @@ use super::job::{
     DEFAULT_PARAMETRIZATION, DEFAULT_SCHEDULE,
 };
 use super::manifest::{Architecture, Conditioning, DiffusionManifest, Normalizer, Parametrization, Space};
+use super::recipe::{PromptSet, RecipeSpec, SafetySpec};
 
 /// The field names of a serialized value, in order.
 fn fields(v: impl serde::Serialize) -> Value {
@@ -46,6 +47,19 @@ pub fn summary() -> Value {
         num_classes: Some(10),
     };
     // Every optional field set, so that each is named.
+    // Every field of a recipe set, so that each is named.
+    let recipe = RecipeSpec {
+        prompts: PromptSet::Labels(vec![0, 1]),
+        guidance_scale: 3.0,
+        safety: Some(SafetySpec {
+            concept: PromptSet::Labels(vec![1]),
+            scale: 1000.0,
+            warmup_steps: 10,
+            threshold: 0.01,
+            momentum_scale: 0.3,
+            momentum_beta: 0.4,
+        }),
+    };
     let reward = RewardJob {
         base_model: String::new(),
         expert_model: String::new(),
@@ -58,6 +72,8 @@ pub fn summary() -> Value {
         action_weight: 1.0,
         condition_weight: 1.0,
         inpaint_condition: true,
+        base_recipe: Some(recipe.clone()),
+        expert_recipe: Some(recipe),
     };
     let discriminator = DiscriminatorJob {
         base_dataset: String::new(),

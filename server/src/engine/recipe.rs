@@ -25,9 +25,34 @@
 
 use tch::{Kind, Tensor};
 
+use relreward_proto::schema::recipe::{PromptSet, RecipeSpec};
+
 use super::diffusion::DiffusionModel;
 use super::manifest::Conditioning;
 use crate::error::{Error, Result};
+
+/// A prompt set (the schema's values) as a tensor: int64 `[k]` labels or float32 `[k, dim]`.
+pub fn prompt_tensor(p: &PromptSet) -> Tensor {
+    match p {
+        PromptSet::Labels(l) => Tensor::from_slice(l),
+        PromptSet::Embeddings { dim, values } => Tensor::from_slice(values).reshape([p.len() as i64, *dim as i64]),
+    }
+}
+
+/// The engine's recipe for a recipe's settings (the schema's): its prompts are the caller's.
+pub fn recipe_of(spec: &RecipeSpec) -> Recipe {
+    Recipe {
+        guidance_scale: spec.guidance_scale,
+        safety: spec.safety.as_ref().map(|s| Safety {
+            concept: prompt_tensor(&s.concept),
+            scale: s.scale,
+            warmup_steps: s.warmup_steps,
+            threshold: s.threshold,
+            momentum_scale: s.momentum_scale,
+            momentum_beta: s.momentum_beta,
+        }),
+    }
+}
 
 /// Safe Latent Diffusion's settings (diffusers' names in parentheses).
 #[derive(Debug)]
@@ -236,6 +261,45 @@ impl<'a> RecipeRun<'a> {
         }
         let combined = eps_null.f_add(&guidance.f_mul_scalar(s)?)?;
         self.model.prediction_from_eps(x, t, &combined)
+    }
+}
+
+/// Where a step's prediction comes from: the model itself (unconditional), or a recipe's run
+/// over its batch's prompts. Samplers and Algorithm 2's chains step through one.
+pub enum Predictor<'a> {
+    Model(&'a DiffusionModel),
+    Recipe(RecipeRun<'a>),
+}
+
+impl<'a> Predictor<'a> {
+    /// `model` asked directly when `recipe` is None, else through a run over `prompts` (one
+    /// condition per item, checked against the model).
+    pub fn new(model: &'a DiffusionModel, recipe: Option<(&'a Recipe, &Tensor)>) -> Result<Self> {
+        Ok(match recipe {
+            None => Self::Model(model),
+            Some((recipe, prompts)) => Self::Recipe(RecipeRun::new(model, recipe, prompts)?),
+        })
+    }
+
+    /// The raw prediction at (x, t) (a recipe run advances by one step).
+    pub fn predict(&mut self, x: &Tensor, t: &Tensor) -> Result<Tensor> {
+        match self {
+            Self::Model(m) => m.predict(x, t),
+            Self::Recipe(run) => run.predict(x, t),
+        }
+    }
+
+    /// The sampler's mean mu(x_t, t) from [`Self::predict`]: the posterior mean with x0_hat
+    /// clamped as the manifest's `clip_denoised` says (what `DiffusionModel::model_mean` is
+    /// for an unconditional model).
+    pub fn mean(&mut self, x: &Tensor, t: &Tensor) -> Result<Tensor> {
+        let pred = self.predict(x, t)?;
+        let model = match self {
+            Self::Model(m) => *m,
+            Self::Recipe(run) => run.model,
+        };
+        let x0 = model.x0_from_prediction(x, t, &pred, model.clip_denoised())?;
+        model.q_posterior_mean(&x0, x, t)
     }
 }
 

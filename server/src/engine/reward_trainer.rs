@@ -22,6 +22,7 @@ use tch::{Kind, Tensor};
 use super::data::TrainingData;
 use super::diffusion::DiffusionModel;
 use super::nets::reward::{RewardArchitecture, RewardNet};
+use super::recipe::{Predictor, Recipe};
 use super::relative_reward::{
     ConditionEntries, EvalPoint, Target, alignment_error, alignment_loss, entry_weights, noised_target_and_point,
 };
@@ -67,9 +68,10 @@ pub enum TrainingPairs {
 impl TrainingPairs {
     /// Algorithm 2's pairs from `num_chains` chains run from noise; generated identically from
     /// `seed` alone (a resumed job regenerates them rather than checkpointing them). The two
-    /// models must share a normalizer: both step from one chain state in one unit system.
-    pub fn chains(base: &DiffusionModel, expert: &DiffusionModel, num_chains: usize, seed: u64) -> Result<Self> {
-        if super::relative_reward::Alignment::between(base, expert).is_some() {
+    /// models must share a normalizer: both step from one chain state in one unit system. A
+    /// conditional model steps through its side's recipe ([`ChainRecipe`]).
+    pub fn chains(base: ChainSide<'_>, expert: ChainSide<'_>, num_chains: usize, seed: u64) -> Result<Self> {
+        if super::relative_reward::Alignment::between(base.model, expert.model).is_some() {
             return Err(Error::invalid(
                 "spec.reward: base and expert models have different normalizers; Algorithm 2 needs one shared normalizer",
             ));
@@ -244,6 +246,37 @@ impl RelativeRewardTrainer {
     }
 }
 
+/// How one side of Algorithm 2's chains is sampled: a conditional model through `recipe`, each
+/// chain with one condition drawn from `prompts` (int64 `[k]` labels or float32 `[k, dim]`).
+pub struct ChainRecipe {
+    pub recipe: Recipe,
+    pub prompts: Tensor,
+}
+
+/// One side (base or expert) of Algorithm 2: the model, and its recipe when it is conditional.
+#[derive(Clone, Copy)]
+pub struct ChainSide<'a> {
+    pub model: &'a DiffusionModel,
+    pub recipe: Option<&'a ChainRecipe>,
+}
+
+impl<'a> ChainSide<'a> {
+    /// An unconditional model, stepped as it is.
+    pub fn plain(model: &'a DiffusionModel) -> Self {
+        Self { model, recipe: None }
+    }
+
+    /// The side's predictor over `k` chains whose prompts are picked by `picks` (uniforms in
+    /// [0, 1), one per chain; index floor(u k') in a set of k').
+    fn predictor(&self, picks: &[f64], device: tch::Device) -> Result<Predictor<'a>> {
+        let Some(r) = self.recipe else { return Predictor::new(self.model, None) };
+        let n = r.prompts.size()[0];
+        let idx: Vec<i64> = picks.iter().map(|u| ((u * n as f64) as i64).min(n - 1)).collect();
+        let prompts = r.prompts.f_index_select(0, &Tensor::from_slice(&idx))?.f_to_device(device)?;
+        Predictor::new(self.model, Some((&r.recipe, &prompts)))
+    }
+}
+
 /// Algorithm 2's recorded steps: at x (time t) both models stepped from the same point with
 /// the same noise; target = x_{t-1}^expert - x_{t-1}^base, both standardised per step (see
 /// [`chain_pairs`]). The last 5% are held out.
@@ -260,12 +293,22 @@ pub struct ChainPairs {
 /// Runs `k` chains from x_T ~ N(0, I); at every step both models' next states are computed
 /// from the same x_t with the same noise, and the chain follows the base model's step in the
 /// first half of the chains and the expert's in the second half (the paper's Algorithm 2).
-fn chain_pairs(base: &DiffusionModel, expert: &DiffusionModel, k: usize, rng: &mut Rng) -> Result<ChainPairs> {
+/// With recipes, each chain draws its prompt once (after x_T, one uniform per chain shared by
+/// both sides), and each side's mean is its recipe's (classifier-free and safety guidance).
+fn chain_pairs(base_side: ChainSide<'_>, expert_side: ChainSide<'_>, k: usize, rng: &mut Rng) -> Result<ChainPairs> {
     let _guard = tch::no_grad_guard();
     let device = device();
+    let base = base_side.model;
     let mut shape = vec![k as i64];
     shape.extend(base.item_shape());
     let mut x = rng.randn(&shape, device);
+    let picks: Vec<f64> = if base_side.recipe.is_some() || expert_side.recipe.is_some() {
+        (0..k).map(|_| rng.uniform()).collect()
+    } else {
+        Vec::new()
+    };
+    let mut base_pred = base_side.predictor(&picks, device)?;
+    let mut expert_pred = expert_side.predictor(&picks, device)?;
     let half = (k / 2) as i64;
     let (mut xs, mut ts, mut targets) = (Vec::new(), Vec::new(), Vec::new());
     // Per-step statistics of the chain states, pooled over both halves: `level_stats[t]` is
@@ -275,8 +318,8 @@ fn chain_pairs(base: &DiffusionModel, expert: &DiffusionModel, k: usize, rng: &m
     let mut out_stats = Vec::new();
     for step in (0..base.n_timesteps()).rev() {
         let t = Tensor::full([k as i64], step as i64, (Kind::Int64, device));
-        let mu_b = base.model_mean(&x, &t)?;
-        let mu_e = expert.model_mean(&x, &t)?;
+        let mu_b = base_pred.mean(&x, &t)?;
+        let mu_e = expert_pred.mean(&x, &t)?;
         let (x_b, x_e) = if step > 0 {
             let sigma = base.schedule.extract(Table::PosteriorLogVarianceClipped, &t, shape.len())?;
             let noise = rng.randn(&shape, device) * (sigma * 0.5).exp();

@@ -46,7 +46,7 @@ use tch::{Device, Kind, Tensor};
 use super::ddim::{Ddim, coefs};
 use super::diffusion::DiffusionModel;
 use super::manifest::Space;
-use super::recipe::{Recipe, RecipeRun, check_conditions};
+use super::recipe::{Predictor, Recipe, RecipeRun, check_conditions};
 use super::rng::Rng;
 use super::schedule::Table;
 use crate::error::{Error, Result};
@@ -125,22 +125,6 @@ pub struct GuidedSampler<'a> {
     /// A conditional model's recipe (None: an unconditional model, asked directly).
     recipe: Option<&'a Recipe>,
     device: Device,
-}
-
-/// Where a step's prediction comes from: the model itself, or a recipe's run over the batch's
-/// prompts.
-enum Predictor<'a> {
-    Model(&'a DiffusionModel),
-    Recipe(RecipeRun<'a>),
-}
-
-impl Predictor<'_> {
-    fn predict(&mut self, x: &Tensor, t: &Tensor) -> Result<Tensor> {
-        match self {
-            Self::Model(m) => m.predict(x, t),
-            Self::Recipe(run) => run.predict(x, t),
-        }
-    }
 }
 
 /// Conditions checked and shaped for a batch of `n`: (index, state `[n, 1, obs_dim]`).
@@ -259,9 +243,7 @@ impl<'a> GuidedSampler<'a> {
                     rewards = Some(reward_value(g.reward, &x, &t, n as i64)?);
                 }
             }
-            let pred = predictor.predict(&x, &t)?;
-            let x0 = model.x0_from_prediction(&x, &t, &pred, model.clip_denoised())?;
-            let mean = model.q_posterior_mean(&x0, &x, &t)?;
+            let mean = predictor.mean(&x, &t)?;
             x = if i > 0 {
                 let noise = rng.randn(&shape, self.device);
                 mean.f_add(&noise.f_mul_scalar((0.5 * log_var).exp())?)?

@@ -12,19 +12,24 @@ use super::training::TrainLoop;
 use crate::engine::data::TrainingData;
 use crate::engine::diffusion::DiffusionModel;
 use crate::engine::manifest::{DiffusionManifest, Space};
+use crate::engine::nets::inputs::describe;
 use crate::engine::nets::reward::RewardNet;
 use crate::engine::normalizer::Normalizer;
+use crate::engine::recipe::{prompt_tensor, recipe_of};
 use crate::engine::relative_reward::{
     ConditionEntries, EvalPoint, Objective, RewardManifest, Target, check_pair, entry_weights, noised,
 };
 use crate::engine::reward_model::STEP_NORM_FILE;
-use crate::engine::reward_trainer::{AlignmentSettings, EVAL_ITEMS, RelativeRewardTrainer, TrainingPairs};
+use crate::engine::reward_trainer::{
+    AlignmentSettings, ChainRecipe, ChainSide, EVAL_ITEMS, RelativeRewardTrainer, TrainingPairs,
+};
 use crate::engine::rng::Rng;
 use crate::error::{Error, Result};
 use crate::registry::load_diffusion_copy;
 use crate::store::ingest::now_ms;
 use crate::store::{DatasetKind, ModelFormat, ModelKind, ModelRecord, Provenance, Store};
 use relreward_proto::schema::job::{DiscriminatorJob, RewardAlgorithm, RewardJob};
+use relreward_proto::schema::recipe::RecipeSpec;
 
 async fn diffusion_manifest(store: &Store, field: &str, name: &str) -> Result<DiffusionManifest> {
     let record = store
@@ -40,8 +45,38 @@ async fn diffusion_manifest(store: &Store, field: &str, name: &str) -> Result<Di
 }
 
 /// Submission-time checks: both models exist and agree (shape, schedule, normalizer), the
-/// architecture fits their item shape, and every dataset exists and matches their layout.
+/// architecture fits their item shape, every dataset exists and matches their layout, and a
+/// conditional model comes with a recipe that fits it (Algorithm 2 only).
 pub async fn validate_inputs(store: &Store, job: &RewardJob) -> Result<()> {
+    let (base, expert) = validate_models_and_data(store, job).await?;
+    for (side, manifest, name, recipe) in
+        [("base", &base, &job.base_model, &job.base_recipe), ("expert", &expert, &job.expert_model, &job.expert_recipe)]
+    {
+        let conditioning = manifest.conditioning.as_ref();
+        match (recipe, conditioning, &job.algorithm) {
+            (Some(r), c, _) => r.check_against(c, &format!("spec.reward.{side}_recipe"), name)?,
+            (None, Some(c), RewardAlgorithm::ModelsOnly { .. }) => {
+                return Err(Error::invalid(format!(
+                    "spec.reward.{side}_recipe: missing; model '{name}' is conditional ({}): give the prompt set its \
+                     chains draw from (and its guidance)",
+                    describe(c)
+                )));
+            }
+            (None, Some(_), RewardAlgorithm::WithDataset { .. }) => {
+                return Err(Error::invalid(format!(
+                    "spec.reward.{side}_model: model '{name}' is conditional; with_dataset (Algorithm 1) takes \
+                     unconditional models (a conditional one: models_only with {side}_recipe)"
+                )));
+            }
+            (None, None, _) => {}
+        }
+    }
+    Ok(())
+}
+
+/// The checks a reward job and a discriminator job share (module doc of [`validate_inputs`],
+/// less the recipes); returns both models' manifests.
+async fn validate_models_and_data(store: &Store, job: &RewardJob) -> Result<(DiffusionManifest, DiffusionManifest)> {
     let base = diffusion_manifest(store, "spec.reward.base_model", &job.base_model).await?;
     let expert = diffusion_manifest(store, "spec.reward.expert_model", &job.expert_model).await?;
     if base.space != expert.space {
@@ -127,7 +162,7 @@ pub async fn validate_inputs(store: &Store, job: &RewardJob) -> Result<()> {
             }
         }
     }
-    Ok(())
+    Ok((base, expert))
 }
 
 /// The union of the datasets in the models' normalized units: rows concatenated, window
@@ -164,6 +199,11 @@ fn dataset_union(
         .to_device(crate::engine::device()))
 }
 
+/// A stored recipe as the engine's: its prompt set as a tensor, its guidance as a `Recipe`.
+fn chain_recipe(spec: &RecipeSpec) -> Result<ChainRecipe> {
+    Ok(ChainRecipe { recipe: recipe_of(spec), prompts: prompt_tensor(&spec.prompts) })
+}
+
 fn load_model(ctx: &JobContext, name: &str) -> Result<DiffusionModel> {
     let store = ctx.store().clone();
     let record = ctx
@@ -188,7 +228,12 @@ pub fn run(ctx: &mut JobContext, job: &RewardJob) -> std::result::Result<String,
         }
         RewardAlgorithm::ModelsOnly { num_chains } => {
             ctx.check_stop()?;
-            (TrainingPairs::chains(&base, &expert, *num_chains, spec.seed)?, Vec::new())
+            let base_recipe = job.base_recipe.as_ref().map(chain_recipe).transpose()?;
+            let expert_recipe = job.expert_recipe.as_ref().map(chain_recipe).transpose()?;
+            let base_side = ChainSide { model: &base, recipe: base_recipe.as_ref() };
+            let expert_side = ChainSide { model: &expert, recipe: expert_recipe.as_ref() };
+            let pairs = TrainingPairs::chains(base_side, expert_side, *num_chains, spec.seed)?;
+            (pairs, Vec::new())
         }
     };
     let n_timesteps = base.manifest.n_timesteps;
@@ -333,6 +378,8 @@ pub async fn validate_discriminator(store: &Store, job: &DiscriminatorJob) -> Re
         action_weight: 1.0,
         condition_weight: 1.0,
         inpaint_condition: false,
+        base_recipe: None,
+        expert_recipe: None,
     };
     // The reward job's field names, renamed to the discriminator's own.
     let rename = |m: String| {
@@ -346,7 +393,7 @@ pub async fn validate_discriminator(store: &Store, job: &DiscriminatorJob) -> Re
         .iter()
         .fold(m, |m, (from, to)| m.replace(from, to))
     };
-    validate_inputs(store, &as_reward).await.map_err(|e| match e {
+    validate_models_and_data(store, &as_reward).await.map_err(|e| match e {
         Error::InvalidArgument(m) => Error::InvalidArgument(rename(m)),
         Error::NotFound(m) => Error::NotFound(rename(m)),
         other => other,

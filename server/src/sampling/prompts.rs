@@ -1,83 +1,40 @@
-//! A Sample request's conditioning, checked on host values against the model's manifest:
-//! `prompts` (one condition per sample, or one for all), `guidance_scale` and `safety` (Safe
-//! Latent Diffusion's concept and settings), into a [`RecipePlan`] the worker turns into the
-//! engine's [`Recipe`] and per-batch prompt tensors.
+//! A Sample request's conditioning, checked against the model's manifest: `prompts` (one
+//! condition per sample, or one for all), `guidance_scale` and `safety` (Safe Latent Diffusion's
+//! concept and settings), into the schema's [`RecipeSpec`] (one definition with a reward job's
+//! recipes) whose prompts are the n samples' own, and the engine's [`Recipe`].
 
-use relreward_proto::tensor;
+use relreward_proto::schema::recipe::{
+    DEFAULT_GUIDANCE_SCALE, PromptSet, RecipeSpec, SafetySpec, check_guidance_scale,
+};
 use relreward_proto::v1 as pb;
 use tch::Tensor;
 
 use crate::engine::manifest::Conditioning;
-use crate::engine::recipe::{Recipe, Safety};
-use crate::error::{Error, Result, brief};
+use crate::engine::nets::inputs::describe;
+use crate::engine::recipe::{Recipe, prompt_tensor, recipe_of};
+use crate::error::{Error, Result};
 
-/// Conditions as host values: labels, or embeddings of width `dim` (row-major).
-#[derive(Debug, Clone, PartialEq)]
-pub(super) enum Conditions {
-    Labels(Vec<i64>),
-    Embeddings { dim: usize, values: Vec<f32> },
-}
-
-impl Conditions {
-    fn len(&self) -> usize {
-        match self {
-            Self::Labels(l) => l.len(),
-            Self::Embeddings { dim, values } => values.len() / dim.max(&1),
-        }
-    }
-
-    /// Rows `start..start + n` as a tensor: int64 `[n]` or float32 `[n, dim]`.
-    pub(super) fn tensor(&self, start: usize, n: usize) -> Tensor {
-        match self {
-            Self::Labels(l) => Tensor::from_slice(&l[start..start + n]),
-            Self::Embeddings { dim, values } => {
-                Tensor::from_slice(&values[start * dim..(start + n) * dim]).reshape([n as i64, *dim as i64])
-            }
-        }
-    }
-
-    /// One condition repeated to `n` (a request may give one for every sample).
-    fn broadcast(self, n: usize) -> Self {
-        if self.len() != 1 || n == 1 {
-            return self;
-        }
-        match self {
-            Self::Labels(l) => Self::Labels(vec![l[0]; n]),
-            Self::Embeddings { dim, values } => Self::Embeddings { dim, values: values.repeat(n) },
-        }
-    }
-}
-
-/// The conditioning of one Sample run.
+/// The conditioning of one Sample run: a recipe whose prompt set holds the n samples' prompts.
 #[derive(Debug)]
-pub(super) struct RecipePlan {
-    /// One condition per sample (n of them).
-    pub prompts: Conditions,
-    pub guidance_scale: f64,
-    pub safety: Option<(Conditions, pb::SafetyGuidance)>,
-}
+pub(super) struct RecipePlan(RecipeSpec);
 
 impl RecipePlan {
-    /// The engine's recipe (the concept as a tensor).
+    /// The engine's recipe (its safety concept as a tensor).
     pub(super) fn recipe(&self) -> Recipe {
-        Recipe {
-            guidance_scale: self.guidance_scale,
-            safety: self.safety.as_ref().map(|(concept, s)| Safety {
-                concept: concept.tensor(0, concept.len()),
-                scale: s.scale,
-                warmup_steps: s.warmup_steps as usize,
-                threshold: s.threshold,
-                momentum_scale: s.momentum_scale,
-                momentum_beta: s.momentum_beta,
-            }),
-        }
+        recipe_of(&self.0)
+    }
+
+    /// The prompts of samples `start..start + n`: int64 `[n]` or float32 `[n, dim]`.
+    pub(super) fn prompts(&self, start: usize, n: usize) -> Tensor {
+        prompt_tensor(&self.0.prompts).narrow(0, start as i64, n as i64)
     }
 }
 
 /// The request's conditioning for `n` samples of a model with `conditioning` (None:
-/// unconditional, which refuses every conditioning field). Checks, in order: prompts (present
-/// unless guidance_scale is 0; n or one), guidance_scale (finite, |s| <= 1e6; the null
-/// condition where it is needed), safety (its concept, scales, threshold, beta).
+/// unconditional, which refuses every conditioning field). Checks, in order: guidance_scale
+/// (finite, |s| <= 1e6), prompts (present unless only the null condition is asked for; n or
+/// one; in the model's labels or of its width), safety (its concept, scales, threshold, beta),
+/// and the null condition where it is needed.
 pub(super) fn plan(
     req: &pb::SampleRequest,
     conditioning: Option<&Conditioning>,
@@ -98,21 +55,21 @@ pub(super) fn plan(
         }
         return Ok(None);
     };
-    let guidance_scale = req.guidance_scale.unwrap_or(1.0);
-    if !guidance_scale.is_finite() || guidance_scale.abs() > 1e6 {
-        return Err(Error::invalid(format!("guidance_scale: {guidance_scale} must be finite, |s| <= 1e6")));
-    }
+    let guidance_scale = req.guidance_scale.unwrap_or(DEFAULT_GUIDANCE_SCALE);
+    check_guidance_scale(guidance_scale, "guidance_scale")?;
     let prompts = match &req.prompts {
-        Some(p) => conditions(p, conditioning, "prompts")?,
-        // The unconditional model alone needs no prompt: the null condition for every sample.
-        None if guidance_scale == 0.0 && req.safety.is_none() && conditioning.has_null() => {
-            null_conditions(conditioning)
+        Some(p) => {
+            let set = PromptSet::from_proto(p, "prompts")?;
+            set.check_against(conditioning, "prompts", &req.model)?;
+            set
         }
+        // The unconditional prediction alone needs no prompt: the null condition for all.
+        None if guidance_scale == 0.0 && req.safety.is_none() && conditioning.has_null() => null_prompt(conditioning),
         None => {
             return Err(Error::invalid(format!(
                 "prompts: missing; model '{}' is conditional ({}): give labels or embeddings",
                 req.model,
-                crate::engine::nets::inputs::describe(conditioning)
+                describe(conditioning)
             )));
         }
     };
@@ -122,78 +79,29 @@ pub(super) fn plan(
             prompts.len()
         )));
     }
-    let needs_null = guidance_scale != 1.0 || req.safety.is_some();
-    if needs_null && !conditioning.has_null() {
-        return Err(Error::invalid(format!(
-            "guidance_scale: {guidance_scale}{} needs the unconditional prediction, but model '{}' has no null condition \
-             (its conditioning has no null_class)",
-            if req.safety.is_some() { " with safety" } else { "" },
-            req.model
-        )));
-    }
-    let safety = match &req.safety {
-        None => None,
-        Some(s) => {
-            let concept = s
-                .concept
-                .as_ref()
-                .ok_or_else(|| Error::invalid("safety.concept: missing; name the concept to steer away from"))?;
-            let concept = conditions(concept, conditioning, "safety.concept")?;
-            for (name, v) in [("scale", s.scale), ("momentum_scale", s.momentum_scale)] {
-                if !v.is_finite() || v < 0.0 {
-                    return Err(Error::invalid(format!("safety.{name}: {v} must be finite and >= 0")));
-                }
-            }
-            if !s.threshold.is_finite() {
-                return Err(Error::invalid(format!("safety.threshold: {} must be finite", s.threshold)));
-            }
-            if !(0.0..1.0).contains(&s.momentum_beta) {
-                return Err(Error::invalid(format!("safety.momentum_beta: {} must be in [0, 1)", s.momentum_beta)));
-            }
-            Some((concept, s.clone()))
-        }
-    };
-    Ok(Some(RecipePlan { prompts: prompts.broadcast(n), guidance_scale, safety }))
+    let safety = req.safety.as_ref().map(|s| SafetySpec::from_proto(s, "safety")).transpose()?;
+    let spec = RecipeSpec { prompts: broadcast(prompts, n), guidance_scale, safety };
+    spec.check_against(Some(conditioning), "", &req.model).map_err(|e| {
+        // The request's fields are top-level ("guidance_scale", "safety.concept").
+        Error::invalid(e.0.trim_start_matches('.').to_string())
+    })?;
+    Ok(Some(RecipePlan(spec)))
 }
 
-fn null_conditions(c: &Conditioning) -> Conditions {
+fn null_prompt(c: &Conditioning) -> PromptSet {
     match *c {
-        Conditioning::Labels { null_class, .. } => Conditions::Labels(vec![null_class.unwrap_or(0) as i64]),
-        Conditioning::Embedding { dim } => Conditions::Embeddings { dim, values: vec![0.0; dim] },
+        Conditioning::Labels { null_class, .. } => PromptSet::Labels(vec![null_class.unwrap_or(0) as i64]),
+        Conditioning::Embedding { dim } => PromptSet::Embeddings { dim, values: vec![0.0; dim] },
     }
 }
 
-/// A `Prompts` message checked against the model's conditioning; messages name `field`.
-fn conditions(p: &pb::Prompts, c: &Conditioning, field: &str) -> Result<Conditions> {
-    match (*c, p.labels.is_empty(), &p.embeddings) {
-        (_, false, Some(_)) => Err(Error::invalid(format!("{field}: set labels or embeddings, not both"))),
-        (_, true, None) => Err(Error::invalid(format!("{field}: empty; give labels or embeddings"))),
-        (Conditioning::Labels { num_classes, .. }, false, None) => {
-            if let Some((i, l)) = p.labels.iter().enumerate().find(|(_, l)| !(0..num_classes as i64).contains(*l)) {
-                return Err(Error::invalid(format!(
-                    "{field}.labels[{i}]: {l} is outside the model's labels 0..{num_classes}"
-                )));
-            }
-            Ok(Conditions::Labels(p.labels.clone()))
-        }
-        (Conditioning::Labels { num_classes, .. }, true, Some(_)) => Err(Error::invalid(format!(
-            "{field}.embeddings: the model takes class labels (0..{num_classes}); set labels"
-        ))),
-        (Conditioning::Embedding { dim }, false, None) => {
-            Err(Error::invalid(format!("{field}.labels: the model takes embeddings of width {dim}; set embeddings")))
-        }
-        (Conditioning::Embedding { dim }, true, Some(e)) => {
-            let ok = matches!(e.shape.as_slice(), [d] if *d == dim as u64)
-                || matches!(e.shape.as_slice(), [k, d] if *k >= 1 && *d == dim as u64);
-            if !ok {
-                return Err(Error::invalid(format!(
-                    "{field}.embeddings: shape {} but the model takes [{dim}] or [k, {dim}]",
-                    brief(&e.shape)
-                )));
-            }
-            let values =
-                tensor::decode_finite_f32(e).map_err(|err| Error::invalid(format!("{field}.embeddings: {err}")))?;
-            Ok(Conditions::Embeddings { dim, values })
-        }
+/// One condition repeated to `n` (a request may give one for every sample).
+fn broadcast(p: PromptSet, n: usize) -> PromptSet {
+    if p.len() != 1 || n == 1 {
+        return p;
+    }
+    match p {
+        PromptSet::Labels(l) => PromptSet::Labels(vec![l[0]; n]),
+        PromptSet::Embeddings { dim, values } => PromptSet::Embeddings { dim, values: values.repeat(n) },
     }
 }

@@ -213,7 +213,7 @@ impl Run {
                 }
                 Ok(())
             };
-            let prompts = plan.recipe.as_ref().map(|r| r.prompts.tensor(done, b));
+            let prompts = plan.recipe.as_ref().map(|r| r.prompts(done, b));
             let sampled = sampler.sample_prompted(b, prompts.as_ref(), &mut rng, &mut stop_if_gone)?;
             if !bool::try_from(sampled.x.f_isfinite()?.f_all()?).unwrap_or(false) {
                 // Refused rather than sent as Inf or NaN. With guidance acting, omega is the

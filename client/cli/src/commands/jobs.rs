@@ -235,6 +235,14 @@ fn diffusion_json(d: &pb::TrainDiffusion) -> Value {
     })
 }
 
+/// A sampling recipe in its stored (schema) form, or as the wire gave it when it does not parse.
+fn recipe_json(r: &pb::SamplingRecipe) -> Value {
+    relreward_proto::schema::recipe::RecipeSpec::from_proto(r, "recipe")
+        .ok()
+        .and_then(|spec| serde_json::to_value(spec).ok())
+        .unwrap_or(Value::Null)
+}
+
 fn reward_architecture_json(a: Option<&pb::RewardArchitecture>) -> Value {
     use pb::reward_architecture::Kind;
     match a.and_then(|a| a.kind.as_ref()) {
@@ -271,6 +279,8 @@ fn reward_json(r: &pb::TrainReward) -> Value {
         "action_weight": r.action_weight,
         "condition_weight": r.condition_weight,
         "inpaint_condition": r.inpaint_condition,
+        "base_recipe": r.base_recipe.as_ref().map(recipe_json),
+        "expert_recipe": r.expert_recipe.as_ref().map(recipe_json),
         "amortised_targets": r.amortised_targets.as_ref().map(|a| json!({
             "pool_size": a.pool_size, "reuse": a.reuse, "refresh_fraction": a.refresh_fraction
         })),

@@ -131,6 +131,10 @@ pub struct ModelImportArgs {
     /// "gaussian", mean = [..], std = [..]) [default: identity: a folder holds none].
     #[arg(long, value_name = "NORMALIZER.toml|json", help_heading = "diffusers folder")]
     normalizer: Option<PathBuf>,
+    /// Class-conditional UNet2DModel (num_class_embeds): the label meaning "no class", which
+    /// classifier-free guidance needs [default: none].
+    #[arg(long, value_name = "L", help_heading = "diffusers folder")]
+    null_class: Option<usize>,
     /// The model's subfolder [default: the folder itself when it holds config.json, else unet].
     #[arg(long, value_name = "NAME", help_heading = "diffusers folder")]
     subfolder: Option<String>,
@@ -363,6 +367,7 @@ fn convert_npz(file: &std::path::Path, args: &ModelImportArgs) -> Result<Convert
             ("--action-dim", args.action_dim.is_some()),
             ("--image-size", !args.image_size.is_empty()),
             ("--normalizer", args.normalizer.is_some()),
+            ("--null-class", args.null_class.is_some()),
             ("--subfolder", args.subfolder.is_some()),
             ("--scheduler-config", args.scheduler_config.is_some()),
             ("--revision", args.revision.is_some()),
@@ -463,7 +468,13 @@ fn convert_folder(root: &std::path::Path, repo: Option<&str>, args: &ModelImport
         more => return Err(UsageError(format!("--image-size: {more:?}; give H or H,W")).into()),
     };
     let normalizer = args.normalizer.as_deref().map(manifest::read_file).transpose()?;
-    let hints = Hints { horizon: args.horizon, action_dim: args.action_dim, image_size, normalizer };
+    let hints = Hints {
+        horizon: args.horizon,
+        action_dim: args.action_dim,
+        image_size,
+        normalizer,
+        null_class: args.null_class,
+    };
     let folder = locate(root, args.subfolder.as_deref(), args.scheduler_config.as_deref())?;
     let imported = import_folder(&folder, &hints)?;
     let manifest_path = args.manifest_out.clone().unwrap_or_else(|| default_manifest_path(&args.out));

@@ -95,6 +95,8 @@ pub fn reward_spec(config: TrainConfig, args: &TrainRewardArgs) -> Result<pb::Jo
         action_weight,
         condition_weight,
         inpaint_condition,
+        base_recipe,
+        expert_recipe,
     } = config.reward.unwrap_or_default();
     let base_model = required(&args.base, base_model, "no base model", "--base MODEL", "base_model", "reward")?;
     let expert_model =
@@ -124,6 +126,8 @@ pub fn reward_spec(config: TrainConfig, args: &TrainRewardArgs) -> Result<pb::Jo
         action_weight: action_weight.map(|(x, _)| x),
         condition_weight: condition_weight.map(|(x, _)| x),
         inpaint_condition: args.inpaint_condition.then_some(true).or(inpaint_condition),
+        base_recipe: base_recipe.as_ref().map(relreward_proto::schema::recipe::RecipeSpec::to_proto),
+        expert_recipe: expert_recipe.as_ref().map(relreward_proto::schema::recipe::RecipeSpec::to_proto),
     })))
 }
 

@@ -27,7 +27,7 @@ from relreward.errors import (Aborted, AlreadyExists, Cancelled, DataLoss, Deadl
 from relreward.results import (ArrayInfo, ArrayStats, Dataset, EpisodeInfo, GradientResult, Job, JobEvent, JobState,
                                Manifest, Model, Normalizer, Provenance, RewardInfo, Sample, SampleBatch, Schedule,
                                ScoreResult, Space)
-from relreward.specs import DiffusionJob, DiscriminatorJob, Optimization, RewardJob, SafetyGuidance
+from relreward.specs import DiffusionJob, DiscriminatorJob, Optimization, RewardJob, SafetyGuidance, SamplingRecipe
 from relreward.rl import RewardVectorWrapper, RewardWindows, pointmaze_mapping
 
 __version__ = "0.1.0"
@@ -49,7 +49,7 @@ __all__ = [
     "ScoreResult", "GradientResult", "Sample", "SampleBatch", "DownloadedModel",
     "Dataset", "ArrayInfo", "ArrayStats", "EpisodeInfo", "Model", "Manifest", "Schedule", "Space", "Normalizer",
     "RewardInfo", "Provenance", "Job", "JobState", "JobEvent",
-    "DiffusionJob", "RewardJob", "DiscriminatorJob", "Optimization", "SafetyGuidance", "from_minari_episodes", "relabel", "Relabelled",
+    "DiffusionJob", "RewardJob", "DiscriminatorJob", "Optimization", "SafetyGuidance", "SamplingRecipe", "from_minari_episodes", "relabel", "Relabelled",
     "RewardVectorWrapper", "RewardWindows", "pointmaze_mapping",
     "RelrewardError", "Cancelled", "Unknown", "InvalidArgument", "InvalidInput", "DeadlineExceeded", "NotFound", "AlreadyExists",
     "PermissionDenied", "ResourceExhausted", "FailedPrecondition", "Aborted", "OutOfRange", "Unimplemented",

@@ -181,7 +181,8 @@ class Client:
         :class:`relreward.Model`). ``manifest``: a :class:`relreward.Manifest` (e.g. another
         model's ``get_model(...).manifest``), a dict in the CLI's manifest form (see
         :func:`relreward.specs.manifest`), or a ``DiffusionManifest`` message. The file is a
-        TorchScript module (``forward(x, t)``; needs a server with
+        TorchScript module (``forward(x, t)``, or ``forward(x, t, cond)`` when the manifest has a
+        ``conditioning``; needs a server with
         ``models.allow_torchscript_upload``), or native safetensors weights when the manifest
         names an ``architecture`` (e.g. written by ``relreward model import``; always accepted,
         loaded strictly). It is streamed in chunks with its sha256; the server validates it

@@ -32,7 +32,7 @@ from typing import Any, ClassVar, Iterator, Mapping
 
 import numpy as np
 
-from relreward import specs
+from relreward import _tensor, specs
 from relreward.v1 import datasets_pb2, jobs_pb2, models_pb2, tensor_pb2
 
 #: The cosine schedules' offset s when the wire says 0 (unset), as the server and the CLI
@@ -339,7 +339,8 @@ class Manifest(_Plain):
         arch = {"kind": arch_kind, **_message_fields(getattr(m, arch_kind))} if arch_kind else None
         cond = None
         if m.HasField("conditioning") and (kind := m.conditioning.WhichOneof("kind")):
-            cond = {"kind": kind, **_message_fields(getattr(m.conditioning, kind))}
+            fields = _message_fields(getattr(m.conditioning, kind))
+            cond = {"kind": kind, **{k: v for k, v in fields.items() if v is not None}}
         return cls(None if p == "unspecified" else p,
                    Schedule.from_proto(m.schedule) if m.HasField("schedule") else None,
                    m.n_timesteps, m.clip_denoised, Space.from_proto(m), Normalizer.from_proto(m.normalizer), arch,
@@ -532,7 +533,8 @@ def _spec_of(s: jobs_pb2.JobSpec) -> specs.DiffusionJob | specs.RewardJob | spec
             target=None if target == "unspecified" else target, eval_point=None if point == "unspecified" else point,
             rho_l2=_optional(r, "rho_l2"), action_weight=_optional(r, "action_weight"),
             condition_weight=_optional(r, "condition_weight"), inpaint_condition=_optional(r, "inpaint_condition"),
-            amortised_targets=amortised, **base)
+            amortised_targets=amortised, base_recipe=_recipe(r, "base_recipe"),
+            expert_recipe=_recipe(r, "expert_recipe"), **base)
     if kind == "discriminator":
         d = s.discriminator
         return specs.DiscriminatorJob(
@@ -545,6 +547,24 @@ def _set_fields(message: Any) -> dict[str, Any]:
     """The fields of a message that are set, repeated ones as lists: the ``{...}`` a typed
     spec's ``architecture`` tuple or ``amortised_targets`` holds."""
     return {f.name: list(v) if f.is_repeated else v for f, v in message.ListFields()}
+
+
+def _prompts(p: Any) -> Any:
+    """A ``Prompts`` message as the client takes it: a list of labels or an embeddings array."""
+    return list(p.labels) if p.labels else _tensor.decode(p.embeddings)
+
+
+def _recipe(r: Any, name: str) -> specs.SamplingRecipe | None:
+    """A reward job's ``base_recipe`` / ``expert_recipe`` as a :class:`relreward.SamplingRecipe`."""
+    if not r.HasField(name):
+        return None
+    m = getattr(r, name)
+    safety = None
+    if m.HasField("safety"):
+        s = m.safety
+        safety = specs.SafetyGuidance(_prompts(s.concept), s.scale, s.warmup_steps, s.threshold, s.momentum_scale,
+                                      s.momentum_beta)
+    return specs.SamplingRecipe(_prompts(m.prompts), _optional(m, "guidance_scale"), safety)
 
 
 def _reward_architecture(m: Any) -> tuple[str, dict[str, Any]] | None:

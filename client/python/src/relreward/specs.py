@@ -1,5 +1,6 @@
 """Typed training job specs: :class:`DiffusionJob`, :class:`RewardJob`, :class:`DiscriminatorJob`;
-and :class:`SafetyGuidance`, Safe Latent Diffusion's settings for ``Client.sample``.
+:class:`SafetyGuidance`, Safe Latent Diffusion's settings for ``Client.sample``, and
+:class:`SamplingRecipe`, how a reward job's Algorithm 2 samples a conditional model.
 
 Each builds a ``relreward.v1.JobSpec`` (:meth:`to_proto`); fields left ``None`` take the
 server's defaults (see jobs.proto). ``Client.submit_job`` also accepts a plain dict in the
@@ -181,6 +182,10 @@ class RewardJob:
     #: Algorithm 1's amortised targets: a mapping with any of ``pool_size``, ``reuse``,
     #: ``refresh_fraction`` (``{}`` for the server's defaults); None leaves the option off.
     amortised_targets: Mapping[str, Any] | None = None
+    #: Algorithm 2 with conditional models: how each side is sampled (a :class:`SamplingRecipe`);
+    #: one conditional model with two recipes is Safe Latent Diffusion's setting.
+    base_recipe: "SamplingRecipe | None" = None
+    expert_recipe: "SamplingRecipe | None" = None
     seed: int | None = None
     optimization: Optimization | None = None
 
@@ -209,6 +214,10 @@ class RewardJob:
             r.inpaint_condition = self.inpaint_condition
         if self.amortised_targets is not None:
             r.amortised_targets.CopyFrom(jobs_pb2.AmortisedTargets(**dict(self.amortised_targets)))
+        if self.base_recipe is not None:
+            r.base_recipe.CopyFrom(self.base_recipe.to_proto())
+        if self.expert_recipe is not None:
+            r.expert_recipe.CopyFrom(self.expert_recipe.to_proto())
         spec = _base(self.output_model, self.seed, self.optimization)
         spec.reward.CopyFrom(r)
         return spec
@@ -414,3 +423,25 @@ class SafetyGuidance:
                                          scale=float(self.scale), warmup_steps=int(self.warmup_steps),
                                          threshold=float(self.threshold), momentum_scale=float(self.momentum_scale),
                                          momentum_beta=float(self.momentum_beta))
+
+
+@dataclass
+class SamplingRecipe:
+    """How a conditional model is sampled in a reward job's Algorithm 2 (``RewardJob(base_recipe=...,
+    expert_recipe=...)``): ``prompts`` is the prompt set each chain draws one condition from
+    (class labels, or embeddings ``[k, dim]``); ``guidance_scale`` classifier-free guidance
+    (None: 1, the conditional model alone); ``safety`` a :class:`SafetyGuidance`."""
+
+    prompts: Any
+    guidance_scale: float | None = None
+    safety: SafetyGuidance | None = None
+
+    def to_proto(self) -> reward_pb2.SamplingRecipe:
+        """The ``relreward.v1.SamplingRecipe`` message."""
+        from relreward._common import prompts_message
+        r = reward_pb2.SamplingRecipe(prompts=prompts_message("prompts", self.prompts))
+        if self.guidance_scale is not None:
+            r.guidance_scale = float(self.guidance_scale)
+        if self.safety is not None:
+            r.safety.CopyFrom(self.safety.to_proto())
+        return r

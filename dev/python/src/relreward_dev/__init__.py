@@ -19,6 +19,7 @@ Module map:
   tables), for the reference server and the in-process comparisons.
 - ``unet2d``: diffusers' own UNet2DModel and DDPMScheduler configured as relreward's native
   Unet2d and linear schedule.
+- ``rng``: the server's seeded generator, draw for draw, for replaying a run's noise.
 - ``analytic``: the exact eps-model of Gaussian data, as a TorchScript-able module.
 - ``digits``: scikit-learn's 8x8 digits scaled to [-1, 1] and split as the digits experiment
   splits them.

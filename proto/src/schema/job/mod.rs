@@ -14,6 +14,7 @@ use std::fmt;
 use serde::{Deserialize, Serialize};
 
 use super::manifest::{Architecture, DEFAULT_COSINE_S, Parametrization, ScheduleSpec, Space};
+use super::recipe::RecipeSpec;
 use super::{Invalid, invalid, known, or_default, wire_u32, wire_u32s};
 use crate::given_number;
 use crate::v1 as pb;
@@ -234,6 +235,11 @@ pub struct RewardJob {
     /// Algorithm 1 on x_t with the first observation clean (trajectory models).
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub inpaint_condition: bool,
+    /// Algorithm 2 with conditional models: how each side is sampled (see the proto).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub base_recipe: Option<RecipeSpec>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub expert_recipe: Option<RecipeSpec>,
 }
 
 /// Serde's default for weights that jobs stored before they existed did not carry.
@@ -598,6 +604,16 @@ impl JobSpec {
                     action_weight: r.action_weight.unwrap_or(1.0),
                     condition_weight: r.condition_weight.unwrap_or(1.0),
                     inpaint_condition: r.inpaint_condition.unwrap_or(false),
+                    base_recipe: r
+                        .base_recipe
+                        .as_ref()
+                        .map(|x| RecipeSpec::from_proto(x, "spec.reward.base_recipe"))
+                        .transpose()?,
+                    expert_recipe: r
+                        .expert_recipe
+                        .as_ref()
+                        .map(|x| RecipeSpec::from_proto(x, "spec.reward.expert_recipe"))
+                        .transpose()?,
                     amortised_targets: r.amortised_targets.as_ref().map(AmortisedTargets::from_proto),
                     base_model: r.base_model,
                     expert_model: r.expert_model,
@@ -670,6 +686,8 @@ impl JobSpec {
                 condition_weight: Some(r.condition_weight),
                 inpaint_condition: Some(r.inpaint_condition),
                 amortised_targets: r.amortised_targets.as_ref().map(AmortisedTargets::to_proto),
+                base_recipe: r.base_recipe.as_ref().map(RecipeSpec::to_proto),
+                expert_recipe: r.expert_recipe.as_ref().map(RecipeSpec::to_proto),
             }),
             JobKind::Discriminator(d) => pb::job_spec::Kind::Discriminator(pb::TrainDiscriminator {
                 base_dataset: d.base_dataset.clone(),
@@ -775,6 +793,16 @@ impl RewardJob {
                 return invalid(format!("spec.reward.models_only.num_chains: {num_chains} is outside 2..=65536"));
             }
             _ => {}
+        }
+        for (name, recipe) in [("base_recipe", &self.base_recipe), ("expert_recipe", &self.expert_recipe)] {
+            if let Some(r) = recipe {
+                if !models_only {
+                    return invalid(format!(
+                        "spec.reward.{name}: applies to models_only (Algorithm 2) only; with_dataset noises the data's items, not chains"
+                    ));
+                }
+                r.validate(&format!("spec.reward.{name}"))?;
+            }
         }
         if self.inpaint_condition && models_only {
             return invalid(

@@ -129,6 +129,10 @@ pub struct RewardConfig {
     pub action_weight: Option<f64>,
     pub condition_weight: Option<f64>,
     pub inpaint_condition: Option<bool>,
+    /// Algorithm 2 with conditional models: each side's sampling recipe, e.g.
+    /// `expert_recipe = { prompts = { labels = [0, 1] }, guidance_scale = 3.0 }`.
+    pub base_recipe: Option<crate::schema::recipe::RecipeSpec>,
+    pub expert_recipe: Option<crate::schema::recipe::RecipeSpec>,
 }
 
 #[derive(Debug, Clone, Default, PartialEq, Deserialize)]
