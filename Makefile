@@ -26,7 +26,7 @@ BIN := target/release
 # Arguments for `make run`, e.g. make run ARGS="--listen 127.0.0.1:6000 --data-dir /tmp/rr".
 ARGS ?=
 
-.PHONY: help setup build run test test-cluster lint fmt clean demo bench soak steer images rl-pointmaze rl-offline
+.PHONY: help setup build run test test-cluster lint fmt clean demo bench soak steer images images-safe rl-pointmaze rl-offline
 # Arguments for `make demo`, e.g. make demo DEMO_ARGS="--layout medium --goals 4".
 DEMO_ARGS ?=
 
@@ -39,6 +39,7 @@ help:
 	@echo "make soak   the 10-minute load and soak test (tests/soak.sh; make test runs 60 s of it)"
 	@echo "make steer  locomotion steering experiment, ENV=hopper|halfcheetah|walker2d (paper section 5.2)"
 	@echo "make images the digits experiment: Algorithm 2 on two image DDPMs (experiments/images/digits.py)"
+	@echo "make images-safe one conditional latent DDPM, two samplers (plain and safety-guided), Algorithm 2 (experiments/images/safe_latent.py)"
 	@echo "make rl-pointmaze  SAC agents on the extracted reward alone in MuJoCo PointMaze (issue 35; RL_ARGS)"
 	@echo "make rl-offline    IQL (d3rlpy) on relabelled locomotion data, OFFLINE_ENV=halfcheetah (issue 35)"
 	@echo "make lint   rustfmt check and clippy"
@@ -95,6 +96,13 @@ test: build
 IMAGES_ARGS ?=
 images: build
 	$(VENV)/bin/python experiments/images/digits.py $(IMAGES_ARGS)
+
+## images-safe: the paper's section 5.3 as the paper ran it (experiments/images/safe_latent.py):
+## one class-conditional latent DDPM on the digits' autoencoder latents, base = classifier-free
+## guidance, expert = the same plus Safe Latent Diffusion's guidance away from the unsafe classes,
+## Algorithm 2 from the two samplers; writes docs/images/safe_latent/. SAFE_ARGS e.g. "--seed 1".
+images-safe: build
+	$(VENV)/bin/python experiments/images/safe_latent.py $(SAFE_ARGS)
 
 ## test-cluster: the shared backend across processes (tests/cluster/run.sh): a real PostgreSQL
 ## (Debian package, installed if missing) and s3s-fs (built into .tools/ once), two serving

@@ -147,6 +147,8 @@ fn reward_spec(
             action_weight: None,
             condition_weight: None,
             inpaint_condition: None,
+            base_recipe: None,
+            expert_recipe: None,
         })),
     }
 }

@@ -66,6 +66,9 @@ pub fn trace_denoiser(
     trace("Denoiser", item_shape, n_timesteps, conditioning, &|x, t, c| net.forward(x, t, c), out)
 }
 
+/// A traced pass: (x, t) and, for a conditional network, its condition.
+type Forward<'a> = dyn Fn(&Tensor, &Tensor, Option<&Tensor>) -> Result<Tensor> + 'a;
+
 /// A condition per item, deterministic like [`inputs`]: labels cycling through the classes, or
 /// embeddings of a sine ramp.
 fn condition(c: &Conditioning, batch: i64, phase: f64) -> Result<Tensor> {
@@ -100,7 +103,7 @@ fn trace(
     item_shape: &[i64],
     n_timesteps: usize,
     conditioning: Option<&Conditioning>,
-    forward: &dyn Fn(&Tensor, &Tensor, Option<&Tensor>) -> Result<Tensor>,
+    forward: &Forward<'_>,
     out: &Path,
 ) -> Result<()> {
     let (x, t) = inputs(item_shape, n_timesteps, TRACE_BATCH, 0.0)?;

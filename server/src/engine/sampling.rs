@@ -217,7 +217,7 @@ impl<'a> GuidedSampler<'a> {
             }
         };
         if let Some(ddim) = self.ddim {
-            return self.sample_ddim(n, rng, on_step, ddim, guidance, &prepared, &mut predictor);
+            return self.sample_ddim(n, rng, on_step, ddim, &prepared, &mut predictor);
         }
         let model = self.model;
         let big_t = model.n_timesteps();
@@ -275,10 +275,10 @@ impl<'a> GuidedSampler<'a> {
         rng: &mut Rng,
         on_step: &mut StepCallback<'_>,
         ddim: Ddim,
-        guidance: Option<Guidance<'a>>,
         prepared: &Prepared,
         predictor: &mut Predictor<'_>,
     ) -> Result<Sampled> {
+        let guidance = self.checked_guidance()?;
         let model = self.model;
         let big_t = model.n_timesteps();
         ddim.check(big_t, "ddim")?;

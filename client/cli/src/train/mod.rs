@@ -363,6 +363,8 @@ mod tests {
                 action_weight: Some(10.0),
                 condition_weight: None,
                 inpaint_condition: None,
+                base_recipe: None,
+                expert_recipe: None,
             }
         );
         // Algorithm 2 from the file, with its chain count.
@@ -370,6 +372,18 @@ mod tests {
                     algorithm = { kind = \"models_only\", num_chains = 512 }";
         let spec = reward_spec(config(text), &TrainRewardArgs { job: job("r"), ..Default::default() }).expect("spec");
         assert_eq!(reward(&spec).algorithm, models_only(Some(512)));
+        // Algorithm 2 with two recipes of a conditional model (Safe Latent Diffusion's setting).
+        let text = "[reward]\nbase_model = \"m\"\nexpert_model = \"m\"\n\
+                    algorithm = { kind = \"models_only\" }\n\
+                    base_recipe = { prompts = { labels = [0, 3] }, guidance_scale = 3.0 }\n\
+                    [reward.expert_recipe]\nprompts = { labels = [0, 3] }\nguidance_scale = 3.0\n\
+                    safety = { concept = { labels = [3] }, scale = 2000.0, warmup_steps = 7, threshold = 0.025, \
+                    momentum_scale = 0.5, momentum_beta = 0.7 }";
+        let spec = reward_spec(config(text), &TrainRewardArgs { job: job("r"), ..Default::default() }).expect("spec");
+        let r = reward(&spec);
+        assert_eq!(r.base_recipe.as_ref().and_then(|b| b.prompts.as_ref()).map(|p| p.labels.clone()), Some(vec![0, 3]));
+        let safety = r.expert_recipe.as_ref().and_then(|e| e.safety.as_ref()).expect("safety");
+        assert_eq!((safety.warmup_steps, safety.scale), (7, 2000.0));
     }
 
     #[test]
