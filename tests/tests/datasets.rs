@@ -160,3 +160,45 @@ async fn cli_uploads_a_million_transitions_matching_numpy() {
     assert_eq!(out.status.code(), Some(1));
     assert!(String::from_utf8_lossy(&out.stderr).contains("NOT_FOUND"));
 }
+
+/// Class labels of a samples dataset (issue 37): stored with statistics (max, what conditional
+/// training reads its class count from), and refused by the server itself, naming the row or the
+/// field, when a client sends a negative label, a float array as labels, or labels alone.
+#[tokio::test(flavor = "multi_thread")]
+async fn sample_labels_are_stored_and_checked_by_the_server() {
+    use relreward_tests::dataset_upload::{commit, sha};
+    let server = TestServer::start();
+    let client = server.client().await;
+    let samples = encode_f32(&[4, 1, 2, 2], &[0.5; 16]);
+    let int64 = |v: &[i64]| pb::Tensor {
+        shape: vec![v.len() as u64],
+        dtype: Dtype::Int64 as i32,
+        data: v.iter().flat_map(|x| x.to_le_bytes()).collect(),
+    };
+    let upload = |name: &str, labels: pb::Tensor, dtype: Dtype| {
+        let digest = sha(&[&samples.data, &labels.data]);
+        vec![
+            header(
+                name,
+                pb::DatasetKind::Samples,
+                &[("samples", Dtype::Float32, &[4, 1, 2, 2]), ("labels", dtype, &[4])],
+            ),
+            chunk("samples", samples.clone()),
+            chunk("labels", labels),
+            commit(&digest),
+        ]
+    };
+    let ds = raw_upload(&client, upload("labelled", int64(&[0, 3, 1, 2]), Dtype::Int64)).await.expect("labels");
+    let labels = ds.arrays.iter().find(|a| a.spec.as_ref().is_some_and(|s| s.name == "labels")).expect("labels");
+    assert_eq!(labels.stats.as_ref().map(|s| s.max.clone()), Some(vec![3.0]));
+
+    let err = raw_upload(&client, upload("negative", int64(&[0, -1, 1, 2]), Dtype::Int64)).await.expect_err("-1");
+    assert_eq!(err.code(), Code::InvalidArgument);
+    assert!(err.message().contains("label -1 at row 1"), "{}", err.message());
+    let err = raw_upload(&client, upload("floats", encode_f32(&[4], &[0.0; 4]), Dtype::Float32)).await.expect_err("f");
+    assert!(err.message().contains("class labels must be int32, int64 or uint8"), "{}", err.message());
+    let alone = vec![header("alone", pb::DatasetKind::Samples, &[("labels", Dtype::Int64, &[4])])];
+    let err = raw_upload(&client, alone).await.expect_err("labels alone");
+    assert!(err.message().contains("a samples dataset needs 'samples'"), "{}", err.message());
+    assert_eq!(client.list_datasets().await.expect("list").len(), 1, "only the valid upload is stored");
+}
