@@ -1,5 +1,6 @@
-//! The service's two user-written documents, defined once for both ends: the diffusion model
-//! manifest ([`manifest`]) and the training job spec ([`job`]).
+//! The service's user-written documents, defined once for both ends: the diffusion model
+//! manifest ([`manifest`], with the bring-your-own reward's), the training job spec ([`job`])
+//! and the autoencoder manifest ([`autoencoder`]).
 //!
 //! Each document has one set of Rust types, used three ways: as the file a user writes (TOML or
 //! JSON, [`parse_text`]), as what the server stores (serde JSON, every field explicit), and as
@@ -11,6 +12,7 @@
 //!
 //! Everything here is plain data: no tch, no I/O beyond parsing text.
 
+pub mod autoencoder;
 pub mod job;
 pub mod manifest;
 pub mod summary;

@@ -14,7 +14,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 from google.protobuf import json_format
 
-from relreward.v1 import jobs_pb2, models_pb2
+from relreward.v1 import autoencoder_pb2, jobs_pb2, models_pb2
 from relreward.errors import InvalidInput
 
 
@@ -349,4 +349,43 @@ def reward_manifest(m: Any) -> models_pb2.RewardUploadManifest:
     out = models_pb2.RewardUploadManifest(signature=_SIGNATURES[signature], n_timesteps=int(m.get("n_timesteps", 0)),
                                           base_model=str(m.get("base_model", "")))
     _space_and_normalizer(out, m)
+    return out
+
+
+_AUTOENCODER_FIELDS = ("image_shape", "latent_shape", "scaling_factor", "shift_factor")
+
+
+def autoencoder_manifest(m: Any) -> autoencoder_pb2.AutoencoderUploadManifest:
+    """An autoencoder's AutoencoderUploadManifest from a message or a dict in the CLI's
+    autoencoder manifest form (``relreward model upload --autoencoder``)::
+
+        {"image_shape": [3, 16, 16],     # one image: what encode(x) takes
+         "latent_shape": [4, 4, 4],      # one latent: what encode returns, decode takes
+         "scaling_factor": 0.18215,      # optional, default 1 (diffusers' vae.config.scaling_factor)
+         "shift_factor": 0.0}            # optional, default 0 (diffusers' vae.config.shift_factor)
+
+    The service's latents are ``(encode(x) - shift_factor) * scaling_factor`` and its images
+    ``decode(z / scaling_factor + shift_factor)``.
+    """
+    if isinstance(m, autoencoder_pb2.AutoencoderUploadManifest):
+        return m
+    m = dict(m)
+    unknown = set(m) - set(_AUTOENCODER_FIELDS)
+    if unknown:
+        raise InvalidInput(f"autoencoder manifest: unknown field(s) {sorted(unknown)}; expected image_shape, "
+                           f"latent_shape and optionally scaling_factor, shift_factor")
+    out = autoencoder_pb2.AutoencoderUploadManifest()
+    for name in ("image_shape", "latent_shape"):
+        shape = m.get(name)
+        try:
+            dims = [int(d) for d in shape] if shape is not None else []
+        except (TypeError, ValueError):
+            raise InvalidInput(f"autoencoder manifest.{name}: {shape!r}; expected a list of dimensions") from None
+        if not dims or min(dims) < 1:
+            raise InvalidInput(f"autoencoder manifest.{name}: {shape!r}; expected one item's shape, every "
+                               f"dimension positive, e.g. [3, 16, 16]")
+        getattr(out, name).extend(dims)
+    for name in ("scaling_factor", "shift_factor"):
+        if m.get(name) is not None:
+            setattr(out, name, float(m[name]))
     return out
