@@ -8,6 +8,7 @@ use std::path::{Path, PathBuf};
 
 const PROTOS: &[&str] = &[
     "relreward/v1/tensor.proto",
+    "relreward/v1/autoencoder.proto",
     "relreward/v1/datasets.proto",
     "relreward/v1/models.proto",
     "relreward/v1/jobs.proto",

@@ -13,6 +13,8 @@
 //!   what they guard.
 //! - [`sampling`]: Sample runs behind their own workers: one validation, a bounded queue, a
 //!   stream of host rows back to the door.
+//! - [`latents`]: Encode and Decode through an uploaded autoencoder: one validation, one pass
+//!   under an inference slot, host values back to the door.
 //! - [`serving`]: Score and Gradient queries: validation, units, the per-model dynamic batcher.
 //! - [`jobs`]: the job system (queue, threads, events, checkpoints) and the training runners,
 //!   which drive the engine's trainers (e.g. [`engine::reward_trainer`]).
@@ -61,6 +63,7 @@ pub mod error;
 pub mod fault;
 pub mod fields;
 pub mod jobs;
+pub mod latents;
 pub mod limits;
 pub mod metrics;
 pub mod oip_http;
@@ -142,6 +145,8 @@ pub async fn run(
         metrics.clone(),
         group("serving"),
     );
+    let latents =
+        latents::Latents::new(registry.clone(), slots.clone(), config.server.max_response_bytes, group("latents"));
     let sampling =
         sampling::Sampling::start(registry.clone(), slots, config.engine.inference_workers, group("sampling"));
     // Stopped after the gRPC drain (last, so the shutdown can be watched), or by the guard.
@@ -222,7 +227,15 @@ pub async fn run(
         builder = builder.tls_config(tls)?;
     }
     let routes = if role.serves() {
-        api::routes(&config, store, job_manager.clone(), serving.clone(), sampling.clone(), streams.clone())
+        api::routes(
+            &config,
+            store,
+            job_manager.clone(),
+            serving.clone(),
+            sampling.clone(),
+            latents.clone(),
+            streams.clone(),
+        )
     } else {
         tonic::service::Routes::default()
     };
@@ -286,10 +299,12 @@ pub async fn run(
     };
     // After the grace, what still runs is stopped: streams (ended already, unless a client
     // never read its answers), sampling runs (at their next denoising step; queued ones are
-    // answered UNAVAILABLE), then the serving threads (which may wait for a slot a sampling
+    // answered UNAVAILABLE), Encode/Decode passes (waited for; callers still waiting for a
+    // slot are answered UNAVAILABLE), then the serving threads (which may wait for a slot a sampling
     // run held), then the metrics endpoint.
     streams.stop(STOP_BOUND).await;
     sampling.stop(STOP_BOUND).await;
+    latents.stop(STOP_BOUND).await;
     oip_http_tasks.stop(STOP_BOUND).await;
     serving.stop(STOP_BOUND).await;
     metrics_tasks.stop(STOP_BOUND).await;

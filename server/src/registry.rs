@@ -1,5 +1,6 @@
 //! [`ModelRegistry`]: stored models loaded on demand and kept in memory: diffusion models
-//! ([`DiffusionModel`]) and reward or discriminator models ([`RewardModel`]).
+//! ([`DiffusionModel`]), reward or discriminator models ([`RewardModel`]) and autoencoders
+//! ([`TorchScriptAutoencoder`]).
 //!
 //! Where it sits: between the doors and workers above it (`api`, `serving`, `sampling`, `jobs`)
 //! and [`crate::engine`] below. It is the one place where the store's records and files meet
@@ -10,7 +11,8 @@
 //!   file is a native architecture's safetensors weights ([`NativeDenoiser`]) or a TorchScript
 //!   module ([`TorchScriptDenoiser`], validated again with one forward pass); a reward model's
 //!   is its network's safetensors weights (plus Algorithm 2's step tables beside them), or a
-//!   bring-your-own TorchScript module ([`TorchScriptReward`], validated again as at upload).
+//!   bring-your-own TorchScript module ([`TorchScriptReward`], validated again as at upload);
+//!   an autoencoder's is its TorchScript module ([`TorchScriptAutoencoder`], likewise).
 //! - Integrity: the stored file's sha256 is recomputed on every load and compared with the
 //!   record's; a mismatch (or a missing file, or an unreadable manifest) is `DataLoss` and the
 //!   model is never served.
@@ -24,8 +26,8 @@
 //!   models generation), so a model deleted and registered again under the same name is never
 //!   served from a stale entry, and the serving hot path costs no metadata read.
 //!   [`ModelRegistry::invalidate`] frees an entry at once.
-//! - Kind: asking for a diffusion model by the name of a reward model, or the reverse, is
-//!   `FailedPrecondition` (the name is well formed and the model exists; it is the wrong kind
+//! - Kind: asking for a diffusion model by the name of a reward model, or the reverse (or for
+//!   an autoencoder by another kind's name), is `FailedPrecondition` (the name is well formed and the model exists; it is the wrong kind
 //!   of model for the request in the system's current state).
 //!
 //! tch modules are `Send` but not `Sync`, so each model is shared behind a `std::sync::Mutex`
@@ -38,6 +40,7 @@ use std::sync::{Arc, Mutex, MutexGuard, PoisonError};
 use tch::Device;
 
 use crate::config::ModelsConfig;
+use crate::engine::autoencoder::{AutoencoderManifest, TorchScriptAutoencoder};
 use crate::engine::denoiser::{Denoiser, ValidationProbe};
 use crate::engine::diffusion::DiffusionModel;
 use crate::engine::export;
@@ -55,6 +58,26 @@ pub type SharedDiffusion = Arc<ServedDiffusion>;
 
 /// A loaded reward or discriminator model, shared between requests.
 pub type SharedReward = Arc<ServedReward>;
+
+/// A loaded autoencoder, shared between requests.
+pub type SharedAutoencoder = Arc<ServedAutoencoder>;
+
+/// An autoencoder with its manifest (shapes, scaling) readable without its lock, so Encode and
+/// Decode are validated on the async side.
+#[derive(Debug)]
+pub struct ServedAutoencoder {
+    pub name: String,
+    pub manifest: AutoencoderManifest,
+    model: Mutex<TorchScriptAutoencoder>,
+}
+
+impl ServedAutoencoder {
+    /// The module, for tensor work (blocking threads only).
+    pub fn lock(&self) -> MutexGuard<'_, TorchScriptAutoencoder> {
+        // Encoding and decoding never write the weights.
+        lock(&self.model)
+    }
+}
 
 /// A reward model with what requests validate against readable without its lock.
 #[derive(Debug)]
@@ -124,6 +147,7 @@ struct Cache {
 enum Served {
     Diffusion(SharedDiffusion),
     Reward(SharedReward),
+    Autoencoder(SharedAutoencoder),
 }
 
 /// Which family a request needs.
@@ -131,6 +155,7 @@ enum Served {
 enum Family {
     Diffusion,
     Reward,
+    Autoencoder,
 }
 
 struct Entry {
@@ -181,8 +206,8 @@ impl ModelRegistry {
     pub async fn get_diffusion(&self, name: &str) -> Result<SharedDiffusion> {
         match self.get(name, Family::Diffusion).await? {
             Served::Diffusion(m) => Ok(m),
-            Served::Reward(_) => {
-                Err(Error::internal("model registry", "a reward model was cached as a diffusion model"))
+            Served::Reward(_) | Served::Autoencoder(_) => {
+                Err(Error::internal("model registry", "another kind of model was cached as a diffusion model"))
             }
         }
     }
@@ -193,8 +218,20 @@ impl ModelRegistry {
     pub async fn get_reward(&self, name: &str) -> Result<SharedReward> {
         match self.get(name, Family::Reward).await? {
             Served::Reward(m) => Ok(m),
-            Served::Diffusion(_) => {
-                Err(Error::internal("model registry", "a diffusion model was cached as a reward model"))
+            Served::Diffusion(_) | Served::Autoencoder(_) => {
+                Err(Error::internal("model registry", "another kind of model was cached as a reward model"))
+            }
+        }
+    }
+
+    /// The autoencoder `name`, from the cache or loaded from the store.
+    ///
+    /// Errors: `NotFound`, `FailedPrecondition` (another kind of model), `DataLoss`.
+    pub async fn get_autoencoder(&self, name: &str) -> Result<SharedAutoencoder> {
+        match self.get(name, Family::Autoencoder).await? {
+            Served::Autoencoder(m) => Ok(m),
+            Served::Diffusion(_) | Served::Reward(_) => {
+                Err(Error::internal("model registry", "another kind of model was cached as an autoencoder"))
             }
         }
     }
@@ -245,6 +282,7 @@ impl ModelRegistry {
         let loaded = tokio::task::spawn_blocking(move || match family {
             Family::Diffusion => load_diffusion(&record, &dir, device),
             Family::Reward => load_reward(&record, &dir, device),
+            Family::Autoencoder => load_autoencoder(&record, &dir, device),
         })
         .await
         .map_err(|e| Error::internal("model loading task", e))?;
@@ -278,13 +316,18 @@ impl ModelRegistry {
             .ok_or_else(|| Error::NotFound(format!("model '{name}' not found")))?;
         match (record.kind, family) {
             (ModelKind::Diffusion, Family::Diffusion)
-            | (ModelKind::Reward | ModelKind::Discriminator, Family::Reward) => Ok(record),
-            (kind, Family::Diffusion) => Err(Error::FailedPrecondition(format!(
-                "model '{name}' is a {} model, not a diffusion model",
+            | (ModelKind::Reward | ModelKind::Discriminator, Family::Reward)
+            | (ModelKind::Autoencoder, Family::Autoencoder) => Ok(record),
+            (kind, Family::Diffusion) => {
+                Err(Error::FailedPrecondition(format!("model '{name}' is {}, not a diffusion model", kind_name(kind))))
+            }
+            (kind, Family::Reward) => Err(Error::FailedPrecondition(format!(
+                "model '{name}' is {}, not a reward or discriminator model",
                 kind_name(kind)
             ))),
-            (kind, Family::Reward) => Err(Error::FailedPrecondition(format!(
-                "model '{name}' is a {} model, not a reward or discriminator model",
+            (kind, Family::Autoencoder) => Err(Error::FailedPrecondition(format!(
+                "model '{name}' is {}, not an autoencoder (Encode and Decode take a model uploaded with \
+                 header.autoencoder)",
                 kind_name(kind)
             ))),
         }
@@ -299,6 +342,7 @@ impl ModelRegistry {
         let same_family = match &entry.model {
             Served::Diffusion(_) => family == Family::Diffusion,
             Served::Reward(_) => family == Family::Reward,
+            Served::Autoencoder(_) => family == Family::Autoencoder,
         };
         if !same_family {
             return None;
@@ -403,6 +447,18 @@ impl ModelRegistry {
         .map_err(|e| Error::internal("module validation task", e))?
     }
 
+    /// Loads an autoencoder's module at `path` on the registry's device and validates it against
+    /// `manifest` (see [`TorchScriptAutoencoder::load_and_validate`]: encode and decode once each
+    /// on zeros of the declared shapes) on a blocking thread. Returns its parameter count.
+    pub async fn validate_torchscript_autoencoder(&self, path: PathBuf, manifest: AutoencoderManifest) -> Result<u64> {
+        let device = self.inner.device;
+        tokio::task::spawn_blocking(move || {
+            TorchScriptAutoencoder::load_and_validate(&path, &manifest, device).map(|a| a.parameter_count())
+        })
+        .await
+        .map_err(|e| Error::internal("module validation task", e))?
+    }
+
     /// Checks uploaded native weights against their manifest before registration (blocking
     /// work on a worker thread): the strict load names every missing, unexpected or mis-shaped
     /// tensor; every weight must be finite (the error names the first tensor holding a NaN or
@@ -437,11 +493,13 @@ impl ModelRegistry {
     }
 }
 
+/// A kind of model with its article, for messages ("a reward model", "an autoencoder").
 fn kind_name(kind: ModelKind) -> &'static str {
     match kind {
-        ModelKind::Diffusion => "diffusion",
-        ModelKind::Reward => "reward",
-        ModelKind::Discriminator => "discriminator",
+        ModelKind::Diffusion => "a diffusion model",
+        ModelKind::Reward => "a reward model",
+        ModelKind::Discriminator => "a discriminator model",
+        ModelKind::Autoencoder => "an autoencoder",
     }
 }
 
@@ -460,6 +518,11 @@ pub fn load_diffusion_copy(record: &ModelRecord, dir: &Path, device: Device) -> 
 pub fn export_torchscript(record: &ModelRecord, dir: &Path, out: &Path) -> Result<()> {
     let path = dir.join(&record.file);
     match (record.kind, record.format) {
+        (ModelKind::Autoencoder, _) => Err(Error::FailedPrecondition(format!(
+            "torchscript: model '{}' is an autoencoder, an uploaded TorchScript module; its module.pt, as uploaded, \
+             is the module",
+            record.name
+        ))),
         (ModelKind::Diffusion, ModelFormat::Torchscript) => Err(Error::FailedPrecondition(format!(
             "torchscript: model '{}' is stored as TorchScript already; its module.pt is the export",
             record.name
@@ -558,6 +621,27 @@ fn build_diffusion(record: &ModelRecord, dir: &Path, device: Device) -> Result<(
     };
     let model = DiffusionModel::new(manifest, net)?;
     Ok((model, parameter_bytes.max(size)))
+}
+
+/// Builds the autoencoder of a stored record (blocking): its module validated again as at
+/// upload, so a module that no longer honours its manifest is never served.
+fn load_autoencoder(record: &ModelRecord, dir: &Path, device: Device) -> Result<Loaded> {
+    let (path, size) = verified_file(record, dir)?;
+    let manifest: AutoencoderManifest = serde_json::from_value(record.manifest.clone())
+        .map_err(|e| lost(record, format!("its stored manifest is unreadable: {e}")))?;
+    if record.format != ModelFormat::Torchscript {
+        return Err(lost(
+            record,
+            format!("an autoencoder's format is TorchScript, its record says {:?}", record.format),
+        ));
+    }
+    let model = TorchScriptAutoencoder::load_and_validate(&path, &manifest, device).map_err(|e| match e {
+        Error::InvalidArgument(m) => lost(record, m),
+        other => other,
+    })?;
+    let bytes = model.parameter_bytes().max(size);
+    let served = ServedAutoencoder { name: record.name.clone(), manifest, model: Mutex::new(model) };
+    Ok(Loaded { model: Served::Autoencoder(Arc::new(served)), bytes })
 }
 
 /// Builds the reward model of a stored record (blocking).

@@ -94,6 +94,7 @@ async fn upload_model(client: &Client, path: &Path, name: &str) {
         description: String::new(),
         format: 0,
         reward: None,
+        autoencoder: None,
     };
     client.upload_model(header, path, Arc::new(UploadProgress::default())).await.expect("upload model");
 }

@@ -59,6 +59,7 @@ pub fn header(name: &str, manifest: Option<pb::DiffusionManifest>) -> pb::Upload
         description: format!("fixture {name}"),
         format: 0,
         reward: None,
+        autoencoder: None,
     }
 }
 

@@ -1,6 +1,7 @@
 //! The model registry end to end: TorchScript uploads through the real server binary, checked
 //! against fixtures exported by `tests/python/export_models.py` (an exact Gaussian eps-model, a
-//! linear model with known parameters, and modules that break their manifest in each way).
+//! linear model with known parameters, and modules that break their manifest in each way);
+//! native weights; downloads; autoencoders with Encode and Decode.
 
 use std::path::Path;
 use std::process::Command;
@@ -107,6 +108,7 @@ async fn native_weights_register_through_model_import() {
         description: String::new(),
         format: format as i32,
         reward: None,
+        autoencoder: None,
     };
     let mut bare = manifest.clone();
     bare.architecture = None;
@@ -293,4 +295,157 @@ async fn download_returns_the_stored_files() {
     assert_eq!(manifest["space"]["horizon"], tiny.horizon);
     assert_eq!(manifest["n_timesteps"], tiny.n_timesteps);
     assert!(manifest["normalizer"]["kind"].is_string(), "{manifest}");
+}
+
+/// Scripts an autoencoder with PyTorch into `dir/ae.pt`: images [1, 4, 4] to latents [1, 2, 2]
+/// by 2x2 average pooling times 3; latents back by nearest upsampling times 0.5.
+const SCRIPT_AUTOENCODER: &str = r#"
+import sys
+import torch
+import torch.nn.functional as F
+
+class Pool(torch.nn.Module):
+    @torch.jit.export
+    def encode(self, x: torch.Tensor) -> torch.Tensor:
+        return F.avg_pool2d(x, 2) * 3.0
+    @torch.jit.export
+    def decode(self, z: torch.Tensor) -> torch.Tensor:
+        return F.interpolate(z, scale_factor=2.0, mode="nearest") * 0.5
+
+torch.jit.script(Pool()).save(sys.argv[1] + "/ae.pt")
+"#;
+
+/// An autoencoder end to end (issue 37, item 3): uploaded with `header.autoencoder` through the
+/// client library, reported by GetModel and ListModels with its shapes and scaling, run by
+/// Encode and Decode with diffusers' scaling ((encode(x) - shift) * scale, decode(z / scale +
+/// shift)) against the analytic answer, by the CLI's `encode` / `decode` over .npz files (other
+/// arrays copied), and refused by name: Encode of an unknown model NOT_FOUND, of a diffusion
+/// model FAILED_PRECONDITION, of the wrong shape INVALID_ARGUMENT naming `images`; `model
+/// export` of it FAILED_PRECONDITION. Deleted like any model.
+#[tokio::test(flavor = "multi_thread")]
+async fn autoencoders_upload_encode_and_decode() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let d = dir.path();
+    // From a file: torch.jit.script reads the module's source (`python -c` has none).
+    std::fs::write(d.join("make_ae.py"), SCRIPT_AUTOENCODER).expect("script");
+    let out = Command::new(python()).arg(d.join("make_ae.py")).arg(d).output().expect("python");
+    assert!(out.status.success(), "scripting failed: {}", String::from_utf8_lossy(&out.stderr));
+    let fx = fixtures();
+    let server = TestServer::start_with_env(&[ENABLE]);
+    let client = server.client().await;
+    let manifest = pb::AutoencoderUploadManifest {
+        image_shape: vec![1, 4, 4],
+        latent_shape: vec![1, 2, 2],
+        scaling_factor: Some(0.5),
+        shift_factor: Some(0.25),
+    };
+    let ae_header = pb::UploadModelHeader {
+        name: "ae".into(),
+        autoencoder: Some(manifest),
+        format: pb::ModelFormat::Torchscript as i32,
+        ..Default::default()
+    };
+    let progress = std::sync::Arc::new(relreward_client::client::UploadProgress::default());
+    let model = client.upload_model(ae_header, &d.join("ae.pt"), progress).await.expect("upload");
+    assert_eq!((model.kind(), model.format()), (pb::ModelKind::Autoencoder, pb::ModelFormat::Torchscript));
+    let info = model.autoencoder.clone().expect("autoencoder info");
+    assert_eq!((info.image_shape, info.latent_shape), (vec![1, 4, 4], vec![1, 2, 2]));
+    assert_eq!((info.scaling_factor, info.shift_factor), (0.5, 0.25));
+    assert!(model.manifest.is_none() && model.reward.is_none());
+    let listed = client.list_models(pb::ModelKind::Autoencoder).await.expect("list");
+    assert_eq!(listed, vec![model.clone()]);
+
+    // Two images 0..16 and 16..32: block means, times 3, then (z - 0.25) * 0.5.
+    let x: Vec<f32> = (0..32).map(|i| i as f32).collect();
+    let images = relreward_client::tensor::encode_f32(&[2, 1, 4, 4], &x);
+    let req = pb::EncodeRequest { model: "ae".into(), images: Some(images.clone()) };
+    let latents = client.encode(req).await.expect("encode").latents.expect("latents");
+    assert_eq!(latents.shape, vec![2, 1, 2, 2]);
+    let z = relreward_client::tensor::decode_finite_f32(&latents).expect("finite");
+    let means = [2.5f32, 4.5, 10.5, 12.5, 18.5, 20.5, 26.5, 28.5];
+    let want: Vec<f32> = means.iter().map(|m| (m * 3.0 - 0.25) * 0.5).collect();
+    assert_eq!(z, want);
+    let req = pb::DecodeRequest { model: "ae".into(), latents: Some(latents) };
+    let back = client.decode(req).await.expect("decode").images.expect("images");
+    assert_eq!(back.shape, vec![2, 1, 4, 4]);
+    let back = relreward_client::tensor::decode_finite_f32(&back).expect("finite");
+    // decode(z / 0.5 + 0.25) = (block mean * 3) * 0.5 at each of the block's four pixels.
+    assert_eq!((back[0], back[5], back[2], back[31]), (3.75, 3.75, 6.75, 42.75));
+
+    // The CLI over .npz files: the result under x, the labels copied.
+    let npz = d.join("images.npz");
+    relreward_tests::run_python(
+        "import sys, numpy as np; np.savez(sys.argv[1], x=np.arange(32, dtype=np.float32).reshape(2, 1, 4, 4), \
+         y=np.array([7, 9]))",
+        &[npz.to_str().expect("utf-8")],
+    );
+    let (latents_npz, decoded_npz) = (d.join("latents.npz"), d.join("decoded.npz"));
+    let out = server.cli(&[
+        "encode",
+        "--model",
+        "ae",
+        "--input",
+        npz.to_str().expect("utf-8"),
+        "--out",
+        latents_npz.to_str().expect("utf-8"),
+        "--batch",
+        "1",
+    ]);
+    assert!(out.status.success(), "encode failed:\n{}", stderr(&out));
+    let got = relreward_tests::np_load(&latents_npz);
+    assert_eq!(relreward_tests::npz_shape(&got, "x"), vec![2, 1, 2, 2]);
+    assert_eq!(relreward_tests::npz_values(&got, "x"), want.iter().map(|&v| f64::from(v)).collect::<Vec<_>>());
+    assert_eq!(relreward_tests::npz_values(&got, "y"), vec![7.0, 9.0]);
+    let out = server.cli(&[
+        "decode",
+        "--model",
+        "ae",
+        "--input",
+        latents_npz.to_str().expect("utf-8"),
+        "--out",
+        decoded_npz.to_str().expect("utf-8"),
+    ]);
+    assert!(out.status.success(), "decode failed:\n{}", stderr(&out));
+    let got = relreward_tests::np_load(&decoded_npz);
+    assert_eq!(relreward_tests::npz_values(&got, "x")[31], 42.75);
+    let out =
+        server.cli(&["encode", "--model", "ae", "--input", latents_npz.to_str().expect("utf-8"), "--out", "o.npz"]);
+    assert!(!out.status.success() && stderr(&out).contains("takes images of shape [B, 1, 4, 4]"), "{}", stderr(&out));
+
+    // Refusals, named.
+    let gaussian = read(fx.path(), "gaussian.pt");
+    raw_upload(&client, upload_messages(header("gauss", Some(sample_manifest(&[3]))), &gaussian, None))
+        .await
+        .expect("a diffusion model");
+    let encode = |model: &str, images: pb::Tensor| pb::EncodeRequest { model: model.into(), images: Some(images) };
+    let err = client.rewards().encode(encode("absent", images.clone())).await.expect_err("unknown");
+    assert_eq!(err.code(), Code::NotFound, "{err:?}");
+    let err = client.rewards().encode(encode("gauss", images.clone())).await.expect_err("wrong kind");
+    assert_eq!(err.code(), Code::FailedPrecondition, "{err:?}");
+    assert!(err.message().contains("is a diffusion model, not an autoencoder"), "{}", err.message());
+    let flat = relreward_client::tensor::encode_f32(&[2, 16], &x);
+    let err = client.rewards().encode(encode("ae", flat)).await.expect_err("wrong shape");
+    assert_eq!(err.code(), Code::InvalidArgument, "{err:?}");
+    assert!(err.message().starts_with("images: shape [2, 16]"), "{}", err.message());
+    let out = server.cli(&["model", "export", "ae", "--out", d.join("export").to_str().expect("utf-8")]);
+    assert!(!out.status.success() && stderr(&out).contains("is an autoencoder"), "{}", stderr(&out));
+
+    // The Open Inference Protocol serves rewards: its repository index leaves the autoencoder
+    // (and the diffusion model) out.
+    let mut oip =
+        relreward_proto::inference::grpc_inference_service_client::GrpcInferenceServiceClient::new(client.transport());
+    let index = oip
+        .repository_index(relreward_proto::inference::RepositoryIndexRequest {
+            repository_name: String::new(),
+            ready: false,
+        })
+        .await
+        .expect("index")
+        .into_inner()
+        .models;
+    assert!(index.is_empty(), "{index:?}");
+
+    client.delete_model("ae").await.expect("delete");
+    let err = client.rewards().encode(encode("ae", images)).await.expect_err("deleted");
+    assert_eq!(err.code(), Code::NotFound, "{err:?}");
 }

@@ -58,6 +58,7 @@ async fn analytic_gaussian_registered_by_upload_samples_its_distribution() {
         description: String::new(),
         format: 0,
         reward: None,
+        autoencoder: None,
     };
     client
         .upload_model(header, &tmp.path().join("model.pt"), Arc::new(UploadProgress::default()))

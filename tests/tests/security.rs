@@ -125,6 +125,8 @@ enum Rpc {
     ScoreMissingModel,
     GradientStreamMissingModel,
     SampleMissingModel,
+    EncodeMissingModel,
+    DecodeMissingModel,
     OipServerLive,
     OipMetadataMissingModel,
 }
@@ -207,6 +209,12 @@ async fn call(client: &Client, rpc: Rpc, who: &str) -> Code {
                 Err(e) => code::<()>(Err(e)),
             }
         }
+        Rpc::EncodeMissingModel => {
+            code(client.encode(pb::EncodeRequest { model: MISSING.into(), images: Some(x) }).await)
+        }
+        Rpc::DecodeMissingModel => {
+            code(client.decode(pb::DecodeRequest { model: MISSING.into(), latents: Some(x) }).await)
+        }
         Rpc::OipServerLive => {
             let mut oip = GrpcInferenceServiceClient::new(client.transport());
             status_code(oip.server_live(oip::ServerLiveRequest {}).await)
@@ -231,6 +239,8 @@ fn expectation(rpc: Rpc) -> (Code, &'static str) {
         | Rpc::ScoreMissingModel
         | Rpc::GradientStreamMissingModel
         | Rpc::SampleMissingModel
+        | Rpc::EncodeMissingModel
+        | Rpc::DecodeMissingModel
         | Rpc::OipMetadataMissingModel => (NotFound, "read"),
         Rpc::UploadDataset => (Ok, "train"),
         Rpc::DeleteMissingDataset | Rpc::CancelMissingJob => (NotFound, "train"),
@@ -240,7 +250,7 @@ fn expectation(rpc: Rpc) -> (Code, &'static str) {
     }
 }
 
-const RPCS: [Rpc; 17] = [
+const RPCS: [Rpc; 19] = [
     Rpc::ListDatasets,
     Rpc::GetMissingDataset,
     Rpc::UploadDataset,
@@ -256,6 +266,8 @@ const RPCS: [Rpc; 17] = [
     Rpc::ScoreMissingModel,
     Rpc::GradientStreamMissingModel,
     Rpc::SampleMissingModel,
+    Rpc::EncodeMissingModel,
+    Rpc::DecodeMissingModel,
     Rpc::OipServerLive,
     Rpc::OipMetadataMissingModel,
 ];

@@ -92,6 +92,11 @@ enum Command {
     Relabel(commands::relabel::RelabelArgs),
     /// Sample from a diffusion model, optionally guided by a reward model.
     Sample(commands::sample::SampleArgs),
+    /// Encode an .npz of images into latents through an autoencoder model (one uploaded with
+    /// `model upload --autoencoder`).
+    Encode(commands::latents::LatentArgs),
+    /// Decode an .npz of latents into images through an autoencoder model.
+    Decode(commands::latents::LatentArgs),
     /// Evaluate a reward: discriminability of base vs expert, reward heatmaps and goal recovery.
     #[command(subcommand)]
     Eval(commands::eval::EvalCommand),
@@ -159,6 +164,8 @@ async fn run(cli: Cli) -> Result<Report> {
         Command::Grad(args) => commands::grad::grad(&ctx, args).await,
         Command::Relabel(args) => commands::relabel::relabel(&ctx, args).await,
         Command::Sample(args) => commands::sample::sample(&ctx, args).await,
+        Command::Encode(args) => commands::latents::encode(&ctx, args).await,
+        Command::Decode(args) => commands::latents::decode(&ctx, args).await,
         Command::Eval(command) => commands::eval::run(&ctx, command).await,
         Command::Maze(command) => commands::maze::run(&ctx, command).await,
         Command::Demo(args) => commands::demo::run(&ctx, args).await,
@@ -285,6 +292,23 @@ mod tests {
         serve_refused(&["sample", "--base", "b", "--seed", "-3"], "--seed");
         serve_refused(&["sample", "--base", "b", "--n", "-3"], "--n");
         serve_refused(&["score", "--model", "r", "--input", "x", "--batch", "-3"], "--batch");
+    }
+
+    #[test]
+    fn latent_commands_parse_with_their_defaults() {
+        let parse = |args: &[&str]| Cli::try_parse_from(std::iter::once("relreward").chain(args.iter().copied()));
+        let files = ["--model", "ae", "--input", "i.npz", "--out", "o.npz"];
+        let Ok(Cli { command: Command::Encode(args), .. }) = parse(&[&["encode"][..], &files].concat()) else {
+            panic!("encode")
+        };
+        assert_eq!((args.key.as_str(), args.out_key.as_str(), args.batch), ("x", "x", 64));
+        let decode = parse(&[&["decode"][..], &files, &["--key", "z", "--out-key", "images"]].concat());
+        let Ok(Cli { command: Command::Decode(args), .. }) = decode else { panic!("decode") };
+        assert_eq!((args.key.as_str(), args.out_key.as_str()), ("z", "images"));
+        assert!(parse(&[&["encode"][..], &files, &["--batch", "0"]].concat()).is_err());
+        let upload = ["model", "upload", "m.pt", "--name", "m", "--manifest", "m.toml"];
+        assert!(parse(&[&upload[..], &["--autoencoder"]].concat()).is_ok());
+        assert!(parse(&[&upload[..], &["--autoencoder", "--reward"]].concat()).is_err(), "one kind per upload");
     }
 
     #[test]

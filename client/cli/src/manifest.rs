@@ -9,6 +9,7 @@ use std::path::Path;
 
 use anyhow::{Context, Result};
 use relreward_client::pb;
+use relreward_proto::schema::autoencoder::AutoencoderManifest;
 use relreward_proto::schema::manifest::{DEFAULT_COSINE_S, DiffusionManifest, RewardUploadManifest};
 use relreward_proto::schema::{Format, parse_text as parse_document};
 use serde::de::DeserializeOwned;
@@ -49,6 +50,14 @@ pub fn load_reward(path: &Path) -> Result<pb::RewardUploadManifest> {
     let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
     let name = path.display().to_string();
     Ok(RewardUploadManifest::parse(&text, Some(&name))?.to_proto())
+}
+
+/// An autoencoder's manifest file (`model upload --autoencoder`) as the proto, after the
+/// schema's checks (image_shape, latent_shape, scaling_factor, shift_factor).
+pub fn load_autoencoder(path: &Path) -> Result<pb::AutoencoderUploadManifest> {
+    let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+    let name = path.display().to_string();
+    Ok(AutoencoderManifest::parse(&text, Some(&name))?.to_proto())
 }
 
 /// A TrainDiffusion architecture as a manifest's (the same three messages), e.g. to print it

@@ -491,6 +491,29 @@ impl Client {
     ) -> Result<tonic::Streaming<pb::SampleResponse>, ClientError> {
         Ok(self.rewards().sample(request).await?.into_inner())
     }
+
+    // -----------------------------------------------------------------------------------------
+    // Latents
+
+    /// Images `[B, *image_shape]` to scaled latents through an autoencoder model, one batch per
+    /// call (a computation: retried like Score). The answer must fit the server's
+    /// `server.max_response_bytes`; split larger inputs.
+    pub async fn encode(&self, request: pb::EncodeRequest) -> Result<pb::EncodeResponse, ClientError> {
+        idempotent(|| {
+            let (mut rewards, request) = (self.rewards(), request.clone());
+            async move { rewards.encode(request).await }
+        })
+        .await
+    }
+
+    /// Scaled latents `[B, *latent_shape]` back to images through an autoencoder model.
+    pub async fn decode(&self, request: pb::DecodeRequest) -> Result<pb::DecodeResponse, ClientError> {
+        idempotent(|| {
+            let (mut rewards, request) = (self.rewards(), request.clone());
+            async move { rewards.decode(request).await }
+        })
+        .await
+    }
 }
 
 /// Requests queued on a [`GradientStream`] before [`GradientStream::send`] waits.

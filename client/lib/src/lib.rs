@@ -3,7 +3,8 @@
 //! Module map (imports point down this list, never up):
 //! - [`client`]: [`Client`], one connection to every service (endpoint, TLS, token), with
 //!   helpers that hide streaming details (chunked, digest-checked dataset and model uploads;
-//!   paging; jobs; scores, gradients, the gradient stream and guided sampling); reads are
+//!   paging; jobs; scores, gradients, the gradient stream and guided sampling; Encode and
+//!   Decode through an autoencoder); reads are
 //!   retried over a broken connection.
 //! - [`download`]: writing a `DownloadModel` stream into a directory, every file checked
 //!   against its size and sha256 before any is put in place.

@@ -32,15 +32,16 @@ def dists(tmp_path_factory):
     return sdist, wheel
 
 
+MODULES = ("autoencoder", "datasets", "jobs", "models", "reward", "tensor")
+
+
 def test_sdist_carries_the_protos_and_no_stubs(dists):
     sdist, _ = dists
     names = tarfile.open(sdist).getnames()
     protos = sorted(n.split("/", 1)[1] for n in names if n.endswith(".proto"))
-    assert protos == [f"proto/relreward/v1/{p}.proto" for p in ("datasets", "jobs", "models", "reward", "tensor")]
+    assert protos == [f"proto/relreward/v1/{p}.proto" for p in MODULES]
     assert not any(n.endswith("_pb2.py") for n in names)
 
-
-MODULES = ("datasets", "jobs", "models", "reward", "tensor")
 
 
 def compile_like_a_user(out):

@@ -20,6 +20,7 @@ import warnings
 
 import numpy as np
 import pytest
+import torch
 from google.protobuf.message import Message
 
 import relreward
@@ -62,6 +63,18 @@ def _protobuf_inside(value, path="result", seen=None):
     return out
 
 
+class _HalvingAutoencoder(torch.nn.Module):
+    """[1, 4] items <-> [1, 2] latents (pairs averaged, then repeated back)."""
+
+    @torch.jit.export
+    def encode(self, x: torch.Tensor) -> torch.Tensor:
+        return torch.nn.functional.avg_pool1d(x, 2)
+
+    @torch.jit.export
+    def decode(self, z: torch.Tensor) -> torch.Tensor:
+        return z.repeat_interleave(2, dim=2)
+
+
 def _public_methods(cls) -> set[str]:
     return {n for n, m in inspect.getmembers(cls) if not n.startswith("_") and inspect.isfunction(m)}
 
@@ -96,6 +109,8 @@ def test_no_public_method_returns_a_protobuf_message(client, server, tiny, finis
         byo = {"signature": "rho", "n_timesteps": tiny.n_timesteps, "normalizer": {"kind": "identity"},
                "space": {"kind": "trajectory", "horizon": tiny.horizon, "action_dim": 2,
                          "obs_dim": tiny.transition_dim - 2}}
+        autoencoder = tmp_path / f"ae-{tag}.pt"
+        torch.jit.script(_HalvingAutoencoder()).save(str(autoencoder))
         return {
             "health": lambda c: c.health(),
             "upload_dataset": lambda c: c.upload_dataset(f"py-walk-{tag}", np.zeros((4, 3), np.float32)),
@@ -104,6 +119,8 @@ def test_no_public_method_returns_a_protobuf_message(client, server, tiny, finis
             "delete_dataset": lambda c: c.delete_dataset(f"py-walk-{tag}"),
             "upload_model": lambda c: c.upload_model(weights, f"py-walk-{tag}", base.manifest),
             "upload_reward": lambda c: c.upload_reward(module, f"py-walk-byo-{tag}", byo),
+            "upload_autoencoder": lambda c: c.upload_autoencoder(autoencoder, f"py-walk-ae-{tag}",
+                                                                 {"image_shape": [1, 4], "latent_shape": [1, 2]}),
             "get_model": lambda c: c.get_model(tiny.reward),
             "list_models": lambda c: c.list_models(),
             "delete_model": lambda c: c.delete_model(f"py-walk-{tag}"),
@@ -119,6 +136,8 @@ def test_no_public_method_returns_a_protobuf_message(client, server, tiny, finis
             "gradient": lambda c: c.gradient(tiny.reward, x, 1),
             "sample_iter": lambda c: c.sample_iter(tiny.base, n=2, seed=1, reward_model=tiny.reward),
             "sample": lambda c: c.sample(tiny.base, n=2, seed=1),
+            "encode": lambda c: c.encode(f"py-walk-ae-{tag}", np.ones((2, 1, 4), np.float32)),
+            "decode": lambda c: c.decode(f"py-walk-ae-{tag}", np.ones((2, 1, 2), np.float32)),
             "gradient_stream": lambda c: c.gradient_stream(tiny.reward),
             "close": lambda c: c.close(),
         }

@@ -1,6 +1,7 @@
-//! The service's two user-written documents, defined once for both ends: the diffusion model
-//! manifest ([`manifest`]) and the training job spec ([`job`]); and the sampling recipe
-//! ([`recipe`]) both a Sample request and a reward job carry.
+//! The service's user-written documents, defined once for both ends: the diffusion model
+//! manifest ([`manifest`], with the bring-your-own reward's), the training job spec ([`job`]),
+//! the sampling recipe ([`recipe`]) both a Sample request and a reward job carry, and the
+//! autoencoder manifest ([`autoencoder`]).
 //!
 //! Each document has one set of Rust types, used three ways: as the file a user writes (TOML or
 //! JSON, [`parse_text`]), as what the server stores (serde JSON, every field explicit), and as
@@ -12,6 +13,7 @@
 //!
 //! Everything here is plain data: no tch, no I/O beyond parsing text.
 
+pub mod autoencoder;
 pub mod job;
 pub mod manifest;
 pub mod recipe;

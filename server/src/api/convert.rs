@@ -6,6 +6,7 @@
 use relreward_proto::v1 as pb;
 
 use super::timestamp;
+use crate::engine::autoencoder::AutoencoderManifest;
 use crate::engine::manifest::DiffusionManifest;
 use crate::engine::nets::reward::RewardArchitecture;
 use crate::engine::relative_reward::{RewardManifest, RewardSource};
@@ -40,13 +41,14 @@ pub fn diffusion_manifest_from_proto(m: Option<pb::DiffusionManifest>, field: &s
 
 /// Wire kind filter: UNSPECIFIED means any kind (`None`).
 pub fn model_kind_filter_from_proto(v: i32, field: &str) -> Result<Option<ModelKind>> {
-    const KINDS: &str =
-        "MODEL_KIND_UNSPECIFIED (any), MODEL_KIND_DIFFUSION, MODEL_KIND_REWARD or MODEL_KIND_DISCRIMINATOR";
+    const KINDS: &str = "MODEL_KIND_UNSPECIFIED (any), MODEL_KIND_DIFFUSION, MODEL_KIND_REWARD, \
+                         MODEL_KIND_DISCRIMINATOR or MODEL_KIND_AUTOENCODER";
     Ok(match crate::fields::known(field, v, KINDS)? {
         pb::ModelKind::Unspecified => None,
         pb::ModelKind::Diffusion => Some(ModelKind::Diffusion),
         pb::ModelKind::Reward => Some(ModelKind::Reward),
         pb::ModelKind::Discriminator => Some(ModelKind::Discriminator),
+        pb::ModelKind::Autoencoder => Some(ModelKind::Autoencoder),
     })
 }
 
@@ -55,6 +57,7 @@ pub fn model_kind_to_proto(k: ModelKind) -> pb::ModelKind {
         ModelKind::Diffusion => pb::ModelKind::Diffusion,
         ModelKind::Reward => pb::ModelKind::Reward,
         ModelKind::Discriminator => pb::ModelKind::Discriminator,
+        ModelKind::Autoencoder => pb::ModelKind::Autoencoder,
     }
 }
 
@@ -79,9 +82,9 @@ pub fn provenance_to_proto(p: &Provenance) -> pb::Provenance {
     pb::Provenance { source: Some(source) }
 }
 
-/// A stored model record on the wire. A diffusion model's manifest is parsed from the
-/// record's JSON; an unreadable one is `DataLoss`. Reward and discriminator details
-/// (`Model.reward`) are not filled yet: their stored manifest is defined by the reward trainer.
+/// A stored model record on the wire: a diffusion model's manifest (`Model.manifest`), a reward's
+/// or discriminator's details (`Model.reward`) or an autoencoder's (`Model.autoencoder`), each
+/// parsed from the record's JSON; an unreadable one is `DataLoss`.
 pub fn model_to_proto(r: &ModelRecord) -> Result<pb::Model> {
     let manifest = match r.kind {
         ModelKind::Diffusion => {
@@ -89,10 +92,19 @@ pub fn model_to_proto(r: &ModelRecord) -> Result<pb::Model> {
                 .map_err(|e| Error::DataLoss(format!("model '{}': its stored manifest is unreadable: {e}", r.name)))?;
             Some(m.to_proto())
         }
-        ModelKind::Reward | ModelKind::Discriminator => None,
+        ModelKind::Reward | ModelKind::Discriminator | ModelKind::Autoencoder => None,
+    };
+    let unreadable =
+        |e: serde_json::Error| Error::DataLoss(format!("model '{}': its stored manifest is unreadable: {e}", r.name));
+    let autoencoder = match r.kind {
+        ModelKind::Autoencoder => {
+            let m: AutoencoderManifest = serde_json::from_value(r.manifest.clone()).map_err(unreadable)?;
+            Some(m.to_info())
+        }
+        ModelKind::Diffusion | ModelKind::Reward | ModelKind::Discriminator => None,
     };
     let reward = match r.kind {
-        ModelKind::Diffusion => None,
+        ModelKind::Diffusion | ModelKind::Autoencoder => None,
         ModelKind::Reward | ModelKind::Discriminator => {
             let m: RewardManifest = serde_json::from_value(r.manifest.clone())
                 .map_err(|e| Error::DataLoss(format!("model '{}': its stored manifest is unreadable: {e}", r.name)))?;
@@ -122,6 +134,7 @@ pub fn model_to_proto(r: &ModelRecord) -> Result<pb::Model> {
         provenance: Some(provenance_to_proto(&r.provenance)),
         created_at: Some(timestamp(r.created_at_ms)),
         description: r.description.clone(),
+        autoencoder,
     })
 }
 

@@ -20,6 +20,7 @@ use tonic::service::Routes;
 
 use crate::config::Config;
 use crate::jobs::JobManager;
+use crate::latents::Latents;
 use crate::sampling::Sampling;
 use crate::serving::Serving;
 use crate::store::Store;
@@ -67,6 +68,7 @@ pub fn routes(
     job_manager: JobManager,
     serving: Serving,
     sampling: Sampling,
+    latents: Latents,
     streams: Tasks,
 ) -> Routes {
     let registry = serving.registry().clone();
@@ -96,7 +98,7 @@ pub fn routes(
     let inference = GrpcInferenceServiceServer::new(oip::Inference::new(serving.clone()))
         .max_decoding_message_size(max_in)
         .max_encoding_message_size(max_out);
-    let rewards = RewardServiceServer::new(rewards::Rewards::new(serving, sampling, streams))
+    let rewards = RewardServiceServer::new(rewards::Rewards::new(serving, sampling, latents, streams))
         .max_decoding_message_size(max_in)
         .max_encoding_message_size(max_out);
     Routes::new(with_compression!(datasets, config))

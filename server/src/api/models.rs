@@ -1,6 +1,6 @@
 //! `relreward.v1.ModelService`: register diffusion models (TorchScript modules or native
-//! safetensors weights) and bring-your-own rewards (TorchScript modules), get, list, delete,
-//! download.
+//! safetensors weights), bring-your-own rewards and autoencoders (TorchScript modules), get,
+//! list, delete, download.
 //!
 //! Upload protocol (one client stream): a `header` (name, manifest, description, format), the
 //! file's bytes in `chunk`s, then a `commit` with the file's sha256. The order of checks is
@@ -10,12 +10,14 @@
 //!    off by default: a TorchScript file is a program; native weights are data), name, no
 //!    existing model of that name, the manifest converted and validated: a diffusion
 //!    manifest's architecture present exactly when the format is native; a reward's
-//!    (`header.reward`) TorchScript only, its base model, if named, agreeing with it;
+//!    (`header.reward`) TorchScript only, its base model, if named, agreeing with it; an
+//!    autoencoder's (`header.autoencoder`) TorchScript only, alone in the header;
 //! 2. the bytes, streamed into a staging file, hashed, bounded by `models.max_upload_bytes`;
 //! 3. the commit digest;
 //! 4. the file itself, on a blocking thread: a module loaded and run once on zeros of the
 //!    declared shape (`engine::torchscript`; a reward's also differentiated once with respect
-//!    to x); native weights loaded strictly into the
+//!    to x; an autoencoder's encode and decode each once, `engine::autoencoder`); native
+//!    weights loaded strictly into the
 //!    architecture (every tensor named, float32, of its shape, nothing extra) and run once the
 //!    same way (`ModelRegistry::validate_native`);
 //! 5. `manifest.json` written next to the file, the staging directory published and the record
@@ -44,6 +46,7 @@ use tonic::{Request, Response, Status, Streaming};
 use super::convert::{diffusion_manifest_from_proto, model_kind_filter_from_proto, model_to_proto};
 use super::{next_upload, page_limit};
 use crate::config::ModelsConfig;
+use crate::engine::autoencoder::AutoencoderManifest;
 use crate::engine::manifest::{DiffusionManifest, RewardUploadManifest};
 use crate::engine::relative_reward::RewardManifest;
 use crate::error::{Error, Result};
@@ -134,11 +137,19 @@ impl Models {
         if self.store.meta.get_model(&header.name).await?.is_some() {
             return Err(Error::AlreadyExists(format!("header.name: model '{}' already exists", header.name)));
         }
-        let (manifest, file_name) = match header.reward {
-            Some(reward) => {
+        let (manifest, file_name) = match (header.reward, header.autoencoder) {
+            (Some(_), Some(_)) => {
+                return Err(Error::invalid(
+                    "header.autoencoder: set together with header.reward; one upload registers one model",
+                ));
+            }
+            (Some(reward), None) => {
                 (Manifest::Reward(self.reward_manifest(reward, header.manifest, format).await?), MODULE_FILE)
             }
-            None => {
+            (None, Some(autoencoder)) => {
+                (Manifest::Autoencoder(autoencoder_manifest(autoencoder, header.manifest, format)?), MODULE_FILE)
+            }
+            (None, None) => {
                 let manifest = diffusion_manifest_from_proto(header.manifest, "header.manifest")?;
                 let file_name = diffusion_file_name(format, &manifest)?;
                 (Manifest::Diffusion(manifest), file_name)
@@ -210,6 +221,11 @@ impl Models {
             Manifest::Reward(manifest) => {
                 let parameter_count = self.registry.validate_torchscript_reward(file_path, manifest.clone()).await?;
                 (ModelKind::Reward, parameter_count, serde_json::to_value(RewardManifest::uploaded(&manifest)))
+            }
+            Manifest::Autoencoder(manifest) => {
+                let parameter_count =
+                    self.registry.validate_torchscript_autoencoder(file_path, manifest.clone()).await?;
+                (ModelKind::Autoencoder, parameter_count, serde_json::to_value(&manifest))
             }
         };
         let manifest_json = manifest_json.map_err(|e| Error::internal("encoding manifest", e))?;
@@ -394,6 +410,29 @@ impl Models {
 enum Manifest {
     Diffusion(DiffusionManifest),
     Reward(RewardUploadManifest),
+    Autoencoder(AutoencoderManifest),
+}
+
+/// An autoencoder's header checked and converted: TorchScript only, no diffusion manifest
+/// beside it, the manifest valid (messages name `header.autoencoder.*`).
+fn autoencoder_manifest(
+    autoencoder: pb::AutoencoderUploadManifest,
+    diffusion: Option<pb::DiffusionManifest>,
+    format: ModelFormat,
+) -> Result<AutoencoderManifest> {
+    if diffusion.is_some() {
+        return Err(Error::invalid(
+            "header.manifest: set together with header.autoencoder; an autoencoder upload sends its \
+             AutoencoderUploadManifest alone (header.manifest is a diffusion model's)",
+        ));
+    }
+    if format != ModelFormat::Torchscript {
+        return Err(Error::invalid(
+            "header.format: MODEL_FORMAT_NATIVE with header.autoencoder; an autoencoder is a TorchScript module \
+             exporting encode and decode",
+        ));
+    }
+    Ok(AutoencoderManifest::from_proto(autoencoder, "header.autoencoder")?)
 }
 
 /// A diffusion model's file name for its format: native weights need the manifest to name

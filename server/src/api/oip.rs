@@ -489,7 +489,11 @@ impl Inference {
             if let Some(last) = page.last() {
                 after.clone_from(&last.name);
             }
-            names.extend(page.into_iter().filter(|r| r.kind != ModelKind::Diffusion).map(|r| r.name));
+            names.extend(
+                page.into_iter()
+                    .filter(|r| matches!(r.kind, ModelKind::Reward | ModelKind::Discriminator))
+                    .map(|r| r.name),
+            );
             if done {
                 return Ok(names);
             }

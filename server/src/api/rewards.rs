@@ -1,8 +1,10 @@
 //! `relreward.v1.RewardService`: Score, Gradient and GradientStream over [`Serving`] (which
-//! validates, in [`crate::serving::query`], then batches and computes), and Sample over
+//! validates, in [`crate::serving::query`], then batches and computes), Sample over
 //! [`Sampling`] (validated there, computed by its workers, its samples streamed back as host
-//! rows). The handlers only convert between the wire and those two: no tensor, no model lock,
-//! and every task they start belongs to the server's `streams` group ([`Tasks`]).
+//! rows), and Encode and Decode over [`Latents`] (validated there, one pass under an inference
+//! slot, host values back). The handlers only convert between the wire and those three: no
+//! tensor, no model lock, and every task they start belongs to the server's `streams` group
+//! ([`Tasks`]).
 
 use std::pin::Pin;
 
@@ -14,7 +16,9 @@ use tokio::sync::mpsc;
 use tokio_util::sync::CancellationToken;
 use tonic::{Request, Response, Status, Streaming};
 
+use crate::engine::autoencoder::Direction;
 use crate::error::{Error, Result};
+use crate::latents::{Converted, Latents};
 use crate::sampling::{SampleRow, Sampling};
 use crate::serving::{self, Answer, HostTensor, Query, Serving};
 use crate::tasks::Tasks;
@@ -27,13 +31,14 @@ type BoxStream<T> = Pin<Box<dyn Stream<Item = Result<T, Status>> + Send + 'stati
 pub struct Rewards {
     serving: Serving,
     sampling: Sampling,
+    latents: Latents,
     /// GradientStream's tasks: cancelled when the listener closes (see [`serve_stream`]).
     streams: Tasks,
 }
 
 impl Rewards {
-    pub fn new(serving: Serving, sampling: Sampling, streams: Tasks) -> Self {
-        Self { serving, sampling, streams }
+    pub fn new(serving: Serving, sampling: Sampling, latents: Latents, streams: Tasks) -> Self {
+        Self { serving, sampling, latents, streams }
     }
 }
 
@@ -67,6 +72,11 @@ fn sample_response(item_shape: &[i64], row: SampleRow) -> Result<pb::SampleRespo
         x_normalized: Some(f32_tensor(item_shape, &row.x_normalized)?),
         reward: row.reward,
     })
+}
+
+/// An Encode or Decode answer on the wire.
+fn converted(c: Converted) -> pb::Tensor {
+    tensor::encode_f32(&c.shape, &c.values)
 }
 
 /// A float32 wire tensor from host values (Score and Gradient answers).
@@ -196,5 +206,17 @@ impl RewardService for Rewards {
         let responses =
             run.rows.map(move |row| -> Result<pb::SampleResponse, Status> { Ok(sample_response(&item_shape, row?)?) });
         Ok(Response::new(Box::pin(responses)))
+    }
+
+    async fn encode(&self, request: Request<pb::EncodeRequest>) -> Result<Response<pb::EncodeResponse>, Status> {
+        let req = request.into_inner();
+        let out = self.latents.run(Direction::Encode, &req.model, req.images.as_ref()).await?;
+        Ok(Response::new(pb::EncodeResponse { latents: Some(converted(out)) }))
+    }
+
+    async fn decode(&self, request: Request<pb::DecodeRequest>) -> Result<Response<pb::DecodeResponse>, Status> {
+        let req = request.into_inner();
+        let out = self.latents.run(Direction::Decode, &req.model, req.latents.as_ref()).await?;
+        Ok(Response::new(pb::DecodeResponse { images: Some(converted(out)) }))
     }
 }

@@ -28,10 +28,13 @@
 //! - [`nets`]: native architectures (TemporalUnet, MLP denoiser) with safetensors weights.
 //! - [`torchscript`]: [`torchscript::TorchScriptDenoiser`], an uploaded TorchScript module as a
 //!   denoiser, validated against its manifest by one forward pass.
+//! - [`autoencoder`]: [`autoencoder::TorchScriptAutoencoder`], an uploaded encoder/decoder
+//!   between images and (scaled) latents, validated by one call of each method.
 //! - [`reward_model`]: [`reward_model::RewardModel`], a stored reward as served: rho over
 //!   normalized inputs (with Algorithm 2's per-step standardisation), its gradient.
 //! - [`export`]: a stored native network traced into a TorchScript module for PyTorch users.
 
+pub mod autoencoder;
 pub mod data;
 pub mod ddim;
 pub mod denoiser;

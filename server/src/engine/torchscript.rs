@@ -139,15 +139,15 @@ impl Denoiser for TorchScriptDenoiser {
 }
 
 /// A TorchScript file loaded onto a device in eval mode, with its parameter count and bytes:
-/// what both kinds of upload start from.
-struct LoadedModule {
-    module: CModule,
-    parameter_count: u64,
-    parameter_bytes: u64,
+/// what every kind of upload starts from (denoisers, rewards, and `super::autoencoder`'s).
+pub(super) struct LoadedModule {
+    pub(super) module: CModule,
+    pub(super) parameter_count: u64,
+    pub(super) parameter_bytes: u64,
 }
 
 impl LoadedModule {
-    fn load(path: &Path, device: Device) -> Result<Self> {
+    pub(super) fn load(path: &Path, device: Device) -> Result<Self> {
         // A missing or unreadable file is the server's problem, not the module's.
         std::fs::metadata(path)?;
         let mut module = CModule::load_on_device(path, device).map_err(|e| {
@@ -341,7 +341,7 @@ impl TorchScriptReward {
 }
 
 /// What a non-tensor output was, for messages.
-fn ivalue_kind(v: &IValue) -> &'static str {
+pub(super) fn ivalue_kind(v: &IValue) -> &'static str {
     match v {
         IValue::None => "None",
         IValue::Tuple(_) => "a tuple",
@@ -360,7 +360,7 @@ fn ivalue_kind(v: &IValue) -> &'static str {
 /// The part of a libtorch error worth showing: for an exception raised by TorchScript code,
 /// its final "SomeError: message" line; otherwise the first line. Never the C++ backtrace
 /// ("Exception raised from ...") nor the file's path; at most [`MAX_MESSAGE_CHARS`].
-fn module_message(err: &TchError, path: &Path) -> String {
+pub(super) fn module_message(err: &TchError, path: &Path) -> String {
     let text = match err {
         TchError::Torch(msg) => msg.clone(),
         other => other.to_string(),

@@ -14,7 +14,8 @@ use std::sync::OnceLock;
 /// What a token may do. Ordered: a higher scope includes every lower one.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash)]
 pub enum Scope {
-    /// Query: Score, Gradient, GradientStream, Sample, the OIP endpoint, Get/List/Watch.
+    /// Query: Score, Gradient, GradientStream, Sample, Encode, Decode, the OIP endpoint,
+    /// Get/List/Watch.
     Read,
     /// Change data and use compute: dataset upload and delete, job submit and cancel.
     Train,
@@ -83,6 +84,9 @@ pub const METHOD_ACCESS: &[(&str, Access)] = &[
     ("/relreward.v1.RewardService/Gradient", Needs(Read)),
     ("/relreward.v1.RewardService/GradientStream", Needs(Read)),
     ("/relreward.v1.RewardService/Sample", Needs(Read)),
+    // Inference through an autoencoder, like Score: a query.
+    ("/relreward.v1.RewardService/Encode", Needs(Read)),
+    ("/relreward.v1.RewardService/Decode", Needs(Read)),
     // The Open Inference Protocol, liveness and readiness included: Triton clients send the
     // same headers on every call, and probes use grpc.health.v1.
     ("/inference.GRPCInferenceService/ServerLive", Needs(Read)),

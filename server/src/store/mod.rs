@@ -107,6 +107,8 @@ pub enum ModelKind {
     Diffusion,
     Reward,
     Discriminator,
+    /// An uploaded TorchScript encoder/decoder between images and latents.
+    Autoencoder,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]

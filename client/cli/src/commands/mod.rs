@@ -12,6 +12,8 @@
 //!   the commands that train (`extract`, `demo`);
 //! - [`score`], [`grad`], [`sample`]: the RewardService over `.npz` files, with what they share
 //!   in [`rewards`] (input flags, the request loop, the `--out` archive);
+//! - [`latents`]: `encode` and `decode` (an `.npz` of images to latents through an
+//!   autoencoder model, and back);
 //! - [`eval`]: `eval discriminate|heatmap` and `job plot`;
 //! - [`extract`]: `extract` (recordings to rewards and their report);
 //! - [`demo`]: `demo` (generated Maze2D data, then `extract`'s pipeline, and steering);
@@ -26,6 +28,7 @@ pub mod eval;
 pub mod extract;
 pub mod grad;
 pub mod jobs;
+pub mod latents;
 pub mod maze;
 pub mod models;
 pub mod relabel;

@@ -26,7 +26,8 @@ pub enum ModelCommand {
     /// Register a diffusion model with its manifest: a TorchScript module, or native safetensors
     /// weights when the manifest names an `architecture`; with --reward, a bring-your-own
     /// TorchScript reward (rho(x, t) -> [B], or Diffuser's value function forward(x, cond, t)
-    /// -> [B, 1]) served like trained rewards.
+    /// -> [B, 1]) served like trained rewards; with --autoencoder, a TorchScript module exporting
+    /// encode(x) and decode(z) (`relreward encode` / `decode`).
     Upload(ModelUploadArgs),
     /// Convert a model into native weights (safetensors), checking every tensor: a Diffuser
     /// TemporalUnet state_dict exported to .npz, or a folder written by diffusers'
@@ -63,15 +64,21 @@ pub struct ModelUploadArgs {
     /// The model's manifest, TOML or JSON (parametrization, schedule, n_timesteps, space,
     /// normalizer, clip_denoised; architecture for native weights). With --reward, a reward
     /// manifest: signature ("rho" | "value_function"), n_timesteps, space, normalizer, and
-    /// optionally base_model.
+    /// optionally base_model. With --autoencoder, an autoencoder manifest: image_shape,
+    /// latent_shape, and optionally scaling_factor (default 1) and shift_factor (default 0).
     #[arg(long, value_name = "MANIFEST.toml|json")]
     manifest: PathBuf,
     #[arg(long, default_value = "")]
     description: String,
     /// The file is a bring-your-own TorchScript reward over normalized x (needs a server with
     /// models.allow_torchscript_upload); --manifest is its reward manifest.
-    #[arg(long)]
+    #[arg(long, conflicts_with = "autoencoder")]
     reward: bool,
+    /// The file is an autoencoder: a TorchScript module exporting encode(x) (images [B, *image_shape]
+    /// -> latents [B, *latent_shape]) and decode(z) (needs a server with
+    /// models.allow_torchscript_upload); --manifest is its autoencoder manifest.
+    #[arg(long)]
+    autoencoder: bool,
 }
 
 /// `model import`: the source decides the form. A file is a `.npz` state_dict (the flags under
@@ -164,6 +171,7 @@ pub enum ModelKindArg {
     Diffusion,
     Reward,
     Discriminator,
+    Autoencoder,
 }
 
 impl ModelKindArg {
@@ -172,6 +180,7 @@ impl ModelKindArg {
             Self::Diffusion => pb::ModelKind::Diffusion,
             Self::Reward => pb::ModelKind::Reward,
             Self::Discriminator => pb::ModelKind::Discriminator,
+            Self::Autoencoder => pb::ModelKind::Autoencoder,
         }
     }
 }
@@ -192,7 +201,13 @@ pub async fn run(ctx: &Ctx, command: ModelCommand) -> Result<Report> {
 // Commands
 
 async fn upload(ctx: &Ctx, args: ModelUploadArgs) -> Result<Report> {
-    let ModelUploadArgs { file, name, manifest, description, reward } = args;
+    let ModelUploadArgs { file, name, manifest, description, reward, autoencoder } = args;
+    if autoencoder {
+        // A bad manifest is reported before anything is sent.
+        let man = manifest::load_autoencoder(&manifest)?;
+        let model = send_model(ctx, &file, name, Upload::Autoencoder(man), description).await?;
+        return Ok(Report::ok(format_model(&model), model_json(&model)));
+    }
     if reward {
         // A bad manifest is reported before anything is sent.
         let man = manifest::load_reward(&manifest)?;
@@ -219,11 +234,13 @@ enum Upload {
     Diffusion(pb::DiffusionManifest),
     /// A bring-your-own TorchScript reward.
     Reward(pb::RewardUploadManifest),
+    /// An autoencoder (TorchScript).
+    Autoencoder(pb::AutoencoderUploadManifest),
 }
 
 /// Streams a model file with its manifest, with a progress bar; the format follows the
 /// manifest (native weights when a diffusion manifest names an architecture, see `manifest`;
-/// a reward is always TorchScript).
+/// a reward and an autoencoder are always TorchScript).
 async fn send_model(
     ctx: &Ctx,
     file: &std::path::Path,
@@ -231,9 +248,10 @@ async fn send_model(
     upload: Upload,
     description: String,
 ) -> Result<pb::Model> {
-    let (manifest, reward) = match upload {
-        Upload::Diffusion(m) => (Some(m), None),
-        Upload::Reward(r) => (None, Some(r)),
+    let (manifest, reward, autoencoder) = match upload {
+        Upload::Diffusion(m) => (Some(m), None, None),
+        Upload::Reward(r) => (None, Some(r), None),
+        Upload::Autoencoder(a) => (None, None, Some(a)),
     };
     let native = manifest.as_ref().is_some_and(|m| m.architecture.is_some());
     let format = if native { pb::ModelFormat::Native } else { pb::ModelFormat::Torchscript };
@@ -245,7 +263,7 @@ async fn send_model(
     let (done_tx, done_rx) = oneshot::channel();
     let ticker = tokio::spawn(drive_progress(bar.clone(), Arc::clone(&progress), done_rx));
     let started = Instant::now();
-    let header = pb::UploadModelHeader { name, manifest, description, format: format as i32, reward };
+    let header = pb::UploadModelHeader { name, manifest, description, format: format as i32, reward, autoencoder };
     let result = client.upload_model(header, file, Arc::clone(&progress)).await;
     let _ = done_tx.send(());
     let _ = ticker.await;
@@ -644,6 +662,7 @@ pub fn kind_name(kind: pb::ModelKind) -> &'static str {
         pb::ModelKind::Diffusion => "diffusion",
         pb::ModelKind::Reward => "reward",
         pb::ModelKind::Discriminator => "discriminator",
+        pb::ModelKind::Autoencoder => "autoencoder",
         pb::ModelKind::Unspecified => "unspecified",
     }
 }
@@ -659,14 +678,16 @@ fn format_name(format: pb::ModelFormat) -> &'static str {
 /// A model as JSON:
 ///
 /// ```json
-/// {"name": "..", "kind": "diffusion" | "reward" | "discriminator",
+/// {"name": "..", "kind": "diffusion" | "reward" | "discriminator" | "autoencoder",
 ///  "format": "torchscript" | "native", "parameter_count": N, "sha256": "..",
 ///  "size_bytes": N, "created_at": "RFC3339" | null, "description": "..",
 ///  "provenance": {"source": "uploaded" | "trained", "job_id": ".." | null,
 ///                 "datasets": [..], "models": [..], "final_loss": X | null} | null,
 ///  "manifest": {see manifest::manifest_json} | null,
 ///  "reward": {"base_model": "..", "expert_model": "..", "architecture": "..", "window": N,
-///             "input_shape": [..], "n_timesteps": T, "normalizer": {..}} | null}
+///             "input_shape": [..], "n_timesteps": T, "normalizer": {..}} | null,
+///  "autoencoder": {"image_shape": [..], "latent_shape": [..], "scaling_factor": X,
+///                  "shift_factor": X} | null}
 /// ```
 ///
 /// Non-finite numbers are written as `null`.
@@ -690,6 +711,12 @@ pub fn model_json(m: &pb::Model) -> Value {
             "input_shape": r.input_shape,
             "n_timesteps": r.n_timesteps,
             "normalizer": normalizer_json(r.normalizer.as_ref()),
+        })),
+        "autoencoder": m.autoencoder.as_ref().map(|a| json!({
+            "image_shape": a.image_shape,
+            "latent_shape": a.latent_shape,
+            "scaling_factor": a.scaling_factor,
+            "shift_factor": a.shift_factor,
         })),
     })
 }
@@ -772,6 +799,16 @@ fn format_model(m: &pb::Model) -> String {
         ];
         out.push_str(&key_values(&fields, 2));
     }
+    if let Some(a) = &m.autoencoder {
+        out.push_str("\nautoencoder\n");
+        let fields = [
+            ("image shape", format!("{:?}", a.image_shape)),
+            ("latent shape", format!("{:?}", a.latent_shape)),
+            ("scaling factor", fmt_short(a.scaling_factor)),
+            ("shift factor", fmt_short(a.shift_factor)),
+        ];
+        out.push_str(&key_values(&fields, 2));
+    }
     out
 }
 
@@ -823,6 +860,7 @@ mod tests {
             provenance: Some(pb::Provenance { source: Some(pb::provenance::Source::Uploaded(Default::default())) }),
             created_at: Some(prost_types::Timestamp { seconds: 1_714_564_800, nanos: 0 }),
             description: String::new(),
+            autoencoder: None,
         }
     }
 
@@ -898,6 +936,7 @@ mod tests {
             "provenance",
             "manifest",
             "reward",
+            "autoencoder",
         ];
         expected.sort_unstable();
         assert_eq!(keys, expected);
@@ -925,6 +964,34 @@ mod tests {
         assert_eq!(v["reward"]["window"], 4);
         assert_eq!(v["reward"]["input_shape"], json!([8, 6]));
         assert_eq!(v["reward"]["normalizer"], json!({"kind": "identity"}));
+        assert!(v["autoencoder"].is_null());
+
+        let v = model_json(&autoencoder());
+        assert_eq!((v["kind"].as_str(), v["format"].as_str()), (Some("autoencoder"), Some("torchscript")));
+        assert!(v["manifest"].is_null() && v["reward"].is_null());
+        assert_eq!(
+            v["autoencoder"],
+            json!({"image_shape": [3, 16, 16], "latent_shape": [4, 8, 8], "scaling_factor": 0.18215, "shift_factor": 0.0})
+        );
+        let text = format_model(&autoencoder());
+        for needle in ["kind         autoencoder", "image shape     [3, 16, 16]", "latent shape    [4, 8, 8]"] {
+            assert!(text.contains(needle), "missing {needle:?} in\n{text}");
+        }
+    }
+
+    fn autoencoder() -> pb::Model {
+        pb::Model {
+            name: "vae".into(),
+            kind: pb::ModelKind::Autoencoder as i32,
+            manifest: None,
+            autoencoder: Some(pb::AutoencoderInfo {
+                image_shape: vec![3, 16, 16],
+                latent_shape: vec![4, 8, 8],
+                scaling_factor: 0.18215,
+                shift_factor: 0.0,
+            }),
+            ..uploaded()
+        }
     }
 
     #[test]

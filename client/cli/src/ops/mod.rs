@@ -19,12 +19,15 @@
 //! - [`scoring`]: the toolkit's `Scorer` over the server's `Score`, checked answers, and
 //!   server errors labelled with the flag behind the field they name.
 //! - [`items`]: local files read as a reward model's items (arrays, or trajectory windows).
+//! - [`latents`]: an `.npz` of images encoded into latents, or of latents decoded into images,
+//!   through an autoencoder model (Encode, Decode), in batches under the message limits.
 
 pub mod datasets;
 pub mod evaluate;
 pub mod extract;
 pub mod items;
 pub mod jobs;
+pub mod latents;
 pub mod relabel;
 pub mod scoring;
 pub mod steer;

@@ -16,7 +16,7 @@ docs/python.md.
 
 from relreward._common import TLS, DEFAULT_CHUNK_BYTES, MAX_MESSAGE_BYTES
 from relreward._download import DownloadedModel
-from relreward.v1 import datasets_pb2, jobs_pb2, models_pb2, reward_pb2, tensor_pb2
+from relreward.v1 import autoencoder_pb2, datasets_pb2, jobs_pb2, models_pb2, reward_pb2, tensor_pb2
 from relreward.aio import AsyncClient, AsyncGradientStream
 from relreward.client import Client, GradientStream, PendingGradient
 from relreward.datasets import from_minari_episodes
@@ -24,7 +24,7 @@ from relreward.relabel import Relabelled, relabel
 from relreward.errors import (Aborted, AlreadyExists, Cancelled, DataLoss, DeadlineExceeded, FailedPrecondition,
                               Internal, InvalidArgument, InvalidInput, NotFound, OutOfRange, PermissionDenied, RelrewardError,
                               ResourceExhausted, Unauthenticated, Unavailable, Unimplemented, Unknown)
-from relreward.results import (ArrayInfo, ArrayStats, Dataset, EpisodeInfo, GradientResult, Job, JobEvent, JobState,
+from relreward.results import (ArrayInfo, ArrayStats, AutoencoderInfo, Dataset, EpisodeInfo, GradientResult, Job, JobEvent, JobState,
                                Manifest, Model, Normalizer, Provenance, RewardInfo, Sample, SampleBatch, Schedule,
                                ScoreResult, Space)
 from relreward.specs import DiffusionJob, DiscriminatorJob, Optimization, RewardJob, SafetyGuidance, SamplingRecipe
@@ -37,6 +37,7 @@ class pb:
     """The generated protobuf message modules (``pb.reward.GradientRequest``, ...), for callers
     that need a raw message (every result also keeps the one it was read from as ``.proto``)."""
 
+    autoencoder = autoencoder_pb2
     datasets = datasets_pb2
     jobs = jobs_pb2
     models = models_pb2
@@ -48,8 +49,9 @@ __all__ = [
     "Client", "AsyncClient", "GradientStream", "AsyncGradientStream", "PendingGradient", "TLS",
     "ScoreResult", "GradientResult", "Sample", "SampleBatch", "DownloadedModel",
     "Dataset", "ArrayInfo", "ArrayStats", "EpisodeInfo", "Model", "Manifest", "Schedule", "Space", "Normalizer",
-    "RewardInfo", "Provenance", "Job", "JobState", "JobEvent",
-    "DiffusionJob", "RewardJob", "DiscriminatorJob", "Optimization", "SafetyGuidance", "SamplingRecipe", "from_minari_episodes", "relabel", "Relabelled",
+    "RewardInfo", "AutoencoderInfo", "Provenance", "Job", "JobState", "JobEvent",
+    "DiffusionJob", "RewardJob", "DiscriminatorJob", "Optimization", "SafetyGuidance", "SamplingRecipe",
+    "from_minari_episodes", "relabel", "Relabelled",
     "RewardVectorWrapper", "RewardWindows", "pointmaze_mapping",
     "RelrewardError", "Cancelled", "Unknown", "InvalidArgument", "InvalidInput", "DeadlineExceeded", "NotFound", "AlreadyExists",
     "PermissionDenied", "ResourceExhausted", "FailedPrecondition", "Aborted", "OutOfRange", "Unimplemented",

@@ -23,14 +23,17 @@ import time
 from dataclasses import dataclass
 from typing import Any, Callable, Generator, Mapping, TypeVar
 
+import numpy as np
+
 from relreward import _common as c
+from relreward import _tensor
 from relreward._download import DownloadedModel, ModelDownload
-from relreward.v1 import (datasets_pb2, datasets_pb2_grpc, jobs_pb2, jobs_pb2_grpc, models_pb2, models_pb2_grpc,
-                              reward_pb2_grpc, tensor_pb2)
+from relreward.v1 import (autoencoder_pb2, datasets_pb2, datasets_pb2_grpc, jobs_pb2, jobs_pb2_grpc, models_pb2,
+                          models_pb2_grpc, reward_pb2_grpc, tensor_pb2)
 from relreward.datasets import source_of
 from relreward.errors import InvalidInput, RelrewardError, Unavailable, Unimplemented, error_for, is_retryable
 from relreward.results import Dataset, GradientResult, Job, JobEvent, JobState, Manifest, Model, ScoreResult
-from relreward.specs import job_spec, manifest as manifest_of, reward_manifest
+from relreward.specs import autoencoder_manifest, job_spec, manifest as manifest_of, reward_manifest
 
 R = TypeVar("R")
 Plan = Generator[Any, Any, R]
@@ -252,7 +255,7 @@ def delete_dataset(cfg: Any, name: str) -> Plan[None]:
 # Models
 
 _KINDS = {"diffusion": models_pb2.MODEL_KIND_DIFFUSION, "reward": models_pb2.MODEL_KIND_REWARD,
-          "discriminator": models_pb2.MODEL_KIND_DISCRIMINATOR}
+          "discriminator": models_pb2.MODEL_KIND_DISCRIMINATOR, "autoencoder": models_pb2.MODEL_KIND_AUTOENCODER}
 
 
 def model_kind(kind: str | None) -> int:
@@ -261,8 +264,8 @@ def model_kind(kind: str | None) -> int:
     try:
         return _KINDS[kind]
     except (KeyError, TypeError):
-        raise InvalidInput(f"kind: {kind!r}; expected 'diffusion', 'reward', 'discriminator' or None (every kind)"
-                           ) from None
+        raise InvalidInput(f"kind: {kind!r}; expected 'diffusion', 'reward', 'discriminator', 'autoencoder' or None "
+                           "(every kind)") from None
 
 
 def manifest_message(manifest: Manifest | Mapping[str, Any] | models_pb2.DiffusionManifest
@@ -275,11 +278,15 @@ def manifest_message(manifest: Manifest | Mapping[str, Any] | models_pb2.Diffusi
 
 
 def upload_model(cfg: Any, path: str | pathlib.Path, name: str, manifest: Any, description: str, chunk_bytes: int,
-                 progress: c.Progress | bool | None, reward: bool = False) -> Plan[Model]:
-    """``reward``: ``manifest`` is a bring-your-own reward's (:func:`relreward.specs.reward_manifest`)."""
+                 progress: c.Progress | bool | None, reward: bool = False, autoencoder: bool = False) -> Plan[Model]:
+    """``reward``: ``manifest`` is a bring-your-own reward's (:func:`relreward.specs.reward_manifest`);
+    ``autoencoder``: an autoencoder's (:func:`relreward.specs.autoencoder_manifest`)."""
     path = pathlib.Path(path)
     name = c.text("name", name)
-    message = reward_manifest(manifest) if reward else manifest_message(manifest)
+    if autoencoder:
+        message: Any = autoencoder_manifest(manifest)
+    else:
+        message = reward_manifest(manifest) if reward else manifest_message(manifest)
     header = c.upload_header(name, message, c.text("description", description))
     callback, bar = c.progress_callback(progress, path.stat().st_size, name)
     failure = c.UploadFailure()
@@ -430,3 +437,47 @@ def sample_iter(cfg: Any, model: str, reward_model: str | None, omega: float, n:
     while (r := (yield NEXT)) is not None:
         yield Emit(c.sample_of(r))
 
+
+# --------------------------------------------------------------------------------------------
+# Latents
+
+#: Bytes of one Encode/Decode request, and of its answer, at most: half the server's default
+#: request limit (16 MiB), as the CLI's batches.
+LATENT_BATCH_BYTES = 8 << 20
+
+
+def convert(cfg: Any, method: str, model: str, items: Any, max_batch_bytes: int) -> Plan[np.ndarray]:
+    """``method`` "Encode" (images to latents) or "Decode" (latents to images) through
+    autoencoder ``model``: its record read first (its shapes), ``items`` checked against them,
+    then sent in batches whose request and answer each carry at most ``max_batch_bytes`` of
+    values, each a read (retried); the answers joined into one writable float32 array. A model
+    of another kind is asked as it is, so that the server's FAILED_PRECONDITION says why."""
+    name = c.text("model", model)
+    field = "images" if method == "Encode" else "latents"
+    make = ((lambda x: autoencoder_pb2.EncodeRequest(model=name, images=x)) if method == "Encode"
+            else (lambda x: autoencoder_pb2.DecodeRequest(model=name, latents=x)))
+    answer = (lambda r: r.latents) if method == "Encode" else (lambda r: r.images)
+    try:
+        x = _tensor.as_f32(items)
+    except (TypeError, ValueError) as e:
+        raise InvalidInput(f"{field}: not an array of numbers ({e})") from None
+    record = yield from get_model(cfg, name)
+    info = record.autoencoder
+    if info is None:
+        return np.array(_tensor.decode(answer((yield from read(method, make(_tensor.encode(x)), cfg)))))
+    item, out = (info.image_shape, info.latent_shape) if method == "Encode" else (info.latent_shape, info.image_shape)
+    if x.ndim != len(item) + 1 or tuple(x.shape[1:]) != tuple(item):
+        raise InvalidInput(f"{field}: shape {list(x.shape)} but autoencoder {name!r} takes {field} of shape "
+                           f"[B, {', '.join(str(d) for d in item)}]")
+    bad = np.flatnonzero(~np.isfinite(x.reshape(-1)))
+    if bad.size:
+        raise InvalidInput(f"{field}: value at flat index {int(bad[0])} is not a finite float32")
+    per_item = 4 * max(int(np.prod(item)), int(np.prod(out)))
+    batch = max(1, int(max_batch_bytes) // per_item)
+    parts = []
+    for start in range(0, x.shape[0], batch):
+        reply = yield from read(method, make(_tensor.encode(x[start:start + batch])), cfg)
+        parts.append(_tensor.decode(answer(reply)))
+    if not parts:
+        return np.zeros((0, *out), np.float32)
+    return np.concatenate(parts, axis=0)

@@ -15,7 +15,7 @@ import grpc
 import numpy as np
 
 from relreward import _tensor
-from relreward.v1 import datasets_pb2, models_pb2, reward_pb2, tensor_pb2
+from relreward.v1 import autoencoder_pb2, datasets_pb2, models_pb2, reward_pb2, tensor_pb2
 from relreward.datasets import UploadSource, row_chunks
 from relreward.errors import InvalidInput
 from relreward.results import GradientResult, Sample, SampleBatch, ScoreResult
@@ -393,13 +393,17 @@ def dataset_messages(name: str, source: UploadSource, description: str, chunk_by
         failure.error = e
 
 
-def upload_header(name: str, manifest: models_pb2.DiffusionManifest | models_pb2.RewardUploadManifest,
-                  description: str) -> models_pb2.UploadModelHeader:
+def upload_header(name: str, manifest: models_pb2.DiffusionManifest | models_pb2.RewardUploadManifest
+                  | autoencoder_pb2.AutoencoderUploadManifest, description: str) -> models_pb2.UploadModelHeader:
     """The upload's header; one rule gives its format: native safetensors weights when a
     diffusion manifest names an architecture, a TorchScript module otherwise (a reward's
-    manifest goes in ``reward``: a bring-your-own reward is always TorchScript)."""
+    manifest goes in ``reward``, an autoencoder's in ``autoencoder``: both are always
+    TorchScript)."""
     if isinstance(manifest, models_pb2.RewardUploadManifest):
         return models_pb2.UploadModelHeader(name=name, reward=manifest, description=description,
+                                            format=models_pb2.MODEL_FORMAT_TORCHSCRIPT)
+    if isinstance(manifest, autoencoder_pb2.AutoencoderUploadManifest):
+        return models_pb2.UploadModelHeader(name=name, autoencoder=manifest, description=description,
                                             format=models_pb2.MODEL_FORMAT_TORCHSCRIPT)
     fmt = models_pb2.MODEL_FORMAT_NATIVE if manifest.WhichOneof("architecture") else models_pb2.MODEL_FORMAT_TORCHSCRIPT
     return models_pb2.UploadModelHeader(name=name, manifest=manifest, description=description, format=fmt)

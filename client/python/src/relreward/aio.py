@@ -185,6 +185,13 @@ class AsyncClient:
         return await self._run(calls.upload_model(self, path, name, manifest, description, chunk_bytes, progress,
                                                   reward=True))
 
+    @_doc(Client.upload_autoencoder, "the file is read on the event loop's thread between chunks.")
+    async def upload_autoencoder(self, path: str | pathlib.Path, name: str, manifest: Mapping[str, Any] | Any,
+                                 *, description: str = "", chunk_bytes: int = c.DEFAULT_CHUNK_BYTES,
+                                 progress: c.Progress | bool | None = None) -> Model:
+        return await self._run(calls.upload_model(self, path, name, manifest, description, chunk_bytes, progress,
+                                                  autoencoder=True))
+
     @_doc(Client.get_model)
     async def get_model(self, name: str) -> Model:
         return await self._run(calls.get_model(self, name))
@@ -275,6 +282,16 @@ class AsyncClient:
     @_doc(Client.sample)
     async def sample(self, model: str, **kwargs: Any) -> SampleBatch:
         return c.stack_samples([s async for s in self.sample_iter(model, **kwargs)])
+
+    # latents
+    @_doc(Client.encode)
+    async def encode(self, model: str, images: Any, *, max_batch_bytes: int = calls.LATENT_BATCH_BYTES) -> np.ndarray:
+        return await self._run(calls.convert(self, "Encode", model, images, max_batch_bytes))
+
+    @_doc(Client.decode)
+    async def decode(self, model: str, latents: Any, *, max_batch_bytes: int = calls.LATENT_BATCH_BYTES
+                     ) -> np.ndarray:
+        return await self._run(calls.convert(self, "Decode", model, latents, max_batch_bytes))
 
 
 class AsyncGradientStream:

@@ -208,6 +208,26 @@ class Client:
         return self._run(calls.upload_model(self, path, name, manifest, description, chunk_bytes, progress,
                                             reward=True))
 
+    def upload_autoencoder(self, path: str | pathlib.Path, name: str, manifest: Mapping[str, Any] | Any,
+                           *, description: str = "", chunk_bytes: int = c.DEFAULT_CHUNK_BYTES,
+                           progress: c.Progress | bool | None = None) -> Model:
+        """Registers an autoencoder: one TorchScript module (saved ``torch.jit.script`` or
+        ``torch.jit.trace_module`` output) exporting ``encode(x) -> z`` (images float32
+        ``[B, *image_shape]`` to latents ``[B, *latent_shape]``) and ``decode(z) -> x``, used by
+        :meth:`encode` and :meth:`decode`. ``manifest``: a dict (see
+        :func:`relreward.specs.autoencoder_manifest`: ``image_shape``, ``latent_shape``,
+        optional ``scaling_factor`` and ``shift_factor``, diffusers' ``vae.config`` values) or an
+        ``AutoencoderUploadManifest`` message. The server runs each method once on zeros of the
+        declared shapes (batch 2) before registering it, and refuses (InvalidInput naming the
+        problem, nothing stored) a module without either method, one that raises, or returns
+        another shape, a non-float32 or non-finite value. For a diffusers ``AutoencoderKL``,
+        ``encode`` returns ``latent_dist.mean`` (not a sample: Encode is deterministic) and
+        ``decode`` the ``.sample`` (docs/python.md, "Autoencoders"). Needs
+        ``models.allow_torchscript_upload`` and an ``admin`` token where tokens are on. Never
+        retried."""
+        return self._run(calls.upload_model(self, path, name, manifest, description, chunk_bytes, progress,
+                                            autoencoder=True))
+
     def get_model(self, name: str) -> Model:
         """The model (a :class:`relreward.Model`): kind, format, manifest (diffusion) or reward
         info (input shape, T, normalizer); ``model.item_shape`` and ``model.n_timesteps`` say
@@ -391,6 +411,25 @@ class Client:
         """All samples of :meth:`sample_iter` stacked in index order: ``x`` and
         ``x_normalized`` ``[n, H, D]`` float32, ``rewards`` ``[n]`` (None without a reward model)."""
         return c.stack_samples(list(self.sample_iter(model, **kwargs)))
+
+    # ----------------------------------------------------------------------------------------
+    # latents
+
+    def encode(self, model: str, images: Any, *, max_batch_bytes: int = calls.LATENT_BATCH_BYTES) -> np.ndarray:
+        """Images ``[B, *image_shape]`` (any float array, sent as float32) to latents ``[B,
+        *latent_shape]`` float32 through autoencoder ``model``: ``(encode(images) -
+        shift_factor) * scaling_factor``, the scaled latents a latent diffusion model works on.
+        The model's record is read first; the images are checked against its shape (InvalidInput
+        naming ``images``) and sent in batches whose request and answer each stay under
+        ``max_batch_bytes``. Retried on connection failures."""
+        return self._run(calls.convert(self, "Encode", model, images, max_batch_bytes))
+
+    def decode(self, model: str, latents: Any, *, max_batch_bytes: int = calls.LATENT_BATCH_BYTES) -> np.ndarray:
+        """Latents ``[B, *latent_shape]`` (scaled, as :meth:`encode` answers them and a latent
+        diffusion model samples them) to images ``[B, *image_shape]`` float32 through
+        autoencoder ``model``: ``decode(latents / scaling_factor + shift_factor)``. Batched and
+        checked as :meth:`encode`."""
+        return self._run(calls.convert(self, "Decode", model, latents, max_batch_bytes))
 
 
 _END = object()

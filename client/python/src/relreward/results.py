@@ -15,7 +15,8 @@ and the repr), for a caller that needs a field this package does not map yet.
 
 - datasets: :class:`Dataset` (:class:`ArrayInfo`, :class:`ArrayStats`, :class:`EpisodeInfo`)
 - models: :class:`Model` (:class:`Manifest` with :class:`Schedule`, :class:`Space` and
-  :class:`Normalizer`; :class:`RewardInfo`; :class:`Provenance`); ``model.item_shape`` and
+  :class:`Normalizer`; :class:`RewardInfo`; :class:`AutoencoderInfo`; :class:`Provenance`);
+  ``model.item_shape`` and
   ``model.n_timesteps`` say what a model takes, whatever its kind
 - jobs: :class:`Job`, :class:`JobState`, :class:`JobEvent`
 - rewards: :class:`ScoreResult`, :class:`GradientResult`, :class:`Sample`, :class:`SampleBatch`
@@ -368,6 +369,18 @@ class RewardInfo(_Plain):
 
 
 @dataclass(frozen=True)
+class AutoencoderInfo(_Plain):
+    """An autoencoder's contract: the shape of one image (what ``encode`` takes) and of one
+    latent, and the latent scaling the service applies: latents are ``(encode(x) -
+    shift_factor) * scaling_factor``, images ``decode(z / scaling_factor + shift_factor)``."""
+
+    image_shape: tuple[int, ...]
+    latent_shape: tuple[int, ...]
+    scaling_factor: float
+    shift_factor: float
+
+
+@dataclass(frozen=True)
 class Provenance(_Plain):
     """Where a model came from: ``source`` "uploaded", or "trained" by job ``job_id`` from
     ``datasets`` and ``models`` with ``final_loss``."""
@@ -393,9 +406,9 @@ class Provenance(_Plain):
 class Model(_Plain):
     """A stored model, as ``relreward model show NAME --json`` prints it.
 
-    ``kind``: "diffusion", "reward" or "discriminator"; ``format``: "native" (built-in
-    architecture, safetensors weights) or "torchscript"; ``manifest`` for a diffusion model,
-    ``reward`` for a reward or discriminator. ``item_shape`` and ``n_timesteps`` say what it
+    ``kind``: "diffusion", "reward", "discriminator" or "autoencoder"; ``format``: "native"
+    (built-in architecture, safetensors weights) or "torchscript"; ``manifest`` for a diffusion
+    model, ``reward`` for a reward or discriminator, ``autoencoder`` for an autoencoder. ``item_shape`` and ``n_timesteps`` say what it
     takes whatever its kind: ``x`` is ``[B, *model.item_shape]`` and ``t`` in
     ``0 .. model.n_timesteps - 1``. ``proto``: the ``Model`` message it was read from.
     """
@@ -411,6 +424,7 @@ class Model(_Plain):
     provenance: Provenance | None
     manifest: Manifest | None
     reward: RewardInfo | None
+    autoencoder: AutoencoderInfo | None = None
     proto: models_pb2.Model | None = field(default=None, repr=False, compare=False)
 
     @property
@@ -452,11 +466,14 @@ class Model(_Plain):
         r = m.reward
         reward = (RewardInfo(r.base_model, r.expert_model, r.architecture, r.window, _ints(r.input_shape),
                              r.n_timesteps, Normalizer.from_proto(r.normalizer)) if m.HasField("reward") else None)
+        a = m.autoencoder
+        autoencoder = (AutoencoderInfo(_ints(a.image_shape), _ints(a.latent_shape), a.scaling_factor, a.shift_factor)
+                       if m.HasField("autoencoder") else None)
         return cls(m.name, _enum_name(models_pb2.ModelKind, m.kind, "MODEL_KIND_"),
                    _enum_name(models_pb2.ModelFormat, m.format, "MODEL_FORMAT_"), m.parameter_count, m.sha256,
                    m.size_bytes, _time(m, "created_at"), m.description,
                    Provenance.from_proto(m.provenance) if m.HasField("provenance") else None,
-                   Manifest.from_proto(m.manifest) if m.HasField("manifest") else None, reward, m)
+                   Manifest.from_proto(m.manifest) if m.HasField("manifest") else None, reward, autoencoder, m)
 
 
 # --------------------------------------------------------------------------------------------

@@ -16,7 +16,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 from google.protobuf import json_format
 
-from relreward.v1 import jobs_pb2, models_pb2, reward_pb2
+from relreward.v1 import autoencoder_pb2, jobs_pb2, models_pb2, reward_pb2
 from relreward.errors import InvalidInput
 
 
@@ -382,66 +382,4 @@ def reward_manifest(m: Any) -> models_pb2.RewardUploadManifest:
     return out
 
 
-#: diffusers' Safe Stable Diffusion presets: (warmup_steps, scale, threshold, momentum_scale,
-#: momentum_beta).
-SAFETY_PRESETS = {
-    "weak": (15, 20.0, 0.0, 0.0, 0.0),
-    "medium": (10, 1000.0, 0.01, 0.3, 0.4),
-    "strong": (7, 2000.0, 0.025, 0.5, 0.7),
-    "max": (0, 5000.0, 1.0, 0.5, 0.7),
-}
-
-
-@dataclass
-class SafetyGuidance:
-    """Safe Latent Diffusion's guidance away from ``concept`` (Schramowski et al. 2023, section
-    3; the server's formulas are in reward.proto's ``SafetyGuidance``), for ``Client.sample(...,
-    safety=...)``: ``concept`` is one class label or several (an int or a list), or embeddings
-    ``[dim]`` / ``[k, dim]``; ``scale`` s_S, ``warmup_steps`` delta, ``threshold`` lambda,
-    ``momentum_scale`` s_m, ``momentum_beta`` beta_m. :meth:`preset` gives diffusers' settings."""
-
-    concept: Any
-    scale: float = 1000.0
-    warmup_steps: int = 10
-    threshold: float = 0.01
-    momentum_scale: float = 0.3
-    momentum_beta: float = 0.4
-
-    @classmethod
-    def preset(cls, name: str, concept: Any) -> "SafetyGuidance":
-        """diffusers' preset ``name`` ("weak", "medium", "strong" or "max") for ``concept``."""
-        try:
-            warmup, scale, threshold, m_scale, m_beta = SAFETY_PRESETS[name]
-        except KeyError:
-            raise InvalidInput(f"safety preset {name!r}: expected one of {', '.join(SAFETY_PRESETS)}") from None
-        return cls(concept, scale, warmup, threshold, m_scale, m_beta)
-
-    def to_proto(self) -> reward_pb2.SafetyGuidance:
-        """The ``relreward.v1.SafetyGuidance`` message."""
-        from relreward._common import prompts_message
-        return reward_pb2.SafetyGuidance(concept=prompts_message("safety.concept", self.concept),
-                                         scale=float(self.scale), warmup_steps=int(self.warmup_steps),
-                                         threshold=float(self.threshold), momentum_scale=float(self.momentum_scale),
-                                         momentum_beta=float(self.momentum_beta))
-
-
-@dataclass
-class SamplingRecipe:
-    """How a conditional model is sampled in a reward job's Algorithm 2 (``RewardJob(base_recipe=...,
-    expert_recipe=...)``): ``prompts`` is the prompt set each chain draws one condition from
-    (class labels, or embeddings ``[k, dim]``); ``guidance_scale`` classifier-free guidance
-    (None: 1, the conditional model alone); ``safety`` a :class:`SafetyGuidance`."""
-
-    prompts: Any
-    guidance_scale: float | None = None
-    safety: SafetyGuidance | None = None
-
-    def to_proto(self) -> reward_pb2.SamplingRecipe:
-        """The ``relreward.v1.SamplingRecipe`` message."""
-        from relreward._common import prompts_message
-        r = reward_pb2.SamplingRecipe(prompts=prompts_message("prompts", self.prompts))
-        if self.guidance_scale is not None:
-            r.guidance_scale = float(self.guidance_scale)
-        if self.safety is not None:
-            r.safety.CopyFrom(self.safety.to_proto())
-        return r
+from relreward.v1 import autoencoder_pb2, jobs_pb2, models_pb2, reward_pb2
