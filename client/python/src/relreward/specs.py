@@ -382,4 +382,105 @@ def reward_manifest(m: Any) -> models_pb2.RewardUploadManifest:
     return out
 
 
-from relreward.v1 import autoencoder_pb2, jobs_pb2, models_pb2, reward_pb2
+#: diffusers' Safe Stable Diffusion presets: (warmup_steps, scale, threshold, momentum_scale,
+#: momentum_beta).
+SAFETY_PRESETS = {
+    "weak": (15, 20.0, 0.0, 0.0, 0.0),
+    "medium": (10, 1000.0, 0.01, 0.3, 0.4),
+    "strong": (7, 2000.0, 0.025, 0.5, 0.7),
+    "max": (0, 5000.0, 1.0, 0.5, 0.7),
+}
+
+
+@dataclass
+class SafetyGuidance:
+    """Safe Latent Diffusion's guidance away from ``concept`` (Schramowski et al. 2023, section
+    3; the server's formulas are in reward.proto's ``SafetyGuidance``), for ``Client.sample(...,
+    safety=...)``: ``concept`` is one class label or several (an int or a list), or embeddings
+    ``[dim]`` / ``[k, dim]``; ``scale`` s_S, ``warmup_steps`` delta, ``threshold`` lambda,
+    ``momentum_scale`` s_m, ``momentum_beta`` beta_m. :meth:`preset` gives diffusers' settings."""
+
+    concept: Any
+    scale: float = 1000.0
+    warmup_steps: int = 10
+    threshold: float = 0.01
+    momentum_scale: float = 0.3
+    momentum_beta: float = 0.4
+
+    @classmethod
+    def preset(cls, name: str, concept: Any) -> "SafetyGuidance":
+        """diffusers' preset ``name`` ("weak", "medium", "strong" or "max") for ``concept``."""
+        try:
+            warmup, scale, threshold, m_scale, m_beta = SAFETY_PRESETS[name]
+        except KeyError:
+            raise InvalidInput(f"safety preset {name!r}: expected one of {', '.join(SAFETY_PRESETS)}") from None
+        return cls(concept, scale, warmup, threshold, m_scale, m_beta)
+
+    def to_proto(self) -> reward_pb2.SafetyGuidance:
+        """The ``relreward.v1.SafetyGuidance`` message."""
+        from relreward._common import prompts_message
+        return reward_pb2.SafetyGuidance(concept=prompts_message("safety.concept", self.concept),
+                                         scale=float(self.scale), warmup_steps=int(self.warmup_steps),
+                                         threshold=float(self.threshold), momentum_scale=float(self.momentum_scale),
+                                         momentum_beta=float(self.momentum_beta))
+
+
+@dataclass
+class SamplingRecipe:
+    """How a conditional model is sampled in a reward job's Algorithm 2 (``RewardJob(base_recipe=...,
+    expert_recipe=...)``): ``prompts`` is the prompt set each chain draws one condition from
+    (class labels, or embeddings ``[k, dim]``); ``guidance_scale`` classifier-free guidance
+    (None: 1, the conditional model alone); ``safety`` a :class:`SafetyGuidance`."""
+
+    prompts: Any
+    guidance_scale: float | None = None
+    safety: SafetyGuidance | None = None
+
+    def to_proto(self) -> reward_pb2.SamplingRecipe:
+        """The ``relreward.v1.SamplingRecipe`` message."""
+        from relreward._common import prompts_message
+        r = reward_pb2.SamplingRecipe(prompts=prompts_message("prompts", self.prompts))
+        if self.guidance_scale is not None:
+            r.guidance_scale = float(self.guidance_scale)
+        if self.safety is not None:
+            r.safety.CopyFrom(self.safety.to_proto())
+        return r
+
+
+_AUTOENCODER_FIELDS = ("image_shape", "latent_shape", "scaling_factor", "shift_factor")
+
+
+def autoencoder_manifest(m: Any) -> autoencoder_pb2.AutoencoderUploadManifest:
+    """An autoencoder's AutoencoderUploadManifest from a message or a dict in the CLI's
+    autoencoder manifest form (``relreward model upload --autoencoder``)::
+
+        {"image_shape": [3, 16, 16],     # one image: what encode(x) takes
+         "latent_shape": [4, 4, 4],      # one latent: what encode returns, decode takes
+         "scaling_factor": 0.18215,      # optional, default 1 (diffusers' vae.config.scaling_factor)
+         "shift_factor": 0.0}            # optional, default 0 (diffusers' vae.config.shift_factor)
+
+    The service's latents are ``(encode(x) - shift_factor) * scaling_factor`` and its images
+    ``decode(z / scaling_factor + shift_factor)``.
+    """
+    if isinstance(m, autoencoder_pb2.AutoencoderUploadManifest):
+        return m
+    m = dict(m)
+    unknown = set(m) - set(_AUTOENCODER_FIELDS)
+    if unknown:
+        raise InvalidInput(f"autoencoder manifest: unknown field(s) {sorted(unknown)}; expected image_shape, "
+                           f"latent_shape and optionally scaling_factor, shift_factor")
+    out = autoencoder_pb2.AutoencoderUploadManifest()
+    for name in ("image_shape", "latent_shape"):
+        shape = m.get(name)
+        try:
+            dims = [int(d) for d in shape] if shape is not None else []
+        except (TypeError, ValueError):
+            raise InvalidInput(f"autoencoder manifest.{name}: {shape!r}; expected a list of dimensions") from None
+        if not dims or min(dims) < 1:
+            raise InvalidInput(f"autoencoder manifest.{name}: {shape!r}; expected one item's shape, every "
+                               f"dimension positive, e.g. [3, 16, 16]")
+        getattr(out, name).extend(dims)
+    for name in ("scaling_factor", "shift_factor"):
+        if m.get(name) is not None:
+            setattr(out, name, float(m[name]))
+    return out
