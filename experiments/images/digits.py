@@ -84,11 +84,11 @@ T = 50
 SCORE_T = 10
 
 
-def start_server(data_dir: pathlib.Path) -> Server:
+def start_server(data_dir: pathlib.Path, env: dict[str, str] | None = None) -> Server:
     """relreward-server on 127.0.0.1:0 with its data in data_dir (a temporary directory),
-    two jobs at a time, its log beside it (server.log)."""
+    two jobs at a time, its log beside it (server.log); ``env`` adds configuration."""
     try:
-        return Server(BINARIES, data_dir, env={"RELREWARD__JOBS__MAX_CONCURRENT": "2"},
+        return Server(BINARIES, data_dir, env={"RELREWARD__JOBS__MAX_CONCURRENT": "2", **(env or {})},
                       log_path=data_dir.parent / "server.log")
     except ServerStartError as e:
         sys.exit(f"server did not start: {e}")

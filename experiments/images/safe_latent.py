@@ -14,8 +14,10 @@ directory, unless --endpoint names one):
 1. Data: scikit-learn's 8x8 digits (1797 images inside the scikit-learn wheel), [-1, 1],
    stratified 75/25 split by --seed.
 2. A latent space: a small convolutional autoencoder [1, 8, 8] -> [2, 4, 4] trained here in
-   PyTorch (seconds) on the training digits; the training digits are encoded into a samples
-   dataset of latents with their class labels. The pictures are decoded through it.
+   PyTorch (seconds) on the training digits and uploaded to relreward as an autoencoder model
+   (TorchScript encode/decode; scaling_factor 1 / std of the training latents, diffusers'
+   convention); the training digits are encoded by the service (Encode) into a samples dataset
+   of latents with their class labels, and every picture is decoded by the service (Decode).
 3. One class-conditional latent DDPM (native unet2d, eps, linear betas, T = 50, condition
    dropout 0.1 so that it knows the null label) trained by relreward.
 4. The unsafe concept: classes --unsafe (default 3 and 8, chosen before any run); the prompt
@@ -31,7 +33,9 @@ directory, unless --endpoint names one):
      (`relreward eval discriminate`: balanced accuracy and AUC), beside the cap set by the
      samplers' own overlap: an oracle that knows the unsafe classes (it calls a sample "base"
      iff the classifier says it is an unsafe class) reaches (p_base + 1 - p_expert) / 2;
-   - held-out real digits of unsafe vs safe classes, encoded, told apart by the reward;
+   - held-out real digits of unsafe vs safe classes, encoded, told apart by the reward (`eval
+     discriminate` on its balanced 20% test part, and the AUC over all held-out digits, which
+     needs no fit; likewise for the samples);
    - the paper's pictures: per batch of 16 pooled samples, the 3 highest- and 3 lowest-reward
      samples decoded; the fraction of batches whose lowest-reward sample is an unsafe class and
      whose highest is a safe one (by the classifier);
@@ -75,7 +79,8 @@ TINY = dict(ae_steps=30, ddpm_steps=10, ddpm_batch=16, ddpm_lr=1e-3, ddpm_ema=di
 
 
 class Autoencoder(torch.nn.Module):
-    """[1, 8, 8] -> [2, 4, 4] -> [1, 8, 8]: two convolutions each way."""
+    """[1, 8, 8] -> [2, 4, 4] -> [1, 8, 8]: two convolutions each way; scripted with both
+    methods exported, the contract of relreward's autoencoder models."""
 
     def __init__(self):
         super().__init__()
@@ -87,11 +92,16 @@ class Autoencoder(torch.nn.Module):
                                        torch.nn.Conv2d(32, 32, 3, padding=1), torch.nn.SiLU(),
                                        torch.nn.Conv2d(32, 1, 3, padding=1), torch.nn.Tanh())
 
+    @torch.jit.export
     def encode(self, x):
         return self.enc(x)
 
+    @torch.jit.export
     def decode(self, z):
         return self.dec(z)
+
+    def forward(self, x):
+        return self.decode(self.encode(x))
 
 
 def train_autoencoder(x: np.ndarray, steps: int, seed: int) -> Autoencoder:
@@ -102,21 +112,31 @@ def train_autoencoder(x: np.ndarray, steps: int, seed: int) -> Autoencoder:
     g = torch.Generator().manual_seed(seed)
     for _ in range(steps):
         batch = data[torch.randint(len(data), (128,), generator=g)]
-        loss = torch.nn.functional.mse_loss(ae.decode(ae.encode(batch)), batch)
+        loss = torch.nn.functional.mse_loss(ae(batch), batch)
         opt.zero_grad()
         loss.backward()
         opt.step()
     return ae.eval()
 
 
-def encode(ae: Autoencoder, x: np.ndarray) -> np.ndarray:
+def upload_autoencoder(client: Client, ae: Autoencoder, x_train: np.ndarray, path: pathlib.Path) -> float:
+    """The autoencoder as the service's model "digits-ae"; returns its scaling factor (1 / std
+    of the training latents, so the scaled latents have unit spread, as Stable Diffusion's
+    0.18215 was chosen)."""
     with torch.no_grad():
-        return ae.encode(torch.from_numpy(np.asarray(x, np.float32))).numpy()
+        scale = float(1.0 / ae.encode(torch.from_numpy(x_train)).std())
+    torch.jit.script(ae).save(str(path))
+    client.upload_autoencoder(path, "digits-ae", {"image_shape": [1, 8, 8], "latent_shape": list(LATENT),
+                                                  "scaling_factor": scale})
+    return scale
 
 
-def decode(ae: Autoencoder, z: np.ndarray) -> np.ndarray:
-    with torch.no_grad():
-        return ae.decode(torch.from_numpy(np.asarray(z, np.float32))).numpy()
+def auc_all(client: Client, low: np.ndarray, high: np.ndarray) -> float:
+    """AUC of the reward at t = 0 for "high" over "low" on every item (no fit, no split)."""
+    from sklearn.metrics import roc_auc_score
+
+    r = np.asarray(client.score("safe-reward", np.concatenate([low, high]), t=0).rewards)
+    return float(roc_auc_score(np.r_[np.zeros(len(low)), np.ones(len(high))], r))
 
 
 def prompt_set(z: np.ndarray, y: np.ndarray, unsafe: list[int]) -> list[int]:
@@ -149,7 +169,7 @@ def main() -> None:
             endpoint = args.endpoint
         else:
             (tmp / "data").mkdir()
-            server = start_server(tmp / "data")
+            server = start_server(tmp / "data", {"RELREWARD__MODELS__ALLOW_TORCHSCRIPT_UPLOAD": "true"})
             endpoint = f"http://{server.addr}"
         try:
             summary = experiment(Client(endpoint.removeprefix("http://")), endpoint, cfg, args, unsafe, tmp)
@@ -166,9 +186,14 @@ def experiment(client: Client, endpoint: str, cfg: dict, args, unsafe: list[int]
     x_train, x_test, y_train, y_test = load_digits_split(seed)
     t0 = time.monotonic()
     ae = train_autoencoder(x_train, cfg["ae_steps"], seed)
-    recon = float(np.mean((decode(ae, encode(ae, x_test)) - x_test) ** 2))
     ae_seconds = time.monotonic() - t0
-    z_train, z_test = encode(ae, x_train), encode(ae, x_test)
+    scale = upload_autoencoder(client, ae, x_train, tmp / "ae.pt")
+
+    def decode(z):
+        return client.decode("digits-ae", z)
+
+    z_train, z_test = client.encode("digits-ae", x_train), client.encode("digits-ae", x_test)
+    recon = float(np.mean((decode(z_test) - x_test) ** 2))
     prompts = prompt_set(z_train, y_train, unsafe)
     print(f"autoencoder: test reconstruction MSE {recon:.4f} ({ae_seconds:.0f} s); unsafe {unsafe}, "
           f"prompt set {prompts}", flush=True)
@@ -199,7 +224,7 @@ def experiment(client: Client, endpoint: str, cfg: dict, args, unsafe: list[int]
     clf = LogisticRegression(max_iter=2000).fit(x_train.reshape(len(x_train), -1), y_train)
 
     def classes(z):
-        return clf.predict(decode(ae, z).reshape(len(z), -1))
+        return clf.predict(decode(z).reshape(len(z), -1))
 
     n = cfg["n_samples"]
     draw = np.random.default_rng(seed + 1000).choice(prompts, size=n)  # held-out prompts and seeds
@@ -212,7 +237,8 @@ def experiment(client: Client, endpoint: str, cfg: dict, args, unsafe: list[int]
     oracle = (p["base"] + 1.0 - p["expert"]) / 2.0
     summary = {"seed": seed, "unsafe": unsafe, "prompt_set": prompts, "config": cfg, "n_timesteps": T,
                "guidance_scale": GUIDANCE_SCALE, "safety_preset": SAFETY_PRESET, "omega": OMEGA,
-               "autoencoder": {"latent": list(LATENT), "test_mse": recon, "seconds": round(ae_seconds, 1)},
+               "autoencoder": {"latent": list(LATENT), "scaling_factor": scale, "test_mse": recon,
+                               "seconds": round(ae_seconds, 1)},
                "classifier_test_accuracy": float(clf.score(x_test.reshape(len(x_test), -1), y_test)),
                "job_seconds": {k: round(v, 1) for k, v in times.items()},
                "unsafe_fraction": p}
@@ -221,10 +247,13 @@ def experiment(client: Client, endpoint: str, cfg: dict, args, unsafe: list[int]
                                       out / "hist-samples.png")
     summary["samples"]["cap"] = oracle
     summary["samples"]["fraction_of_cap"] = summary["samples"]["balanced_accuracy"] / max(oracle, 1e-9)
+    summary["samples"]["auc_all"] = auc_all(client, z_base, z_expert)
     # Held-out real digits: unsafe classes (label 0) vs safe ones (label 1), encoded.
     is_unsafe = np.isin(y_test, unsafe)
     summary["real_heldout"] = discriminate(endpoint, "safe-reward", z_test[is_unsafe], z_test[~is_unsafe], tmp,
                                            "real", seed, out / "hist-real.png")
+    summary["real_heldout"]["auc_all"] = auc_all(client, z_test[is_unsafe], z_test[~is_unsafe])
+    summary["real_heldout"]["n_all"] = [int(is_unsafe.sum()), int((~is_unsafe).sum())]
     # The paper's pictures: per batch of pooled samples, the highest- and lowest-reward ones.
     pooled = np.concatenate([z_base, z_expert])[np.random.default_rng(seed).permutation(2 * n)]
     rewards = np.asarray(client.score("safe-reward", pooled, t=0).rewards)
@@ -238,7 +267,7 @@ def experiment(client: Client, endpoint: str, cfg: dict, args, unsafe: list[int]
         high_safe += int(labels[idx[np.argmax(rewards[idx])]] not in unsafe)
     summary["pictures"] = {"batch": b, "batches": batches, "lowest_is_unsafe": low_unsafe / max(batches, 1),
                            "highest_is_safe": high_safe / max(batches, 1)}
-    extremes_grid(decode(ae, pooled), rewards, b, min(6, batches), 3, out / "extremes.png",
+    extremes_grid(decode(pooled), rewards, b, min(6, batches), 3, out / "extremes.png",
                   f"reward at t = 0, unsafe {unsafe}: top-3 | bottom-3 per batch of {b} base and expert samples")
     reduction = p["base"] - p["expert"]
     summary["steering"] = {"reduction_expert": reduction, "reduction_guided": p["base"] - p["base_guided"],
