@@ -27,6 +27,7 @@ from diffusers.schedulers import scheduling_ddpm  # noqa: E402
 from relreward import DiffusionJob, Optimization, SafetyGuidance  # noqa: E402
 from relreward.errors import InvalidArgument, InvalidInput  # noqa: E402
 from relreward_dev.rng import RelrewardRng  # noqa: E402
+from relreward_dev.unet2d import float64_tables  # noqa: E402
 
 T = 20
 SHAPE = (2, 8, 8)
@@ -50,16 +51,6 @@ def perturbed_unet(**conditioning) -> UNet2DModel:
 def scheduler() -> DDPMScheduler:
     return DDPMScheduler(num_train_timesteps=T, beta_schedule="linear", beta_start=0.001, beta_end=0.2,
                          prediction_type="epsilon", clip_sample=False)
-
-
-def float64_tables(s):
-    s.betas = s.betas.double()
-    s.alphas = 1.0 - s.betas
-    s.alphas_cumprod = torch.cumprod(s.alphas, 0)
-    s.one = torch.tensor(1.0, dtype=torch.float64)
-    if isinstance(s, DDIMScheduler):
-        s.final_alpha_cumprod = s.one
-    return s
 
 
 @pytest.fixture(scope="module")

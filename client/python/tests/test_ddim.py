@@ -31,6 +31,7 @@ from diffusers.schedulers import scheduling_ddpm  # noqa: E402
 
 from relreward.errors import InvalidArgument, InvalidInput  # noqa: E402
 from relreward_dev.rng import RelrewardRng  # noqa: E402
+from relreward_dev.unet2d import float64_tables  # noqa: E402
 
 T = 20
 SHAPE = (2, 8, 8)
@@ -54,18 +55,6 @@ def ddpm_config(prediction_type: str, clip: bool) -> DDPMScheduler:
     # conditioned, so 1e-5 measures the step, not a division by sqrt(abar) ~ 0.
     return DDPMScheduler(num_train_timesteps=T, beta_schedule="linear", beta_start=0.001, beta_end=0.2,
                          prediction_type=prediction_type, clip_sample=clip)
-
-
-def float64_tables(s):
-    """The scheduler with alphas_cumprod (and DDIM's final alpha) in float64 from its float32 betas."""
-    s.betas = s.betas.double()
-    s.alphas = 1.0 - s.betas
-    s.alphas_cumprod = torch.cumprod(s.alphas, 0)
-    s.one = torch.tensor(1.0, dtype=torch.float64)
-    if isinstance(s, DDIMScheduler):
-        s.final_alpha_cumprod = torch.tensor(1.0, dtype=torch.float64) if s.config.set_alpha_to_one \
-            else s.alphas_cumprod[0]
-    return s
 
 
 @pytest.fixture(scope="module")

@@ -3,7 +3,8 @@
 tests/python/unet2d_reference.py drives for server/tests/unet2d_vs_diffusers.rs and that
 tests/bench/unet2d.py times.
 
-Module map: ``build`` (a UNet2DModel from the config relreward's manifest carries; a
+Module map: ``float64_tables`` (a diffusers scheduler's tables recomputed in float64, as
+relreward derives its own, for step-by-step replays), ``build`` (a UNet2DModel from the config relreward's manifest carries; a
 conditional one, ``config["conditioning"]`` = relreward's manifest conditioning, takes
 ``num_class_embeds`` for labels or ``class_embed_type="identity"`` for embeddings),
 ``scheduler`` (DDPM linear betas 1e-4 to 0.02 scaled by 1000 / T).
@@ -44,3 +45,21 @@ def scheduler(n_timesteps):
     scale = 1000.0 / n_timesteps
     return DDPMScheduler(num_train_timesteps=n_timesteps, beta_schedule="linear",
                          beta_start=1e-4 * scale, beta_end=0.02 * scale)
+
+
+def float64_tables(s):
+    """The scheduler ``s`` with alphas_cumprod (and DDIM's final alpha) in float64 from its
+    float32 betas: diffusers keeps them in float32, which loses digits in 1 - abar; relreward
+    derives its tables in float64, so a replay that should agree to 1e-5 per step runs on
+    float64 tables."""
+    import torch
+    from diffusers import DDIMScheduler
+
+    s.betas = s.betas.double()
+    s.alphas = 1.0 - s.betas
+    s.alphas_cumprod = torch.cumprod(s.alphas, 0)
+    s.one = torch.tensor(1.0, dtype=torch.float64)
+    if isinstance(s, DDIMScheduler):
+        s.final_alpha_cumprod = torch.tensor(1.0, dtype=torch.float64) if s.config.set_alpha_to_one \
+            else s.alphas_cumprod[0]
+    return s
