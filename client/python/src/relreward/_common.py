@@ -15,6 +15,7 @@ import grpc
 import numpy as np
 
 from relreward import _tensor
+from relreward.specs import prompts_message
 from relreward.v1 import autoencoder_pb2, datasets_pb2, models_pb2, reward_pb2, tensor_pb2
 from relreward.datasets import UploadSource, row_chunks
 from relreward.errors import InvalidInput
@@ -239,21 +240,6 @@ def gradient_request(model: str, x: Any, t: Any, omega: float | None, input_unit
 
 def gradient_result(r: reward_pb2.GradientResponse) -> GradientResult:
     return GradientResult(_tensor.decode(r.gradient), _tensor.decode(r.rewards))
-
-
-def prompts_message(field: str, value: Any) -> reward_pb2.Prompts:
-    """``Prompts`` from class labels (an int, a sequence or an integer array) or embeddings (a
-    float array ``[dim]`` or ``[k, dim]``); errors name ``field``."""
-    arr = np.asarray(value)
-    if arr.dtype.kind in "iub":
-        if arr.ndim > 1:
-            raise InvalidInput(f"{field}: labels must be an int or a 1-D sequence, got shape {arr.shape}")
-        return reward_pb2.Prompts(labels=[int(v) for v in arr.reshape(-1)])
-    if arr.dtype.kind == "f":
-        if arr.ndim not in (1, 2):
-            raise InvalidInput(f"{field}: embeddings must be [dim] or [k, dim], got shape {arr.shape}")
-        return reward_pb2.Prompts(embeddings=_tensor.encode(arr))
-    raise InvalidInput(f"{field}: expected class labels (integers) or embeddings (floats), got {arr.dtype}")
 
 
 def sample_request(model: str, reward_model: str | None, omega: float, n: int, seed: int | None,

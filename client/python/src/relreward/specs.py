@@ -16,6 +16,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 from google.protobuf import json_format
 
+from relreward import _tensor
 from relreward.v1 import autoencoder_pb2, jobs_pb2, models_pb2, reward_pb2
 from relreward.errors import InvalidInput
 
@@ -382,6 +383,21 @@ def reward_manifest(m: Any) -> models_pb2.RewardUploadManifest:
     return out
 
 
+def prompts_message(field: str, value: Any) -> reward_pb2.Prompts:
+    """``Prompts`` from class labels (an int, a sequence or an integer array) or embeddings (a
+    float array ``[dim]`` or ``[k, dim]``); errors name ``field``."""
+    arr = np.asarray(value)
+    if arr.dtype.kind in "iub":
+        if arr.ndim > 1:
+            raise InvalidInput(f"{field}: labels must be an int or a 1-D sequence, got shape {arr.shape}")
+        return reward_pb2.Prompts(labels=[int(v) for v in arr.reshape(-1)])
+    if arr.dtype.kind == "f":
+        if arr.ndim not in (1, 2):
+            raise InvalidInput(f"{field}: embeddings must be [dim] or [k, dim], got shape {arr.shape}")
+        return reward_pb2.Prompts(embeddings=_tensor.encode(arr))
+    raise InvalidInput(f"{field}: expected class labels (integers) or embeddings (floats), got {arr.dtype}")
+
+
 #: diffusers' Safe Stable Diffusion presets: (warmup_steps, scale, threshold, momentum_scale,
 #: momentum_beta).
 SAFETY_PRESETS = {
@@ -418,7 +434,6 @@ class SafetyGuidance:
 
     def to_proto(self) -> reward_pb2.SafetyGuidance:
         """The ``relreward.v1.SafetyGuidance`` message."""
-        from relreward._common import prompts_message
         return reward_pb2.SafetyGuidance(concept=prompts_message("safety.concept", self.concept),
                                          scale=float(self.scale), warmup_steps=int(self.warmup_steps),
                                          threshold=float(self.threshold), momentum_scale=float(self.momentum_scale),
@@ -438,7 +453,6 @@ class SamplingRecipe:
 
     def to_proto(self) -> reward_pb2.SamplingRecipe:
         """The ``relreward.v1.SamplingRecipe`` message."""
-        from relreward._common import prompts_message
         r = reward_pb2.SamplingRecipe(prompts=prompts_message("prompts", self.prompts))
         if self.guidance_scale is not None:
             r.guidance_scale = float(self.guidance_scale)
