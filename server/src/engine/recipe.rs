@@ -124,15 +124,6 @@ impl Recipe {
     fn needs_null(&self) -> bool {
         self.guidance_scale != 1.0 || self.safety.is_some()
     }
-
-    /// Denoiser passes per step and item.
-    pub fn passes(&self) -> usize {
-        match &self.safety {
-            Some(sld) => 2 + sld.concept.size()[0] as usize,
-            None if self.guidance_scale == 1.0 || self.guidance_scale == 0.0 => 1,
-            None => 2,
-        }
-    }
 }
 
 /// Checks conditions (`[k]` labels or `[k, dim]` embeddings, k >= 1, or exactly `[n]` /
