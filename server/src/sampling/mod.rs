@@ -1,5 +1,6 @@
 //! Sample: ancestral (DDPM) or DDIM sampling from a diffusion model, plain, with inpainting
-//! conditions, or guided by a reward model (Diffuser's guided planning), behind its own
+//! conditions, a conditional model's prompts and recipe (classifier-free and safety guidance),
+//! or guided by a reward model (Diffuser's guided planning), behind its own
 //! workers beside [`crate::serving`]. The door (`api::rewards`) hands over a request and gets back a stream
 //! of host rows: it never touches a tensor or a model's lock.
 //!
