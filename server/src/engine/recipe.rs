@@ -169,7 +169,8 @@ pub struct RecipeRun<'a> {
     model: &'a DiffusionModel,
     recipe: &'a Recipe,
     /// Every condition of a pass stacked: [prompts; null; concept_1; ..; concept_k], each `[B]`
-    /// or `[B, dim]`, so one denoiser call serves them all.
+    /// or `[B, dim]`, so one denoiser call serves them all (the null alone at scale 0 without
+    /// safety).
     stacked: Tensor,
     batch: i64,
     /// SLD's momentum nu (None until the first safety step).
@@ -184,7 +185,10 @@ impl<'a> RecipeRun<'a> {
     pub fn new(model: &'a DiffusionModel, recipe: &'a Recipe, prompts: &Tensor) -> Result<Self> {
         let batch = prompts.size()[0];
         let device = prompts.device();
-        let mut parts = vec![prompts.shallow_clone()];
+        // Scale 0 without safety is pred(null) alone: one pass over the null condition, not a
+        // pass over the prompts whose result the scale would zero.
+        let null_only = recipe.guidance_scale == 0.0 && recipe.safety.is_none();
+        let mut parts = if null_only { Vec::new() } else { vec![prompts.shallow_clone()] };
         if recipe.needs_null() {
             parts.push(model.null_condition(batch, device, "recipe")?);
         }
@@ -212,10 +216,11 @@ impl<'a> RecipeRun<'a> {
         let step = self.step;
         self.step += 1;
         let s = self.recipe.guidance_scale;
-        if !self.recipe.needs_null() {
+        let passes = self.stacked.size()[0] / b;
+        if passes == 1 {
+            // The conditional model alone (scale 1), or the unconditional one (scale 0).
             return self.model.predict_given(x, t, Some(&self.stacked));
         }
-        let passes = self.stacked.size()[0] / b;
         let mut reps = vec![passes];
         reps.extend(std::iter::repeat_n(1, x.dim() - 1));
         let xs = x.f_repeat(&reps)?;

@@ -58,11 +58,8 @@ pub(super) fn plan(
     let guidance_scale = req.guidance_scale.unwrap_or(DEFAULT_GUIDANCE_SCALE);
     check_guidance_scale(guidance_scale, "guidance_scale")?;
     let prompts = match &req.prompts {
-        Some(p) => {
-            let set = PromptSet::from_proto(p, "prompts")?;
-            set.check_against(conditioning, "prompts", &req.model)?;
-            set
-        }
+        // Checked against the model with the rest of the recipe below.
+        Some(p) => PromptSet::from_proto(p, "prompts")?,
         // The unconditional prediction alone needs no prompt: the null condition for all.
         None if guidance_scale == 0.0 && req.safety.is_none() && conditioning.has_null() => null_prompt(conditioning),
         None => {
