@@ -27,8 +27,12 @@
 //!   served from a stale entry, and the serving hot path costs no metadata read.
 //!   [`ModelRegistry::invalidate`] frees an entry at once.
 //! - Kind: asking for a diffusion model by the name of a reward model, or the reverse (or for
-//!   an autoencoder by another kind's name), is `FailedPrecondition` (the name is well formed and the model exists; it is the wrong kind
-//!   of model for the request in the system's current state).
+//!   an autoencoder by another kind's name), is `FailedPrecondition` (the name is well formed
+//!   and the model exists; it is the wrong kind of model for the request in the system's
+//!   current state).
+//! - Recipes: a named sampling recipe is a record without a network. [`resolve_sampled`] is the
+//!   one place that follows a name to the diffusion model it samples (a recipe's model, checked
+//!   against the sha256 the recipe pinned); [`ModelRegistry::get_sampled`] loads that model.
 //!
 //! tch modules are `Send` but not `Sync`, so each model is shared behind a `std::sync::Mutex`
 //! (lock it on a blocking thread, where tensor work belongs anyway).
@@ -52,6 +56,7 @@ use crate::engine::torchscript::{TorchScriptDenoiser, TorchScriptReward};
 use crate::error::{Error, Result};
 use crate::store::digests::{self, Verified, sha256_file};
 use crate::store::{ModelFormat, ModelKind, ModelRecord, Store};
+use relreward_proto::schema::recipe::RecipeManifest;
 
 /// A loaded diffusion model, shared between requests.
 pub type SharedDiffusion = Arc<ServedDiffusion>;
@@ -210,6 +215,15 @@ impl ModelRegistry {
                 Err(Error::internal("model registry", "another kind of model was cached as a diffusion model"))
             }
         }
+    }
+
+    /// What `name` samples: a diffusion model (no recipe), or a named recipe's model with the
+    /// recipe ([`resolve_sampled`]), the model from the cache or loaded from the store.
+    ///
+    /// Errors: those of [`resolve_sampled`] and [`Self::get_diffusion`].
+    pub async fn get_sampled(&self, name: &str) -> Result<(SharedDiffusion, Option<RecipeManifest>)> {
+        let (record, recipe) = resolve_sampled(&self.inner.store, name).await?;
+        Ok((self.get_diffusion(&record.name).await?, recipe))
     }
 
     /// The reward or discriminator model `name`, from the cache or loaded from the store.
@@ -494,12 +508,51 @@ impl ModelRegistry {
 }
 
 /// A kind of model with its article, for messages ("a reward model", "an autoencoder").
-fn kind_name(kind: ModelKind) -> &'static str {
+pub fn kind_name(kind: ModelKind) -> &'static str {
     match kind {
         ModelKind::Diffusion => "a diffusion model",
         ModelKind::Reward => "a reward model",
         ModelKind::Discriminator => "a discriminator model",
         ModelKind::Autoencoder => "an autoencoder",
+        ModelKind::Recipe => "a sampling recipe",
+    }
+}
+
+/// Follows `name` to the diffusion model it samples (the stored record): a diffusion model
+/// itself (no recipe), or a named recipe's model with the recipe. A recipe's model must still be
+/// the one it was made for (same sha256): deleting it is refused while the recipe exists, but a
+/// recipe must never quietly sample a different model.
+///
+/// Errors: `NotFound` (no such model), `FailedPrecondition` (another kind of model, or a recipe
+/// whose model is gone or changed), `DataLoss` (an unreadable recipe manifest).
+pub async fn resolve_sampled(store: &Store, name: &str) -> Result<(ModelRecord, Option<RecipeManifest>)> {
+    let record =
+        store.meta.get_model(name).await?.ok_or_else(|| Error::NotFound(format!("model '{name}' not found")))?;
+    match record.kind {
+        ModelKind::Diffusion => Ok((record, None)),
+        ModelKind::Recipe => {
+            let recipe: RecipeManifest = serde_json::from_value(record.manifest)
+                .map_err(|e| Error::DataLoss(format!("recipe '{name}': its stored manifest is unreadable: {e}")))?;
+            match store.meta.get_model(&recipe.model).await? {
+                Some(m) if m.kind == ModelKind::Diffusion && m.sha256 == recipe.model_sha256 => Ok((m, Some(recipe))),
+                Some(m) => Err(Error::FailedPrecondition(format!(
+                    "recipe '{name}' was made for model '{}' (sha256 {}), which has been replaced since by {} (sha256 \
+                     {}); create the recipe again",
+                    recipe.model,
+                    recipe.model_sha256,
+                    kind_name(m.kind),
+                    m.sha256
+                ))),
+                None => Err(Error::FailedPrecondition(format!(
+                    "recipe '{name}': its model '{}' no longer exists",
+                    recipe.model
+                ))),
+            }
+        }
+        kind => Err(Error::FailedPrecondition(format!(
+            "model '{name}' is {}, not a diffusion model or a sampling recipe",
+            kind_name(kind)
+        ))),
     }
 }
 
@@ -518,6 +571,10 @@ pub fn load_diffusion_copy(record: &ModelRecord, dir: &Path, device: Device) -> 
 pub fn export_torchscript(record: &ModelRecord, dir: &Path, out: &Path) -> Result<()> {
     let path = dir.join(&record.file);
     match (record.kind, record.format) {
+        (ModelKind::Recipe, _) | (_, ModelFormat::Recipe) => Err(Error::FailedPrecondition(format!(
+            "torchscript: model '{}' is a sampling recipe (data, no network); export the model it samples",
+            record.name
+        ))),
         (ModelKind::Autoencoder, _) => Err(Error::FailedPrecondition(format!(
             "torchscript: model '{}' is an autoencoder, an uploaded TorchScript module; its module.pt, as uploaded, \
              is the module",
@@ -605,6 +662,7 @@ fn build_diffusion(record: &ModelRecord, dir: &Path, device: Device) -> Result<(
         .map_err(|e| lost(record, format!("its stored manifest is unreadable: {e}")))?;
     manifest.validate().map_err(|e| lost(record, format!("its stored manifest is invalid: {e}")))?;
     let (net, parameter_bytes): (Box<dyn Denoiser>, u64) = match record.format {
+        ModelFormat::Recipe => return Err(lost(record, "a diffusion model stored as a recipe".into())),
         ModelFormat::Native => {
             let arch = manifest.architecture.as_ref().ok_or_else(|| {
                 lost(record, "its stored manifest names no architecture (native models need one)".into())

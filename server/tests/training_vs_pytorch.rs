@@ -366,6 +366,8 @@ fn guided_sampling_matches_pytorch_step_by_step() {
             objective: Objective::alignment(Target::Mean, EvalPoint::XT, false),
             step_normalization: false,
             inpaint_condition: false,
+            base_recipe: None,
+            expert_recipe: None,
             final_loss: 0.0,
             eval_loss: None,
         },

@@ -405,6 +405,12 @@ impl Client {
         .await
     }
 
+    /// Registers a named sampling recipe over a conditional diffusion model (not retried: a
+    /// second attempt after a lost answer would meet ALREADY_EXISTS).
+    pub async fn create_recipe(&self, req: pb::CreateRecipeRequest) -> Result<pb::Model, ClientError> {
+        Ok(self.models().create_recipe(req).await?.into_inner())
+    }
+
     pub async fn delete_model(&self, name: &str) -> Result<(), ClientError> {
         self.models().delete_model(pb::DeleteModelRequest { name: name.to_owned() }).await?;
         Ok(())

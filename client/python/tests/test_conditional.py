@@ -341,3 +341,144 @@ def test_recipes_are_refused_by_name(client, models):
         client.submit_job(RewardJob(output_model="r5", base_model="cond-no-null", expert_model="cond-no-null",
                                     base_recipe=SamplingRecipe([0], guidance_scale=2.0),
                                     expert_recipe=SamplingRecipe([0]), architecture=arch))
+
+
+def test_a_named_recipe_stands_for_its_model(client, server, models, tmp_path):
+    """CreateRecipe (item 2): a named recipe samples bit for bit what the same recipe given inline
+    samples (sample i under prompt i mod k), is a model of kind "recipe" everywhere (get, list,
+    the CLI's JSON, download), pins its model (which cannot be deleted meanwhile) and refuses,
+    naming the field, what cannot stand."""
+    import json
+
+    from relreward import SamplingRecipe
+    from relreward.errors import AlreadyExists, FailedPrecondition, NotFound
+
+    from test_results import _same_values
+
+    safety = SafetyGuidance.preset("strong", 2)
+    made = client.create_recipe("cond-safe", "cond-labels", SamplingRecipe([0, 1], guidance_scale=2.0, safety=safety),
+                                description="CFG 2 away from label 2")
+    assert (made.kind, made.format, made.parameter_count) == ("recipe", "recipe", 0)
+    assert made.recipe.model == "cond-labels" and made.recipe.model_sha256 == client.get_model("cond-labels").sha256
+    assert made.recipe.recipe.prompts == [0, 1] and made.recipe.recipe.guidance_scale == 2.0
+    assert made.recipe.recipe.safety == SafetyGuidance.preset("strong", [2])
+    assert client.get_model("cond-safe") == made
+    assert "cond-safe" in [m.name for m in client.list_models("recipe")]
+    assert "cond-safe" not in [m.name for m in client.list_models("diffusion")]
+    assert not _same_values(made.as_dict(), server.cli_json("model", "show", "cond-safe"))
+
+    kw = dict(n=3, seed=9, sampler="ddim", steps=5, timestep_spacing="trailing")
+    named = client.sample("cond-safe", **kw)
+    inline = client.sample("cond-labels", prompts=[0, 1, 0], guidance_scale=2.0, safety=safety, **kw)
+    np.testing.assert_array_equal(named.x, inline.x)
+    assert named.prompts.tolist() == [0, 1, 0] and inline.prompts.tolist() == [0, 1, 0]
+    ddpm = dict(n=2, seed=3)
+    np.testing.assert_array_equal(client.sample("cond-safe", **ddpm).x,
+                                  client.sample("cond-labels", prompts=[0, 1], guidance_scale=2.0, safety=safety,
+                                                **ddpm).x)
+    # Embedding prompts cycle the same way.
+    emb = np.random.default_rng(5).standard_normal((2, TEMB)).astype(np.float32)
+    client.create_recipe("cond-embed-cfg", "cond-embed", SamplingRecipe(emb, guidance_scale=1.5))
+    got = client.sample("cond-embed-cfg", **kw)
+    want = client.sample("cond-embed", prompts=emb[[0, 1, 0]], guidance_scale=1.5, **kw)
+    np.testing.assert_array_equal(got.x, want.x)
+    np.testing.assert_array_equal(got.prompts, emb[[0, 1, 0]])
+
+    # A prompt dataset: a samples dataset's labels, or its samples as embeddings.
+    client.upload_dataset("cond-prompt-labels", {"samples": np.zeros((3, *SHAPE), np.float32),
+                                                 "labels": np.array([1, 0, 1])})
+    client.upload_dataset("cond-prompt-emb", emb)
+    from_ds = client.create_recipe("cond-from-ds", "cond-labels", SamplingRecipe("cond-prompt-labels", 2.0))
+    assert from_ds.recipe.recipe.prompts == [1, 0, 1] and from_ds.recipe.prompt_dataset == "cond-prompt-labels"
+    emb_ds = client.create_recipe("cond-emb-ds", "cond-embed", SamplingRecipe("cond-prompt-emb", 1.5))
+    np.testing.assert_array_equal(emb_ds.recipe.recipe.prompts, emb)
+    np.testing.assert_array_equal(client.sample("cond-emb-ds", **kw).x, got.x)
+    assert not _same_values(from_ds.as_dict(), server.cli_json("model", "show", "cond-from-ds"))
+    with pytest.raises(NotFound, match=r"recipe\.prompts\.dataset: dataset 'cond-nope' not found"):
+        client.create_recipe("r-x", "cond-labels", SamplingRecipe("cond-nope"))
+    with pytest.raises(InvalidArgument, match=r"prompts\.dataset: a prompt dataset is read only where a recipe"):
+        client.sample("cond-labels", prompts="cond-prompt-labels")
+
+    downloaded = client.download_model("cond-safe", tmp_path / "recipe")
+    assert downloaded.path.name == "recipe.json" and json.loads(downloaded.path.read_text()) == downloaded.manifest
+    assert downloaded.manifest["model"] == "cond-labels"
+
+    with pytest.raises(InvalidArgument, match=r"prompts: model 'cond-safe' is a recipe over 'cond-labels'"):
+        client.sample("cond-safe", prompts=[0])
+    with pytest.raises(InvalidArgument, match=r"guidance_scale: model 'cond-safe' is a recipe"):
+        client.sample("cond-safe", guidance_scale=1.0)
+    with pytest.raises(FailedPrecondition, match=r"name: model 'cond-labels' is sampled by recipe 'cond-"):
+        client.delete_model("cond-labels")
+    with pytest.raises(AlreadyExists, match=r"name: model 'cond-safe' already exists"):
+        client.create_recipe("cond-safe", "cond-labels", SamplingRecipe([0]))
+    with pytest.raises(NotFound, match=r"model: model 'cond-nope' not found"):
+        client.create_recipe("r-x", "cond-nope", SamplingRecipe([0]))
+    with pytest.raises(FailedPrecondition, match=r"model: 'cond-safe' is a sampling recipe"):
+        client.create_recipe("r-x", "cond-safe", SamplingRecipe([0]))
+    with pytest.raises(InvalidArgument, match=r"recipe: model 'cond-none' is unconditional"):
+        client.create_recipe("r-x", "cond-none", SamplingRecipe([0]))
+    with pytest.raises(InvalidArgument, match=r"recipe\.prompts\.labels\[1\]: 7 is outside the labels 0\.\.4"):
+        client.create_recipe("r-x", "cond-labels", SamplingRecipe([0, 7]))
+    with pytest.raises(InvalidArgument, match=r"recipe\.guidance_scale: 3 needs the unconditional prediction"):
+        client.create_recipe("r-x", "cond-no-null", SamplingRecipe([0], guidance_scale=3.0))
+    with pytest.raises(InvalidArgument, match=r"recipe\.safety\.momentum_beta: 1"):
+        client.create_recipe("r-x", "cond-labels", SamplingRecipe([0], safety=SafetyGuidance(2, momentum_beta=1.0)))
+    with pytest.raises(InvalidArgument, match=r"name: "):
+        client.create_recipe("Bad Name", "cond-labels", SamplingRecipe([0]))
+    with pytest.raises(InvalidInput, match=r"recipe: expected a relreward.SamplingRecipe"):
+        client.create_recipe("r-x", "cond-labels", [0, 1])
+    with pytest.raises(FailedPrecondition, match=r"model 'cond-safe' is a sampling recipe, not a reward"):
+        client.score("cond-safe", np.zeros((1, *SHAPE), np.float32), t=0)
+    assert "r-x" not in [m.name for m in client.list_models()]
+    # The CLI registers the same recipe from flags.
+    cli = server.cli_json("model", "recipe", "cond-safe-cli", "--model", "cond-labels", "--labels", "0,1",
+                          "--guidance-scale", "2", "--safety-concept", "2", "--safety-preset", "strong")
+    assert cli["recipe"] == made.as_dict()["recipe"]
+
+
+def test_algorithm_2_through_named_recipes_equals_the_jobs_own(client, server, models):
+    """A reward job naming recipes as base_model / expert_model runs the chains the same recipes
+    given in the job run (same seed: the same reward, bit for bit), and the reward remembers how
+    each side was sampled (Model.reward, OIP ModelConfig)."""
+    from relreward import RewardJob, SamplingRecipe
+    base = SamplingRecipe(prompts=[0, 1, 2], guidance_scale=2.0)
+    expert = SamplingRecipe(prompts=[0, 1, 2], guidance_scale=2.0, safety=SafetyGuidance.preset("strong", 2))
+    client.create_recipe("cond-cfg2", "cond-labels", base)
+    client.create_recipe("cond-sld2", "cond-labels", expert)
+    common = dict(num_chains=8, architecture=("conv_encoder", {"widths": [8, 16]}),
+                  optimization=Optimization(steps=3, batch_size=8, eval_every=3), seed=4)
+    jobs = [client.submit_job(RewardJob(output_model="rho-named", base_model="cond-cfg2", expert_model="cond-sld2",
+                                        **common)),
+            client.submit_job(RewardJob(output_model="rho-inline", base_model="cond-labels",
+                                        expert_model="cond-labels", base_recipe=base, expert_recipe=expert, **common))]
+    for job in jobs:
+        job = client.wait_job(job.id)
+        assert job.state.name == "SUCCEEDED", job.error
+    x = np.random.default_rng(2).standard_normal((4, *SHAPE)).astype(np.float32)
+    t = [0, 4, 11, 19]
+    np.testing.assert_array_equal(client.score("rho-named", x, t=t).rewards, client.score("rho-inline", x, t=t).rewards)
+    named, inline = client.get_model("rho-named").reward, client.get_model("rho-inline").reward
+    assert (named.base_model, named.expert_model) == ("cond-cfg2", "cond-sld2")
+    assert named.base_recipe == inline.base_recipe and named.expert_recipe == inline.expert_recipe
+    assert named.expert_recipe.model == "cond-labels" and named.expert_recipe.recipe.safety.warmup_steps == 7
+    with pytest.raises(InvalidArgument, match=r"spec\.reward\.base_recipe: set, but base_model 'cond-cfg2' is a recipe"):
+        client.submit_job(RewardJob(output_model="rho-x", base_model="cond-cfg2", expert_model="cond-sld2",
+                                    base_recipe=base, **common))
+    client.upload_dataset("cond-items", np.zeros((4, *SHAPE), np.float32))
+    with pytest.raises(InvalidArgument, match=r"spec\.reward\.base_model \(recipe 'cond-cfg2'\): with_dataset"):
+        client.submit_job(RewardJob(output_model="rho-x", base_model="cond-cfg2", expert_model="cond-sld2",
+                                    datasets=["cond-items"], architecture=("conv_encoder", {"widths": [8, 16]})))
+    # A job's prompt dataset is read at submission: the stored spec holds its labels.
+    client.upload_dataset("cond-prompt-set", {"samples": np.zeros((2, *SHAPE), np.float32), "labels": np.array([2, 0])})
+    pending = client.submit_job(RewardJob(output_model="rho-ds", base_model="cond-labels", expert_model="cond-sld2",
+                                          base_recipe=SamplingRecipe("cond-prompt-set", 2.0),
+                                          **{**common, "optimization": Optimization(steps=100000, batch_size=8)}))
+    assert client.get_job(pending.id).spec.base_recipe.prompts == [2, 0]
+    client.cancel_job(pending.id)
+    grpcclient = pytest.importorskip("tritonclient.grpc")
+    with grpcclient.InferenceServerClient(server.addr) as oip:
+        params = oip.get_model_config("rho-named").config.parameters
+    assert params["base_model"].string_value == "cond-cfg2"
+    import json
+    recipe = json.loads(params["expert_recipe"].string_value)
+    assert recipe["model"] == "cond-labels" and recipe["recipe"]["safety"]["warmup_steps"] == 7

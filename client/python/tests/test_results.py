@@ -75,6 +75,13 @@ class _HalvingAutoencoder(torch.nn.Module):
         return z.repeat_interleave(2, dim=2)
 
 
+class _ConditionalDenoiser(torch.nn.Module):
+    """forward(x, t, cond): a conditional eps model small enough for the walk's recipe."""
+
+    def forward(self, x: torch.Tensor, t: torch.Tensor, cond: torch.Tensor) -> torch.Tensor:
+        return 0.5 * x + cond.to(x.dtype).view(-1, 1, 1)
+
+
 def _public_methods(cls) -> set[str]:
     return {n for n, m in inspect.getmembers(cls) if not n.startswith("_") and inspect.isfunction(m)}
 
@@ -111,6 +118,12 @@ def test_no_public_method_returns_a_protobuf_message(client, server, tiny, finis
                          "obs_dim": tiny.transition_dim - 2}}
         autoencoder = tmp_path / f"ae-{tag}.pt"
         torch.jit.script(_HalvingAutoencoder()).save(str(autoencoder))
+        conditional = tmp_path / f"cond-{tag}.pt"
+        torch.jit.script(_ConditionalDenoiser()).save(str(conditional))
+        client.upload_model(conditional, f"py-walk-cond-{tag}", {
+            "parametrization": "epsilon", "n_timesteps": 4, "clip_denoised": False, "schedule": {"kind": "cosine"},
+            "space": {"kind": "sample", "shape": [1, 4]}, "normalizer": {"kind": "identity"},
+            "conditioning": {"kind": "labels", "num_classes": 3, "null_class": 2}})
         return {
             "health": lambda c: c.health(),
             "upload_dataset": lambda c: c.upload_dataset(f"py-walk-{tag}", np.zeros((4, 3), np.float32)),
@@ -124,6 +137,8 @@ def test_no_public_method_returns_a_protobuf_message(client, server, tiny, finis
             "get_model": lambda c: c.get_model(tiny.reward),
             "list_models": lambda c: c.list_models(),
             "delete_model": lambda c: c.delete_model(f"py-walk-{tag}"),
+            "create_recipe": lambda c: c.create_recipe(f"py-walk-recipe-{tag}", f"py-walk-cond-{tag}",
+                                                       relreward.SamplingRecipe([0, 1], guidance_scale=2.0)),
             "download_model": lambda c: c.download_model(tiny.reward, tmp_path / f"rw-{tag}"),
             "export_model": lambda c: c.export_model(tiny.reward, tmp_path / f"rw-export-{tag}"),
             "submit_job": lambda c: c.submit_job(long_job, job_id=f"py-walk-{tag}"),

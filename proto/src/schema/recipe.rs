@@ -8,6 +8,9 @@
 //!   `SafetyGuidance` gives the formulas).
 //! - [`RecipeSpec`]: a prompt set (each chain or sample draws one), the classifier-free guidance
 //!   scale, and optional safety guidance.
+//! - [`RecipeManifest`]: a named recipe's stored manifest (`ModelService.CreateRecipe`): the
+//!   conditional model it samples, pinned by sha256, and its spec; also what a reward remembers
+//!   of each side it was extracted from.
 //!
 //! Checks that need no model are here ([`RecipeSpec::from_proto`], messages naming the field);
 //! [`PromptSet::check_against`] checks conditions against a model's conditioning.
@@ -42,6 +45,13 @@ impl PromptSet {
     /// From a `Prompts` message: exactly one of labels and embeddings, embeddings `[dim]` or
     /// `[k, dim]` of finite values; `field` names it in messages.
     pub fn from_proto(p: &pb::Prompts, field: &str) -> Result<Self, Invalid> {
+        if !p.dataset.is_empty() {
+            // The server reads it (and replaces it by its conditions) where a recipe is stored.
+            return invalid(format!(
+                "{field}.dataset: a prompt dataset is read only where a recipe is stored (CreateRecipe, a reward \
+                 job's base_recipe / expert_recipe); give labels or embeddings here"
+            ));
+        }
         match (p.labels.is_empty(), &p.embeddings) {
             (false, Some(_)) => invalid(format!("{field}: set labels or embeddings, not both")),
             (true, None) => invalid(format!("{field}: empty; give labels or embeddings")),
@@ -65,10 +75,10 @@ impl PromptSet {
 
     pub fn to_proto(&self) -> pb::Prompts {
         match self {
-            Self::Labels(l) => pb::Prompts { labels: l.clone(), embeddings: None },
+            Self::Labels(l) => pb::Prompts { labels: l.clone(), ..Default::default() },
             Self::Embeddings { dim, values } => pb::Prompts {
-                labels: Vec::new(),
                 embeddings: Some(tensor::encode_f32(&[self.len() as u64, *dim as u64], values)),
+                ..Default::default()
             },
         }
     }
@@ -225,6 +235,31 @@ impl RecipeSpec {
     }
 }
 
+/// A recipe bound to its model: a named recipe's stored manifest (`recipe.json`), and a reward's
+/// record of how a side was sampled (`Model.reward.base_recipe`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct RecipeManifest {
+    /// The conditional diffusion model sampled.
+    pub model: String,
+    /// Its sha256 when the recipe was made: a model replaced under the same name is noticed.
+    pub model_sha256: String,
+    pub recipe: RecipeSpec,
+    /// The stored dataset its prompt set was read from, if it came from one.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub prompt_dataset: Option<String>,
+}
+
+impl RecipeManifest {
+    pub fn to_proto(&self) -> pb::RecipeInfo {
+        pb::RecipeInfo {
+            model: self.model.clone(),
+            model_sha256: self.model_sha256.clone(),
+            recipe: Some(self.recipe.to_proto()),
+            prompt_dataset: self.prompt_dataset.clone().unwrap_or_default(),
+        }
+    }
+}
+
 /// A classifier-free guidance scale: finite, |s| <= 1e6 (the bound on guidance scales).
 pub fn check_guidance_scale(s: f64, field: &str) -> Result<(), Invalid> {
     if !s.is_finite() || s.abs() > 1e6 {
@@ -238,7 +273,7 @@ mod tests {
     use super::*;
 
     fn labels(l: &[i64]) -> pb::Prompts {
-        pb::Prompts { labels: l.to_vec(), embeddings: None }
+        pb::Prompts { labels: l.to_vec(), ..Default::default() }
     }
 
     #[test]
@@ -274,11 +309,15 @@ mod tests {
         assert!(err.starts_with("x.safety.momentum_beta: 1"), "{err}");
         let err = RecipeSpec::from_proto(&pb::SamplingRecipe { prompts: None, ..r.clone() }, "x").expect_err("p").0;
         assert!(err.starts_with("x.prompts: missing"), "{err}");
-        let both = pb::Prompts { labels: vec![1], embeddings: Some(tensor::encode_f32(&[2], &[0.0, 1.0])) };
+        let both = pb::Prompts {
+            labels: vec![1],
+            embeddings: Some(tensor::encode_f32(&[2], &[0.0, 1.0])),
+            ..Default::default()
+        };
         let err = PromptSet::from_proto(&both, "p").expect_err("both").0;
         assert!(err.contains("not both"), "{err}");
         let e = PromptSet::from_proto(
-            &pb::Prompts { labels: vec![], embeddings: Some(tensor::encode_f32(&[2, 3], &[0.5; 6])) },
+            &pb::Prompts { embeddings: Some(tensor::encode_f32(&[2, 3], &[0.5; 6])), ..Default::default() },
             "p",
         )
         .expect("embeddings");

@@ -13,6 +13,7 @@ use crate::engine::relative_reward::{RewardManifest, RewardSource};
 use crate::engine::schedule::Schedule;
 use crate::error::{Error, Result};
 use crate::store::{ModelFormat, ModelKind, ModelRecord, Provenance};
+use relreward_proto::schema::recipe::RecipeManifest;
 
 // ============================================================================================
 // Models: diffusion manifests (their wire forms are the shared schema's), model records.
@@ -42,13 +43,14 @@ pub fn diffusion_manifest_from_proto(m: Option<pb::DiffusionManifest>, field: &s
 /// Wire kind filter: UNSPECIFIED means any kind (`None`).
 pub fn model_kind_filter_from_proto(v: i32, field: &str) -> Result<Option<ModelKind>> {
     const KINDS: &str = "MODEL_KIND_UNSPECIFIED (any), MODEL_KIND_DIFFUSION, MODEL_KIND_REWARD, \
-                         MODEL_KIND_DISCRIMINATOR or MODEL_KIND_AUTOENCODER";
+                         MODEL_KIND_DISCRIMINATOR, MODEL_KIND_AUTOENCODER or MODEL_KIND_RECIPE";
     Ok(match crate::fields::known(field, v, KINDS)? {
         pb::ModelKind::Unspecified => None,
         pb::ModelKind::Diffusion => Some(ModelKind::Diffusion),
         pb::ModelKind::Reward => Some(ModelKind::Reward),
         pb::ModelKind::Discriminator => Some(ModelKind::Discriminator),
         pb::ModelKind::Autoencoder => Some(ModelKind::Autoencoder),
+        pb::ModelKind::Recipe => Some(ModelKind::Recipe),
     })
 }
 
@@ -58,6 +60,7 @@ pub fn model_kind_to_proto(k: ModelKind) -> pb::ModelKind {
         ModelKind::Reward => pb::ModelKind::Reward,
         ModelKind::Discriminator => pb::ModelKind::Discriminator,
         ModelKind::Autoencoder => pb::ModelKind::Autoencoder,
+        ModelKind::Recipe => pb::ModelKind::Recipe,
     }
 }
 
@@ -65,6 +68,7 @@ pub fn model_format_to_proto(f: ModelFormat) -> pb::ModelFormat {
     match f {
         ModelFormat::Torchscript => pb::ModelFormat::Torchscript,
         ModelFormat::Native => pb::ModelFormat::Native,
+        ModelFormat::Recipe => pb::ModelFormat::Recipe,
     }
 }
 
@@ -83,32 +87,21 @@ pub fn provenance_to_proto(p: &Provenance) -> pb::Provenance {
 }
 
 /// A stored model record on the wire: a diffusion model's manifest (`Model.manifest`), a reward's
-/// or discriminator's details (`Model.reward`) or an autoencoder's (`Model.autoencoder`), each
-/// parsed from the record's JSON; an unreadable one is `DataLoss`.
+/// or discriminator's details (`Model.reward`), an autoencoder's (`Model.autoencoder`) or a
+/// recipe's (`Model.recipe`), each parsed from the record's JSON; an unreadable one is `DataLoss`.
 pub fn model_to_proto(r: &ModelRecord) -> Result<pb::Model> {
-    let manifest = match r.kind {
-        ModelKind::Diffusion => {
-            let m: DiffusionManifest = serde_json::from_value(r.manifest.clone())
-                .map_err(|e| Error::DataLoss(format!("model '{}': its stored manifest is unreadable: {e}", r.name)))?;
-            Some(m.to_proto())
-        }
-        ModelKind::Reward | ModelKind::Discriminator | ModelKind::Autoencoder => None,
-    };
-    let unreadable =
-        |e: serde_json::Error| Error::DataLoss(format!("model '{}': its stored manifest is unreadable: {e}", r.name));
-    let autoencoder = match r.kind {
-        ModelKind::Autoencoder => {
-            let m: AutoencoderManifest = serde_json::from_value(r.manifest.clone()).map_err(unreadable)?;
-            Some(m.to_info())
-        }
-        ModelKind::Diffusion | ModelKind::Reward | ModelKind::Discriminator => None,
-    };
-    let reward = match r.kind {
-        ModelKind::Diffusion | ModelKind::Autoencoder => None,
+    fn parse<T: serde::de::DeserializeOwned>(r: &ModelRecord) -> Result<T> {
+        serde_json::from_value(r.manifest.clone())
+            .map_err(|e| Error::DataLoss(format!("model '{}': its stored manifest is unreadable: {e}", r.name)))
+    }
+    let (mut manifest, mut reward, mut autoencoder, mut recipe) = (None, None, None, None);
+    match r.kind {
+        ModelKind::Diffusion => manifest = Some(parse::<DiffusionManifest>(r)?.to_proto()),
+        ModelKind::Autoencoder => autoencoder = Some(parse::<AutoencoderManifest>(r)?.to_info()),
+        ModelKind::Recipe => recipe = Some(parse::<RecipeManifest>(r)?.to_proto()),
         ModelKind::Reward | ModelKind::Discriminator => {
-            let m: RewardManifest = serde_json::from_value(r.manifest.clone())
-                .map_err(|e| Error::DataLoss(format!("model '{}': its stored manifest is unreadable: {e}", r.name)))?;
-            Some(pb::RewardInfo {
+            let m: RewardManifest = parse(r)?;
+            reward = Some(pb::RewardInfo {
                 base_model: m.base_model.clone(),
                 expert_model: m.expert_model.clone(),
                 architecture: m.architecture.to_string(),
@@ -119,9 +112,11 @@ pub fn model_to_proto(r: &ModelRecord) -> Result<pb::Model> {
                 input_shape: m.space.item_shape().iter().map(|&d| d as u64).collect(),
                 normalizer: Some(m.normalizer.to_proto()),
                 n_timesteps: m.n_timesteps as u32,
-            })
+                base_recipe: m.base_recipe.as_ref().map(RecipeManifest::to_proto),
+                expert_recipe: m.expert_recipe.as_ref().map(RecipeManifest::to_proto),
+            });
         }
-    };
+    }
     Ok(pb::Model {
         name: r.name.clone(),
         kind: model_kind_to_proto(r.kind) as i32,
@@ -135,6 +130,7 @@ pub fn model_to_proto(r: &ModelRecord) -> Result<pb::Model> {
         created_at: Some(timestamp(r.created_at_ms)),
         description: r.description.clone(),
         autoencoder,
+        recipe,
     })
 }
 

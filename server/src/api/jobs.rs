@@ -32,9 +32,18 @@ impl Jobs {
     /// proto -> stored spec, with defaults (the shared schema's `JobSpec::from_proto`) after
     /// the lookups they depend on: the diffusion job's dataset kind, the space of the model a
     /// reward or discriminator job reads. A missing input is NOT_FOUND before any other check.
-    async fn spec_from_proto(&self, spec: pb::JobSpec) -> Result<JobSpec, Error> {
+    async fn spec_from_proto(&self, mut spec: pb::JobSpec) -> Result<JobSpec, Error> {
         use pb::job_spec::Kind;
         validate_spec_names(&spec)?;
+        // A recipe's prompt dataset is read now: the job keeps the conditions themselves.
+        if let Some(Kind::Reward(r)) = spec.kind.as_mut() {
+            for (side, recipe) in [("base", &mut r.base_recipe), ("expert", &mut r.expert_recipe)] {
+                if let Some(p) = recipe.as_mut().and_then(|r| r.prompts.as_mut()) {
+                    let field = format!("spec.reward.{side}_recipe.prompts");
+                    crate::jobs::datasets::resolve_prompt_dataset(&self.store, p, &field).await?;
+                }
+            }
+        }
         let facts = match &spec.kind {
             None => return Err(Error::invalid("spec.kind: none of diffusion, reward or discriminator is set")),
             Some(Kind::Diffusion(d)) => {
@@ -53,16 +62,16 @@ impl Jobs {
         Ok(JobSpec::from_proto(spec, &facts)?)
     }
 
-    /// The item space of diffusion model `name`, named in errors as `field`.
+    /// The item space of diffusion model `name` (or of a named recipe's model), named in
+    /// errors as `field`.
     async fn model_space(&self, field: &str, name: &str) -> Result<Space, Error> {
-        let model = self
-            .store
-            .meta
-            .get_model(name)
-            .await?
-            .ok_or_else(|| Error::NotFound(format!("{field}: model '{name}' not found")))?;
+        let (model, _) = crate::registry::resolve_sampled(&self.store, name).await.map_err(|e| match e {
+            Error::NotFound(m) => Error::NotFound(format!("{field}: {m}")),
+            Error::FailedPrecondition(m) => Error::invalid(format!("{field}: {m}")),
+            other => other,
+        })?;
         let manifest = serde_json::from_value::<DiffusionManifest>(model.manifest)
-            .map_err(|_| Error::invalid(format!("{field}: '{name}' is not a diffusion model")))?;
+            .map_err(|e| Error::DataLoss(format!("{field}: model '{}': manifest unreadable: {e}", model.name)))?;
         Ok(manifest.space)
     }
 }

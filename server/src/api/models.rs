@@ -1,6 +1,7 @@
 //! `relreward.v1.ModelService`: register diffusion models (TorchScript modules or native
-//! safetensors weights), bring-your-own rewards and autoencoders (TorchScript modules), get,
-//! list, delete, download.
+//! safetensors weights), bring-your-own rewards and autoencoders (TorchScript modules), and
+//! named sampling recipes (`CreateRecipe`: JSON over a stored conditional model, its sha256
+//! pinned; the model cannot be deleted while a recipe samples it); get, list, delete, download.
 //!
 //! Upload protocol (one client stream): a `header` (name, manifest, description, format), the
 //! file's bytes in `chunk`s, then a `commit` with the file's sha256. The order of checks is
@@ -57,12 +58,18 @@ use crate::registry::ModelRegistry;
 use crate::store::digests::{self, DIGEST_FILE, Verified};
 use crate::store::ingest::now_ms;
 use crate::store::{ModelFormat, ModelKind, ModelRecord, Provenance, Store};
+use relreward_proto::schema::recipe::{RecipeManifest, RecipeSpec};
 
 /// File names inside an uploaded model's blob (native weights keep the name training jobs give
 /// them, `weights.safetensors`).
 pub const MODULE_FILE: &str = "module.pt";
 pub const WEIGHTS_FILE: &str = "weights.safetensors";
 pub const MANIFEST_FILE: &str = "manifest.json";
+/// A recipe's one file: its manifest (JSON).
+pub const RECIPE_FILE: &str = "recipe.json";
+
+/// Model records read per page when looking for the recipes that sample a model.
+const RECIPE_SCAN_PAGE: usize = 256;
 
 /// Longest description accepted, in bytes.
 const MAX_DESCRIPTION_BYTES: usize = 4096;
@@ -116,6 +123,12 @@ impl Models {
         )? {
             pb::ModelFormat::Unspecified | pb::ModelFormat::Torchscript => ModelFormat::Torchscript,
             pb::ModelFormat::Native => ModelFormat::Native,
+            pb::ModelFormat::Recipe => {
+                return Err(Error::invalid(
+                    "header.format: MODEL_FORMAT_RECIPE is not uploaded; register a recipe with \
+                     ModelService.CreateRecipe",
+                ));
+            }
         };
         if format == ModelFormat::Torchscript && !self.config.allow_torchscript_upload {
             return Err(Error::FailedPrecondition(
@@ -128,12 +141,7 @@ impl Models {
             ));
         }
         validate_name("header.name", &header.name)?;
-        if header.description.len() > MAX_DESCRIPTION_BYTES {
-            return Err(Error::invalid(format!(
-                "header.description: {} bytes, at most {MAX_DESCRIPTION_BYTES}",
-                header.description.len()
-            )));
-        }
+        check_description("header.description", &header.description)?;
         if self.store.meta.get_model(&header.name).await?.is_some() {
             return Err(Error::AlreadyExists(format!("header.name: model '{}' already exists", header.name)));
         }
@@ -215,6 +223,8 @@ impl Models {
                 let parameter_count = match format {
                     ModelFormat::Torchscript => self.registry.validate_torchscript(file_path, manifest.clone()).await?,
                     ModelFormat::Native => self.registry.validate_native(file_path, manifest.clone()).await?,
+                    // Refused with the header above.
+                    ModelFormat::Recipe => return Err(Error::internal("UploadModel", "a recipe format upload")),
                 };
                 (ModelKind::Diffusion, parameter_count, serde_json::to_value(&manifest))
             }
@@ -389,6 +399,87 @@ impl Models {
         Ok((header, opened))
     }
 
+    /// `CreateRecipe` (models.proto): checked cheapest first (name, description, the name free,
+    /// the prompt dataset read, the recipe's own fields, the model a conditional diffusion model
+    /// the recipe fits), then
+    /// stored as `recipe.json`, the record's manifest, with its model's sha256 pinned.
+    async fn create_recipe(&self, req: pb::CreateRecipeRequest) -> Result<pb::Model> {
+        validate_name("name", &req.name)?;
+        check_description("description", &req.description)?;
+        validate_name("model", &req.model)?;
+        let mut recipe = req
+            .recipe
+            .ok_or_else(|| Error::invalid("recipe: missing; give its prompts (and guidance_scale, safety)"))?;
+        if self.store.meta.get_model(&req.name).await?.is_some() {
+            return Err(Error::AlreadyExists(format!("name: model '{}' already exists", req.name)));
+        }
+        let prompt_dataset = match recipe.prompts.as_mut() {
+            Some(p) => crate::jobs::datasets::resolve_prompt_dataset(&self.store, p, "recipe.prompts").await?,
+            None => None,
+        };
+        let recipe = RecipeSpec::from_proto(&recipe, "recipe")?;
+        let model = self
+            .store
+            .meta
+            .get_model(&req.model)
+            .await?
+            .ok_or_else(|| Error::NotFound(format!("model: model '{}' not found", req.model)))?;
+        if model.kind != ModelKind::Diffusion {
+            return Err(Error::FailedPrecondition(format!(
+                "model: '{}' is {}; a recipe samples a conditional diffusion model",
+                req.model,
+                crate::registry::kind_name(model.kind)
+            )));
+        }
+        let manifest: DiffusionManifest = serde_json::from_value(model.manifest.clone())
+            .map_err(|e| Error::DataLoss(format!("model '{}': its stored manifest is unreadable: {e}", req.model)))?;
+        recipe.check_against(manifest.conditioning.as_ref(), "recipe", &req.model)?;
+        let stored =
+            RecipeManifest { model: req.model.clone(), model_sha256: model.sha256.clone(), recipe, prompt_dataset };
+        let manifest_json = serde_json::to_value(&stored).map_err(|e| Error::internal("encoding a recipe", e))?;
+        let text = serde_json::to_vec_pretty(&manifest_json).map_err(|e| Error::internal("encoding a recipe", e))?;
+        let _reserved =
+            tokio::task::block_in_place(|| self.budget.reserve(text.len() as u64, &format!("recipe '{}'", req.name)))?;
+        let staging = self.store.blobs.staging()?;
+        tokio::task::block_in_place(|| std::fs::write(staging.path().join(RECIPE_FILE), &text))?;
+        let record = ModelRecord {
+            name: req.name,
+            kind: ModelKind::Recipe,
+            format: ModelFormat::Recipe,
+            manifest: manifest_json,
+            parameter_count: 0,
+            sha256: hex::encode(Sha256::digest(&text)),
+            size_bytes: text.len() as u64,
+            file: RECIPE_FILE.into(),
+            provenance: Provenance::Uploaded,
+            created_at_ms: now_ms(),
+            description: req.description,
+            blob_key: String::new(),
+        };
+        let record = self.store.commit_model(staging, record).await?;
+        self.registry.invalidate(&record.name);
+        tracing::info!(recipe = record.name, model = stored.model, "recipe registered");
+        model_to_proto(&record)
+    }
+
+    /// A recipe that samples model `name`, if any (a scan of the model records: deletions are
+    /// rare, recipes few).
+    async fn recipe_using(&self, name: &str) -> Result<Option<String>> {
+        let mut after = String::new();
+        loop {
+            let page = self.store.meta.list_models(&after, RECIPE_SCAN_PAGE).await?;
+            for r in &page {
+                if r.kind == ModelKind::Recipe && r.manifest.get("model").and_then(|m| m.as_str()) == Some(name) {
+                    return Ok(Some(r.name.clone()));
+                }
+            }
+            match page.last() {
+                Some(last) if page.len() == RECIPE_SCAN_PAGE => after.clone_from(&last.name),
+                _ => return Ok(None),
+            }
+        }
+    }
+
     async fn delete(&self, name: &str) -> Result<()> {
         validate_name("name", name)?;
         if self.store.meta.get_model(name).await?.is_none() {
@@ -399,11 +490,24 @@ impl Models {
                 "name: model '{name}' is in use by job '{job}'; cancel the job or wait for it to finish, then delete"
             )));
         }
+        if let Some(recipe) = self.recipe_using(name).await? {
+            return Err(Error::FailedPrecondition(format!(
+                "name: model '{name}' is sampled by recipe '{recipe}'; delete the recipe first"
+            )));
+        }
         self.store.delete_model(name).await?;
         self.registry.invalidate(name);
         tracing::info!(model = name, "model deleted");
         Ok(())
     }
+}
+
+/// A description of at most [`MAX_DESCRIPTION_BYTES`].
+fn check_description(field: &str, description: &str) -> Result<()> {
+    if description.len() > MAX_DESCRIPTION_BYTES {
+        return Err(Error::invalid(format!("{field}: {} bytes, at most {MAX_DESCRIPTION_BYTES}", description.len())));
+    }
+    Ok(())
 }
 
 /// What an upload registers.
@@ -439,6 +543,8 @@ fn autoencoder_manifest(
 /// their architecture, a TorchScript module must not (it is its own).
 fn diffusion_file_name(format: ModelFormat, manifest: &DiffusionManifest) -> Result<&'static str> {
     match (format, &manifest.architecture) {
+        // Refused with the header's format.
+        (ModelFormat::Recipe, _) => Err(Error::internal("UploadModel", "a recipe format upload")),
         (ModelFormat::Torchscript, None) => Ok(MODULE_FILE),
         (ModelFormat::Native, Some(_)) => Ok(WEIGHTS_FILE),
         (ModelFormat::Torchscript, Some(_)) => Err(Error::invalid(
@@ -578,6 +684,10 @@ impl ModelService for Models {
     ) -> Result<Response<pb::DeleteModelResponse>, Status> {
         self.delete(&request.into_inner().name).await?;
         Ok(Response::new(pb::DeleteModelResponse {}))
+    }
+
+    async fn create_recipe(&self, request: Request<pb::CreateRecipeRequest>) -> Result<Response<pb::Model>, Status> {
+        Ok(Response::new(self.create_recipe(request.into_inner()).await?))
     }
 
     async fn download_model(

@@ -29,16 +29,19 @@
 //!   `t` is optional, and `dynamic_batching` is the batcher's settings (`preferred_batch_size`
 //!   `serving.max_batch`, `max_queue_delay_microseconds` `serving.max_delay_us`, a queue of
 //!   `serving.queue_capacity` requests that rejects on timeout, `serving.default_deadline_ms`
-//!   unless the call carries `grpc-timeout`). Both answer NOT_FOUND for an unknown model or
-//!   version and FAILED_PRECONDITION for a diffusion model.
+//!   unless the call carries `grpc-timeout`); its `parameters` say `n_timesteps`, the
+//!   `base_model` and `expert_model` it was extracted from and, for a side sampled through a
+//!   sampling recipe (named or the job's own), `base_recipe` / `expert_recipe` as JSON (model,
+//!   model_sha256, recipe). Both answer NOT_FOUND for an unknown model or version and
+//!   FAILED_PRECONDITION for a diffusion model (or a recipe).
 //! - ModelStatistics: per model, what serving counted since the server started
 //!   ([`crate::metrics::ModelStats`]: Score and Gradient of the native API count too). With a
 //!   name, that model (zeros before its first query); without, every reward model in the store
 //!   that has statistics.
 //! - RepositoryIndex: every reward and discriminator model in the store, version "1", READY
 //!   when ModelReady would say so (it loads and passes its integrity check; so the index may
-//!   load models), else UNAVAILABLE with the reason. Diffusion models are not listed: this
-//!   endpoint never serves them. `ready` keeps the READY ones only.
+//!   load models), else UNAVAILABLE with the reason. Diffusion models, autoencoders and recipes
+//!   are not listed: this endpoint never serves them. `ready` keeps the READY ones only.
 //!
 //! The protocol's other RPCs (ModelStreamInfer, RepositoryModelLoad and RepositoryModelUnload
 //! (models load on demand), the system and CUDA shared-memory RPCs, TraceSetting and
@@ -61,6 +64,7 @@ use crate::error::{Error, Result, brief, quote};
 use crate::metrics::{CountNs, ModelStats};
 use crate::serving::{self, HostTensor, Op, Query, Serving, Units};
 use crate::store::ModelKind;
+use relreward_proto::schema::recipe::RecipeManifest;
 
 /// The one version every model has.
 const VERSION: &str = "1";
@@ -424,10 +428,22 @@ impl Inference {
             reshape: if scalar { scalar_reshape() } else { None },
         };
         let item = model.item_shape.clone();
-        let parameters = [("n_timesteps", model.manifest.n_timesteps.to_string())]
-            .into_iter()
-            .map(|(k, v)| (k.to_owned(), pb::ModelParameter { string_value: v }))
-            .collect();
+        // Provenance beside T: the models (or recipes) it was extracted from and, for a side
+        // sampled through a recipe, the recipe as JSON (model, its sha256, prompts, guidance).
+        let recipe = |r: &Option<RecipeManifest>| {
+            r.as_ref().map(|r| serde_json::to_string(r).map_err(|e| Error::internal("ModelConfig: a recipe", e)))
+        };
+        let m = &model.manifest;
+        let parameters = [
+            ("n_timesteps", Some(Ok(m.n_timesteps.to_string()))),
+            ("base_model", (!m.base_model.is_empty()).then(|| Ok(m.base_model.clone()))),
+            ("expert_model", (!m.expert_model.is_empty()).then(|| Ok(m.expert_model.clone()))),
+            ("base_recipe", recipe(&m.base_recipe)),
+            ("expert_recipe", recipe(&m.expert_recipe)),
+        ]
+        .into_iter()
+        .filter_map(|(k, v)| v.map(|v| v.map(|v| (k.to_owned(), pb::ModelParameter { string_value: v }))))
+        .collect::<Result<_>>()?;
         let config = pb::ModelConfig {
             name: req.name,
             platform: PLATFORM.to_owned(),

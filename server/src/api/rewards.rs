@@ -71,6 +71,7 @@ fn sample_response(item_shape: &[i64], row: SampleRow) -> Result<pb::SampleRespo
         x: Some(f32_tensor(item_shape, &row.x)?),
         x_normalized: Some(f32_tensor(item_shape, &row.x_normalized)?),
         reward: row.reward,
+        prompt: row.prompt,
     })
 }
 

@@ -46,6 +46,7 @@ use super::nets::reward::{RewardArchitecture, RewardNet};
 use super::normalizer::{Normalize, Normalizer};
 use super::threads::side_by_side;
 use crate::error::{Error, Result};
+use relreward_proto::schema::recipe::RecipeManifest;
 
 /// What grad rho is aligned with and where it is evaluated: the job spec's choices (shared
 /// schema, `relreward_proto::schema::job`).
@@ -279,6 +280,13 @@ pub struct RewardManifest {
     /// Trained on x_t with the first observation clean (the job's `inpaint_condition`).
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub inpaint_condition: bool,
+    /// How each side was sampled when it was a recipe (Algorithm 2 over a conditional model: a
+    /// named recipe, or the job's own base_recipe / expert_recipe): provenance, reported in
+    /// `Model.reward` and OIP's ModelConfig.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub base_recipe: Option<RecipeManifest>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub expert_recipe: Option<RecipeManifest>,
     pub final_loss: f64,
     pub eval_loss: Option<f64>,
 }
@@ -385,6 +393,8 @@ impl RewardManifest {
             objective: Objective::Uploaded,
             step_normalization: false,
             inpaint_condition: false,
+            base_recipe: None,
+            expert_recipe: None,
             final_loss: 0.0,
             eval_loss: None,
         }

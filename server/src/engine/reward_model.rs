@@ -273,6 +273,8 @@ mod tests {
             objective: Objective::Discriminator,
             step_normalization,
             inpaint_condition: false,
+            base_recipe: None,
+            expert_recipe: None,
             final_loss: 0.0,
             eval_loss: None,
         }

@@ -1,5 +1,6 @@
 //! Reading stored datasets back for training: rows in raw units and, for trajectories, the
-//! windows that lie inside episodes.
+//! windows that lie inside episodes; and a samples dataset read as a recipe's prompt set
+//! ([`resolve_prompt_dataset`]).
 
 use std::path::Path;
 
@@ -63,4 +64,69 @@ pub(crate) fn load_labels(store_dir: &Path, ds: &DatasetRecord) -> Result<Option
         .to_i64()
         .ok_or_else(|| Error::DataLoss(format!("dataset '{}': labels stored as {}", ds.name, a.dtype)))?;
     Ok(Some(Tensor::from_slice(&labels)))
+}
+
+/// Most labels, and most embedding values, a prompt dataset may give a recipe.
+const MAX_PROMPT_LABELS: usize = 1_000_000;
+const MAX_PROMPT_VALUES: usize = 1 << 24;
+
+/// A `Prompts` message naming a stored dataset (`dataset`) made into the conditions it holds:
+/// its `labels` array, or without one its `samples` rows flattened to embeddings `[k, dim]`.
+/// Returns the dataset's name (None when `p` names none, and `p` is left as it is). Errors name
+/// `field` (e.g. "recipe.prompts"): labels or embeddings beside the dataset, an unknown dataset
+/// (NotFound), a trajectory dataset, one too large.
+pub(crate) async fn resolve_prompt_dataset(
+    store: &crate::store::Store,
+    p: &mut relreward_proto::v1::Prompts,
+    field: &str,
+) -> Result<Option<String>> {
+    if p.dataset.is_empty() {
+        return Ok(None);
+    }
+    crate::fields::validate_name(&format!("{field}.dataset"), &p.dataset)?;
+    if !p.labels.is_empty() || p.embeddings.is_some() {
+        return Err(Error::invalid(format!(
+            "{field}.dataset: set together with labels or embeddings; give one of them"
+        )));
+    }
+    let name = std::mem::take(&mut p.dataset);
+    let ds = store
+        .meta
+        .get_dataset(&name)
+        .await?
+        .ok_or_else(|| Error::NotFound(format!("{field}.dataset: dataset '{name}' not found")))?;
+    if ds.kind != DatasetKind::Samples {
+        return Err(Error::invalid(format!(
+            "{field}.dataset: dataset '{name}' holds trajectories; a prompt set is a samples dataset (its labels, or \
+             its samples as embeddings)"
+        )));
+    }
+    let labelled = array(&ds, "labels").is_some();
+    let (k, width) = match array(&ds, "samples") {
+        Some(a) => (a.shape.first().copied().unwrap_or(0) as usize, a.shape[1..].iter().product::<u64>() as usize),
+        None => (0, 0),
+    };
+    if labelled && k > MAX_PROMPT_LABELS || !labelled && k.saturating_mul(width) > MAX_PROMPT_VALUES {
+        return Err(Error::invalid(format!(
+            "{field}.dataset: dataset '{name}' is too large for a prompt set (at most {MAX_PROMPT_LABELS} labels or \
+             {MAX_PROMPT_VALUES} embedding values)"
+        )));
+    }
+    let dir = store.blobs.local_dir(&ds.blob_key).await?;
+    tokio::task::block_in_place(|| -> Result<()> {
+        let (rows, _) = load_rows(&dir, &ds, 1)?;
+        match load_labels(&dir, &ds)? {
+            Some(labels) => {
+                p.labels = Vec::<i64>::try_from(&labels).map_err(|e| Error::internal("reading prompt labels", e))?;
+            }
+            None => {
+                let flat = rows.reshape([k as i64, width as i64]).to_kind(tch::Kind::Float).contiguous();
+                let values = Vec::<f32>::try_from(&flat.view([-1]))
+                    .map_err(|e| Error::internal("reading prompt embeddings", e))?;
+                p.embeddings = Some(relreward_proto::tensor::encode_f32(&[k as u64, width as u64], &values));
+            }
+        }
+        Ok(())
+    })?;
+    Ok(Some(name))
 }

@@ -25,40 +25,67 @@ use crate::engine::reward_trainer::{
 };
 use crate::engine::rng::Rng;
 use crate::error::{Error, Result};
-use crate::registry::load_diffusion_copy;
+use crate::registry::{load_diffusion_copy, resolve_sampled};
 use crate::store::ingest::now_ms;
 use crate::store::{DatasetKind, ModelFormat, ModelKind, ModelRecord, Provenance, Store};
 use relreward_proto::schema::job::{DiscriminatorJob, RewardAlgorithm, RewardJob};
-use relreward_proto::schema::recipe::RecipeSpec;
+use relreward_proto::schema::recipe::{RecipeManifest, RecipeSpec};
 
-async fn diffusion_manifest(store: &Store, field: &str, name: &str) -> Result<DiffusionManifest> {
-    let record = store
-        .meta
-        .get_model(name)
-        .await?
-        .ok_or_else(|| Error::NotFound(format!("{field}: model '{name}' not found")))?;
-    if record.kind != ModelKind::Diffusion {
-        return Err(Error::invalid(format!("{field}: model '{name}' is not a diffusion model")));
-    }
-    serde_json::from_value(record.manifest)
-        .map_err(|e| Error::DataLoss(format!("model '{name}': manifest unreadable: {e}")))
+/// What a job's model field names: a diffusion model, or a named recipe over one (its model's
+/// manifest and the recipe); `field` names it in messages.
+async fn sampled_manifest(
+    store: &Store,
+    field: &str,
+    name: &str,
+) -> Result<(DiffusionManifest, Option<RecipeManifest>)> {
+    let (record, recipe) = resolve_sampled(store, name).await.map_err(|e| match e {
+        Error::NotFound(m) => Error::NotFound(format!("{field}: {m}")),
+        // At submission a wrong kind of model is a wrong field value.
+        Error::FailedPrecondition(m) => Error::invalid(format!("{field}: {m}")),
+        other => other,
+    })?;
+    let manifest = serde_json::from_value(record.manifest)
+        .map_err(|e| Error::DataLoss(format!("model '{}': manifest unreadable: {e}", record.name)))?;
+    Ok((manifest, recipe))
 }
 
 /// Submission-time checks: both models exist and agree (shape, schedule, normalizer), the
 /// architecture fits their item shape, every dataset exists and matches their layout, and a
-/// conditional model comes with a recipe that fits it (Algorithm 2 only).
+/// conditional model comes with a recipe that fits it (Algorithm 2 only): the job's own
+/// `*_recipe`, or the model field naming a recipe (not both).
 pub async fn validate_inputs(store: &Store, job: &RewardJob) -> Result<()> {
-    let (base, expert) = validate_models_and_data(store, job).await?;
-    for (side, manifest, name, recipe) in
-        [("base", &base, &job.base_model, &job.base_recipe), ("expert", &expert, &job.expert_model, &job.expert_recipe)]
-    {
+    let ((base, base_named), (expert, expert_named)) = validate_models_and_data(store, job).await?;
+    for (side, manifest, name, inline, named) in [
+        ("base", &base, &job.base_model, &job.base_recipe, &base_named),
+        ("expert", &expert, &job.expert_model, &job.expert_recipe, &expert_named),
+    ] {
         let conditioning = manifest.conditioning.as_ref();
+        if let (Some(_), Some(named)) = (inline, named) {
+            return Err(Error::invalid(format!(
+                "spec.reward.{side}_recipe: set, but {side}_model '{name}' is a recipe over '{}' that brings its own; \
+                 leave {side}_recipe unset, or name the model '{}' itself",
+                named.model, named.model
+            )));
+        }
+        let (recipe, field, model) = match (inline, named) {
+            (Some(r), _) => (Some(r), format!("spec.reward.{side}_recipe"), name.as_str()),
+            (None, Some(n)) => {
+                (Some(&n.recipe), format!("spec.reward.{side}_model (recipe '{name}')"), n.model.as_str())
+            }
+            (None, None) => (None, String::new(), name.as_str()),
+        };
         match (recipe, conditioning, &job.algorithm) {
-            (Some(r), c, _) => r.check_against(c, &format!("spec.reward.{side}_recipe"), name)?,
+            (Some(_), _, RewardAlgorithm::WithDataset { .. }) => {
+                return Err(Error::invalid(format!(
+                    "{field}: with_dataset (Algorithm 1) takes unconditional models; a recipe stands in \
+                     models_only (Algorithm 2)"
+                )));
+            }
+            (Some(r), c, RewardAlgorithm::ModelsOnly { .. }) => r.check_against(c, &field, model)?,
             (None, Some(c), RewardAlgorithm::ModelsOnly { .. }) => {
                 return Err(Error::invalid(format!(
                     "spec.reward.{side}_recipe: missing; model '{name}' is conditional ({}): give the prompt set its \
-                     chains draw from (and its guidance)",
+                     chains draw from (and its guidance), or name a recipe as {side}_model",
                     describe(c)
                 )));
             }
@@ -75,10 +102,10 @@ pub async fn validate_inputs(store: &Store, job: &RewardJob) -> Result<()> {
 }
 
 /// The checks a reward job and a discriminator job share (module doc of [`validate_inputs`],
-/// less the recipes); returns both models' manifests.
-async fn validate_models_and_data(store: &Store, job: &RewardJob) -> Result<(DiffusionManifest, DiffusionManifest)> {
-    let base = diffusion_manifest(store, "spec.reward.base_model", &job.base_model).await?;
-    let expert = diffusion_manifest(store, "spec.reward.expert_model", &job.expert_model).await?;
+/// less the recipes); returns both sides' manifests and named recipes.
+async fn validate_models_and_data(store: &Store, job: &RewardJob) -> Result<(Sampled, Sampled)> {
+    let (base, base_named) = sampled_manifest(store, "spec.reward.base_model", &job.base_model).await?;
+    let (expert, expert_named) = sampled_manifest(store, "spec.reward.expert_model", &job.expert_model).await?;
     if base.space != expert.space {
         return Err(Error::invalid(format!(
             "spec.reward: base model space {:?} differs from expert model space {:?}",
@@ -162,8 +189,12 @@ async fn validate_models_and_data(store: &Store, job: &RewardJob) -> Result<(Dif
             }
         }
     }
-    Ok((base, expert))
+    Ok(((base, base_named), (expert, expert_named)))
 }
+
+/// A job's model side at submission: the diffusion model's manifest and, when the field names a
+/// recipe, the recipe.
+type Sampled = (DiffusionManifest, Option<RecipeManifest>);
 
 /// The union of the datasets in the models' normalized units: rows concatenated, window
 /// starts shifted accordingly.
@@ -204,20 +235,42 @@ fn chain_recipe(spec: &RecipeSpec) -> Result<ChainRecipe> {
     Ok(ChainRecipe { recipe: recipe_of(spec), prompts: prompt_tensor(&spec.prompts) })
 }
 
-fn load_model(ctx: &JobContext, name: &str) -> Result<DiffusionModel> {
+/// A job's model field loaded: a private copy of the diffusion model it samples, that model's
+/// record, and the recipe when the field names one.
+fn load_sampled(ctx: &JobContext, name: &str) -> Result<(DiffusionModel, ModelRecord, Option<RecipeManifest>)> {
     let store = ctx.store().clone();
-    let record = ctx
-        .block_on(store.meta.get_model(name))?
-        .ok_or_else(|| Error::NotFound(format!("model '{name}' was deleted")))?;
+    let (record, recipe) = ctx.block_on(resolve_sampled(&store, name)).map_err(|e| match e {
+        Error::NotFound(_) => Error::NotFound(format!("model '{name}' was deleted")),
+        other => other,
+    })?;
     let dir = ctx.block_on(store.blobs.local_dir(&record.blob_key))?;
-    load_diffusion_copy(&record, &dir, crate::engine::device())
+    let model = load_diffusion_copy(&record, &dir, crate::engine::device())?;
+    Ok((model, record, recipe))
+}
+
+/// The recipe a side is sampled through: the named one, or the job's own bound to the model.
+fn side_recipe(
+    record: &ModelRecord,
+    named: Option<RecipeManifest>,
+    inline: Option<&RecipeSpec>,
+) -> Option<RecipeManifest> {
+    named.or_else(|| {
+        inline.map(|r| RecipeManifest {
+            model: record.name.clone(),
+            model_sha256: record.sha256.clone(),
+            recipe: r.clone(),
+            prompt_dataset: None,
+        })
+    })
 }
 
 pub fn run(ctx: &mut JobContext, job: &RewardJob) -> std::result::Result<String, Stop> {
     let spec = ctx.spec.clone();
     let opt = &spec.optimization;
-    let base = load_model(ctx, &job.base_model)?;
-    let expert = load_model(ctx, &job.expert_model)?;
+    let (base, base_record, base_named) = load_sampled(ctx, &job.base_model)?;
+    let (expert, expert_record, expert_named) = load_sampled(ctx, &job.expert_model)?;
+    let base_recipe = side_recipe(&base_record, base_named, job.base_recipe.as_ref());
+    let expert_recipe = side_recipe(&expert_record, expert_named, job.expert_recipe.as_ref());
     check_pair(&base, &expert)?;
     let space = base.manifest.space.clone();
     let normalizer = base.manifest.normalizer.clone();
@@ -228,10 +281,10 @@ pub fn run(ctx: &mut JobContext, job: &RewardJob) -> std::result::Result<String,
         }
         RewardAlgorithm::ModelsOnly { num_chains } => {
             ctx.check_stop()?;
-            let base_recipe = job.base_recipe.as_ref().map(chain_recipe).transpose()?;
-            let expert_recipe = job.expert_recipe.as_ref().map(chain_recipe).transpose()?;
-            let base_side = ChainSide { model: &base, recipe: base_recipe.as_ref() };
-            let expert_side = ChainSide { model: &expert, recipe: expert_recipe.as_ref() };
+            let base_chain = base_recipe.as_ref().map(|r| chain_recipe(&r.recipe)).transpose()?;
+            let expert_chain = expert_recipe.as_ref().map(|r| chain_recipe(&r.recipe)).transpose()?;
+            let base_side = ChainSide { model: &base, recipe: base_chain.as_ref() };
+            let expert_side = ChainSide { model: &expert, recipe: expert_chain.as_ref() };
             let pairs = TrainingPairs::chains(base_side, expert_side, *num_chains, spec.seed)?;
             (pairs, Vec::new())
         }
@@ -303,6 +356,8 @@ pub fn run(ctx: &mut JobContext, job: &RewardJob) -> std::result::Result<String,
         },
         step_normalization: models_only,
         inpaint_condition: job.inpaint_condition,
+        base_recipe,
+        expert_recipe,
         final_loss: train.loss,
         eval_loss: train.eval_loss,
     };
@@ -399,7 +454,7 @@ pub async fn validate_discriminator(store: &Store, job: &DiscriminatorJob) -> Re
         other => other,
     })?;
     if job.inpaint_condition {
-        let model = diffusion_manifest(store, "spec.discriminator.diffusion_model", &job.diffusion_model).await?;
+        let (model, _) = sampled_manifest(store, "spec.discriminator.diffusion_model", &job.diffusion_model).await?;
         ConditionEntries::of(&model.space, "spec.discriminator.inpaint_condition")?;
     }
     Ok(())
@@ -412,7 +467,7 @@ pub fn run_discriminator(ctx: &mut JobContext, job: &DiscriminatorJob) -> std::r
     let spec = ctx.spec.clone();
     let opt = &spec.optimization;
     let device = crate::engine::device();
-    let model = load_model(ctx, &job.diffusion_model)?;
+    let (model, _, _) = load_sampled(ctx, &job.diffusion_model)?;
     let space = model.manifest.space.clone();
     let normalizer = model.manifest.normalizer.clone();
     let base = dataset_union(ctx, std::slice::from_ref(&job.base_dataset), &space, &normalizer, spec.seed)?;
@@ -474,6 +529,8 @@ pub fn run_discriminator(ctx: &mut JobContext, job: &DiscriminatorJob) -> std::r
         objective: Objective::Discriminator,
         step_normalization: false,
         inpaint_condition: job.inpaint_condition,
+        base_recipe: None,
+        expert_recipe: None,
         final_loss: train.loss,
         eval_loss: train.eval_loss,
     };

@@ -5,7 +5,8 @@
 //! of host rows: it never touches a tensor or a model's lock.
 //!
 //! - [`Sampling::submit`]: the one place that validates a Sample request, in this order: the
-//!   model's name and the model; omega and the guide steps; n and the batch size; the input
+//!   model's name and the model (a diffusion model, or a named recipe: its model, with its
+//!   prompts and guidance); omega and the guide steps; n and the batch size; the input
 //!   units and `t_stopgrad`; the sampler (`ddim`: its steps, eta and spacing, and the
 //!   guidance settings DDIM does not take); each condition (trajectories only, index within the horizon and
 //!   given once, one observation of finite values, normalized on its floats and then within
@@ -65,6 +66,8 @@ pub struct SampleRow {
     pub x_normalized: Vec<f32>,
     /// rho(x, 0) under the guiding reward, when one was given.
     pub reward: Option<f64>,
+    /// The condition it was sampled under (conditional models).
+    pub prompt: Option<pb::Prompts>,
 }
 
 /// A queued run: the shape of each row's values, and its rows as they come.
@@ -117,10 +120,13 @@ impl Sampling {
     /// call's status; a run's own failure ends its stream instead.
     pub async fn submit(&self, req: &pb::SampleRequest) -> Result<SampleRun> {
         validate_name("model", &req.model)?;
-        let model = self.inner.registry.get_diffusion(&req.model).await?;
+        let (model, named) = self.inner.registry.get_sampled(&req.model).await?;
         let manifest = &model.manifest;
         let mut plan = plan(req, &manifest.space, manifest.n_timesteps, &manifest.normalizer)?;
-        plan.recipe = prompts::plan(req, manifest.conditioning.as_ref(), plan.n)?;
+        plan.recipe = match &named {
+            Some(recipe) => Some(prompts::plan_named(req, recipe, plan.n)?),
+            None => prompts::plan(req, manifest.conditioning.as_ref(), plan.n)?,
+        };
         let reward =
             guiding_reward(&self.inner.registry, req, &manifest.space, manifest.n_timesteps, &manifest.normalizer)
                 .await?;

@@ -1,10 +1,11 @@
 //! A Sample request's conditioning, checked against the model's manifest: `prompts` (one
 //! condition per sample, or one for all), `guidance_scale` and `safety` (Safe Latent Diffusion's
 //! concept and settings), into the schema's [`RecipeSpec`] (one definition with a reward job's
-//! recipes) whose prompts are the n samples' own, and the engine's [`Recipe`].
+//! recipes) whose prompts are the n samples' own, and the engine's [`Recipe`]. A named recipe
+//! (`model` names one) brings all three: sample i takes its prompt i mod k ([`plan_named`]).
 
 use relreward_proto::schema::recipe::{
-    DEFAULT_GUIDANCE_SCALE, PromptSet, RecipeSpec, SafetySpec, check_guidance_scale,
+    DEFAULT_GUIDANCE_SCALE, PromptSet, RecipeManifest, RecipeSpec, SafetySpec, check_guidance_scale,
 };
 use relreward_proto::v1 as pb;
 use tch::Tensor;
@@ -24,6 +25,17 @@ impl RecipePlan {
         recipe_of(&self.0)
     }
 
+    /// The condition of sample `i`, as the wire reports it (one label, or one embedding `[dim]`).
+    pub(super) fn prompt(&self, i: usize) -> pb::Prompts {
+        match &self.0.prompts {
+            PromptSet::Labels(l) => pb::Prompts { labels: vec![l[i]], ..Default::default() },
+            PromptSet::Embeddings { dim, values } => pb::Prompts {
+                embeddings: Some(relreward_proto::tensor::encode_f32(&[*dim as u64], &values[i * dim..(i + 1) * dim])),
+                ..Default::default()
+            },
+        }
+    }
+
     /// The prompts of samples `start..start + n`: int64 `[n]` or float32 `[n, dim]`.
     pub(super) fn prompts(&self, start: usize, n: usize) -> Tensor {
         prompt_tensor(&self.0.prompts).narrow(0, start as i64, n as i64)
@@ -41,17 +53,11 @@ pub(super) fn plan(
     n: usize,
 ) -> Result<Option<RecipePlan>> {
     let Some(conditioning) = conditioning else {
-        for (set, field) in [
-            (req.prompts.is_some(), "prompts"),
-            (req.guidance_scale.is_some(), "guidance_scale"),
-            (req.safety.is_some(), "safety"),
-        ] {
-            if set {
-                return Err(Error::invalid(format!(
-                    "{field}: model '{}' is unconditional (its manifest has no conditioning)",
-                    req.model
-                )));
-            }
+        if let Some(field) = recipe_field(req) {
+            return Err(Error::invalid(format!(
+                "{field}: model '{}' is unconditional (its manifest has no conditioning)",
+                req.model
+            )));
         }
         return Ok(None);
     };
@@ -83,6 +89,40 @@ pub(super) fn plan(
         Error::invalid(e.0.trim_start_matches('.').to_string())
     })?;
     Ok(Some(RecipePlan(spec)))
+}
+
+/// The conditioning of `n` samples through named recipe `recipe` (which the request's `model`
+/// names): the request must leave prompts, guidance_scale and safety to the recipe; sample i
+/// takes the recipe's prompt i mod k, so a run covers the prompt set evenly and reproducibly.
+pub(super) fn plan_named(req: &pb::SampleRequest, recipe: &RecipeManifest, n: usize) -> Result<RecipePlan> {
+    if let Some(field) = recipe_field(req) {
+        return Err(Error::invalid(format!(
+            "{field}: model '{}' is a recipe over '{}' that brings its own prompts, guidance_scale and safety; \
+             leave them unset, or sample '{}' with your own",
+            req.model, recipe.model, recipe.model
+        )));
+    }
+    let spec = &recipe.recipe;
+    let k = spec.prompts.len().max(1);
+    let prompts = match &spec.prompts {
+        PromptSet::Labels(l) => PromptSet::Labels((0..n).map(|i| l[i % k]).collect()),
+        PromptSet::Embeddings { dim, values } => PromptSet::Embeddings {
+            dim: *dim,
+            values: (0..n).flat_map(|i| values[(i % k) * dim..(i % k + 1) * dim].iter().copied()).collect(),
+        },
+    };
+    Ok(RecipePlan(RecipeSpec { prompts, ..spec.clone() }))
+}
+
+/// The first of the request's recipe fields (prompts, guidance_scale, safety) that is set.
+fn recipe_field(req: &pb::SampleRequest) -> Option<&'static str> {
+    [
+        (req.prompts.is_some(), "prompts"),
+        (req.guidance_scale.is_some(), "guidance_scale"),
+        (req.safety.is_some(), "safety"),
+    ]
+    .into_iter()
+    .find_map(|(set, field)| set.then_some(field))
 }
 
 fn null_prompt(c: &Conditioning) -> PromptSet {

@@ -261,6 +261,7 @@ impl Run {
                     x: x.to_vec(),
                     x_normalized: x_normalized.to_vec(),
                     reward: rewards.as_ref().map(|r| r[i]),
+                    prompt: plan.recipe.as_ref().map(|r| r.prompt(done + i)),
                 };
                 if !self.send(row, token)? {
                     gone.store(true, Ordering::Relaxed);

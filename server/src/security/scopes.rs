@@ -75,6 +75,8 @@ pub const METHOD_ACCESS: &[(&str, Access)] = &[
     // Models are the product of training jobs and the input of serving: removing one can
     // take a trained reward away from every planner that uses it.
     ("/relreward.v1.ModelService/DeleteModel", Needs(Admin)),
+    // A recipe is data over a stored model (no weights, no code), as a job's spec is.
+    ("/relreward.v1.ModelService/CreateRecipe", Needs(Train)),
     ("/relreward.v1.JobService/SubmitJob", Needs(Train)),
     ("/relreward.v1.JobService/GetJob", Needs(Read)),
     ("/relreward.v1.JobService/ListJobs", Needs(Read)),

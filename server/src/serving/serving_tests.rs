@@ -38,6 +38,8 @@ fn manifest() -> RewardManifest {
         objective: Objective::alignment(Target::Mean, EvalPoint::XT, false),
         step_normalization: false,
         inpaint_condition: false,
+        base_recipe: None,
+        expert_recipe: None,
         final_loss: 0.0,
         eval_loss: None,
     }

@@ -109,6 +109,8 @@ pub enum ModelKind {
     Discriminator,
     /// An uploaded TorchScript encoder/decoder between images and latents.
     Autoencoder,
+    /// A named sampling recipe over a conditional diffusion model (JSON data).
+    Recipe,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -118,6 +120,8 @@ pub enum ModelFormat {
     Torchscript,
     /// A built-in architecture with safetensors weights.
     Native,
+    /// A sampling recipe: JSON data, no weights.
+    Recipe,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

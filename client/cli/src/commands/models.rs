@@ -7,6 +7,7 @@ use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 use clap::{Args, Subcommand, ValueEnum};
+use relreward_cli::ops::scoring::flag_of;
 use relreward_client::client::UploadProgress;
 use relreward_client::pb;
 use serde_json::{Value, json};
@@ -49,8 +50,26 @@ pub enum ModelCommand {
     /// forward(x in raw units, t) -> rho (Score's values; autograd gives Gradient's), a native
     /// diffusion model's denoiser over normalized inputs. Loads with torch.jit.load.
     Export(ModelDownloadArgs),
-    /// Delete a model (refused while a job uses it).
+    /// Delete a model (refused while a job uses it, or a recipe samples it).
     Delete { name: String },
+    /// Register a named sampling recipe: a conditional diffusion model sampled under a prompt
+    /// set (--labels), a classifier-free guidance scale and optional safety guidance. It stands
+    /// for a diffusion model in `sample --base` (sample i under label i mod k) and as a reward
+    /// job's base_model / expert_model (Algorithm 2: each chain draws a label).
+    Recipe(ModelRecipeArgs),
+}
+
+#[derive(Debug, Args)]
+pub struct ModelRecipeArgs {
+    /// Recipe name: [a-z0-9][a-z0-9._-]{0,63}.
+    name: String,
+    /// The conditional diffusion model it samples.
+    #[arg(long, value_name = "M")]
+    model: String,
+    #[command(flatten)]
+    recipe: super::sample::RecipeFlags,
+    #[arg(long, default_value = "")]
+    description: String,
 }
 
 #[derive(Debug, Args)]
@@ -172,6 +191,7 @@ pub enum ModelKindArg {
     Reward,
     Discriminator,
     Autoencoder,
+    Recipe,
 }
 
 impl ModelKindArg {
@@ -181,6 +201,7 @@ impl ModelKindArg {
             Self::Reward => pb::ModelKind::Reward,
             Self::Discriminator => pb::ModelKind::Discriminator,
             Self::Autoencoder => pb::ModelKind::Autoencoder,
+            Self::Recipe => pb::ModelKind::Recipe,
         }
     }
 }
@@ -194,6 +215,7 @@ pub async fn run(ctx: &Ctx, command: ModelCommand) -> Result<Report> {
         ModelCommand::Download(args) => download(ctx, args, false).await,
         ModelCommand::Export(args) => download(ctx, args, true).await,
         ModelCommand::Delete { name } => delete(ctx, &name).await,
+        ModelCommand::Recipe(args) => recipe(ctx, args).await,
     }
 }
 
@@ -649,6 +671,36 @@ async fn download(ctx: &Ctx, args: ModelDownloadArgs, export: bool) -> Result<Re
     Ok(Report::ok(text, json))
 }
 
+async fn recipe(ctx: &Ctx, args: ModelRecipeArgs) -> Result<Report> {
+    check_model_name("NAME", &args.name)?;
+    check_model_name("--model", &args.model)?;
+    let Some(prompts) = args.recipe.prompts() else {
+        return Err(UsageError("--labels: missing; a recipe needs the prompt set it samples under".into()).into());
+    };
+    let req = pb::CreateRecipeRequest {
+        name: args.name.clone(),
+        model: args.model.clone(),
+        recipe: Some(pb::SamplingRecipe {
+            prompts: Some(prompts),
+            guidance_scale: args.recipe.guidance_scale,
+            safety: args.recipe.safety(),
+        }),
+        description: args.description,
+    };
+    let fields: Vec<(&str, String)> = [
+        ("name", "NAME".to_owned()),
+        ("model", format!("--model {}", args.model)),
+        ("recipe", "the recipe flags".into()),
+    ]
+    .into_iter()
+    .collect();
+    let model = ctx.connect().await?.create_recipe(req).await.map_err(|e| match flag_of(&e, &fields) {
+        Some(flag) => anyhow::Error::new(e).context(flag),
+        None => anyhow::Error::new(e),
+    })?;
+    Ok(Report::ok(format_model(&model), model_json(&model)))
+}
+
 async fn delete(ctx: &Ctx, name: &str) -> Result<Report> {
     ctx.connect().await?.delete_model(name).await?;
     Ok(Report::ok(format!("deleted {name}\n"), json!({ "deleted": name })))
@@ -663,6 +715,7 @@ pub fn kind_name(kind: pb::ModelKind) -> &'static str {
         pb::ModelKind::Reward => "reward",
         pb::ModelKind::Discriminator => "discriminator",
         pb::ModelKind::Autoencoder => "autoencoder",
+        pb::ModelKind::Recipe => "recipe",
         pb::ModelKind::Unspecified => "unspecified",
     }
 }
@@ -671,6 +724,7 @@ fn format_name(format: pb::ModelFormat) -> &'static str {
     match format {
         pb::ModelFormat::Torchscript => "torchscript",
         pb::ModelFormat::Native => "native",
+        pb::ModelFormat::Recipe => "recipe",
         pb::ModelFormat::Unspecified => "unspecified",
     }
 }
@@ -678,14 +732,16 @@ fn format_name(format: pb::ModelFormat) -> &'static str {
 /// A model as JSON:
 ///
 /// ```json
-/// {"name": "..", "kind": "diffusion" | "reward" | "discriminator" | "autoencoder",
-///  "format": "torchscript" | "native", "parameter_count": N, "sha256": "..",
+/// {"name": "..", "kind": "diffusion" | "reward" | "discriminator" | "autoencoder" | "recipe",
+///  "format": "torchscript" | "native" | "recipe", "parameter_count": N, "sha256": "..",
 ///  "size_bytes": N, "created_at": "RFC3339" | null, "description": "..",
 ///  "provenance": {"source": "uploaded" | "trained", "job_id": ".." | null,
 ///                 "datasets": [..], "models": [..], "final_loss": X | null} | null,
 ///  "manifest": {see manifest::manifest_json} | null,
 ///  "reward": {"base_model": "..", "expert_model": "..", "architecture": "..", "window": N,
-///             "input_shape": [..], "n_timesteps": T, "normalizer": {..}} | null,
+///             "input_shape": [..], "n_timesteps": T, "normalizer": {..},
+///             "base_recipe": {recipe} | null, "expert_recipe": {recipe} | null} | null,
+///  "recipe": {see recipe_json} | null,
 ///  "autoencoder": {"image_shape": [..], "latent_shape": [..], "scaling_factor": X,
 ///                  "shift_factor": X} | null}
 /// ```
@@ -711,7 +767,10 @@ pub fn model_json(m: &pb::Model) -> Value {
             "input_shape": r.input_shape,
             "n_timesteps": r.n_timesteps,
             "normalizer": normalizer_json(r.normalizer.as_ref()),
+            "base_recipe": r.base_recipe.as_ref().map(recipe_json),
+            "expert_recipe": r.expert_recipe.as_ref().map(recipe_json),
         })),
+        "recipe": m.recipe.as_ref().map(recipe_json),
         "autoencoder": m.autoencoder.as_ref().map(|a| json!({
             "image_shape": a.image_shape,
             "latent_shape": a.latent_shape,
@@ -719,6 +778,74 @@ pub fn model_json(m: &pb::Model) -> Value {
             "shift_factor": a.shift_factor,
         })),
     })
+}
+
+/// A recipe as JSON (the Python client's `RecipeInfo.as_dict()`): {"model", "model_sha256",
+/// "recipe": {"prompts": [labels] | [[embedding], ..], "guidance_scale": X | null,
+/// "safety": {"concept": (as prompts), "scale", "warmup_steps", "threshold", "momentum_scale",
+/// "momentum_beta"} | null}, "prompt_dataset": ".." | null}.
+fn recipe_json(r: &pb::RecipeInfo) -> Value {
+    let prompts = |p: Option<&pb::Prompts>| -> Value {
+        match p {
+            Some(pb::Prompts { embeddings: Some(e), .. }) => {
+                let values = relreward_client::tensor::decode_finite_f32(e).unwrap_or_default();
+                let dim = e.shape.last().copied().unwrap_or(1).max(1) as usize;
+                if e.shape.len() == 1 {
+                    json!(values)
+                } else {
+                    Value::Array(values.chunks(dim).map(|row| json!(row)).collect())
+                }
+            }
+            Some(p) => json!(p.labels),
+            None => Value::Null,
+        }
+    };
+    let spec = r.recipe.clone().unwrap_or_default();
+    json!({
+        "model": r.model,
+        "model_sha256": r.model_sha256,
+        "recipe": {
+            "prompts": prompts(spec.prompts.as_ref()),
+            "guidance_scale": spec.guidance_scale,
+            "safety": spec.safety.as_ref().map(|s| json!({
+                "concept": prompts(s.concept.as_ref()),
+                "scale": s.scale,
+                "warmup_steps": s.warmup_steps,
+                "threshold": s.threshold,
+                "momentum_scale": s.momentum_scale,
+                "momentum_beta": s.momentum_beta,
+            })),
+        },
+        "prompt_dataset": (!r.prompt_dataset.is_empty()).then_some(&r.prompt_dataset),
+    })
+}
+
+/// A recipe in one line: "model m, labels [..], guidance 3, safety from [..] (scale .., ..)".
+fn recipe_text(r: &pb::RecipeInfo) -> String {
+    let prompts = |p: Option<&pb::Prompts>| match p {
+        Some(p) if !p.labels.is_empty() => format!("labels {:?}", p.labels),
+        Some(p) => format!("embeddings {:?}", p.embeddings.as_ref().map(|e| e.shape.clone()).unwrap_or_default()),
+        None => "-".to_owned(),
+    };
+    let spec = r.recipe.clone().unwrap_or_default();
+    let mut text = format!(
+        "model {}, {}, guidance {}",
+        r.model,
+        prompts(spec.prompts.as_ref()),
+        spec.guidance_scale.unwrap_or(1.0)
+    );
+    if let Some(s) = &spec.safety {
+        text.push_str(&format!(
+            ", safety from {} (scale {}, warm-up {}, threshold {}, momentum {} / {})",
+            prompts(s.concept.as_ref()),
+            fmt_short(s.scale),
+            s.warmup_steps,
+            fmt_short(s.threshold),
+            fmt_short(s.momentum_scale),
+            fmt_short(s.momentum_beta)
+        ));
+    }
+    text
 }
 
 fn provenance_json(p: &pb::Provenance) -> Option<Value> {
@@ -796,7 +923,14 @@ fn format_model(m: &pb::Model) -> String {
             ("input shape", format!("{:?}", r.input_shape)),
             ("diffusion steps", r.n_timesteps.to_string()),
             ("normalizer", normalizer_text(r.normalizer.as_ref())),
+            ("base recipe", r.base_recipe.as_ref().map_or_else(|| "-".to_owned(), recipe_text)),
+            ("expert recipe", r.expert_recipe.as_ref().map_or_else(|| "-".to_owned(), recipe_text)),
         ];
+        out.push_str(&key_values(&fields, 2));
+    }
+    if let Some(r) = &m.recipe {
+        out.push_str("\nrecipe\n");
+        let fields = [("samples", recipe_text(r)), ("model sha256", r.model_sha256.clone())];
         out.push_str(&key_values(&fields, 2));
     }
     if let Some(a) = &m.autoencoder {
@@ -861,6 +995,7 @@ mod tests {
             created_at: Some(prost_types::Timestamp { seconds: 1_714_564_800, nanos: 0 }),
             description: String::new(),
             autoencoder: None,
+            recipe: None,
         }
     }
 
@@ -878,6 +1013,7 @@ mod tests {
                 input_shape: vec![8, 6],
                 normalizer: None,
                 n_timesteps: 20,
+                ..Default::default()
             }),
             provenance: Some(pb::Provenance {
                 source: Some(pb::provenance::Source::Trained(pb::provenance::Trained {

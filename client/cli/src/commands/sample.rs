@@ -64,7 +64,15 @@ pub struct SampleArgs {
     /// DDIM: the last step ends at abar_0 instead of 1 (diffusers' set_alpha_to_one = false).
     #[arg(long)]
     pub no_alpha_to_one: bool,
-    /// Conditional models: the class label of every sample, or one per sample (L1,L2,..).
+    #[command(flatten)]
+    pub recipe: RecipeFlags,
+}
+
+/// How a conditional model is sampled, as flags (`sample`, `model recipe`).
+#[derive(Debug, Clone, Args)]
+pub struct RecipeFlags {
+    /// Conditional models: the class label of every sample, or one per sample (L1,L2,..); for
+    /// `model recipe`, the prompt set (sample i takes label i mod k).
     #[arg(long, value_name = "L[,L..]", value_delimiter = ',', allow_negative_numbers = true)]
     pub labels: Vec<i64>,
     /// Conditional models: classifier-free guidance scale s [default: 1, the conditional model alone].
@@ -78,6 +86,30 @@ pub struct SampleArgs {
     pub safety_preset: String,
 }
 
+impl RecipeFlags {
+    /// --labels as prompts (None when not given).
+    pub fn prompts(&self) -> Option<pb::Prompts> {
+        (!self.labels.is_empty()).then(|| pb::Prompts { labels: self.labels.clone(), ..Default::default() })
+    }
+
+    /// --safety-concept with --safety-preset (None without a concept).
+    pub fn safety(&self) -> Option<pb::SafetyGuidance> {
+        (!self.safety_concept.is_empty()).then(|| safety_preset(&self.safety_preset, &self.safety_concept))
+    }
+
+    /// Which flag sets each of Sample's request fields (the server's messages name the field).
+    pub fn fields(&self) -> Vec<(&'static str, String)> {
+        vec![
+            ("prompts", "--labels".to_owned()),
+            (
+                "guidance_scale",
+                self.guidance_scale.map_or_else(|| "--guidance-scale".to_owned(), |v| format!("--guidance-scale {v}")),
+            ),
+            ("safety", format!("--safety-concept with --safety-preset {}", self.safety_preset)),
+        ]
+    }
+}
+
 /// diffusers' Safe Stable Diffusion presets: (warmup_steps, scale, threshold, momentum_scale,
 /// momentum_beta), as the Python client's `SAFETY_PRESETS`.
 fn safety_preset(name: &str, concept: &[i64]) -> pb::SafetyGuidance {
@@ -88,7 +120,7 @@ fn safety_preset(name: &str, concept: &[i64]) -> pb::SafetyGuidance {
         _ => (10, 1000.0, 0.01, 0.3, 0.4),
     };
     pb::SafetyGuidance {
-        concept: Some(pb::Prompts { labels: concept.to_vec(), embeddings: None }),
+        concept: Some(pb::Prompts { labels: concept.to_vec(), ..Default::default() }),
         scale,
         warmup_steps,
         threshold,
@@ -252,11 +284,10 @@ fn sample_fields(args: &SampleArgs) -> Vec<(&'static str, String)> {
         ("ddim.eta", opt("--eta", args.eta.map(|v| v.to_string()))),
         ("ddim.timestep_spacing", opt("--timestep-spacing", args.timestep_spacing.clone())),
         ("ddim", "--sampler ddim".to_owned()),
-        ("prompts", "--labels".to_owned()),
-        ("guidance_scale", opt("--guidance-scale", args.guidance_scale.map(|v| v.to_string()))),
-        ("safety.concept", "--safety-concept".to_owned()),
-        ("safety", format!("--safety-preset {}", args.safety_preset)),
     ]
+    .into_iter()
+    .chain(args.recipe.fields())
+    .collect()
 }
 
 /// "ddpm", or "ddim, N steps (leading), eta E".
@@ -303,9 +334,9 @@ pub async fn sample(ctx: &Ctx, args: SampleArgs) -> Result<Report> {
         seed: args.seed,
         batch_size: args.batch_size.unwrap_or(0),
         ddim,
-        prompts: (!args.labels.is_empty()).then(|| pb::Prompts { labels: args.labels.clone(), embeddings: None }),
-        guidance_scale: args.guidance_scale,
-        safety: (!args.safety_concept.is_empty()).then(|| safety_preset(&args.safety_preset, &args.safety_concept)),
+        prompts: args.recipe.prompts(),
+        guidance_scale: args.recipe.guidance_scale,
+        safety: args.recipe.safety(),
     };
     let n = args.n as usize;
     let bar = item_bar(ctx.json, n as u64, "samples");

@@ -338,6 +338,10 @@ pub async fn reward_info(client: &Client, name: &str) -> Result<pb::RewardInfo> 
             "--model {name}: is an autoencoder; scores and gradients come from a reward or discriminator model \
              (relreward model list --kind reward)"
         ),
+        pb::ModelKind::Recipe => bail!(
+            "--model {name}: is a sampling recipe; scores and gradients come from a reward or discriminator model \
+             (relreward model list --kind reward)"
+        ),
         pb::ModelKind::Unspecified => bail!("--model {name}: the server did not say what kind of model this is"),
     }
     Ok(model.reward.unwrap_or_default())

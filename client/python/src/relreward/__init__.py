@@ -25,7 +25,7 @@ from relreward.errors import (Aborted, AlreadyExists, Cancelled, DataLoss, Deadl
                               Internal, InvalidArgument, InvalidInput, NotFound, OutOfRange, PermissionDenied, RelrewardError,
                               ResourceExhausted, Unauthenticated, Unavailable, Unimplemented, Unknown)
 from relreward.results import (ArrayInfo, ArrayStats, AutoencoderInfo, Dataset, EpisodeInfo, GradientResult, Job, JobEvent, JobState,
-                               Manifest, Model, Normalizer, Provenance, RewardInfo, Sample, SampleBatch, Schedule,
+                               Manifest, Model, Normalizer, Provenance, RecipeInfo, RewardInfo, Sample, SampleBatch, Schedule,
                                ScoreResult, Space)
 from relreward.specs import DiffusionJob, DiscriminatorJob, Optimization, RewardJob, SafetyGuidance, SamplingRecipe
 from relreward.rl import RewardVectorWrapper, RewardWindows, pointmaze_mapping
@@ -49,7 +49,7 @@ __all__ = [
     "Client", "AsyncClient", "GradientStream", "AsyncGradientStream", "PendingGradient", "TLS",
     "ScoreResult", "GradientResult", "Sample", "SampleBatch", "DownloadedModel",
     "Dataset", "ArrayInfo", "ArrayStats", "EpisodeInfo", "Model", "Manifest", "Schedule", "Space", "Normalizer",
-    "RewardInfo", "AutoencoderInfo", "Provenance", "Job", "JobState", "JobEvent",
+    "RewardInfo", "AutoencoderInfo", "RecipeInfo", "Provenance", "Job", "JobState", "JobEvent",
     "DiffusionJob", "RewardJob", "DiscriminatorJob", "Optimization", "SafetyGuidance", "SamplingRecipe",
     "from_minari_episodes", "relabel", "Relabelled",
     "RewardVectorWrapper", "RewardWindows", "pointmaze_mapping",

@@ -29,11 +29,11 @@ from relreward import _common as c
 from relreward import _tensor
 from relreward._download import DownloadedModel, ModelDownload
 from relreward.v1 import (autoencoder_pb2, datasets_pb2, datasets_pb2_grpc, jobs_pb2, jobs_pb2_grpc, models_pb2,
-                          models_pb2_grpc, reward_pb2_grpc, tensor_pb2)
+                          models_pb2_grpc, reward_pb2, reward_pb2_grpc, tensor_pb2)
 from relreward.datasets import source_of
 from relreward.errors import InvalidInput, RelrewardError, Unavailable, Unimplemented, error_for, is_retryable
 from relreward.results import Dataset, GradientResult, Job, JobEvent, JobState, Manifest, Model, ScoreResult
-from relreward.specs import autoencoder_manifest, job_spec, manifest as manifest_of, reward_manifest
+from relreward.specs import SamplingRecipe, autoencoder_manifest, job_spec, manifest as manifest_of, reward_manifest
 
 R = TypeVar("R")
 Plan = Generator[Any, Any, R]
@@ -255,7 +255,8 @@ def delete_dataset(cfg: Any, name: str) -> Plan[None]:
 # Models
 
 _KINDS = {"diffusion": models_pb2.MODEL_KIND_DIFFUSION, "reward": models_pb2.MODEL_KIND_REWARD,
-          "discriminator": models_pb2.MODEL_KIND_DISCRIMINATOR, "autoencoder": models_pb2.MODEL_KIND_AUTOENCODER}
+          "discriminator": models_pb2.MODEL_KIND_DISCRIMINATOR, "autoencoder": models_pb2.MODEL_KIND_AUTOENCODER,
+          "recipe": models_pb2.MODEL_KIND_RECIPE}
 
 
 def model_kind(kind: str | None) -> int:
@@ -264,8 +265,8 @@ def model_kind(kind: str | None) -> int:
     try:
         return _KINDS[kind]
     except (KeyError, TypeError):
-        raise InvalidInput(f"kind: {kind!r}; expected 'diffusion', 'reward', 'discriminator', 'autoencoder' or None "
-                           "(every kind)") from None
+        raise InvalidInput(f"kind: {kind!r}; expected 'diffusion', 'reward', 'discriminator', 'autoencoder', "
+                           "'recipe' or None (every kind)") from None
 
 
 def manifest_message(manifest: Manifest | Mapping[str, Any] | models_pb2.DiffusionManifest
@@ -307,6 +308,17 @@ def list_models(cfg: Any, kind: str | None) -> Plan[list[Model]]:
     k = model_kind(kind)
     return (yield from pages("ListModels", lambda page: models_pb2.ListModelsRequest(page=page, kind=k), "models",
                              Model.from_proto, cfg))
+
+
+def create_recipe(cfg: Any, name: str, model: str, recipe: Any, description: str) -> Plan[Model]:
+    """Never retried (a second attempt after a lost answer would meet ALREADY_EXISTS)."""
+    if isinstance(recipe, SamplingRecipe):
+        recipe = recipe.to_proto()
+    elif not isinstance(recipe, reward_pb2.SamplingRecipe):
+        raise InvalidInput(f"recipe: expected a relreward.SamplingRecipe, got {type(recipe).__name__}")
+    req = models_pb2.CreateRecipeRequest(name=c.text("name", name), model=c.text("model", model), recipe=recipe,
+                                         description=c.text("description", description))
+    return Model.from_proto((yield from write("CreateRecipe", req, cfg)))
 
 
 def delete_model(cfg: Any, name: str) -> Plan[None]:

@@ -291,8 +291,12 @@ def ddim_options(sampler: str, steps: int | None, eta: float | None, timestep_sp
 
 
 def sample_of(r: reward_pb2.SampleResponse) -> Sample:
+    prompt: Any = None
+    if r.HasField("prompt"):
+        p = r.prompt
+        prompt = _tensor.decode(p.embeddings) if p.HasField("embeddings") else (int(p.labels[0]) if p.labels else None)
     return Sample(r.index, _tensor.decode(r.x), _tensor.decode(r.x_normalized),
-                  r.reward if r.HasField("reward") else None)
+                  r.reward if r.HasField("reward") else None, prompt)
 
 
 def stack_samples(samples: list[Sample]) -> SampleBatch:
@@ -300,9 +304,12 @@ def stack_samples(samples: list[Sample]) -> SampleBatch:
     rewards = None
     if samples and all(s.reward is not None for s in samples):
         rewards = np.array([s.reward for s in samples], dtype=np.float64)
+    prompts = None
+    if samples and all(s.prompt is not None for s in samples):
+        prompts = np.stack([np.asarray(s.prompt) for s in samples])
     return SampleBatch(np.stack([s.x for s in samples]) if samples else np.zeros((0,), np.float32),
                        np.stack([s.x_normalized for s in samples]) if samples else np.zeros((0,), np.float32),
-                       rewards)
+                       rewards, prompts)
 
 
 class UploadFailure:

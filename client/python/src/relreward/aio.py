@@ -200,6 +200,10 @@ class AsyncClient:
     async def list_models(self, kind: str | None = None) -> list[Model]:
         return await self._run(calls.list_models(self, kind))
 
+    @_doc(Client.create_recipe)
+    async def create_recipe(self, name: str, model: str, recipe: Any, *, description: str = "") -> Model:
+        return await self._run(calls.create_recipe(self, name, model, recipe, description))
+
     @_doc(Client.delete_model)
     async def delete_model(self, name: str) -> None:
         await self._run(calls.delete_model(self, name))

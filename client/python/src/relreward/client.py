@@ -235,11 +235,33 @@ class Client:
         return self._run(calls.get_model(self, name))
 
     def list_models(self, kind: str | None = None) -> list[Model]:
-        """Every model, or those of ``kind`` ("diffusion", "reward", "discriminator"), by name."""
+        """Every model, or those of ``kind`` ("diffusion", "reward", "discriminator",
+        "autoencoder", "recipe"), by name."""
         return self._run(calls.list_models(self, kind))
 
+    def create_recipe(self, name: str, model: str, recipe: Any, *, description: str = "") -> Model:
+        """Registers a named sampling recipe (a :class:`relreward.Model` of kind "recipe"):
+        conditional diffusion ``model`` sampled as ``recipe`` (a :class:`relreward.SamplingRecipe`:
+        prompt set, classifier-free guidance scale, optional safety guidance), stored as data
+        with the model's sha256. The name then stands for a diffusion model: ``sample(name)``
+        samples through it (sample i under its prompt i mod k; pass no prompts, guidance_scale or
+        safety), and ``RewardJob(base_model=name)`` / ``expert_model=name`` runs Algorithm 2's
+        chains through it (each chain draws a prompt). The model cannot be deleted while a
+        recipe samples it. Refused, naming the field: a taken name (AlreadyExists), an unknown
+        model (NotFound), a model that is not a conditional diffusion model
+        (FailedPrecondition), a recipe that does not fit its conditioning (InvalidArgument, e.g.
+        ``recipe.prompts.labels[2]``). Needs a ``train`` token where tokens are on. Never
+        retried.
+
+            client.create_recipe("digits-safe", "digits-cond",
+                                 relreward.SamplingRecipe([0, 1, 2, 3], guidance_scale=3.0,
+                                                          safety=relreward.SafetyGuidance.preset("strong", [3])))
+        """
+        return self._run(calls.create_recipe(self, name, model, recipe, description))
+
     def delete_model(self, name: str) -> None:
-        """Deletes a model (FAILED_PRECONDITION while a job uses it; never retried)."""
+        """Deletes a model (FAILED_PRECONDITION while a job uses it or a recipe samples it;
+        never retried)."""
         self._run(calls.delete_model(self, name))
 
     def download_model(self, name: str, out_dir: str | pathlib.Path, *, overwrite: bool = False
@@ -401,7 +423,9 @@ class Client:
         (a sequence of ``n``); ``guidance_scale`` s forms pred(null) + s (pred(c) - pred(null))
         (classifier-free guidance; default 1: the conditional model alone); ``safety`` (a
         :class:`relreward.SafetyGuidance`) adds Safe Latent Diffusion's guidance away from a
-        concept. Not retried."""
+        concept. ``model`` may name a recipe (:meth:`create_recipe`), which brings its prompts
+        and guidance (sample i under prompt i mod k). Each sample's ``prompt`` says its
+        condition. Not retried."""
         return self._iter(calls.sample_iter(self, model, reward_model, omega, n, seed, n_guide_steps, t_stopgrad,
                                             scale_grad_by_std, conditions, units, batch_size,
                                             c.ddim_options(sampler, steps, eta, timestep_spacing, set_alpha_to_one),
@@ -409,7 +433,8 @@ class Client:
 
     def sample(self, model: str, **kwargs: Any) -> SampleBatch:
         """All samples of :meth:`sample_iter` stacked in index order: ``x`` and
-        ``x_normalized`` ``[n, H, D]`` float32, ``rewards`` ``[n]`` (None without a reward model)."""
+        ``x_normalized`` ``[n, H, D]`` float32, ``rewards`` ``[n]`` (None without a reward model),
+        ``prompts`` ``[n]`` labels or ``[n, dim]`` embeddings (None for unconditional models)."""
         return c.stack_samples(list(self.sample_iter(model, **kwargs)))
 
     # ----------------------------------------------------------------------------------------

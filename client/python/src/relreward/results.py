@@ -106,6 +106,8 @@ def _plain(value: Any) -> Any:
         return {k: _plain(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
         return [_plain(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return value.tolist()
     return value
 
 
@@ -366,6 +368,28 @@ class RewardInfo(_Plain):
     input_shape: tuple[int, ...]
     n_timesteps: int
     normalizer: Normalizer
+    #: How each side was sampled when it was a sampling recipe (Algorithm 2 over a conditional
+    #: model: a named recipe, or the job's own), else None.
+    base_recipe: RecipeInfo | None = None
+    expert_recipe: RecipeInfo | None = None
+
+
+@dataclass(frozen=True)
+class RecipeInfo(_Plain):
+    """A sampling recipe bound to its model: the conditional diffusion ``model`` it samples (its
+    sha256 ``model_sha256`` when the recipe was made), ``recipe``, a
+    :class:`relreward.SamplingRecipe` (prompts, guidance_scale, safety), and the stored dataset
+    its prompts were read from (``prompt_dataset``, None when given as values)."""
+
+    model: str
+    model_sha256: str
+    recipe: specs.SamplingRecipe
+    prompt_dataset: str | None = None
+
+    @classmethod
+    def from_proto(cls, m: models_pb2.RecipeInfo) -> RecipeInfo:
+        """The recipe of a ``RecipeInfo`` message."""
+        return cls(m.model, m.model_sha256, specs.SamplingRecipe.from_proto(m.recipe), m.prompt_dataset or None)
 
 
 @dataclass(frozen=True)
@@ -406,9 +430,11 @@ class Provenance(_Plain):
 class Model(_Plain):
     """A stored model, as ``relreward model show NAME --json`` prints it.
 
-    ``kind``: "diffusion", "reward", "discriminator" or "autoencoder"; ``format``: "native"
-    (built-in architecture, safetensors weights) or "torchscript"; ``manifest`` for a diffusion
-    model, ``reward`` for a reward or discriminator, ``autoencoder`` for an autoencoder. ``item_shape`` and ``n_timesteps`` say what it
+    ``kind``: "diffusion", "reward", "discriminator", "autoencoder" or "recipe"; ``format``:
+    "native" (built-in architecture, safetensors weights), "torchscript" or "recipe" (JSON);
+    ``manifest`` for a diffusion model, ``reward`` for a reward or discriminator,
+    ``autoencoder`` for an autoencoder, ``recipe`` (a :class:`RecipeInfo`) for a named sampling
+    recipe (``Client.create_recipe``). ``item_shape`` and ``n_timesteps`` say what it
     takes whatever its kind: ``x`` is ``[B, *model.item_shape]`` and ``t`` in
     ``0 .. model.n_timesteps - 1``. ``proto``: the ``Model`` message it was read from.
     """
@@ -425,6 +451,7 @@ class Model(_Plain):
     manifest: Manifest | None
     reward: RewardInfo | None
     autoencoder: AutoencoderInfo | None = None
+    recipe: RecipeInfo | None = None
     proto: models_pb2.Model | None = field(default=None, repr=False, compare=False)
 
     @property
@@ -464,8 +491,12 @@ class Model(_Plain):
     def from_proto(cls, m: models_pb2.Model) -> Model:
         """The model of a ``Model`` message."""
         r = m.reward
+        def recipe_of(holder: Any, name: str) -> RecipeInfo | None:
+            return RecipeInfo.from_proto(getattr(holder, name)) if holder.HasField(name) else None
+
         reward = (RewardInfo(r.base_model, r.expert_model, r.architecture, r.window, _ints(r.input_shape),
-                             r.n_timesteps, Normalizer.from_proto(r.normalizer)) if m.HasField("reward") else None)
+                             r.n_timesteps, Normalizer.from_proto(r.normalizer), recipe_of(r, "base_recipe"),
+                             recipe_of(r, "expert_recipe")) if m.HasField("reward") else None)
         a = m.autoencoder
         autoencoder = (AutoencoderInfo(_ints(a.image_shape), _ints(a.latent_shape), a.scaling_factor, a.shift_factor)
                        if m.HasField("autoencoder") else None)
@@ -473,7 +504,8 @@ class Model(_Plain):
                    _enum_name(models_pb2.ModelFormat, m.format, "MODEL_FORMAT_"), m.parameter_count, m.sha256,
                    m.size_bytes, _time(m, "created_at"), m.description,
                    Provenance.from_proto(m.provenance) if m.HasField("provenance") else None,
-                   Manifest.from_proto(m.manifest) if m.HasField("manifest") else None, reward, autoencoder, m)
+                   Manifest.from_proto(m.manifest) if m.HasField("manifest") else None, reward, autoencoder,
+                   recipe_of(m, "recipe"), m)
 
 
 # --------------------------------------------------------------------------------------------
@@ -725,20 +757,24 @@ class GradientResult:
 @dataclass(frozen=True)
 class Sample:
     """One sample: ``x`` in raw units and ``x_normalized``, ``[H, D]`` or the sample shape
-    (float32), and rho(x, 0) when a reward model was given."""
+    (float32), rho(x, 0) when a reward model was given, and for a conditional model the
+    ``prompt`` it was drawn under (a label as an int, or an embedding ``[dim]``)."""
 
     index: int
     x: np.ndarray
     x_normalized: np.ndarray
     reward: float | None
+    prompt: Any = None
 
 
 @dataclass(frozen=True)
 class SampleBatch:
     """All samples of a ``sample`` call stacked in index order: ``x`` and ``x_normalized``
     ``[n, H, D]`` (or ``[n, *shape]``) float32, ``rewards`` ``[n]`` float64 (None without a reward
-    model)."""
+    model), ``prompts`` each sample's condition, int64 labels ``[n]`` or embeddings ``[n, dim]``
+    (None for an unconditional model)."""
 
     x: np.ndarray
     x_normalized: np.ndarray
     rewards: np.ndarray | None
+    prompts: np.ndarray | None = None

@@ -384,8 +384,12 @@ def reward_manifest(m: Any) -> models_pb2.RewardUploadManifest:
 
 
 def prompts_message(field: str, value: Any) -> reward_pb2.Prompts:
-    """``Prompts`` from class labels (an int, a sequence or an integer array) or embeddings (a
-    float array ``[dim]`` or ``[k, dim]``); errors name ``field``."""
+    """``Prompts`` from class labels (an int, a sequence or an integer array), embeddings (a
+    float array ``[dim]`` or ``[k, dim]``) or a stored samples dataset's name (a str: its labels,
+    or its samples as embeddings; read by the server where a recipe is stored, see
+    :class:`SamplingRecipe`); errors name ``field``."""
+    if isinstance(value, str):
+        return reward_pb2.Prompts(dataset=value)
     arr = np.asarray(value)
     if arr.dtype.kind in "iub":
         if arr.ndim > 1:
@@ -396,6 +400,14 @@ def prompts_message(field: str, value: Any) -> reward_pb2.Prompts:
             raise InvalidInput(f"{field}: embeddings must be [dim] or [k, dim], got shape {arr.shape}")
         return reward_pb2.Prompts(embeddings=_tensor.encode(arr))
     raise InvalidInput(f"{field}: expected class labels (integers) or embeddings (floats), got {arr.dtype}")
+
+
+def prompts_value(p: reward_pb2.Prompts) -> Any:
+    """A ``Prompts`` message's conditions as plain lists (so that results compare with ``==``):
+    its labels as ints, or its embeddings as rows of floats (``[k][dim]``, or ``[dim]``)."""
+    if p.HasField("embeddings"):
+        return _tensor.decode(p.embeddings).tolist()
+    return [int(v) for v in p.labels]
 
 
 #: diffusers' Safe Stable Diffusion presets: (warmup_steps, scale, threshold, momentum_scale,
@@ -432,6 +444,11 @@ class SafetyGuidance:
             raise InvalidInput(f"safety preset {name!r}: expected one of {', '.join(SAFETY_PRESETS)}") from None
         return cls(concept, scale, warmup, threshold, m_scale, m_beta)
 
+    @classmethod
+    def from_proto(cls, m: reward_pb2.SafetyGuidance) -> "SafetyGuidance":
+        """The settings of a ``SafetyGuidance`` message."""
+        return cls(prompts_value(m.concept), m.scale, m.warmup_steps, m.threshold, m.momentum_scale, m.momentum_beta)
+
     def to_proto(self) -> reward_pb2.SafetyGuidance:
         """The ``relreward.v1.SafetyGuidance`` message."""
         return reward_pb2.SafetyGuidance(concept=prompts_message("safety.concept", self.concept),
@@ -442,14 +459,23 @@ class SafetyGuidance:
 
 @dataclass
 class SamplingRecipe:
-    """How a conditional model is sampled in a reward job's Algorithm 2 (``RewardJob(base_recipe=...,
-    expert_recipe=...)``): ``prompts`` is the prompt set each chain draws one condition from
-    (class labels, or embeddings ``[k, dim]``); ``guidance_scale`` classifier-free guidance
-    (None: 1, the conditional model alone); ``safety`` a :class:`SafetyGuidance`."""
+    """How a conditional model is sampled: in a reward job's Algorithm 2 (``RewardJob(base_recipe=...,
+    expert_recipe=...)``), or stored under a name by ``Client.create_recipe``: ``prompts`` is
+    the prompt set each chain (or sample) draws one condition from (class labels, or
+    embeddings ``[k, dim]``, or the name of a stored samples dataset, a prompt dataset: its
+    ``labels``, or without them its samples as embeddings, read when the recipe is stored or
+    the job submitted); ``guidance_scale`` classifier-free guidance (None: 1, the
+    conditional model alone); ``safety`` a :class:`SafetyGuidance`."""
 
     prompts: Any
     guidance_scale: float | None = None
     safety: SafetyGuidance | None = None
+
+    @classmethod
+    def from_proto(cls, m: reward_pb2.SamplingRecipe) -> "SamplingRecipe":
+        """The recipe of a ``SamplingRecipe`` message (labels as a list, embeddings as an array)."""
+        return cls(prompts_value(m.prompts), m.guidance_scale if m.HasField("guidance_scale") else None,
+                   SafetyGuidance.from_proto(m.safety) if m.HasField("safety") else None)
 
     def to_proto(self) -> reward_pb2.SamplingRecipe:
         """The ``relreward.v1.SamplingRecipe`` message."""
