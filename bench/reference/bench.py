@@ -4,6 +4,7 @@ tests/bench/training.sh, and prints one JSON line per run.
     bench.py alg1   --models-dir DIR --base B --expert E --dataset maze.npz [--steps S --warmup W ...]
     bench.py ddpm   --dataset maze.npz --manifest-of B --models-dir DIR [--steps S --warmup W ...]
     bench.py sample --models-dir DIR --base B --reward R --n N [--repeats K ...]
+    bench.py reward-step --horizon H --transition-dim D --n-timesteps T [--pool P --steps S ...]
 
 Models are read as relreward's API hands them out: DIR/NAME per model, as
 `relreward model download NAME --out DIR/NAME` writes it (weights.safetensors and
@@ -17,6 +18,11 @@ windows from the dataset, t, noise) like relreward's jobs do, logging the loss (
 a researcher's loop prints it), Adam and the EMA (decay 0.995 every 10 steps from step 2000,
 relreward's defaults). Sampling: three untimed guided steps, then `--repeats` timed runs of
 Diffuser's guided p_sample_loop over `--n` trajectories in one batch.
+
+`reward-step`: the reward's training step alone, as relreward's models-free amortised recipe
+runs it (`tests/bench/reward_step.sh`): a pool of `--pool` (point, t, target) triples made once
+(their values do not change the cost), then per step a batch gathered from the pool, the
+alignment loss through the double backward, backward, Adam, the EMA and `.item()`.
 
 `--compile` (alg1, ddpm): the same reference under `torch.compile` (inductor, the default
 backend; on the CPU it generates C++/OpenMP kernels). Algorithm 1 compiles the two frozen
@@ -44,6 +50,7 @@ from reference import (
     Ema,
     Windows,
     alg1_step,
+    alignment_loss,
     count_macs,
     ddpm_step,
     guided_sample,
@@ -128,6 +135,32 @@ def run_alg1(args):
             "macs": {"diffusion": count_macs(eager_net, x, t), "reward": count_macs(reward, x, t)},
             "parameters": {"diffusion": sum(p.numel() for p in eager_net.parameters()),
                            "reward": sum(p.numel() for p in reward.parameters())}}
+
+
+def run_reward_step(args):
+    shape = [args.horizon, args.transition_dim]
+    arch = {"kind": "windowed_mlp", "window": args.window, "hidden": [int(h) for h in args.hidden.split(",")]}
+    torch.manual_seed(args.seed)
+    reward = build_reward(arch, shape)
+    optimizer = torch.optim.Adam(reward.parameters(), lr=args.lr)
+    ema = Ema(reward)
+    points = torch.rand(args.pool, *shape) * 2 - 1
+    targets = torch.randn(args.pool, *shape) * 0.1
+    times = torch.randint(args.n_timesteps, (args.pool,))
+
+    def step(k):
+        pick = torch.randint(args.pool, (args.batch,))
+        point, t, target = points.index_select(0, pick), times.index_select(0, pick), targets.index_select(0, pick)
+        loss = alignment_loss(reward, point, t, target)
+        loss.backward()
+        optimizer.step()
+        optimizer.zero_grad(set_to_none=True)
+        ema.after_step(reward, k)
+        return loss.detach()
+
+    seconds, _ = timed_training(step, args.warmup, args.steps)
+    return {"steps": args.steps, "seconds": seconds, "steps_per_second": args.steps / seconds,
+            "parameters": {"reward": sum(p.numel() for p in reward.parameters())}}
 
 
 def run_ddpm(args):
@@ -226,10 +259,24 @@ def main():
     sample.add_argument("--t-stopgrad", type=int, default=0)
     sample.add_argument("--scale-grad-by-std", action="store_true")
     sample.add_argument("--condition", action="append", default=[], help="INDEX=v1,v2,.. in raw units")
+    step = sub.add_parser("reward-step")
+    step.add_argument("--threads", type=int, required=True)
+    step.add_argument("--seed", type=int, default=0)
+    step.add_argument("--horizon", type=int, required=True)
+    step.add_argument("--transition-dim", type=int, required=True)
+    step.add_argument("--n-timesteps", type=int, required=True)
+    step.add_argument("--window", type=int, default=4)
+    step.add_argument("--hidden", default="128,64,32")
+    step.add_argument("--batch", type=int, default=64)
+    step.add_argument("--pool", type=int, default=4096)
+    step.add_argument("--lr", type=float, default=1e-3)
+    step.add_argument("--steps", type=int, default=1000)
+    step.add_argument("--warmup", type=int, default=100)
     args = parser.parse_args()
 
     torch.set_num_threads(args.threads)
-    result = {"alg1": run_alg1, "ddpm": run_ddpm, "sample": run_sample}[args.benchmark](args)
+    result = {"alg1": run_alg1, "ddpm": run_ddpm, "sample": run_sample,
+              "reward-step": run_reward_step}[args.benchmark](args)
     result.update({"benchmark": args.benchmark, "threads": torch.get_num_threads(), "torch": torch.__version__,
                    "peak_rss_mib": peak_rss_mib()})
     print(json.dumps(result))

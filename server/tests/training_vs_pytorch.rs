@@ -8,7 +8,8 @@
 //! runs relreward's own code:
 //!
 //! - Algorithm 1: [`noised_target_and_point`] (x_t, and the target under no-grad), then
-//!   [`alignment_loss`] (grad_x rho with create_graph), backward, [`Adam::step`] and
+//!   [`alignment_step`] (the loss and its parameter gradients in closed form for the MLP
+//!   rewards, grad_x rho with create_graph and a backward for the others), [`Adam`] and
 //!   [`Ema::after_step`], exactly the sequence of `jobs/reward.rs` inside `jobs/training.rs`;
 //! - DDPM: [`DiffusionModel::loss`], backward, Adam, EMA (`jobs/diffusion.rs`);
 //! - guided sampling: [`GuidedSampler`] with conditions and guidance by a [`RewardModel`] (what
@@ -31,9 +32,9 @@ use relreward_server::engine::diffusion::DiffusionModel;
 use relreward_server::engine::manifest::{Architecture, DiffusionManifest, Parametrization, ScheduleSpec, Space};
 use relreward_server::engine::nets::{NativeDenoiser, RewardArchitecture, RewardNet};
 use relreward_server::engine::normalizer::Normalizer;
-use relreward_server::engine::optim::{Adam, Ema, named_parameters};
+use relreward_server::engine::optim::{Adam, Ema, StepLoss, named_parameters};
 use relreward_server::engine::relative_reward::{
-    EvalPoint, Objective, RewardManifest, Target, alignment_loss, entry_weights, noised_target_and_point,
+    EvalPoint, Objective, RewardManifest, Target, alignment_step, entry_weights, noised_target_and_point,
 };
 use relreward_server::engine::reward_model::RewardModel;
 use relreward_server::engine::rng::Rng;
@@ -126,8 +127,9 @@ struct Trained {
     ema: BTreeMap<String, Tensor>,
 }
 
-/// The optimisation sequence of `jobs/training.rs` (TrainLoop::run): loss, backward, Adam, EMA.
-fn train(params: &[(String, Tensor)], mut loss_at: impl FnMut(usize) -> Tensor) -> Trained {
+/// The optimisation sequence of `jobs/training.rs` (TrainLoop::run): loss, backward (or the
+/// gradients computed in closed form), Adam, EMA.
+fn train(params: &[(String, Tensor)], mut loss_at: impl FnMut(usize) -> StepLoss) -> Trained {
     let copy = |v: &[(String, Tensor)]| -> BTreeMap<String, Tensor> {
         v.iter().map(|(n, p)| (n.clone(), p.detach().copy())).collect()
     };
@@ -136,19 +138,33 @@ fn train(params: &[(String, Tensor)], mut loss_at: impl FnMut(usize) -> Tensor) 
     let mut ema = Ema::new(params, EMA.0, EMA.1, EMA.2);
     let (mut losses, mut grads) = (Vec::new(), Vec::new());
     for step in 1..=STEPS {
-        let loss = loss_at(step - 1);
-        losses.push(loss.double_value(&[]));
-        loss.backward();
-        grads.push(
-            params
-                .iter()
-                .map(|(n, p)| {
-                    let g = p.grad();
-                    (n.clone(), if g.defined() { g.detach().copy() } else { p.zeros_like() })
-                })
-                .collect(),
-        );
-        let _ = adam.step(params, None);
+        match loss_at(step - 1) {
+            StepLoss::Graph(loss) => {
+                losses.push(loss.double_value(&[]));
+                loss.backward();
+                grads.push(
+                    params
+                        .iter()
+                        .map(|(n, p)| {
+                            let g = p.grad();
+                            (n.clone(), if g.defined() { g.detach().copy() } else { p.zeros_like() })
+                        })
+                        .collect(),
+                );
+                let _ = adam.step(params, None);
+            }
+            StepLoss::Computed { loss, grads: computed } => {
+                losses.push(loss.double_value(&[]));
+                let by_name: BTreeMap<String, Tensor> = computed.iter().map(|(n, g)| (n.clone(), g.copy())).collect();
+                grads.push(
+                    params
+                        .iter()
+                        .map(|(n, p)| (n.clone(), by_name.get(n).map_or_else(|| p.zeros_like(), Tensor::copy)))
+                        .collect(),
+                );
+                let _ = adam.step_with(params, computed, None);
+            }
+        }
         ema.after_step(params, step as u64);
     }
     Trained { losses, grads, params: copy(params), initial, ema: copy(&ema.named(params)) }
@@ -286,7 +302,7 @@ fn algorithm_1_steps_match_pytorch() {
                 noised_target_and_point(&base, &mut expert, x0, t, noise, None, case.target, case.eval_point)
                     .expect("target");
             assert!(max_abs(&target) > 1e-3, "case {i}: the target is trivially zero");
-            alignment_loss(&reward, &point, t, &target, weights.as_ref(), case.rho_l2).expect("loss")
+            alignment_step(&reward, &point, t, &target, weights.as_ref(), case.rho_l2).expect("loss")
         });
         jobs.push(json!({
             "kind": "alg1", "base": base_spec, "expert": expert_spec, "reward": reward_spec, "batches": paths,
@@ -327,7 +343,7 @@ fn ddpm_steps_match_pytorch() {
         let weight = (*action_weight != 1.0).then_some((*action_weight, 2usize));
         let trained = train(&params, |k| {
             let (x0, t, noise) = &batches[k];
-            model.loss(x0, t, noise, weight, None).expect("loss")
+            model.loss(x0, t, noise, weight, None).expect("loss").into()
         });
         jobs.push(json!({
             "kind": "ddpm", "model": spec, "batches": paths, "action_weight": action_weight, "lr": LR,

@@ -19,6 +19,24 @@ pub fn named_parameters(vs: &VarStore) -> Vec<(String, Tensor)> {
     v
 }
 
+/// What a training step hands the optimizer: a loss whose graph autograd differentiates, or a
+/// loss with every parameter's gradient already computed (a reward's closed form,
+/// `nets/reward/closed_form.rs`), which skips autograd.
+pub enum StepLoss {
+    Graph(Tensor),
+    Computed {
+        loss: Tensor,
+        /// d loss / d parameter, by parameter name.
+        grads: Vec<(String, Tensor)>,
+    },
+}
+
+impl From<Tensor> for StepLoss {
+    fn from(loss: Tensor) -> Self {
+        Self::Graph(loss)
+    }
+}
+
 /// Adam (Kingma & Ba) with PyTorch's update rule and defaults (betas 0.9, 0.999, eps 1e-8,
 /// no weight decay), plus optional clipping of the global gradient norm.
 pub struct Adam {
@@ -28,14 +46,32 @@ pub struct Adam {
     eps: f64,
     /// Updates applied so far (for bias correction).
     pub steps: u64,
+    /// The moments of all parameters, one flat tensor each (None: the parameters differ in
+    /// dtype or device, and every update goes parameter by parameter), and each parameter's
+    /// moments as views into them (saved and loaded by name).
+    flat: Option<(Tensor, Tensor)>,
     m: Vec<Tensor>,
     v: Vec<Tensor>,
 }
 
 impl Adam {
     pub fn new(params: &[(String, Tensor)], lr: f64) -> Self {
-        let zeros = || params.iter().map(|(_, p)| p.zeros_like().detach()).collect();
-        Self { lr, beta1: 0.9, beta2: 0.999, eps: 1e-8, steps: 0, m: zeros(), v: zeros() }
+        let uniform = params.windows(2).all(|w| w[0].1.kind() == w[1].1.kind() && w[0].1.device() == w[1].1.device());
+        let total: i64 = params.iter().map(|(_, p)| p.numel() as i64).sum();
+        let (flat, m, v) = match params.first() {
+            Some((_, first)) if uniform => {
+                let zeros = || Tensor::zeros([total], (first.kind(), first.device()));
+                let (m_flat, v_flat) = (zeros(), zeros());
+                let views = |flat: &Tensor| pieces(flat, params);
+                let (m, v) = (views(&m_flat), views(&v_flat));
+                (Some((m_flat, v_flat)), m, v)
+            }
+            _ => {
+                let zeros = || params.iter().map(|(_, p)| p.zeros_like().detach()).collect();
+                (None, zeros(), zeros())
+            }
+        };
+        Self { lr, beta1: 0.9, beta2: 0.999, eps: 1e-8, steps: 0, flat, m, v }
     }
 
     /// Applies one update from the parameters' gradients, then zeroes them, and returns the
@@ -48,16 +84,46 @@ impl Adam {
     /// CPU, on a GPU the update's launches no longer overlap the end of the backward pass
     /// (docs/architecture.md, "What keeps a GPU busy").
     pub fn step(&mut self, params: &[(String, Tensor)], clip: Option<f64>) -> f64 {
-        let _guard = tch::no_grad_guard();
         let grads: Vec<Option<Tensor>> = params.iter().map(|(_, p)| Some(p.grad()).filter(Tensor::defined)).collect();
-        let squares: Vec<Tensor> = grads.iter().flatten().map(|g| g.square().sum(Kind::Double)).collect();
-        let norm = match squares.first() {
-            None => Tensor::zeros([], (Kind::Double, params.first().map_or(tch::Device::Cpu, |(_, p)| p.device()))),
-            Some(_) => Tensor::stack(&squares, 0).sum(Kind::Double).sqrt(),
+        let norm = self.apply(params, &grads, clip);
+        zero_grads(params);
+        norm
+    }
+
+    /// [`Adam::step`] from gradients computed without autograd (a [`StepLoss::Computed`]),
+    /// matched to the parameters by name; a parameter without one is left alone.
+    pub fn step_with(&mut self, params: &[(String, Tensor)], grads: Vec<(String, Tensor)>, clip: Option<f64>) -> f64 {
+        let mut by_name: HashMap<String, Tensor> = grads.into_iter().collect();
+        let grads: Vec<Option<Tensor>> = params.iter().map(|(name, _)| by_name.remove(name)).collect();
+        self.apply(params, &grads, clip)
+    }
+
+    /// The update of [`Adam::step`] with the gradients given, in the parameters' order.
+    fn apply(&mut self, params: &[(String, Tensor)], grads: &[Option<Tensor>], clip: Option<f64>) -> f64 {
+        let _guard = tch::no_grad_guard();
+        // Every parameter with a gradient and one flat set of moments: the update runs once over
+        // all of them concatenated (the same elementwise operations on the same values, so the
+        // same numbers; a few large operations where a small network's update was some ten
+        // small ones per parameter).
+        let flat_grad = match (&self.flat, grads.iter().all(Option::is_some)) {
+            (Some(_), true) if !grads.is_empty() => {
+                let pieces: Vec<Tensor> = grads.iter().flatten().map(|g| g.reshape([-1])).collect();
+                Some(Tensor::cat(&pieces, 0))
+            }
+            _ => None,
+        };
+        let norm = match (&flat_grad, grads.iter().flatten().next()) {
+            (Some(g), _) => g.square().sum(Kind::Double).sqrt(),
+            (None, None) => {
+                Tensor::zeros([], (Kind::Double, params.first().map_or(tch::Device::Cpu, |(_, p)| p.device())))
+            }
+            (None, Some(_)) => {
+                let squares: Vec<Tensor> = grads.iter().flatten().map(|g| g.square().sum(Kind::Double)).collect();
+                Tensor::stack(&squares, 0).sum(Kind::Double).sqrt()
+            }
         };
         let norm = norm.double_value(&[]);
         if !norm.is_finite() {
-            zero_grads(params);
             return norm;
         }
         // torch.nn.utils.clip_grad_norm_: scale by max_norm / (norm + 1e-6) when above.
@@ -79,7 +145,19 @@ impl Adam {
         // makes four temporaries per parameter where the composed formula made eight: about
         // 17 ms instead of 55 ms per update of the benchmark's 3.7M-parameter TemporalUnet (one
         // thread, the same libtorch ops timed from Python), some 5% of a DDPM step.
-        for (((_, p), g), (m, v)) in params.iter().zip(&grads).zip(self.m.iter_mut().zip(self.v.iter_mut())) {
+        if let (Some(g), Some((m, v))) = (flat_grad, self.flat.as_mut()) {
+            let g = if scale == 1.0 { g } else { g * scale };
+            let _ = m.lerp_(&g, 1.0 - self.beta1);
+            let _ = v.g_mul_scalar_(self.beta2).addcmul_(&(&g * (1.0 - self.beta2)), &g);
+            let denom = v.sqrt().g_div_scalar_(bc2_sqrt).g_add_scalar_(self.eps);
+            // p.addcdiv_(m, denom, value) is p + (value m) / denom: the same sum, per parameter.
+            let update = (&*m * -step_size).g_div_(&denom);
+            for ((_, p), u) in params.iter().zip(pieces(&update, params)) {
+                let _ = p.shallow_clone().g_add_(&u);
+            }
+            return norm;
+        }
+        for (((_, p), g), (m, v)) in params.iter().zip(grads).zip(self.m.iter_mut().zip(self.v.iter_mut())) {
             let Some(g) = g else { continue };
             let g = if scale == 1.0 { g.shallow_clone() } else { g * scale };
             let _ = m.lerp_(&g, 1.0 - self.beta1);
@@ -88,7 +166,6 @@ impl Adam {
             let mut p = p.shallow_clone();
             let _ = p.addcdiv_(&(&*m * -step_size), &denom);
         }
-        zero_grads(params);
         norm
     }
 
@@ -121,6 +198,20 @@ impl Adam {
         }
         Ok(())
     }
+}
+
+/// Views of a flat tensor shaped as each parameter, in order.
+fn pieces(flat: &Tensor, params: &[(String, Tensor)]) -> Vec<Tensor> {
+    let mut offset = 0i64;
+    params
+        .iter()
+        .map(|(_, p)| {
+            let n = p.numel() as i64;
+            let view = flat.narrow(0, offset, n).view(p.size().as_slice());
+            offset += n;
+            view
+        })
+        .collect()
 }
 
 /// Global L2 norm of the parameters' current gradients.

@@ -42,8 +42,9 @@ use tch::{Device, Kind, Tensor};
 
 use super::diffusion::DiffusionModel;
 use super::manifest::{RewardSignature, RewardUploadManifest, Space};
-use super::nets::reward::{RewardArchitecture, RewardNet};
+use super::nets::reward::{AlignmentGradients, RewardArchitecture, RewardNet};
 use super::normalizer::{Normalize, Normalizer};
+use super::optim::StepLoss;
 use super::threads::side_by_side;
 use crate::error::{Error, Result};
 use relreward_proto::schema::recipe::RecipeManifest;
@@ -246,9 +247,27 @@ pub fn alignment_loss(
     let grad = reward.grad_create_graph(point, t)?;
     let mut loss = alignment_error(&grad, target, weights);
     if rho_l2 > 0.0 {
-        loss += reward.rho(point, t)?.square().mean(Kind::Float) * rho_l2;
+        loss += reward.rho(point, t)?.square().mean(None::<Kind>) * rho_l2;
     }
     Ok(loss)
+}
+
+/// One training step's [`alignment_loss`] as the optimizer takes it: the loss and its
+/// parameter gradients in closed form where the network has one
+/// ([`RewardNet::alignment_gradients`]: the windowed and flat MLPs, no autograd graph), else the
+/// loss with its graph for autograd's double backward.
+pub fn alignment_step(
+    reward: &RewardNet,
+    point: &Tensor,
+    t: &Tensor,
+    target: &Tensor,
+    weights: Option<&Tensor>,
+    rho_l2: f64,
+) -> Result<StepLoss> {
+    match reward.alignment_gradients(point, t, target, weights, rho_l2)? {
+        Some(AlignmentGradients { loss, grads }) => Ok(StepLoss::Computed { loss, grads }),
+        None => Ok(StepLoss::Graph(alignment_loss(reward, point, t, target, weights, rho_l2)?)),
+    }
 }
 
 /// What a reward model is: stored as its record's manifest and next to its weights.
@@ -299,7 +318,8 @@ pub fn alignment_error(grad: &Tensor, target: &Tensor, weights: Option<&Tensor>)
         Some(w) => squared * w,
         None => squared,
     };
-    squared.flatten(1, -1).sum_dim_intlist(1, false, Kind::Float).mean(Kind::Float)
+    // In the inputs' dtype (float32 in training; float64 where a test checks derivations).
+    squared.flatten(1, -1).sum_dim_intlist(1, false, None::<Kind>).mean(None::<Kind>)
 }
 
 /// Per-entry weights [H, A + O] of the alignment loss for a trajectory space: `action_weight`

@@ -22,9 +22,10 @@ use tch::{Kind, Tensor};
 use super::data::TrainingData;
 use super::diffusion::DiffusionModel;
 use super::nets::reward::{RewardArchitecture, RewardNet};
+use super::optim::StepLoss;
 use super::recipe::{Predictor, Recipe};
 use super::relative_reward::{
-    ConditionEntries, EvalPoint, Target, alignment_error, alignment_loss, entry_weights, noised_target_and_point,
+    ConditionEntries, EvalPoint, Target, alignment_error, alignment_step, entry_weights, noised_target_and_point,
 };
 use super::rng::Rng;
 use super::schedule::Table;
@@ -161,7 +162,7 @@ impl RelativeRewardTrainer {
 
     /// The differentiable loss of training step `step` (counted from 1, as the caller's loop
     /// does; it schedules the target pool's refreshes), its batch drawn with `rng`.
-    pub fn loss(&self, step: u64, rng: &mut Rng) -> Result<Tensor> {
+    pub fn loss(&self, step: u64, rng: &mut Rng) -> Result<StepLoss> {
         let (t, target, point) = match (&self.pool, &self.pairs) {
             (Some(pool), TrainingPairs::Dataset(data)) => {
                 let mut pool = pool
@@ -181,7 +182,7 @@ impl RelativeRewardTrainer {
             }
             _ => self.draw(rng, false)?.ok_or_else(|| Error::internal("relative reward trainer", "empty batch"))?,
         };
-        alignment_loss(&self.reward, &point, &t, &target, self.entry_weights.as_ref(), self.settings.rho_l2)
+        alignment_step(&self.reward, &point, &t, &target, self.entry_weights.as_ref(), self.settings.rho_l2)
     }
 
     /// The training objective on up to [`EVAL_ITEMS`] held-out items (entry weights included,

@@ -11,7 +11,7 @@ use sha2::{Digest, Sha256};
 use tch::Tensor;
 
 use super::context::{JobContext, StepReport, Stop};
-use crate::engine::optim::{Adam, Ema, named_parameters};
+use crate::engine::optim::{Adam, Ema, StepLoss, named_parameters};
 use crate::engine::rng::Rng;
 use crate::error::{Error, Result};
 use relreward_proto::schema::job::Optimization;
@@ -112,10 +112,10 @@ impl TrainLoop {
 
     /// Runs to `opt.steps`. `loss_fn` draws a batch with the loop's RNG and returns the
     /// differentiable loss; `eval_fn` returns the held-out loss (None: nothing held out).
-    pub fn run(
+    pub fn run<L: Into<StepLoss>>(
         &mut self,
         ctx: &mut JobContext,
-        mut loss_fn: impl FnMut(&mut Rng) -> Result<Tensor>,
+        mut loss_fn: impl FnMut(&mut Rng) -> Result<L>,
         mut eval_fn: impl FnMut() -> Result<Option<f64>>,
     ) -> std::result::Result<(), Stop> {
         let mut last_checkpoint = self.step;
@@ -130,13 +130,21 @@ impl TrainLoop {
                 return Err(stop);
             }
             self.step += 1;
-            let loss = loss_fn(&mut self.rng)?;
-            loss.backward();
-            // Adam::step applies nothing when the gradient is not finite (as a non-finite loss
-            // makes it), so one bad batch (an inf in a double backward) costs one step, not the
-            // job; a run of them is a divergence, and fails the job before anything after its
-            // last checkpoint is kept.
-            let grad_norm = self.adam.step(&self.params, self.opt.grad_clip);
+            // Adam applies nothing when the gradient is not finite (as a non-finite loss makes
+            // it), so one bad batch (an inf in a double backward) costs one step, not the job; a
+            // run of them is a divergence, and fails the job before anything after its last
+            // checkpoint is kept.
+            let (loss, grad_norm) = match loss_fn(&mut self.rng)?.into() {
+                StepLoss::Graph(loss) => {
+                    loss.backward();
+                    let norm = self.adam.step(&self.params, self.opt.grad_clip);
+                    (loss, norm)
+                }
+                StepLoss::Computed { loss, grads } => {
+                    let norm = self.adam.step_with(&self.params, grads, self.opt.grad_clip);
+                    (loss, norm)
+                }
+            };
             let loss = loss.double_value(&[]);
             if !(loss.is_finite() && grad_norm.is_finite()) {
                 non_finite += 1;

@@ -1073,6 +1073,7 @@ mod tests {
             "manifest",
             "reward",
             "autoencoder",
+            "recipe",
         ];
         expected.sort_unstable();
         assert_eq!(keys, expected);

@@ -225,6 +225,12 @@ impl TimeMlp {
         let h = self.first.forward(&self.emb.forward(t)?)?;
         self.second.forward(&mish.forward(&h)?)
     }
+
+    /// The sinusoidal embedding and the two layers, for a pass written out by hand (the
+    /// reward's closed-form gradients, `reward/closed_form.rs`).
+    pub fn parts(&self) -> (&SinusoidalPosEmb, &Linear, &Linear) {
+        (&self.emb, &self.first, &self.second)
+    }
 }
 
 /// Diffuser's `Conv1dBlock`: `block = Sequential(Conv1d(in, out, k, padding = k / 2),

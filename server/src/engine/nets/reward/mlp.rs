@@ -40,8 +40,9 @@ impl MlpPlan {
 /// embedding, ending in one output.
 #[derive(Debug)]
 pub(super) struct MlpHead {
-    time_mlp: TimeMlp,
-    layers: Vec<Linear>,
+    pub(super) time_mlp: TimeMlp,
+    /// Hidden layers (Mish after each), then the output layer.
+    pub(super) layers: Vec<Linear>,
 }
 
 impl MlpHead {
@@ -83,7 +84,7 @@ impl MlpHead {
 /// The flat MLP over samples [B, *shape].
 #[derive(Debug)]
 pub(super) struct MlpNet {
-    head: MlpHead,
+    pub(super) head: MlpHead,
 }
 
 impl MlpNet {

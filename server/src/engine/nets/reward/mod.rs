@@ -30,6 +30,7 @@
 
 mod architecture;
 mod checks;
+mod closed_form;
 mod conv_encoder;
 mod mlp;
 #[cfg(test)]
@@ -47,6 +48,16 @@ use super::blocks::Mish;
 use super::inputs::check_inputs;
 use super::weights::Weights;
 use crate::error::{Error, Result};
+
+/// An alignment loss with its parameter gradients computed in closed form
+/// ([`RewardNet::alignment_gradients`]): no autograd graph behind either.
+#[derive(Debug)]
+pub struct AlignmentGradients {
+    /// The loss, a scalar.
+    pub loss: Tensor,
+    /// d loss / d parameter, by the parameters' names in the network's `VarStore`.
+    pub grads: Vec<(String, Tensor)>,
+}
 
 /// A relative reward network rho_theta(x, t) with its variables.
 #[derive(Debug)]
@@ -211,6 +222,68 @@ impl RewardNet {
             let rho = self.rho_unchecked(&x_req, &t, Mish::TwiceDifferentiable)?;
             input_gradient(&rho, &x_req, true)
         })
+    }
+
+    /// Algorithm 1's alignment loss at (`point`, `t`) against `target` (entry `weights`, rho's
+    /// L2 penalty `rho_l2`) with every parameter's gradient, computed in closed form
+    /// (`closed_form.rs`) where the architecture allows it: the windowed MLP and the flat MLP.
+    /// None for the others, which keep autograd's double backward
+    /// ([`RewardNet::grad_create_graph`]): their convolutions and group norms would need the
+    /// same derivation per layer kind. The loss equals [`super::super::relative_reward::alignment_loss`]'s
+    /// value; the gradients equal its backward to float rounding (`tests.rs`).
+    pub fn alignment_gradients(
+        &self,
+        point: &Tensor,
+        t: &Tensor,
+        target: &Tensor,
+        weights: Option<&Tensor>,
+        rho_l2: f64,
+    ) -> Result<Option<AlignmentGradients>> {
+        let t = self.check_inputs(point, t)?;
+        let (head, features) = match &self.network {
+            Network::WindowedMlp(net) => (&net.head, net.rows(point)?),
+            Network::Mlp(net) => (&net.head, point.f_flatten(1, -1)?.f_unsqueeze(1)?),
+            Network::ValueFunction(_) | Network::ConvEncoder(_) => return Ok(None),
+        };
+        let _no_graph = tch::no_grad_guard();
+        let pass = head.pass(&features, &t, true)?;
+        let batch = point.size()[0];
+        let grad = pass.grad.f_view(point.size().as_slice())?;
+        let diff = grad.f_sub(target)?;
+        let weighted = match weights {
+            Some(w) => diff.f_mul(w)?,
+            None => diff.shallow_clone(),
+        };
+        let mut loss = weighted
+            .f_mul(&diff)?
+            .f_flatten(1, -1)?
+            .f_sum_dim_intlist([1i64].as_slice(), false, None::<Kind>)?
+            .f_mean(None::<Kind>)?;
+        // d loss / d grad = 2 w (grad - target) / B, in the rows' layout.
+        let r = weighted.f_mul_scalar(2.0 / batch as f64)?.f_view(pass.grad.size().as_slice())?;
+        let p_out = if rho_l2 > 0.0 {
+            let rows = pass.out.f_view([batch, -1])?;
+            let rho = rows.f_mean_dim([1i64].as_slice(), false, None::<Kind>)?;
+            loss = loss.f_add(&rho.f_square()?.f_mean(None::<Kind>)?.f_mul_scalar(rho_l2)?)?;
+            // d (l2 mean_b rho^2) / d out_row = 2 l2 rho / (B N).
+            let per_row = rho.f_mul_scalar(2.0 * rho_l2 / (batch * rows.size()[1]) as f64)?;
+            Some(per_row.f_unsqueeze(1)?.f_expand_as(&rows)?.f_reshape([-1])?)
+        } else {
+            None
+        };
+        let grads = head.alignment_grads(&pass, &r, p_out.as_ref())?;
+        let names: std::collections::HashMap<usize, String> =
+            self.weights.var_store().variables().into_iter().map(|(name, v)| (v.data_ptr() as usize, name)).collect();
+        let grads = grads
+            .into_iter()
+            .map(|(param, grad)| {
+                names
+                    .get(&(param.data_ptr() as usize))
+                    .map(|name| (name.clone(), grad))
+                    .ok_or_else(|| Error::internal("reward closed form", "a gradient of an unknown parameter"))
+            })
+            .collect::<Result<Vec<_>>>()?;
+        Ok(Some(AlignmentGradients { loss, grads }))
     }
 
     fn rho_unchecked(&self, x: &Tensor, t: &Tensor, mish: Mish) -> Result<Tensor> {

@@ -566,3 +566,134 @@ fn reward_paper_sizes_run() {
         assert!(grad.isfinite().all().int64_value(&[]) == 1);
     }
 }
+
+/// The closed-form alignment gradients (`closed_form.rs`) against autograd's double backward
+/// of the same loss (`relative_reward::alignment_loss`): the loss and every parameter's
+/// gradient, for the windowed MLP (several windows and depths) and the flat MLP, with and
+/// without entry weights and rho's L2 penalty, at several seeds; in float64 to 1e-10 (the
+/// derivation), in float32 to 1e-5 (the bar). Also with biases raised past Mish's pass-through,
+/// where the second derivative is 0.
+#[test]
+fn reward_closed_form_alignment_gradients_equal_autograd() {
+    let cases = [
+        (windowed(4, &[32, 16]), vec![16, 3]),
+        (windowed(1, &[16]), vec![8, 3]),
+        (windowed(2, &[24, 16, 8]), vec![8, 5]),
+        (mlp(&[16, 8]), vec![2, 3, 2]),
+        (mlp(&[12]), vec![5]),
+    ];
+    for (arch, shape) in cases {
+        for seed in [0.5, 1.5, 2.5] {
+            for (kind, tolerance) in [(Kind::Double, 1e-10), (Kind::Float, 1e-5)] {
+                for (weighted, rho_l2, raised) in [(false, 0.0, false), (true, 0.3, false), (false, 0.1, true)] {
+                    let mut net = build(&arch, &shape);
+                    perturb(&net);
+                    if raised {
+                        tch::no_grad(|| {
+                            for (name, var) in net.weights().var_store().variables() {
+                                if name.ends_with("0.bias") {
+                                    let _ = var.shallow_clone().f_add_scalar_(30.0).expect("raise bias");
+                                }
+                            }
+                        });
+                    }
+                    if kind == Kind::Double {
+                        net.weights_mut().var_store_mut().double();
+                    }
+                    let (x, t) = inputs(&net, 3, kind);
+                    let x = x * (1.0 + seed);
+                    let target = pseudo_random(&x.size(), seed, kind);
+                    let weights = weighted.then(|| pseudo_random(&shape, seed + 0.1, kind).abs() + 0.5);
+                    let what =
+                        format!("{arch} {shape:?} seed {seed} {kind:?} weights {weighted} l2 {rho_l2} raised {raised}");
+                    let closed = net
+                        .alignment_gradients(&x, &t, &target, weights.as_ref(), rho_l2)
+                        .expect("closed form")
+                        .expect("an MLP head has a closed form");
+                    let loss =
+                        crate::engine::relative_reward::alignment_loss(&net, &x, &t, &target, weights.as_ref(), rho_l2)
+                            .expect("autograd loss");
+                    assert_close(&closed.loss, &loss.detach().to_kind(kind), tolerance, &format!("{what}: loss"));
+                    loss.backward();
+                    let variables: BTreeMap<String, Tensor> =
+                        net.weights().var_store().variables().into_iter().collect();
+                    assert_eq!(closed.grads.len(), variables.len(), "{what}: one gradient per parameter");
+                    for (name, grad) in &closed.grads {
+                        let want = variables[name].grad();
+                        let want = if want.defined() { want } else { variables[name].zeros_like() };
+                        assert_close(grad, &want, tolerance, &format!("{what}: {name}"));
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// Not a test: times the closed form against autograd at the maze default size
+/// (`cargo test --release -p relreward-server --lib time_closed_form -- --ignored --nocapture`).
+#[test]
+#[ignore]
+fn time_closed_form_against_autograd() {
+    tch::set_num_threads(1);
+    let net = build(&windowed(4, &[128, 64, 32]), &[16, 6]);
+    let (x, t) = inputs(&net, 64, Kind::Float);
+    let target = pseudo_random(&x.size(), 0.3, Kind::Float);
+    // The fastest of ten rounds of 100 calls (the machine's other work only adds time).
+    let time = |label: &str, f: &mut dyn FnMut()| {
+        for _ in 0..50 {
+            f();
+        }
+        let best = (0..10)
+            .map(|_| {
+                let start = std::time::Instant::now();
+                for _ in 0..100 {
+                    f();
+                }
+                start.elapsed().as_secs_f64() * 1e4
+            })
+            .fold(f64::INFINITY, f64::min);
+        eprintln!("{label}: {best:.1} us");
+    };
+    time("closed form", &mut || {
+        let g = net.alignment_gradients(&x, &t, &target, None, 0.0).expect("closed").expect("mlp");
+        let _ = g.loss.double_value(&[]);
+    });
+    time("autograd", &mut || {
+        let loss = crate::engine::relative_reward::alignment_loss(&net, &x, &t, &target, None, 0.0).expect("loss");
+        loss.backward();
+        let _ = loss.double_value(&[]);
+    });
+    let Network::WindowedMlp(w) = &net.network else { panic!("windowed") };
+    let rows = w.rows(&x).expect("rows");
+    let tf = t.to_kind(Kind::Float);
+    time("pass only", &mut || {
+        let _p = tch::no_grad(|| w.head.pass(&rows, &tf, true)).expect("pass");
+    });
+    let r = pseudo_random(&[256, 24], 0.1, Kind::Float);
+    time("pass + grads", &mut || {
+        let p = tch::no_grad(|| w.head.pass(&rows, &tf, true)).expect("pass");
+        let _g = tch::no_grad(|| w.head.alignment_grads(&p, &r, None)).expect("grads");
+    });
+    time("names", &mut || {
+        let _n: std::collections::HashMap<usize, String> =
+            net.weights().var_store().variables().into_iter().map(|(name, v)| (v.data_ptr() as usize, name)).collect();
+    });
+    time("loss", &mut || {
+        let g = pseudo_random(&[64, 16, 6], 0.2, Kind::Float);
+        let _ = crate::engine::relative_reward::alignment_error(&g, &target, None).double_value(&[]);
+    });
+    let params = crate::engine::optim::named_parameters(net.weights().var_store());
+    let mut adam = crate::engine::optim::Adam::new(&params, 1e-3);
+    let grads: Vec<(String, Tensor)> = params.iter().map(|(n, p)| (n.clone(), p.ones_like() * 1e-3)).collect();
+    time("adam", &mut || {
+        let g = grads.iter().map(|(n, t)| (n.clone(), t.shallow_clone())).collect();
+        let _ = adam.step_with(&params, g, None);
+    });
+    time("grad (serving, autograd)", &mut || {
+        let _ = net.grad(&x, &t).expect("grad");
+    });
+    time("closed form, again", &mut || {
+        let g = net.alignment_gradients(&x, &t, &target, None, 0.0).expect("closed").expect("mlp");
+        let _ = g.loss.double_value(&[]);
+    });
+}

@@ -61,16 +61,19 @@ pub(super) struct WindowedMlpNet {
     horizon: i64,
     transition_dim: i64,
     pub(super) window: i64,
-    head: MlpHead,
+    pub(super) head: MlpHead,
 }
 
 impl WindowedMlpNet {
     /// [B, H / h]: one value per non-overlapping window.
     pub(super) fn per_window(&self, x: &Tensor, t: &Tensor, mish: Mish) -> Result<Tensor> {
-        // [B, H, D] -> [B, H / h, h, D] -> [B, H / h, h D]; no size names the batch, so a traced
-        // export (`engine::export`) serves any batch size.
-        let windows = x.f_unflatten(1, [self.horizon / self.window, self.window])?.f_flatten(2, 3)?;
-        self.head.forward(&windows, t, mish)
+        self.head.forward(&self.rows(x)?, t, mish)
+    }
+
+    /// The head's rows: [B, H, D] -> [B, H / h, h, D] -> [B, H / h, h D]; no size names the
+    /// batch, so a traced export (`engine::export`) serves any batch size.
+    pub(super) fn rows(&self, x: &Tensor) -> Result<Tensor> {
+        Ok(x.f_unflatten(1, [self.horizon / self.window, self.window])?.f_flatten(2, 3)?)
     }
 
     /// [B, H]: one value per stride-1 window starting at each step, the end padded by
