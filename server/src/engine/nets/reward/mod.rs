@@ -17,7 +17,10 @@
 //! - `conv_encoder`: `conv_encoder { widths }` (image-like latents [C, H, W]), strided 2D
 //!   convolutions and global pooling;
 //! - `mlp`: `mlp { hidden }` (flat samples of any shape), and the MLP head the windowed
-//!   MLP shares.
+//!   MLP shares;
+//! - `closed_form`: that head's input gradient and training gradient written out by hand
+//!   ([`RewardNet::alignment_gradients`]), so training the two MLP rewards skips autograd's
+//!   double backward.
 //!
 //! Every activation is Mish (smooth, as the double backward and the paper's existence theorem
 //! want), every time embedding is Diffuser's
