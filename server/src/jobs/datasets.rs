@@ -114,17 +114,17 @@ pub(crate) async fn resolve_prompt_dataset(
     }
     let dir = store.blobs.local_dir(&ds.blob_key).await?;
     tokio::task::block_in_place(|| -> Result<()> {
-        let (rows, _) = load_rows(&dir, &ds, 1)?;
-        match load_labels(&dir, &ds)? {
-            Some(labels) => {
-                p.labels = Vec::<i64>::try_from(&labels).map_err(|e| Error::internal("reading prompt labels", e))?;
-            }
-            None => {
-                let flat = rows.reshape([k as i64, width as i64]).to_kind(tch::Kind::Float).contiguous();
-                let values = Vec::<f32>::try_from(&flat.view([-1]))
-                    .map_err(|e| Error::internal("reading prompt embeddings", e))?;
-                p.embeddings = Some(relreward_proto::tensor::encode_f32(&[k as u64, width as u64], &values));
-            }
+        if labelled {
+            // The labels alone: the samples beside them are not read (only their digests checked).
+            crate::store::Store::verify_dataset(&dir, &ds)?;
+            let labels = load_labels(&dir, &ds)?.ok_or_else(|| Error::internal("prompt dataset", "labels vanished"))?;
+            p.labels = Vec::<i64>::try_from(&labels).map_err(|e| Error::internal("reading prompt labels", e))?;
+        } else {
+            let (rows, _) = load_rows(&dir, &ds, 1)?;
+            let flat = rows.reshape([k as i64, width as i64]).to_kind(tch::Kind::Float).contiguous();
+            let values =
+                Vec::<f32>::try_from(&flat.view([-1])).map_err(|e| Error::internal("reading prompt embeddings", e))?;
+            p.embeddings = Some(relreward_proto::tensor::encode_f32(&[k as u64, width as u64], &values));
         }
         Ok(())
     })?;

@@ -168,6 +168,7 @@ impl MlpHead {
             grad,
         })
     }
+
     /// Every parameter's gradient of a loss of the pass's input gradient (module doc): `r`
     /// [R, F] is dL / d grad, `p_out` [R] dL / d out where the loss also reads the outputs.
     /// Pairs of (parameter, gradient) in no particular order.
@@ -189,8 +190,13 @@ impl MlpHead {
         let mut a_dot = r.f_mm(&layers[0].weight.f_narrow(1, 0, width)?.f_tr()?)?;
         for k in 0..hidden {
             let h_dot = pass.slopes[k].f_mul(&a_dot)?;
-            let next = h_dot.f_mm(&layers[k + 1].weight.f_tr()?)?;
-            a_dots.push(std::mem::replace(&mut a_dot, next));
+            // The output layer's tangent is not needed: dW_L takes ḣ_{L-1} itself.
+            if k + 1 < hidden {
+                let next = h_dot.f_mm(&layers[k + 1].weight.f_tr()?)?;
+                a_dots.push(std::mem::replace(&mut a_dot, next));
+            } else {
+                a_dots.push(std::mem::replace(&mut a_dot, Tensor::new()));
+            }
             h_dots.push(h_dot);
         }
         let mut grads = Vec::with_capacity(2 * layers.len() + 4);

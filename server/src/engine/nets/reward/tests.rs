@@ -674,14 +674,6 @@ fn time_closed_form_against_autograd() {
         let p = tch::no_grad(|| w.head.pass(&rows, &tf, true)).expect("pass");
         let _g = tch::no_grad(|| w.head.alignment_grads(&p, &r, None)).expect("grads");
     });
-    time("names", &mut || {
-        let _n: std::collections::HashMap<usize, String> =
-            net.weights().var_store().variables().into_iter().map(|(name, v)| (v.data_ptr() as usize, name)).collect();
-    });
-    time("loss", &mut || {
-        let g = pseudo_random(&[64, 16, 6], 0.2, Kind::Float);
-        let _ = crate::engine::relative_reward::alignment_error(&g, &target, None).double_value(&[]);
-    });
     let params = crate::engine::optim::named_parameters(net.weights().var_store());
     let mut adam = crate::engine::optim::Adam::new(&params, 1e-3);
     let grads: Vec<(String, Tensor)> = params.iter().map(|(n, p)| (n.clone(), p.ones_like() * 1e-3)).collect();
