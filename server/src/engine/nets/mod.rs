@@ -15,6 +15,8 @@
 //! - [`weights`]: [`weights::Weights`], a network's variables built against its planned
 //!   parameter count, strict safetensors loading and atomic saving, shared by every network.
 //! - [`inputs`]: the (x, t) shape and dtype check of every network's forward pass.
+//! - [`kernels`]: Mish and its derivatives fused by hand into one loop over float32 CPU
+//!   memory, for the passes nobody differentiates and the reward's closed form.
 //!
 //! `relreward_dev.nets` (`dev/python`) is an independent PyTorch implementation of the same
 //! networks; `server/tests/nets_vs_pytorch.rs` checks that both agree on the same weights,
@@ -23,6 +25,7 @@
 
 pub mod blocks;
 pub mod inputs;
+pub mod kernels;
 pub mod mlp;
 pub mod native;
 pub mod reward;

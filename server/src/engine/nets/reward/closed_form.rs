@@ -30,23 +30,23 @@
 use tch::{Kind, Tensor};
 
 use super::mlp::MlpHead;
-use crate::engine::nets::blocks::{Linear, MISH_PASS_THROUGH};
+use crate::engine::nets::blocks::{Linear, MISH_PASS_THROUGH, Mish};
+use crate::engine::nets::kernels::{self, MishParts};
+use crate::engine::nets::mlp::MLP_TIME_DIM;
 use crate::error::{Error, Result};
 
-/// Mish with its first derivative and, when asked, its second.
-struct MishParts {
-    value: Tensor,
-    slope: Tensor,
-    curvature: Option<Tensor>,
-}
-
+/// mish(a) (bit for bit `Mish::Fused`'s), mish'(a) and, when asked, mish''(a): one fused loop
+/// over a float32 CPU tensor (`nets::kernels`), libtorch's elementwise operations elsewhere
+/// (float64, a GPU).
 fn mish_parts(a: &Tensor, second: bool) -> Result<MishParts> {
-    // One exp where softplus, tanh and sigmoid would take three transcendental passes (the
-    // larger part of this pass's time on the CPU): with e = exp(a), tanh(softplus(a)) =
-    // n / w for n = e (e + 2) and w = n + 2, and (1 - T^2) sigmoid(a) = 4 e (1 + e) / w^2.
-    // Above 20 the input is clamped for e: there T rounds to 1 and the slope's correction to
-    // under 1e-16, as the training pass's pass-through has them. In place where a temporary is
-    // ours.
+    if let Some(parts) = kernels::mish_parts(a, second)? {
+        return Ok(parts);
+    }
+    // One exp where softplus, tanh and sigmoid would take three transcendental passes: with
+    // e = exp(a), tanh(softplus(a)) = n / w for n = e (e + 2) and w = n + 2, and
+    // (1 - T^2) sigmoid(a) = 4 e (1 + e) / w^2. Above the pass-through the input is clamped for
+    // e: there T rounds to 1 and the slope's correction to under 1e-16, as the training pass's
+    // pass-through has them. In place where a temporary is ours.
     let e = a.f_clamp_max(MISH_PASS_THROUGH)?.f_exp_()?;
     let n = e.f_add_scalar(2.0)?.f_mul_(&e)?;
     let rw = n.f_add_scalar(2.0)?.f_reciprocal_()?;
@@ -64,18 +64,19 @@ fn mish_parts(a: &Tensor, second: bool) -> Result<MishParts> {
     } else {
         None
     };
-    Ok(MishParts { value: a.f_mul(&tanh)?, slope, curvature })
+    Ok(MishParts { value: Mish::Fused.forward(a)?, slope, curvature })
 }
 
 /// One pass of the head over `R = B N` rows with what the backward passes need.
 pub(super) struct HeadPass {
     rows_per_item: i64,
     features: i64,
-    /// The time MLP's sinusoidal input, first layer's pre-activation slope and hidden value.
+    /// The time MLP's sinusoidal input, first layer's pre-activation slope (training pass
+    /// only) and hidden value.
     time_in: Tensor,
     /// e(t), [B, 32].
     time_embedding: Tensor,
-    time_slope: Tensor,
+    time_slope: Option<Tensor>,
     time_hidden: Tensor,
     /// Each layer's row input: `z` (the first layer also takes e(t), once per item), then
     /// `h_1 .. h_{L-1}` ([R, width]).
@@ -86,7 +87,8 @@ pub(super) struct HeadPass {
     /// `g_k` (adjoint of h_k) and `d_k = s_k g_k`, k = 1 .. L-1.
     adjoints: Vec<Tensor>,
     deltas: Vec<Tensor>,
-    /// One output per row, [R].
+    /// One output per row, [B, N]: the same operations as [`MlpHead::forward`] with fused Mish,
+    /// so the same numbers bit for bit (rho served with a gradient equals rho scored alone).
     pub(super) out: Tensor,
     /// d (c sum of an item's outputs) / d z per row, [R, F].
     pub(super) grad: Tensor,
@@ -95,7 +97,7 @@ pub(super) struct HeadPass {
 impl MlpHead {
     /// The forward pass and the input gradient of rho (the mean of an item's row outputs), by
     /// hand. `features` [B, N, F], `t` [B] in the weights' float dtype; `second`: also keep
-    /// mish'' for [`MlpHead::alignment_grads`].
+    /// mish'' and the time MLP's slope for [`MlpHead::alignment_grads`].
     pub(super) fn pass(&self, features: &Tensor, t: &Tensor, second: bool) -> Result<HeadPass> {
         let (emb, time_first, time_out) = self.time_mlp.parts();
         let size = features.size();
@@ -107,38 +109,32 @@ impl MlpHead {
             return Err(Error::internal("reward MLP", "a head without hidden layers"));
         }
         let c = 1.0 / rows as f64;
-        let time_in = emb.forward(t)?.f_to_kind(features.kind())?;
-        let time_mish = mish_parts(&time_first.forward(&time_in)?, false)?;
-        let e = time_out.forward(&time_mish.value)?;
-        // The first layer as its two column blocks: a_1 = z W_1[:, :F]^T + (e W_1[:, F:]^T + b_1)
-        // with the time part once per item, not once per row (no [z, e] concatenation).
-        let first = &self.layers[0].weight;
-        let per_item = e.f_linear(&first.f_narrow(1, width, first.size()[1] - width)?, Some(&self.layers[0].bias))?;
-        let z = features.f_flatten(0, 1)?;
-        let a_1 = z
-            .f_mm(&first.f_narrow(1, 0, width)?.f_tr()?)?
-            .f_view([-1, rows, per_item.size()[1]])?
-            .f_add_(&per_item.f_unsqueeze(1)?)?
-            .f_flatten(0, 1)?;
-        let mut inputs = vec![z];
+        // The forward's operations in its order (MlpHead::forward, TimeMlp::forward with fused
+        // Mish), keeping what the backward passes read.
+        let time_in = emb.forward(t)?;
+        let time_a = time_first.forward(&time_in)?;
+        let time_mish = mish_parts(&time_a, false)?;
+        let time_hidden = time_mish.value;
+        let time_slope = second.then_some(time_mish.slope);
+        let e = time_out.forward(&time_hidden)?;
+        let t_emb = e.f_unsqueeze(1)?.f_expand([-1, rows, MLP_TIME_DIM], false)?;
+        let mut a = self.layers[0].forward(&Tensor::f_cat(&[features, &t_emb], 2)?)?;
+        let mut inputs = vec![features.f_flatten(0, 1)?];
         let (mut slopes, mut curvatures) = (Vec::with_capacity(hidden), Vec::with_capacity(hidden));
-        let mut a = a_1;
         for k in 0..hidden {
-            let parts = mish_parts(&a, second)?;
-            slopes.push(parts.slope);
-            curvatures.extend(parts.curvature);
-            if k + 1 < hidden {
-                a = self.layers[k + 1].forward(&parts.value)?;
-            }
-            inputs.push(parts.value);
+            let MishParts { value, slope, curvature } = mish_parts(&a, second)?;
+            slopes.push(slope.f_flatten(0, 1)?);
+            curvatures.extend(curvature.map(|q| q.f_flatten(0, 1)).transpose()?);
+            // The next pre-activation; after the last hidden layer, the output [B, N, 1].
+            a = self.layers[k + 1].forward(&value)?;
+            inputs.push(value.f_flatten(0, 1)?);
         }
-        let last = &self.layers[hidden];
-        let out = inputs[hidden].f_linear(&last.weight, Some(&last.bias))?.f_squeeze_dim(-1)?;
+        let out = a.f_squeeze_dim(-1)?;
         // Backward from c: g_{L-1} = c W_L (one row, broadcast), d_k = s_k g_k, g_{k-1} = d_k W_k.
         // adjoints[k], deltas[k]: of the k-th hidden layer's output h (inputs[k + 1]) and its
         // pre-activation (the output of layers[k]).
         let (mut adjoints, mut deltas) = (Vec::with_capacity(hidden), Vec::with_capacity(hidden));
-        let mut g = last.weight.f_mul_scalar(c)?;
+        let mut g = self.layers[hidden].weight.f_mul_scalar(c)?;
         for k in (0..hidden).rev() {
             let d = slopes[k].f_mul(&g)?;
             let below = if k > 0 { Some(d.f_mm(&self.layers[k].weight)?) } else { None };
@@ -156,8 +152,8 @@ impl MlpHead {
             rows_per_item: rows,
             features: width,
             time_in,
-            time_slope: time_mish.slope,
-            time_hidden: time_mish.value,
+            time_slope,
+            time_hidden,
             time_embedding: e,
             inputs,
             slopes,
@@ -180,9 +176,9 @@ impl MlpHead {
     ) -> Result<Vec<(Tensor, Tensor)>> {
         let layers = &self.layers;
         let hidden = layers.len() - 1;
-        if pass.curvatures.len() != hidden {
+        let (true, Some(time_slope)) = (pass.curvatures.len() == hidden, &pass.time_slope) else {
             return Err(Error::internal("reward MLP", "alignment gradients need the training pass (mish'')"));
-        }
+        };
         let width = pass.features;
         let sum_rows = |t: &Tensor, keep: bool| t.f_sum_dim_intlist([0i64].as_slice(), keep, None::<Kind>);
         // Tangent pass along r: ȧ_1 = r W_1[:, :F]^T, ḣ_k = s_k ȧ_k, ȧ_{k+1} = ḣ_k W_{k+1}^T.
@@ -251,7 +247,7 @@ impl MlpHead {
         let (_, time_first, time_out) = self.time_mlp.parts();
         let adj_e = p_item.f_mm(&first.weight.f_narrow(1, width, first.weight.size()[1] - width)?)?;
         linear_grads(time_out, &pass.time_hidden, &adj_e, &mut grads)?;
-        let adj_a = adj_e.f_mm(&time_out.weight)?.f_mul(&pass.time_slope)?;
+        let adj_a = adj_e.f_mm(&time_out.weight)?.f_mul(time_slope)?;
         linear_grads(time_first, &pass.time_in, &adj_a, &mut grads)?;
         Ok(grads)
     }

@@ -19,8 +19,8 @@
 //! - `mlp`: `mlp { hidden }` (flat samples of any shape), and the MLP head the windowed
 //!   MLP shares;
 //! - `closed_form`: that head's input gradient and training gradient written out by hand
-//!   ([`RewardNet::alignment_gradients`]), so training the two MLP rewards skips autograd's
-//!   double backward.
+//!   ([`RewardNet::grad`], [`RewardNet::alignment_gradients`]), so serving and training the
+//!   two MLP rewards skip autograd (and training its double backward).
 //!
 //! Every activation is Mish (smooth, as the double backward and the paper's existence theorem
 //! want), every time embedding is Diffuser's
@@ -28,8 +28,9 @@
 //! and `time_mlp.3.*`, fed the diffusion step t as a float.
 //!
 //! All forward passes use tch's fallible operations: bad shapes are errors, never panics.
-//! Mish is libtorch's fused op except in `grad_create_graph`, the pass Algorithm 1
-//! differentiates twice ([`Mish::TwiceDifferentiable`]).
+//! Mish is [`Mish::Fused`] (libtorch's op, or the hand-fused kernel where nothing is
+//! differentiated) except in `grad_create_graph`, the pass Algorithm 1 differentiates twice
+//! ([`Mish::TwiceDifferentiable`]).
 
 mod architecture;
 mod checks;
@@ -201,15 +202,36 @@ impl RewardNet {
     }
 
     /// (rho [B], grad_x of sum(rho), the shape of `x`), both without autograd history. Works
-    /// inside a no-grad region (grad mode is enabled locally); parameter gradients are not
-    /// accumulated.
+    /// inside a no-grad region; parameter gradients are not accumulated. The MLP rewards take
+    /// the closed form (`closed_form.rs`: one forward keeping Mish's slopes, one backward of a
+    /// few matrix products), whose rho is the forward's bit for bit; the others autograd.
     pub fn grad(&self, x: &Tensor, t: &Tensor) -> Result<(Tensor, Tensor)> {
         let t = self.check_inputs(x, t)?;
+        if let Some((head, features)) = self.head_rows(x)? {
+            let _no_graph = tch::no_grad_guard();
+            let pass = head.pass(&features, &t, false)?;
+            // As rho_unchecked: the mean of the windows, or the flat MLP's one row.
+            let rho = match &self.network {
+                Network::WindowedMlp(_) => pass.out.f_mean_dim([1i64].as_slice(), false, None::<Kind>)?,
+                _ => pass.out.f_squeeze_dim(1)?,
+            };
+            return Ok((rho, pass.grad.f_view(x.size().as_slice())?));
+        }
         tch::with_grad(|| {
             let x_req = x.f_detach_copy()?.f_set_requires_grad(true)?;
             let rho = self.rho_unchecked(&x_req, &t, Mish::Fused)?;
             let grad_x = input_gradient(&rho, &x_req, false)?;
             Ok((rho.f_detach()?, grad_x))
+        })
+    }
+
+    /// The MLP head and its rows [B, N, F] for the architectures with a closed form; `None`
+    /// for the convolutional ones.
+    fn head_rows(&self, x: &Tensor) -> Result<Option<(&mlp::MlpHead, Tensor)>> {
+        Ok(match &self.network {
+            Network::WindowedMlp(net) => Some((&net.head, net.rows(x)?)),
+            Network::Mlp(net) => Some((&net.head, x.f_flatten(1, -1)?.f_unsqueeze(1)?)),
+            Network::ValueFunction(_) | Network::ConvEncoder(_) => None,
         })
     }
 
@@ -243,11 +265,7 @@ impl RewardNet {
         rho_l2: f64,
     ) -> Result<Option<AlignmentGradients>> {
         let t = self.check_inputs(point, t)?;
-        let (head, features) = match &self.network {
-            Network::WindowedMlp(net) => (&net.head, net.rows(point)?),
-            Network::Mlp(net) => (&net.head, point.f_flatten(1, -1)?.f_unsqueeze(1)?),
-            Network::ValueFunction(_) | Network::ConvEncoder(_) => return Ok(None),
-        };
+        let Some((head, features)) = self.head_rows(point)? else { return Ok(None) };
         let _no_graph = tch::no_grad_guard();
         let pass = head.pass(&features, &t, true)?;
         let batch = point.size()[0];

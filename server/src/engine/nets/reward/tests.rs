@@ -629,6 +629,43 @@ fn reward_closed_form_alignment_gradients_equal_autograd() {
     }
 }
 
+/// `grad` by the closed form (the MLP heads) against autograd's input gradient of the same
+/// network, and its rho against `rho` (scored alone) bit for bit: OIP serves rho with its
+/// gradient and must answer what Score answers.
+#[test]
+fn reward_closed_form_grad_equals_autograd() {
+    let cases = [
+        (windowed(4, &[32, 16]), vec![16, 3]),
+        (windowed(1, &[16]), vec![8, 3]),
+        (windowed(2, &[24, 16, 8]), vec![8, 5]),
+        (mlp(&[16, 8]), vec![2, 3, 2]),
+        (mlp(&[12]), vec![5]),
+    ];
+    for (arch, shape) in cases {
+        for seed in [0.5, 1.5, 2.5] {
+            for (kind, tolerance) in [(Kind::Double, 1e-10), (Kind::Float, 1e-5)] {
+                let mut net = build(&arch, &shape);
+                perturb(&net);
+                if kind == Kind::Double {
+                    net.weights_mut().var_store_mut().double();
+                }
+                let (x, t) = inputs(&net, 5, kind);
+                let x = x * (1.0 + seed);
+                let what = format!("{arch} {shape:?} seed {seed} {kind:?}");
+                let (rho, grad) = net.grad(&x, &t).expect("closed form");
+                assert!(!grad.requires_grad() && !rho.requires_grad(), "{what}: no graph");
+                let want = net.rho(&x, &t).expect("rho");
+                assert!(tch::no_grad(|| rho.equal(&want)), "{what}: rho equals rho() bit for bit");
+                // Autograd's d sum(rho) / dx through the ordinary forward.
+                let x_req = x.detach().copy().set_requires_grad(true);
+                let sum = net.rho(&x_req, &t).expect("rho").sum(kind);
+                let auto = Tensor::run_backward(&[&sum], &[&x_req], false, false).pop().expect("autograd");
+                assert_close(&grad, &auto, tolerance, &format!("{what}: grad_x"));
+            }
+        }
+    }
+}
+
 /// Not a test: times the closed form against autograd at the maze default size
 /// (`cargo test --release -p relreward-server --lib time_closed_form -- --ignored --nocapture`).
 #[test]

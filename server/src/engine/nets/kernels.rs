@@ -1,0 +1,286 @@
+//! Elementwise chains fused by hand into one pass over CPU memory (issue 38).
+//!
+//! At the reward's sizes (a few tens of thousands of elements per tensor) libtorch's cost is
+//! per operation, not per element: Mish's slope and curvature are some twenty elementwise
+//! operations, each a dispatch, an allocation and a pass. [`mish_derivatives`] computes both in
+//! one loop with an exp of its own (a polynomial the compiler vectorises; libm's scalar exp
+//! would not be), compiled for each SIMD level (`multiversion`, chosen at run time).
+//!
+//! The kernels take float32 tensors on the CPU and return `None` for anything else (float64,
+//! a GPU tensor), where callers keep their libtorch path; the tests check both paths against
+//! autograd.
+
+use multiversion::multiversion;
+use tch::{Device, Kind, Tensor};
+
+use crate::error::Result;
+
+/// exp(x) for x in [-87, 88], Cephes' `expf` (range reduction by ln 2 in two parts, a degree-6
+/// polynomial): within 2 ulp of the exact value, branch-free and without a float-to-int
+/// conversion (whose saturating semantics cost Rust's `as` a factor 2.6 here) so that the loops
+/// vectorise.
+#[inline(always)]
+fn exp_f32(x: f32) -> f32 {
+    const LOG2E: f32 = std::f32::consts::LOG2_E;
+    const LN2_HI: f32 = 0.693_359_4;
+    const LN2_LO: f32 = -2.121_944_4e-4;
+    // Round to nearest by adding and removing 1.5 * 2^23 (exact for |v| < 2^22): the sum's low
+    // mantissa bits then hold n itself.
+    const ROUND: f32 = 12_582_912.0;
+    let x = x.max(-87.0).min(88.0);
+    let shifted = x * LOG2E + ROUND;
+    let n = shifted - ROUND;
+    let r = x - n * LN2_HI - n * LN2_LO;
+    let mut p = 1.987_569_1e-4_f32;
+    p = p * r + 1.398_199_9e-3;
+    p = p * r + 8.333_452e-3;
+    p = p * r + 4.166_579_6e-2;
+    p = p * r + 1.666_666_5e-1;
+    p = p * r + 5.000_000_1e-1;
+    let p = p * r * r + r + 1.0;
+    // 2^n from its exponent bits: n + 127 in [1, 254] after the clamp.
+    let exponent = shifted.to_bits().wrapping_sub(ROUND.to_bits()).wrapping_add(127) << 23;
+    p * f32::from_bits(exponent)
+}
+
+/// Where Mish's derivatives treat the input as passing through (see `blocks::Mish`): from
+/// here on tanh(softplus(x)) is 1 in float32 (it rounds there from x = 9), so mish(x) = x and
+/// mish'(x) = 1 exactly, mish''(x) under 1e-16; exp(20) is far from overflowing. The kernels
+/// clamp the exp's input here.
+pub const MISH_PASS_THROUGH: f64 = 20.0;
+
+/// (e, T, 1 / w) of one element: e = exp(min(x, pass)), n = e (e + 2), w = n + 2 and
+/// T = n / w = tanh(softplus x). Every kernel computes mish(x) = x T from these same
+/// operations, so a value is the same bit for bit whichever kernel produced it.
+#[inline(always)]
+fn tanh_softplus(x: f32) -> (f32, f32, f32) {
+    let e = exp_f32(x.min(MISH_PASS_THROUGH as f32));
+    let n = e * (e + 2.0);
+    let rw = 1.0 / (n + 2.0);
+    (e, n * rw, rw)
+}
+
+#[multiversion(targets = "simd")]
+fn value_loop(a: &[f32], value: &mut [f32]) {
+    for (&x, v) in a.iter().zip(value.iter_mut()) {
+        let (_, tanh, _) = tanh_softplus(x);
+        *v = x * tanh;
+    }
+}
+
+/// mish, mish' = T + x k with k = 4 e (1 + e) / w^2 = (1 - T^2) sigmoid(x).
+#[multiversion(targets = "simd")]
+fn slope_loop(a: &[f32], value: &mut [f32], slope: &mut [f32]) {
+    for ((&x, v), s) in a.iter().zip(value.iter_mut()).zip(slope.iter_mut()) {
+        let (e, tanh, rw) = tanh_softplus(x);
+        *v = x * tanh;
+        *s = tanh + x * (4.0 * e * (1.0 + e) * rw * rw);
+    }
+}
+
+/// mish, mish', and mish'' = k (2 + x (1 - sigmoid(x) (1 + 2 T))), sigmoid(x) = e / (1 + e).
+#[multiversion(targets = "simd")]
+fn curvature_loop(a: &[f32], value: &mut [f32], slope: &mut [f32], curvature: &mut [f32]) {
+    for (((&x, v), s), c) in a.iter().zip(value.iter_mut()).zip(slope.iter_mut()).zip(curvature.iter_mut()) {
+        let (e, tanh, rw) = tanh_softplus(x);
+        let one_e = 1.0 + e;
+        let k = 4.0 * e * one_e * rw * rw;
+        *v = x * tanh;
+        *s = tanh + x * k;
+        *c = k * (2.0 + x * (1.0 - e / one_e * (1.0 + 2.0 * tanh)));
+    }
+}
+
+/// A float32 CPU tensor's elements in its logical order (one copy; `None` for other kinds or
+/// devices). Copies rather than borrowing libtorch's memory: the workspace forbids `unsafe`,
+/// and a copy of a few hundred kilobytes costs less than one of the operations it replaces.
+fn elements(t: &Tensor) -> Result<Option<Vec<f32>>> {
+    if t.device() != Device::Cpu || t.kind() != Kind::Float {
+        return Ok(None);
+    }
+    let numel = t.numel();
+    let mut values = vec![0.0f32; numel];
+    t.f_copy_data(&mut values, numel)?;
+    Ok(Some(values))
+}
+
+fn tensor(values: &[f32], shape: &[i64]) -> Result<Tensor> {
+    Ok(Tensor::f_from_slice(values)?.f_view(shape)?)
+}
+
+/// mish(a), shaped as `a`, not differentiable: for passes nobody differentiates (`blocks::Mish`
+/// takes it when the input needs no gradient). `None` when `a` is not a float32 CPU tensor.
+pub fn mish(a: &Tensor) -> Result<Option<Tensor>> {
+    let Some(input) = elements(a)? else { return Ok(None) };
+    let mut value = vec![0.0f32; input.len()];
+    value_loop(&input, &mut value);
+    Ok(Some(tensor(&value, &a.size())?))
+}
+
+/// Mish with its derivatives, each shaped as the input, from one loop.
+#[derive(Debug)]
+pub struct MishParts {
+    /// mish(a), bit for bit [`mish`]'s.
+    pub value: Tensor,
+    /// mish'(a); 1 above [`MISH_PASS_THROUGH`].
+    pub slope: Tensor,
+    /// mish''(a) when asked; 0 (under 1e-16) above [`MISH_PASS_THROUGH`].
+    pub curvature: Option<Tensor>,
+}
+
+/// [`MishParts`] of `a`; `None` when `a` is not a float32 CPU tensor.
+pub fn mish_parts(a: &Tensor, second: bool) -> Result<Option<MishParts>> {
+    let Some(input) = elements(a)? else { return Ok(None) };
+    let shape = a.size();
+    let (mut value, mut slope) = (vec![0.0f32; input.len()], vec![0.0f32; input.len()]);
+    let curvature = if second {
+        let mut curvature = vec![0.0f32; input.len()];
+        curvature_loop(&input, &mut value, &mut slope, &mut curvature);
+        Some(tensor(&curvature, &shape)?)
+    } else {
+        slope_loop(&input, &mut value, &mut slope);
+        None
+    };
+    Ok(Some(MishParts { value: tensor(&value, &shape)?, slope: tensor(&slope, &shape)?, curvature }))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn exp_f32_is_within_two_ulp_of_libm() {
+        let mut worst = 0.0f64;
+        let mut x = -87.0f32;
+        while x <= 88.0 {
+            let want = f64::from(x).exp();
+            let got = f64::from(exp_f32(x));
+            worst = worst.max(((got - want) / want).abs());
+            x += 0.0137;
+        }
+        assert!(worst < 2.5 * f64::from(f32::EPSILON), "relative error {worst:e}");
+    }
+
+    #[test]
+    fn mish_and_its_derivatives_equal_autograd() {
+        let a = Tensor::linspace(-30.0, 40.0, 7001, (Kind::Float, Device::Cpu));
+        let parts = mish_parts(&a, true).expect("kernel").expect("float32 on the CPU");
+        // Autograd's mish, mish' and mish'' in float64, the reference.
+        let x = a.to_kind(Kind::Double).set_requires_grad(true);
+        let y = x.mish();
+        let first = Tensor::run_backward(&[&y.sum(Kind::Double)], &[&x], true, true).pop().expect("first");
+        let second = Tensor::run_backward(&[&first.sum(Kind::Double)], &[&x], false, false).pop().expect("second");
+        // Relative to max(1, |value|): float32 rounding.
+        let close = |got: &Tensor, want: &Tensor, what: &str| {
+            let scale = want.abs().clamp_min(1.0);
+            let diff = ((got.to_kind(Kind::Double) - want).abs() / scale).max().double_value(&[]);
+            assert!(diff < 1e-6, "{what}: max relative difference {diff:e}");
+        };
+        close(&parts.value, &y.detach(), "mish");
+        close(&parts.slope, &first.detach(), "mish'");
+        // Above the pass-through mish'' is 0 (exactly: under 1e-16).
+        let curvature = parts.curvature.expect("second");
+        close(&curvature, &second.where_self(&x.le(MISH_PASS_THROUGH), &second.zeros_like()), "mish''");
+        // Every kernel's value is the same bit for bit; first-derivative parts too.
+        assert!(mish(&a).expect("kernel").expect("cpu").equal(&parts.value));
+        let first_only = mish_parts(&a, false).expect("kernel").expect("cpu");
+        assert!(first_only.value.equal(&parts.value) && first_only.slope.equal(&parts.slope));
+        assert!(first_only.curvature.is_none());
+        // libtorch's own mish, to float32 rounding.
+        close(&parts.value, &a.mish().to_kind(Kind::Double), "mish against libtorch's");
+        // Not float32 on the CPU: the caller's path.
+        assert!(mish_parts(&a.to_kind(Kind::Double), true).expect("ok").is_none());
+        assert!(mish(&a.to_kind(Kind::Double)).expect("ok").is_none());
+        // A non-contiguous input is read in its logical order.
+        let grid = a.narrow(0, 0, 7000).reshape([70, 100]);
+        let transposed = mish(&grid.tr()).expect("kernel").expect("cpu");
+        assert_eq!(transposed.size(), vec![100, 70]);
+        assert!(transposed.equal(&mish(&grid.tr().contiguous()).expect("kernel").expect("cpu")));
+        // Empty tensors.
+        assert_eq!(mish(&a.narrow(0, 0, 0)).expect("kernel").expect("cpu").numel(), 0);
+    }
+}
+
+#[cfg(test)]
+mod timing {
+    use super::*;
+
+    /// Not a test: each kernel against libtorch's operations on a [256, 128] float32 tensor
+    /// (`cargo test --release -p relreward-server --lib time_kernels -- --ignored --nocapture`).
+    #[test]
+    #[ignore]
+    fn time_kernels() {
+        tch::set_num_threads(1);
+        let a = Tensor::randn([256, 128], (Kind::Float, Device::Cpu));
+        let time = |label: &str, f: &mut dyn FnMut()| {
+            for _ in 0..50 {
+                f();
+            }
+            let best = (0..10)
+                .map(|_| {
+                    let start = std::time::Instant::now();
+                    for _ in 0..100 {
+                        f();
+                    }
+                    start.elapsed().as_secs_f64() * 1e4
+                })
+                .fold(f64::INFINITY, f64::min);
+            eprintln!("{label}: {best:.1} us");
+        };
+        time("kernel mish", &mut || drop(mish(&a).expect("kernel")));
+        time("kernel mish, mish'", &mut || drop(mish_parts(&a, false).expect("kernel")));
+        time("kernel mish, mish', mish''", &mut || drop(mish_parts(&a, true).expect("kernel")));
+        time("libtorch mish", &mut || drop(a.mish()));
+        time("libtorch exp", &mut || drop(a.exp()));
+        time("libtorch mul", &mut || drop(&a * &a));
+    }
+}
+#[cfg(test)]
+mod scratch {
+    use tch::{Device, Kind, Tensor};
+    #[test]
+    #[ignore]
+    fn scratch_ops() {
+        tch::set_num_threads(1);
+        let o = (Kind::Float, Device::Cpu);
+        let time = |label: &str, f: &mut dyn FnMut()| {
+            for _ in 0..50 {
+                f();
+            }
+            let best = (0..10)
+                .map(|_| {
+                    let s = std::time::Instant::now();
+                    for _ in 0..100 {
+                        f();
+                    }
+                    s.elapsed().as_secs_f64() * 1e4
+                })
+                .fold(f64::INFINITY, f64::min);
+            eprintln!("{label}: {best:.1} us");
+        };
+        let x = Tensor::randn([256, 56], o);
+        let w1 = Tensor::randn([128, 56], o);
+        let b1 = Tensor::randn([128], o);
+        let h1 = Tensor::randn([256, 128], o);
+        let w2 = Tensor::randn([64, 128], o);
+        let b2 = Tensor::randn([64], o);
+        let x3 = x.view([64, 4, 56]);
+        time("linear 56->128", &mut || drop(x.linear(&w1, Some(&b1))));
+        time("linear 56->128 3d", &mut || drop(x3.linear(&w1, Some(&b1))));
+        time("linear 128->64", &mut || drop(h1.linear(&w2, Some(&b2))));
+        time("mm 256x128 . 128x64", &mut || drop(h1.mm(&w2.tr())));
+        time("mm [64,256]^T [256, 128] (dW)", &mut || drop(Tensor::randn([256, 64], o).tr().mm(&h1)));
+        let d = Tensor::randn([256, 64], o);
+        time("tr mm dW", &mut || drop(d.tr().mm(&h1)));
+        time("randn 256x64", &mut || drop(Tensor::randn([256, 64], o)));
+        time("mul 256x128", &mut || drop(&h1 * &h1));
+        time("mul bcast", &mut || drop(&h1 * &b1));
+        time("sum rows", &mut || drop(h1.sum_dim_intlist([0i64].as_slice(), false, None::<Kind>)));
+        let f = Tensor::randn([64, 4, 24], o);
+        let e = Tensor::randn([64, 32], o);
+        time("cat", &mut || drop(Tensor::cat(&[&f, &e.unsqueeze(1).expand([-1, 4, 32], false)], 2)));
+        time("empty", &mut || drop(Tensor::empty([256, 128], o)));
+        time("shallow clone", &mut || drop(h1.shallow_clone()));
+        time("flatten view", &mut || drop(h1.view([64, 4, 128]).flatten(0, 1)));
+    }
+}
