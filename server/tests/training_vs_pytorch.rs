@@ -135,7 +135,7 @@ fn train(params: &[(String, Tensor)], mut loss_at: impl FnMut(usize) -> StepLoss
     };
     let initial = copy(params);
     let mut adam = Adam::new(params, LR);
-    let mut ema = Ema::new(params, EMA.0, EMA.1, EMA.2);
+    let mut ema = Ema::new(params, EMA.0, EMA.1, EMA.2, adam.flat_params(params));
     let (mut losses, mut grads) = (Vec::new(), Vec::new());
     for step in 1..=STEPS {
         match loss_at(step - 1) {

@@ -50,6 +50,9 @@ pub struct Adam {
     /// dtype or device, and every update goes parameter by parameter), and each parameter's
     /// moments as views into them (saved and loaded by name).
     flat: Option<(Tensor, Tensor)>,
+    /// The parameters' own storage as one flat tensor, each parameter rebound to a view of it
+    /// (`flatten_parameters`), so an update is one operation for all of them.
+    flat_params: Option<Tensor>,
     m: Vec<Tensor>,
     v: Vec<Tensor>,
 }
@@ -58,6 +61,7 @@ impl Adam {
     pub fn new(params: &[(String, Tensor)], lr: f64) -> Self {
         let uniform = params.windows(2).all(|w| w[0].1.kind() == w[1].1.kind() && w[0].1.device() == w[1].1.device());
         let total: i64 = params.iter().map(|(_, p)| p.numel() as i64).sum();
+        let flat_params = flatten_parameters(params);
         let (flat, m, v) = match params.first() {
             Some((_, first)) if uniform => {
                 let zeros = || Tensor::zeros([total], (first.kind(), first.device()));
@@ -71,7 +75,7 @@ impl Adam {
                 (None, zeros(), zeros())
             }
         };
-        Self { lr, beta1: 0.9, beta2: 0.999, eps: 1e-8, steps: 0, flat, m, v }
+        Self { lr, beta1: 0.9, beta2: 0.999, eps: 1e-8, steps: 0, flat, flat_params, m, v }
     }
 
     /// Applies one update from the parameters' gradients, then zeroes them, and returns the
@@ -152,8 +156,15 @@ impl Adam {
             let denom = v.sqrt().g_div_scalar_(bc2_sqrt).g_add_scalar_(self.eps);
             // p.addcdiv_(m, denom, value) is p + (value m) / denom: the same sum, per parameter.
             let update = (&*m * -step_size).g_div_(&denom);
-            for ((_, p), u) in params.iter().zip(pieces(&update, params)) {
-                let _ = p.shallow_clone().g_add_(&u);
+            match self.flat_params.as_mut().filter(|flat| views_of(flat, params)) {
+                Some(flat) => {
+                    let _ = flat.g_add_(&update);
+                }
+                None => {
+                    for ((_, p), u) in params.iter().zip(pieces(&update, params)) {
+                        let _ = p.shallow_clone().g_add_(&u);
+                    }
+                }
             }
             return norm;
         }
@@ -167,6 +178,12 @@ impl Adam {
             let _ = p.addcdiv_(&(&*m * -step_size), &denom);
         }
         norm
+    }
+
+    /// The parameters' flat storage when they were flattened (see [`flatten_parameters`]) and
+    /// still are views of it: what [`Ema::new`] averages in one operation.
+    pub fn flat_params(&self, params: &[(String, Tensor)]) -> Option<&Tensor> {
+        self.flat_params.as_ref().filter(|flat| views_of(flat, params))
     }
 
     /// Saves the moments as `<dir>/<file>` (safetensors, names "m.<param>" and "v.<param>").
@@ -198,6 +215,41 @@ impl Adam {
         }
         Ok(())
     }
+}
+
+/// Rebinds every parameter to a view of one new flat tensor holding their values, in order,
+/// and returns it (what PyTorch's `flatten_parameters` and FSDP's flat parameter do): the
+/// optimizer and the EMA then update all parameters in one operation each instead of one per
+/// parameter, on a GPU one kernel launch instead of tens. Values, names, gradients and
+/// autograd are unchanged (a parameter is still its own leaf). `None` for parameters of
+/// different dtypes or devices, or none.
+pub fn flatten_parameters(params: &[(String, Tensor)]) -> Option<Tensor> {
+    let (_, first) = params.first()?;
+    if params.iter().any(|(_, p)| p.kind() != first.kind() || p.device() != first.device()) {
+        return None;
+    }
+    let total: i64 = params.iter().map(|(_, p)| p.numel() as i64).sum();
+    let _guard = tch::no_grad_guard();
+    let flat = Tensor::empty([total], (first.kind(), first.device()));
+    for ((_, p), view) in params.iter().zip(pieces(&flat, params)) {
+        let mut view = view;
+        view.copy_(p);
+        p.shallow_clone().set_data(&view);
+    }
+    Some(flat)
+}
+
+/// Whether each parameter is still the view of `flat` that [`flatten_parameters`] made (a
+/// caller may have rebound one since, e.g. converting the store's dtype).
+fn views_of(flat: &Tensor, params: &[(String, Tensor)]) -> bool {
+    let base = flat.data_ptr() as usize;
+    let size = flat.kind().elt_size_in_bytes();
+    let mut offset = 0usize;
+    params.iter().all(|(_, p)| {
+        let here = p.data_ptr() as usize == base + offset * size && p.is_contiguous();
+        offset += p.numel();
+        here
+    }) && offset == flat.numel()
 }
 
 /// Views of a flat tensor shaped as each parameter, in order.
@@ -233,13 +285,25 @@ pub struct Ema {
     pub decay: f64,
     pub every: u64,
     pub start: u64,
+    /// The average of each parameter (views of `flat`'s second tensor when there is one).
     shadow: Vec<Tensor>,
+    /// The parameters' flat storage (see [`flatten_parameters`]) and the average's, so an
+    /// update is two operations instead of three per parameter.
+    flat: Option<(Tensor, Tensor)>,
 }
 
 impl Ema {
-    pub fn new(params: &[(String, Tensor)], decay: f64, every: u64, start: u64) -> Self {
+    /// `flat`: the parameters' flat storage when they are views of one ([`Adam::flat_params`]).
+    pub fn new(params: &[(String, Tensor)], decay: f64, every: u64, start: u64, flat: Option<&Tensor>) -> Self {
         let _guard = tch::no_grad_guard();
-        Self { decay, every, start, shadow: params.iter().map(|(_, p)| p.detach().copy()).collect() }
+        let (shadow, flat) = match flat.filter(|flat| views_of(flat, params)) {
+            Some(flat) => {
+                let average = flat.detach().copy();
+                (pieces(&average, params), Some((flat.shallow_clone(), average)))
+            }
+            None => (params.iter().map(|(_, p)| p.detach().copy()).collect(), None),
+        };
+        Self { decay, every, start, shadow, flat }
     }
 
     /// Call after optimisation step `step` (1-based).
@@ -248,6 +312,14 @@ impl Ema {
             return;
         }
         let _guard = tch::no_grad_guard();
+        if let Some((current, average)) = self.flat.as_mut().filter(|(current, _)| views_of(current, params)) {
+            if step < self.start {
+                average.copy_(current);
+            } else {
+                let _ = average.g_mul_scalar_(self.decay).g_add_(&(&*current * (1.0 - self.decay)));
+            }
+            return;
+        }
         for ((_, p), s) in params.iter().zip(self.shadow.iter_mut()) {
             if step < self.start {
                 s.copy_(p);
@@ -327,6 +399,41 @@ mod tests {
         }
     }
 
+    /// Parameters flattened into one tensor (Adam's default) and parameters updated one by one
+    /// (views broken by rebinding one, as converting a store would) give the same weights and
+    /// the same average bit for bit; the network's own tensors see the flat updates.
+    #[test]
+    fn flat_parameters_update_as_the_per_parameter_path() {
+        let (vs_a, lin_a) = setup(7);
+        let (mut vs_b, lin_b) = setup(7);
+        vs_b.copy(&vs_a).expect("copy");
+        let (params_a, params_b) = (named_parameters(&vs_a), named_parameters(&vs_b));
+        let mut adam_a = Adam::new(&params_a, 0.05);
+        let flat = adam_a.flat_params(&params_a).expect("one dtype and device: flattened").shallow_clone();
+        assert_eq!(flat.numel(), 3 * 2 + 2);
+        let mut ema_a = Ema::new(&params_a, 0.9, 1, 2, Some(&flat));
+        let mut adam_b = Adam::new(&params_b, 0.05);
+        tch::no_grad(|| params_b[0].1.shallow_clone().set_data(&params_b[0].1.copy()));
+        assert!(adam_b.flat_params(&params_b).is_none(), "a rebound parameter leaves the flat path");
+        let mut ema_b = Ema::new(&params_b, 0.9, 1, 2, adam_b.flat_params(&params_b));
+        for step in 1..=6 {
+            loss(&lin_a).backward();
+            adam_a.step(&params_a, None);
+            ema_a.after_step(&params_a, step);
+            loss(&lin_b).backward();
+            adam_b.step(&params_b, None);
+            ema_b.after_step(&params_b, step);
+        }
+        for (((name, a), (_, b)), ((_, ea), (_, eb))) in
+            params_a.iter().zip(&params_b).zip(ema_a.named(&params_a).iter().zip(&ema_b.named(&params_b)))
+        {
+            assert!(a.equal(b), "{name}: {a:?} vs {b:?}");
+            assert!(ea.equal(eb), "EMA of {name}");
+        }
+        assert!(lin_a.ws.equal(&vs_a.variables()["lin.weight"]), "the module sees the updated weights");
+        assert!(adam_a.flat_params(&params_a).is_some(), "still flat after updates");
+    }
+
     #[test]
     fn clipping_bounds_the_update_norm() {
         let (vs, lin) = setup(5);
@@ -385,7 +492,7 @@ mod tests {
     fn ema_resets_before_start_then_averages() {
         let (vs, _) = setup(9);
         let params = named_parameters(&vs);
-        let mut ema = Ema::new(&params, 0.5, 1, 3);
+        let mut ema = Ema::new(&params, 0.5, 1, 3, None);
         let set = |v: f32| {
             let _g = tch::no_grad_guard();
             for (_, p) in &params {

@@ -44,11 +44,14 @@ pub struct TrainLoop {
 impl TrainLoop {
     pub fn new(vs: &tch::nn::VarStore, opt: &Optimization, seed: u64) -> Self {
         let params = named_parameters(vs);
+        // Adam rebinds the parameters to views of one flat tensor; the EMA averages that.
+        let adam = Adam::new(&params, opt.learning_rate);
+        let ema = Ema::new(&params, opt.ema_decay, opt.ema_every, opt.ema_start, adam.flat_params(&params));
         Self {
             opt: opt.clone(),
             vars: vs.variables(),
-            adam: Adam::new(&params, opt.learning_rate),
-            ema: Ema::new(&params, opt.ema_decay, opt.ema_every, opt.ema_start),
+            adam,
+            ema,
             params,
             rng: Rng::new(seed),
             step: 0,

@@ -78,16 +78,19 @@ fn slope_loop(a: &[f32], value: &mut [f32], slope: &mut [f32]) {
     }
 }
 
-/// mish, mish', and mish'' = k (2 + x (1 - sigmoid(x) (1 + 2 T))), sigmoid(x) = e / (1 + e).
+/// mish, mish', and mish'' = k (2 + x (1 - sigmoid(x) (1 + 2 T))), sigmoid(x) = e / (1 + e),
+/// without that division: k sigmoid(x) (1 + 2 T) = 4 e^2 (3 n + 2) / w^3, so
+/// mish'' = k (2 + x) - 4 x (e^2 / w) ((3 n + 2) / w) / w (grouped so that no factor under- or
+/// overflows for x up to the pass-through).
 #[multiversion(targets = "simd")]
 fn curvature_loop(a: &[f32], value: &mut [f32], slope: &mut [f32], curvature: &mut [f32]) {
     for (((&x, v), s), c) in a.iter().zip(value.iter_mut()).zip(slope.iter_mut()).zip(curvature.iter_mut()) {
         let (e, tanh, rw) = tanh_softplus(x);
-        let one_e = 1.0 + e;
-        let k = 4.0 * e * one_e * rw * rw;
+        let n = e * (e + 2.0);
+        let k = 4.0 * e * (1.0 + e) * rw * rw;
         *v = x * tanh;
         *s = tanh + x * k;
-        *c = k * (2.0 + x * (1.0 - e / one_e * (1.0 + 2.0 * tanh)));
+        *c = k * (2.0 + x) - 4.0 * x * (e * e * rw) * ((3.0 * n + 2.0) * rw) * rw;
     }
 }
 
@@ -231,56 +234,14 @@ mod timing {
         time("kernel mish, mish'", &mut || drop(mish_parts(&a, false).expect("kernel")));
         time("kernel mish, mish', mish''", &mut || drop(mish_parts(&a, true).expect("kernel")));
         time("libtorch mish", &mut || drop(a.mish()));
+        // A TemporalUnet block's GroupNorm then Mish at the training benchmark's size.
+        let x = Tensor::randn([64, 128, 32], (Kind::Float, Device::Cpu));
+        let (w, b) =
+            (Tensor::ones([128], (Kind::Float, Device::Cpu)), Tensor::zeros([128], (Kind::Float, Device::Cpu)));
+        let norm = |x: &Tensor| x.group_norm(8, Some(&w), Some(&b), 1e-5, false);
+        time("libtorch group_norm + libtorch mish [64, 128, 32]", &mut || drop(norm(&x).mish()));
+        time("libtorch group_norm + kernel mish [64, 128, 32]", &mut || drop(mish(&norm(&x)).expect("kernel")));
         time("libtorch exp", &mut || drop(a.exp()));
         time("libtorch mul", &mut || drop(&a * &a));
-    }
-}
-#[cfg(test)]
-mod scratch {
-    use tch::{Device, Kind, Tensor};
-    #[test]
-    #[ignore]
-    fn scratch_ops() {
-        tch::set_num_threads(1);
-        let o = (Kind::Float, Device::Cpu);
-        let time = |label: &str, f: &mut dyn FnMut()| {
-            for _ in 0..50 {
-                f();
-            }
-            let best = (0..10)
-                .map(|_| {
-                    let s = std::time::Instant::now();
-                    for _ in 0..100 {
-                        f();
-                    }
-                    s.elapsed().as_secs_f64() * 1e4
-                })
-                .fold(f64::INFINITY, f64::min);
-            eprintln!("{label}: {best:.1} us");
-        };
-        let x = Tensor::randn([256, 56], o);
-        let w1 = Tensor::randn([128, 56], o);
-        let b1 = Tensor::randn([128], o);
-        let h1 = Tensor::randn([256, 128], o);
-        let w2 = Tensor::randn([64, 128], o);
-        let b2 = Tensor::randn([64], o);
-        let x3 = x.view([64, 4, 56]);
-        time("linear 56->128", &mut || drop(x.linear(&w1, Some(&b1))));
-        time("linear 56->128 3d", &mut || drop(x3.linear(&w1, Some(&b1))));
-        time("linear 128->64", &mut || drop(h1.linear(&w2, Some(&b2))));
-        time("mm 256x128 . 128x64", &mut || drop(h1.mm(&w2.tr())));
-        time("mm [64,256]^T [256, 128] (dW)", &mut || drop(Tensor::randn([256, 64], o).tr().mm(&h1)));
-        let d = Tensor::randn([256, 64], o);
-        time("tr mm dW", &mut || drop(d.tr().mm(&h1)));
-        time("randn 256x64", &mut || drop(Tensor::randn([256, 64], o)));
-        time("mul 256x128", &mut || drop(&h1 * &h1));
-        time("mul bcast", &mut || drop(&h1 * &b1));
-        time("sum rows", &mut || drop(h1.sum_dim_intlist([0i64].as_slice(), false, None::<Kind>)));
-        let f = Tensor::randn([64, 4, 24], o);
-        let e = Tensor::randn([64, 32], o);
-        time("cat", &mut || drop(Tensor::cat(&[&f, &e.unsqueeze(1).expand([-1, 4, 32], false)], 2)));
-        time("empty", &mut || drop(Tensor::empty([256, 128], o)));
-        time("shallow clone", &mut || drop(h1.shallow_clone()));
-        time("flatten view", &mut || drop(h1.view([64, 4, 128]).flatten(0, 1)));
     }
 }

@@ -718,7 +718,7 @@ fn time_closed_form_against_autograd() {
         let g = grads.iter().map(|(n, t)| (n.clone(), t.shallow_clone())).collect();
         let _ = adam.step_with(&params, g, None);
     });
-    time("grad (serving, autograd)", &mut || {
+    time("grad (serving, closed form)", &mut || {
         let _ = net.grad(&x, &t).expect("grad");
     });
     time("closed form, again", &mut || {
