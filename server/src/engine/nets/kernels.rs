@@ -205,8 +205,26 @@ mod tests {
 }
 
 #[cfg(test)]
-mod timing {
+pub(crate) mod timing {
     use super::*;
+
+    /// Prints the fastest of ten rounds of 100 calls of `f` (after 50 to warm up), in
+    /// microseconds per call: the machine's other work only adds time.
+    pub(crate) fn best_of(label: &str, f: &mut dyn FnMut()) {
+        for _ in 0..50 {
+            f();
+        }
+        let best = (0..10)
+            .map(|_| {
+                let start = std::time::Instant::now();
+                for _ in 0..100 {
+                    f();
+                }
+                start.elapsed().as_secs_f64() * 1e4
+            })
+            .fold(f64::INFINITY, f64::min);
+        eprintln!("{label}: {best:.1} us");
+    }
 
     /// Not a test: each kernel against libtorch's operations on a [256, 128] float32 tensor
     /// (`cargo test --release -p relreward-server --lib time_kernels -- --ignored --nocapture`).
@@ -214,22 +232,8 @@ mod timing {
     #[ignore]
     fn time_kernels() {
         tch::set_num_threads(1);
+        let time = best_of;
         let a = Tensor::randn([256, 128], (Kind::Float, Device::Cpu));
-        let time = |label: &str, f: &mut dyn FnMut()| {
-            for _ in 0..50 {
-                f();
-            }
-            let best = (0..10)
-                .map(|_| {
-                    let start = std::time::Instant::now();
-                    for _ in 0..100 {
-                        f();
-                    }
-                    start.elapsed().as_secs_f64() * 1e4
-                })
-                .fold(f64::INFINITY, f64::min);
-            eprintln!("{label}: {best:.1} us");
-        };
         time("kernel mish", &mut || drop(mish(&a).expect("kernel")));
         time("kernel mish, mish'", &mut || drop(mish_parts(&a, false).expect("kernel")));
         time("kernel mish, mish', mish''", &mut || drop(mish_parts(&a, true).expect("kernel")));

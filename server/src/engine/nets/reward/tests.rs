@@ -573,16 +573,20 @@ fn reward_paper_sizes_run() {
 /// without entry weights and rho's L2 penalty, at several seeds; in float64 to 1e-10 (the
 /// derivation), in float32 to 1e-5 (the bar). Also with biases raised past Mish's pass-through,
 /// where the second derivative is 0.
-#[test]
-fn reward_closed_form_alignment_gradients_equal_autograd() {
-    let cases = [
+/// The architectures with a closed form (the MLP heads), at small sizes with their item shapes.
+fn closed_form_cases() -> Vec<(RewardArchitecture, Vec<i64>)> {
+    vec![
         (windowed(4, &[32, 16]), vec![16, 3]),
         (windowed(1, &[16]), vec![8, 3]),
         (windowed(2, &[24, 16, 8]), vec![8, 5]),
         (mlp(&[16, 8]), vec![2, 3, 2]),
         (mlp(&[12]), vec![5]),
-    ];
-    for (arch, shape) in cases {
+    ]
+}
+
+#[test]
+fn reward_closed_form_alignment_gradients_equal_autograd() {
+    for (arch, shape) in closed_form_cases() {
         for seed in [0.5, 1.5, 2.5] {
             for (kind, tolerance) in [(Kind::Double, 1e-10), (Kind::Float, 1e-5)] {
                 for (weighted, rho_l2, raised) in [(false, 0.0, false), (true, 0.3, false), (false, 0.1, true)] {
@@ -634,14 +638,7 @@ fn reward_closed_form_alignment_gradients_equal_autograd() {
 /// gradient and must answer what Score answers.
 #[test]
 fn reward_closed_form_grad_equals_autograd() {
-    let cases = [
-        (windowed(4, &[32, 16]), vec![16, 3]),
-        (windowed(1, &[16]), vec![8, 3]),
-        (windowed(2, &[24, 16, 8]), vec![8, 5]),
-        (mlp(&[16, 8]), vec![2, 3, 2]),
-        (mlp(&[12]), vec![5]),
-    ];
-    for (arch, shape) in cases {
+    for (arch, shape) in closed_form_cases() {
         for seed in [0.5, 1.5, 2.5] {
             for (kind, tolerance) in [(Kind::Double, 1e-10), (Kind::Float, 1e-5)] {
                 let mut net = build(&arch, &shape);
@@ -675,22 +672,7 @@ fn time_closed_form_against_autograd() {
     let net = build(&windowed(4, &[128, 64, 32]), &[16, 6]);
     let (x, t) = inputs(&net, 64, Kind::Float);
     let target = pseudo_random(&x.size(), 0.3, Kind::Float);
-    // The fastest of ten rounds of 100 calls (the machine's other work only adds time).
-    let time = |label: &str, f: &mut dyn FnMut()| {
-        for _ in 0..50 {
-            f();
-        }
-        let best = (0..10)
-            .map(|_| {
-                let start = std::time::Instant::now();
-                for _ in 0..100 {
-                    f();
-                }
-                start.elapsed().as_secs_f64() * 1e4
-            })
-            .fold(f64::INFINITY, f64::min);
-        eprintln!("{label}: {best:.1} us");
-    };
+    let time = crate::engine::nets::kernels::timing::best_of;
     time("closed form", &mut || {
         let g = net.alignment_gradients(&x, &t, &target, None, 0.0).expect("closed").expect("mlp");
         let _ = g.loss.double_value(&[]);
