@@ -13,7 +13,9 @@
 //! rules make the record the function: no size that names the batch in the nets' shape
 //! arithmetic (flatten, unflatten, -1), so the graph serves any batch size; and no tensor
 //! built from host values inside the pass (the tracer records its factory call, not its
-//! data), so constants such as the normalizer's are made before tracing. [`trace`] checks
+//! data), so constants such as the normalizer's are made before tracing, and the hand-fused
+//! kernels (`nets::kernels`, whose results are host data to the tracer) are switched off for
+//! the traced pass, which then records libtorch's own operations. [`trace`] checks
 //! the saved module on a second batch size and other inputs before it leaves, so a net that
 //! ever broke a rule fails the export instead of handing out a wrong module.
 
@@ -24,6 +26,7 @@ use tch::{CModule, Device, Kind, Tensor};
 
 use super::denoiser::Denoiser;
 use super::manifest::Conditioning;
+use super::nets::kernels;
 use super::normalizer::Normalize;
 use super::reward_model::RewardModel;
 use crate::error::{Error, Result};
@@ -106,6 +109,17 @@ fn trace(
     forward: &Forward<'_>,
     out: &Path,
 ) -> Result<()> {
+    kernels::with_libtorch_ops(|| trace_recorded(name, item_shape, n_timesteps, conditioning, forward, out))
+}
+
+fn trace_recorded(
+    name: &str,
+    item_shape: &[i64],
+    n_timesteps: usize,
+    conditioning: Option<&Conditioning>,
+    forward: &Forward<'_>,
+    out: &Path,
+) -> Result<()> {
     let (x, t) = inputs(item_shape, n_timesteps, TRACE_BATCH, 0.0)?;
     let cond = conditioning.map(|c| condition(c, TRACE_BATCH, 0.0)).transpose()?;
     // The pass once outside the tracer, so that an error is ours (with its message) and the
@@ -151,4 +165,39 @@ fn trace(
         ));
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::engine::manifest::{Architecture, Space};
+    use crate::engine::nets::NativeDenoiser;
+
+    /// A frozen float32 CPU network is the case where `Mish::Fused` would take the hand-fused
+    /// kernel; traced, the module must still compute the network (the kernel's result would
+    /// be recorded as a constant) on a batch size it was not traced with.
+    #[test]
+    fn traced_native_denoisers_compute_the_network() {
+        let cases = [
+            (Architecture::Mlp { hidden: vec![16, 8] }, Space::Sample { shape: vec![3, 2] }),
+            (
+                Architecture::TemporalUnet { dim: 8, dim_mults: vec![1, 2] },
+                Space::Trajectory { horizon: 8, action_dim: 2, obs_dim: 3 },
+            ),
+        ];
+        for (architecture, space) in cases {
+            let mut net = NativeDenoiser::new(&architecture, &space, None, Device::Cpu).expect("network");
+            net.freeze();
+            let dir = tempfile::tempdir().expect("tmp");
+            let out = dir.path().join("model.pt");
+            let item_shape = net.item_shape().to_vec();
+            trace_denoiser(&net, &item_shape, 10, None, &out).expect("traced, saved and checked");
+            let loaded = CModule::load(&out).expect("load");
+            let (x, t) = inputs(&item_shape, 10, 5, 2.0).expect("inputs");
+            let want = tch::no_grad(|| net.forward(&x, &t, None)).expect("network");
+            let got = tch::no_grad(|| loaded.forward_ts(&[&x, &t])).expect("module");
+            let diff = (&got - &want).abs().max().double_value(&[]);
+            assert!(diff < 1e-5, "{architecture:?}: the module differs from the network by {diff}");
+        }
+    }
 }

@@ -221,8 +221,11 @@ impl Adam {
 /// and returns it (what PyTorch's `flatten_parameters` and FSDP's flat parameter do): the
 /// optimizer and the EMA then update all parameters in one operation each instead of one per
 /// parameter, on a GPU one kernel launch instead of tens. Values, names, gradients and
-/// autograd are unchanged (a parameter is still its own leaf). `None` for parameters of
-/// different dtypes or devices, or none.
+/// autograd are unchanged (a parameter is still its own leaf). One thing differs: an update of
+/// the flat tensor does not bump each parameter's version counter, so a graph kept across an
+/// update would not notice it (as with PyTorch's flat parameters); the training loop builds
+/// every graph after the previous update. `None` for parameters of different dtypes or
+/// devices, or none.
 pub fn flatten_parameters(params: &[(String, Tensor)]) -> Option<Tensor> {
     let (_, first) = params.first()?;
     if params.iter().any(|(_, p)| p.kind() != first.kind() || p.device() != first.device()) {

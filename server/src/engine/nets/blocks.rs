@@ -41,7 +41,8 @@ pub enum Mish {
     /// `value + (x - x.detach()) slope` with value and slope from one kernel pass, whose forward
     /// is the value bit for bit and whose derivative is mish' (its second derivative is not
     /// Mish's: hence [`Mish::TwiceDifferentiable`]). So a pass gives the same numbers with or
-    /// without a graph (rho served with its gradient equals rho scored alone). libtorch's
+    /// without a graph for finite inputs (rho served with its gradient equals rho scored
+    /// alone; an infinite activation gives NaN under a graph). libtorch's
     /// fused op elsewhere (float64, a GPU).
     Fused,
     /// For a pass differentiated twice: a reward's input gradient with a graph, whose loss
