@@ -109,62 +109,57 @@ fn trace(
     forward: &Forward<'_>,
     out: &Path,
 ) -> Result<()> {
-    kernels::with_libtorch_ops(|| trace_recorded(name, item_shape, n_timesteps, conditioning, forward, out))
-}
-
-fn trace_recorded(
-    name: &str,
-    item_shape: &[i64],
-    n_timesteps: usize,
-    conditioning: Option<&Conditioning>,
-    forward: &Forward<'_>,
-    out: &Path,
-) -> Result<()> {
-    let (x, t) = inputs(item_shape, n_timesteps, TRACE_BATCH, 0.0)?;
-    let cond = conditioning.map(|c| condition(c, TRACE_BATCH, 0.0)).transpose()?;
-    // The pass once outside the tracer, so that an error is ours (with its message) and the
-    // traced pass below can only repeat a pass that worked.
-    let _ = forward(&x, &t, cond.as_ref())?;
-    let failed = RefCell::new(None);
-    let mut closure = |inputs: &[Tensor]| match forward(&inputs[0], &inputs[1], inputs.get(2)) {
-        Ok(y) => vec![y],
-        Err(e) => {
-            *failed.borrow_mut() = Some(e);
-            Vec::new()
+    // libtorch's operations only, so that the tracer records the whole pass (module doc).
+    kernels::with_libtorch_ops(|| {
+        let (x, t) = inputs(item_shape, n_timesteps, TRACE_BATCH, 0.0)?;
+        let cond = conditioning.map(|c| condition(c, TRACE_BATCH, 0.0)).transpose()?;
+        // The pass once outside the tracer, so that an error is ours (with its message) and the
+        // traced pass below can only repeat a pass that worked.
+        let _ = forward(&x, &t, cond.as_ref())?;
+        let failed = RefCell::new(None);
+        let mut closure = |inputs: &[Tensor]| match forward(&inputs[0], &inputs[1], inputs.get(2)) {
+            Ok(y) => vec![y],
+            Err(e) => {
+                *failed.borrow_mut() = Some(e);
+                Vec::new()
+            }
+        };
+        let mut traced_inputs = vec![x, t];
+        traced_inputs.extend(cond);
+        let traced = CModule::create_by_tracing(name, "forward", &traced_inputs, &mut closure);
+        if let Some(e) = failed.into_inner() {
+            return Err(e);
         }
-    };
-    let mut traced_inputs = vec![x, t];
-    traced_inputs.extend(cond);
-    let traced = CModule::create_by_tracing(name, "forward", &traced_inputs, &mut closure);
-    if let Some(e) = failed.into_inner() {
-        return Err(e);
-    }
-    let module = traced.map_err(|e| Error::internal("tracing the export", e))?;
-    module.save(out).map_err(|e| Error::internal("saving the traced export", e))?;
+        let module = traced.map_err(|e| Error::internal("tracing the export", e))?;
+        module.save(out).map_err(|e| Error::internal("saving the traced export", e))?;
 
-    // The file as a user will load it, on a batch size it was not traced with.
-    let loaded = CModule::load(out).map_err(|e| Error::internal("loading the traced export back", e))?;
-    let (x, t) = inputs(item_shape, n_timesteps, CHECK_BATCH, 1.0)?;
-    let cond = conditioning.map(|c| condition(c, CHECK_BATCH, 1.0)).transpose()?;
-    let want = tch::no_grad(|| forward(&x, &t, cond.as_ref()))?;
-    let mut check_inputs = vec![&x, &t];
-    check_inputs.extend(cond.as_ref());
-    let got = tch::no_grad(|| loaded.forward_ts(&check_inputs)).map_err(|e| {
-        Error::internal("checking the traced export", format!("it does not run on a batch of {CHECK_BATCH}: {e}"))
-    })?;
-    let err =
-        if got.size() == want.size() { got.f_sub(&want)?.f_abs()?.f_max()?.double_value(&[]) } else { f64::INFINITY };
-    if err.is_nan() || err > CHECK_TOLERANCE {
-        return Err(Error::internal(
-            "checking the traced export",
-            format!(
-                "on a batch of {CHECK_BATCH} it gives {:?} differing by {err} from the network's {:?}",
-                got.size(),
-                want.size()
-            ),
-        ));
-    }
-    Ok(())
+        // The file as a user will load it, on a batch size it was not traced with.
+        let loaded = CModule::load(out).map_err(|e| Error::internal("loading the traced export back", e))?;
+        let (x, t) = inputs(item_shape, n_timesteps, CHECK_BATCH, 1.0)?;
+        let cond = conditioning.map(|c| condition(c, CHECK_BATCH, 1.0)).transpose()?;
+        let want = tch::no_grad(|| forward(&x, &t, cond.as_ref()))?;
+        let mut check_inputs = vec![&x, &t];
+        check_inputs.extend(cond.as_ref());
+        let got = tch::no_grad(|| loaded.forward_ts(&check_inputs)).map_err(|e| {
+            Error::internal("checking the traced export", format!("it does not run on a batch of {CHECK_BATCH}: {e}"))
+        })?;
+        let err = if got.size() == want.size() {
+            got.f_sub(&want)?.f_abs()?.f_max()?.double_value(&[])
+        } else {
+            f64::INFINITY
+        };
+        if err.is_nan() || err > CHECK_TOLERANCE {
+            return Err(Error::internal(
+                "checking the traced export",
+                format!(
+                    "on a batch of {CHECK_BATCH} it gives {:?} differing by {err} from the network's {:?}",
+                    got.size(),
+                    want.size()
+                ),
+            ));
+        }
+        Ok(())
+    })
 }
 
 #[cfg(test)]
