@@ -46,8 +46,8 @@ pub struct Adam {
     eps: f64,
     /// Updates applied so far (for bias correction).
     pub steps: u64,
-    /// The moments of all parameters, one flat tensor each (None: the parameters differ in
-    /// dtype or device, and every update goes parameter by parameter), and each parameter's
+    /// The moments of all parameters, one flat tensor each (None, as `flat_params`: the
+    /// parameters differ in dtype or device, and every update goes parameter by parameter), and each parameter's
     /// moments as views into them (saved and loaded by name).
     flat: Option<(Tensor, Tensor)>,
     /// The parameters' own storage as one flat tensor, each parameter rebound to a view of it
@@ -59,13 +59,12 @@ pub struct Adam {
 
 impl Adam {
     pub fn new(params: &[(String, Tensor)], lr: f64) -> Self {
-        let uniform = params.windows(2).all(|w| w[0].1.kind() == w[1].1.kind() && w[0].1.device() == w[1].1.device());
-        let total: i64 = params.iter().map(|(_, p)| p.numel() as i64).sum();
+        // Flat moments exactly where the parameters themselves could be flattened (one dtype
+        // and device).
         let flat_params = flatten_parameters(params);
-        let (flat, m, v) = match params.first() {
-            Some((_, first)) if uniform => {
-                let zeros = || Tensor::zeros([total], (first.kind(), first.device()));
-                let (m_flat, v_flat) = (zeros(), zeros());
+        let (flat, m, v) = match &flat_params {
+            Some(all) => {
+                let (m_flat, v_flat) = (all.zeros_like(), all.zeros_like());
                 let views = |flat: &Tensor| pieces(flat, params);
                 let (m, v) = (views(&m_flat), views(&v_flat));
                 (Some((m_flat, v_flat)), m, v)

@@ -12,6 +12,7 @@
 use tch::nn::{Init, Path};
 use tch::{Kind, Tensor};
 
+use super::kernels;
 use crate::error::{Error, Result};
 
 /// GroupNorm groups in every [`Conv1dBlock`] (Diffuser's `n_groups = 8`).
@@ -57,7 +58,6 @@ pub enum Mish {
     TwiceDifferentiable,
 }
 
-use super::kernels;
 pub use super::kernels::MISH_PASS_THROUGH;
 
 impl Mish {

@@ -2,13 +2,15 @@
 //!
 //! At the reward's sizes (a few tens of thousands of elements per tensor) libtorch's cost is
 //! per operation, not per element: Mish's slope and curvature are some twenty elementwise
-//! operations, each a dispatch, an allocation and a pass. [`mish_derivatives`] computes both in
-//! one loop with an exp of its own (a polynomial the compiler vectorises; libm's scalar exp
-//! would not be), compiled for each SIMD level (`multiversion`, chosen at run time).
+//! operations, each a dispatch, an allocation and a pass, and libtorch's own `mish` takes three
+//! transcendental passes. [`mish_parts`] computes Mish with both derivatives, [`mish`] its
+//! value alone, in one loop with an exp of its own (a polynomial the compiler vectorises;
+//! libm's scalar exp would not be), compiled for each SIMD level (`multiversion`, chosen at
+//! run time).
 //!
 //! The kernels take float32 tensors on the CPU and return `None` for anything else (float64,
-//! a GPU tensor), where callers keep their libtorch path; the tests check both paths against
-//! autograd.
+//! a GPU tensor, see `elements`), where callers keep their libtorch path; the tests check both
+//! paths against autograd.
 
 use multiversion::multiversion;
 use tch::{Device, Kind, Tensor};
@@ -49,21 +51,21 @@ fn exp_f32(x: f32) -> f32 {
 /// clamp the exp's input here.
 pub const MISH_PASS_THROUGH: f64 = 20.0;
 
-/// (e, T, 1 / w) of one element: e = exp(min(x, pass)), n = e (e + 2), w = n + 2 and
+/// (e, n, T, 1 / w) of one element: e = exp(min(x, pass)), n = e (e + 2), w = n + 2 and
 /// T = n / w = tanh(softplus x). Every kernel computes mish(x) = x T from these same
 /// operations, so a value is the same bit for bit whichever kernel produced it.
 #[inline(always)]
-fn tanh_softplus(x: f32) -> (f32, f32, f32) {
+fn tanh_softplus(x: f32) -> (f32, f32, f32, f32) {
     let e = exp_f32(x.min(MISH_PASS_THROUGH as f32));
     let n = e * (e + 2.0);
     let rw = 1.0 / (n + 2.0);
-    (e, n * rw, rw)
+    (e, n, n * rw, rw)
 }
 
 #[multiversion(targets = "simd")]
 fn value_loop(a: &[f32], value: &mut [f32]) {
     for (&x, v) in a.iter().zip(value.iter_mut()) {
-        let (_, tanh, _) = tanh_softplus(x);
+        let (_, _, tanh, _) = tanh_softplus(x);
         *v = x * tanh;
     }
 }
@@ -72,7 +74,7 @@ fn value_loop(a: &[f32], value: &mut [f32]) {
 #[multiversion(targets = "simd")]
 fn slope_loop(a: &[f32], value: &mut [f32], slope: &mut [f32]) {
     for ((&x, v), s) in a.iter().zip(value.iter_mut()).zip(slope.iter_mut()) {
-        let (e, tanh, rw) = tanh_softplus(x);
+        let (e, _, tanh, rw) = tanh_softplus(x);
         *v = x * tanh;
         *s = tanh + x * (4.0 * e * (1.0 + e) * rw * rw);
     }
@@ -85,8 +87,7 @@ fn slope_loop(a: &[f32], value: &mut [f32], slope: &mut [f32]) {
 #[multiversion(targets = "simd")]
 fn curvature_loop(a: &[f32], value: &mut [f32], slope: &mut [f32], curvature: &mut [f32]) {
     for (((&x, v), s), c) in a.iter().zip(value.iter_mut()).zip(slope.iter_mut()).zip(curvature.iter_mut()) {
-        let (e, tanh, rw) = tanh_softplus(x);
-        let n = e * (e + 2.0);
+        let (e, n, tanh, rw) = tanh_softplus(x);
         let k = 4.0 * e * (1.0 + e) * rw * rw;
         *v = x * tanh;
         *s = tanh + x * k;
@@ -120,8 +121,10 @@ pub fn with_libtorch_ops<R>(f: impl FnOnce() -> R) -> R {
 }
 
 /// A float32 CPU tensor's elements in its logical order (one copy; `None` for other kinds or
-/// devices, and inside [`with_libtorch_ops`]). Copies rather than borrowing libtorch's memory: the workspace forbids `unsafe`,
-/// and a copy of a few hundred kilobytes costs less than one of the operations it replaces.
+/// devices, inside [`with_libtorch_ops`], and for large tensors where libtorch runs more than
+/// [`MAX_THREADS_FOR_KERNEL`] threads). Copies rather than borrowing libtorch's memory: the
+/// workspace forbids `unsafe`, and a copy of a few hundred kilobytes costs less than one of the
+/// operations it replaces.
 fn elements(t: &Tensor) -> Result<Option<Vec<f32>>> {
     if t.device() != Device::Cpu || t.kind() != Kind::Float || LIBTORCH_ONLY.with(|flag| flag.get()) {
         return Ok(None);
@@ -143,7 +146,7 @@ fn tensor(values: &[f32], shape: &[i64]) -> Result<Tensor> {
 }
 
 /// mish(a), shaped as `a`, not differentiable: for passes nobody differentiates (`blocks::Mish`
-/// takes it when the input needs no gradient). `None` when `a` is not a float32 CPU tensor.
+/// takes it when the input needs no gradient). `None` where the kernels decline (`elements`).
 pub fn mish(a: &Tensor) -> Result<Option<Tensor>> {
     let Some(input) = elements(a)? else { return Ok(None) };
     let mut value = vec![0.0f32; input.len()];
@@ -162,7 +165,7 @@ pub struct MishParts {
     pub curvature: Option<Tensor>,
 }
 
-/// [`MishParts`] of `a`; `None` when `a` is not a float32 CPU tensor.
+/// [`MishParts`] of `a`; `None` where the kernels decline (`elements`).
 pub fn mish_parts(a: &Tensor, second: bool) -> Result<Option<MishParts>> {
     let Some(input) = elements(a)? else { return Ok(None) };
     let shape = a.size();

@@ -78,8 +78,8 @@ pub(super) struct HeadPass {
     time_embedding: Tensor,
     time_slope: Option<Tensor>,
     time_hidden: Tensor,
-    /// Each layer's row input: `z` (the first layer also takes e(t), once per item), then
-    /// `h_1 .. h_{L-1}` ([R, width]).
+    /// Each layer's row input ([R, width]): `z` (the first layer's input is `[z, e(t)]`, each
+    /// row with its item's e(t)), then `h_1 .. h_{L-1}`.
     inputs: Vec<Tensor>,
     /// `s_k` and `q_k` (the latter only for the training pass), k = 1 .. L-1.
     slopes: Vec<Tensor>,
@@ -113,9 +113,13 @@ impl MlpHead {
         // Mish), keeping what the backward passes read.
         let time_in = emb.forward(t)?;
         let time_a = time_first.forward(&time_in)?;
-        let time_mish = mish_parts(&time_a, false)?;
-        let time_hidden = time_mish.value;
-        let time_slope = second.then_some(time_mish.slope);
+        // The time MLP's slope only for the training pass's backward through it.
+        let (time_hidden, time_slope) = if second {
+            let parts = mish_parts(&time_a, false)?;
+            (parts.value, Some(parts.slope))
+        } else {
+            (Mish::Fused.forward(&time_a)?, None)
+        };
         let e = time_out.forward(&time_hidden)?;
         let t_emb = e.f_unsqueeze(1)?.f_expand([-1, rows, MLP_TIME_DIM], false)?;
         let mut a = self.layers[0].forward(&Tensor::f_cat(&[features, &t_emb], 2)?)?;

@@ -567,12 +567,6 @@ fn reward_paper_sizes_run() {
     }
 }
 
-/// The closed-form alignment gradients (`closed_form.rs`) against autograd's double backward
-/// of the same loss (`relative_reward::alignment_loss`): the loss and every parameter's
-/// gradient, for the windowed MLP (several windows and depths) and the flat MLP, with and
-/// without entry weights and rho's L2 penalty, at several seeds; in float64 to 1e-10 (the
-/// derivation), in float32 to 1e-5 (the bar). Also with biases raised past Mish's pass-through,
-/// where the second derivative is 0.
 /// The architectures with a closed form (the MLP heads), at small sizes with their item shapes.
 fn closed_form_cases() -> Vec<(RewardArchitecture, Vec<i64>)> {
     vec![
@@ -584,6 +578,12 @@ fn closed_form_cases() -> Vec<(RewardArchitecture, Vec<i64>)> {
     ]
 }
 
+/// The closed-form alignment gradients (`closed_form.rs`) against autograd's double backward
+/// of the same loss (`relative_reward::alignment_loss`): the loss and every parameter's
+/// gradient, for the windowed MLP (several windows and depths) and the flat MLP, with and
+/// without entry weights and rho's L2 penalty, at several seeds; in float64 to 1e-10 (the
+/// derivation), in float32 to 1e-5 (the bar). Also with biases raised past Mish's pass-through,
+/// where the second derivative is 0.
 #[test]
 fn reward_closed_form_alignment_gradients_equal_autograd() {
     for (arch, shape) in closed_form_cases() {
