@@ -147,6 +147,15 @@ impl RewardModel {
         }
     }
 
+    /// The batch size to evaluate `n` items at ([`RewardNet::padded_batch`]; a module's own
+    /// `n`, whose rows need not be independent).
+    pub fn padded_batch(&self, n: i64) -> i64 {
+        match &self.rho {
+            Rho::Native { net, .. } => net.padded_batch(n),
+            Rho::TorchScript(_) => n,
+        }
+    }
+
     /// rho's input: `x` itself, or standardised per step for Algorithm 2 rewards.
     fn input(step_norm: Option<&StepNorm>, n_timesteps: usize, x: &Tensor, t: &Tensor) -> Result<Tensor> {
         match step_norm {

@@ -270,14 +270,22 @@ fn drop_expired(inner: &Inner, model: &str, batch: Vec<Pending>, now: Instant) -
 fn compute(queue: &ModelQueue, kind: BatchKind, batch: &[Pending]) -> Result<Vec<Answer>> {
     let sizes: Vec<i64> = batch.iter().map(|p| p.query.batch()).collect();
     let n: i64 = sizes.iter().sum();
-    let mut shape = vec![n];
+    let model = queue.model.lock();
+    // Padded with zero items (t = 0) where the network's kernels are compiled per batch size
+    // (`RewardNet::padded_batch`); rows are independent, and only the first n are read back.
+    let rows = model.padded_batch(n);
+    let mut shape = vec![rows];
     shape.extend(&queue.model.item_shape);
-    let mut xs = Vec::with_capacity(batch.iter().map(|p| p.query.x.len()).sum());
-    let mut ts = Vec::with_capacity(n as usize);
+    // Floats per item (an item shape has no zero dimension).
+    let per_item = (queue.model.item_shape.iter().product::<i64>() as usize).max(1);
+    let mut xs = Vec::with_capacity(per_item * rows as usize);
+    let mut ts = Vec::with_capacity(rows as usize);
     for p in batch {
         xs.extend_from_slice(&p.query.x);
         ts.extend_from_slice(&p.query.t);
     }
+    xs.resize(per_item * rows as usize, 0.0);
+    ts.resize(rows as usize, 0);
     let x_host = Tensor::f_from_slice(&xs)?.f_reshape(&shape)?;
     let t = Tensor::f_from_slice(&ts)?;
     // On a GPU (`engine.device`): one copy of the whole batch there (pinned, asynchronous:
@@ -285,7 +293,7 @@ fn compute(queue: &ModelQueue, kind: BatchKind, batch: &[Pending]) -> Result<Vec
     // moves are no-ops.
     let device = crate::engine::device();
     let (x, t) = (crate::engine::upload(&x_host, device)?, crate::engine::upload(&t, device)?);
-    let model = queue.model.lock();
+    let real = |v: Tensor| v.f_narrow(0, 0, n);
     match kind {
         BatchKind::Score { per_window, per_step } => {
             let _no_grad = tch::no_grad_guard();
@@ -293,14 +301,14 @@ fn compute(queue: &ModelQueue, kind: BatchKind, batch: &[Pending]) -> Result<Vec
             // two: half the cost of a Score that asks for both, as an RL wrapper's every step).
             let (rho, windows) = if per_window {
                 let (rho, windows) = model.rho_and_windows(&x, &t)?;
-                (rho, Some(windows))
+                (rho, Some(real(windows)?))
             } else {
                 (model.rho(&x, &t)?, None)
             };
-            let rewards = split_host(&rho, &sizes)?;
+            let rewards = split_host(&real(rho)?, &sizes)?;
             let mut windows = windows.map(|w| split_host(&w, &sizes)).transpose()?.map(Vec::into_iter);
             let mut steps =
-                if per_step { Some(split_host(&model.per_step(&x, &t)?, &sizes)?.into_iter()) } else { None };
+                if per_step { Some(split_host(&real(model.per_step(&x, &t)?)?, &sizes)?.into_iter()) } else { None };
             Ok(rewards
                 .into_iter()
                 .map(|rewards| Answer {
@@ -313,14 +321,13 @@ fn compute(queue: &ModelQueue, kind: BatchKind, batch: &[Pending]) -> Result<Vec
         }
         BatchKind::Gradient => {
             let (rho, grad) = model.grad(&x, &t)?;
+            let (rho, grad) = (real(rho)?, real(grad)?);
             drop(model);
             let _no_grad = tch::no_grad_guard();
             // The normalizer's Jacobian (one item's worth of per-element factors) only for
             // batches with a raw-unit gradient (planners ask in normalized units).
             let raw_units = batch.iter().any(|p| p.query.gradient_post.as_ref().is_some_and(|g| g.raw_units));
             let jacobian = if raw_units { Some(item_jacobian(queue, &x_host)?) } else { None };
-            // Floats per item (an item shape has no zero dimension).
-            let per_item = (queue.model.item_shape.iter().product::<i64>() as usize).max(1);
             let mut answers = Vec::with_capacity(batch.len());
             for ((p, rewards), mut gradient) in
                 batch.iter().zip(split_host(&rho, &sizes)?).zip(split_host(&grad, &sizes)?)

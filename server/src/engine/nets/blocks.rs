@@ -82,6 +82,35 @@ impl Mish {
     }
 }
 
+/// What Mish's hand-written backward needs from a [`Mish::Fused`] pass: its slope where the
+/// kernel ran (float32 on the CPU), else its input for libtorch's `mish_backward`.
+#[derive(Debug)]
+pub enum MishTape {
+    Slope(Tensor),
+    Input(Tensor),
+}
+
+impl Mish {
+    /// [`Mish::Fused`]'s value (bit for bit) and its tape, for a pass differentiated by hand
+    /// (`Taped` below); no graph is recorded.
+    pub fn forward_taped(x: &Tensor) -> Result<(Tensor, MishTape)> {
+        if let Some(parts) = kernels::mish_parts(x, false)? {
+            return Ok((parts.value, MishTape::Slope(parts.slope)));
+        }
+        Ok((x.f_mish()?, MishTape::Input(x.shallow_clone())))
+    }
+}
+
+impl MishTape {
+    /// g mish'(x).
+    pub fn backward(&self, g: &Tensor) -> Result<Tensor> {
+        match self {
+            Self::Slope(slope) => Ok(g.f_mul(slope)?),
+            Self::Input(x) => Ok(x.f_mish_backward(g)?),
+        }
+    }
+}
+
 /// `nn.Linear(in, out)`: parameters `weight` [out, in], `bias` [out].
 #[derive(Debug)]
 pub struct Linear {
@@ -126,6 +155,23 @@ impl Conv1d {
     /// `x`: [B, in, L] -> [B, out, L'].
     pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
         Ok(x.f_conv1d(&self.weight, Some(&self.bias), [self.stride], [self.padding], [1], 1)?)
+    }
+
+    /// d sum(g * forward(x)) / dx for an input of length `input_len`: the transposed
+    /// convolution with the same weight (the output padding restores the lengths a stride
+    /// rounded away).
+    pub fn input_backward(&self, g: &Tensor, input_len: i64) -> Result<Tensor> {
+        let (kernel, out_len) = (self.weight.size()[2], g.size()[2]);
+        let output_padding = input_len - ((out_len - 1) * self.stride - 2 * self.padding + kernel);
+        Ok(g.f_conv_transpose1d(
+            &self.weight,
+            None::<&Tensor>,
+            [self.stride],
+            [self.padding],
+            [output_padding],
+            1,
+            [1],
+        )?)
     }
 }
 
@@ -184,6 +230,82 @@ impl GroupNorm {
     pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
         Ok(x.f_group_norm(self.groups, Some(&self.weight), Some(&self.bias), GROUP_NORM_EPS, true)?)
     }
+
+    /// [`GroupNorm::forward`]'s value (bit for bit: `group_norm` is this same
+    /// `native_group_norm`) and the statistics its input backward needs.
+    pub fn forward_taped(&self, x: &Tensor) -> Result<(Tensor, GroupNormTape)> {
+        let x = x.f_contiguous()?;
+        let size = x.size();
+        let (batch, channels) = (size[0], size[1]);
+        let (y, mean, rstd) = x.f_native_group_norm(
+            Some(&self.weight),
+            Some(&self.bias),
+            batch,
+            channels,
+            size[2..].iter().product(),
+            self.groups,
+            GROUP_NORM_EPS,
+        )?;
+        Ok((y, GroupNormTape { input: x, mean, rstd }))
+    }
+
+    /// d sum(g * forward(x)) / dx. Per (sample, group) with x^ = (x - mean) rstd and
+    /// g^ = g weight: dx = rstd (g^ - mean(g^) - x^ mean(g^ x^)), means over the group.
+    pub fn input_backward(&self, tape: &GroupNormTape, g: &Tensor) -> Result<Tensor> {
+        let size = g.size();
+        let mut channel_shape = vec![1, size[1]];
+        channel_shape.resize(size.len(), 1);
+        let grouped = [size[0], self.groups, -1];
+        let g_hat = g.f_mul(&self.weight.f_view(channel_shape.as_slice())?)?.f_view(grouped)?;
+        let mean = tape.mean.f_unsqueeze(-1)?;
+        let rstd = tape.rstd.f_unsqueeze(-1)?;
+        let x_hat = tape.input.f_view(grouped)?.f_sub(&mean)?.f_mul(&rstd)?;
+        let last = [-1i64];
+        let m1 = g_hat.f_mean_dim(last.as_slice(), true, None::<Kind>)?;
+        let m2 = g_hat.f_mul(&x_hat)?.f_mean_dim(last.as_slice(), true, None::<Kind>)?;
+        let dx = g_hat.f_sub(&m1)?.f_sub(&x_hat.f_mul(&m2)?)?.f_mul(&rstd)?;
+        Ok(dx.f_view(size.as_slice())?)
+    }
+}
+
+impl GroupNorm {
+    /// Mish(GroupNorm(x)) with [`Mish::Fused`] (the value bit for bit) and its tape: the
+    /// epilogue of Diffuser's convolution blocks and of the encoder's.
+    pub fn mish_forward_taped(&self, x: &Tensor) -> Result<(Tensor, NormMishTape)> {
+        let (normed, norm) = self.forward_taped(x)?;
+        let (y, mish) = Mish::forward_taped(&normed)?;
+        Ok((y, NormMishTape { norm, mish }))
+    }
+
+    /// d sum(g * mish(forward(x))) / dx: one kernel where Mish's slope is on the tape
+    /// (`kernels::mish_group_norm_backward`), libtorch's operations otherwise.
+    pub fn mish_input_backward(&self, tape: &NormMishTape, g: &Tensor) -> Result<Tensor> {
+        if let MishTape::Slope(slope) = &tape.mish {
+            let norm = &tape.norm;
+            let stats = (&norm.mean, &norm.rstd);
+            if let Some(dx) =
+                kernels::mish_group_norm_backward(g, slope, &norm.input, stats, &self.weight, self.groups)?
+            {
+                return Ok(dx);
+            }
+        }
+        self.input_backward(&tape.norm, &tape.mish.backward(g)?)
+    }
+}
+
+/// What [`GroupNorm::mish_input_backward`] needs from the forward.
+#[derive(Debug)]
+pub struct NormMishTape {
+    norm: GroupNormTape,
+    mish: MishTape,
+}
+
+/// What [`GroupNorm::input_backward`] needs from the forward.
+#[derive(Debug)]
+pub struct GroupNormTape {
+    input: Tensor,
+    mean: Tensor,
+    rstd: Tensor,
 }
 
 /// Diffuser's `SinusoidalPosEmb(dim)`: for half = dim / 2, freqs = exp(-arange(half) *
@@ -277,6 +399,24 @@ impl Conv1dBlock {
     pub fn forward(&self, x: &Tensor, mish: Mish) -> Result<Tensor> {
         mish.forward(&self.norm.forward(&self.conv.forward(x)?)?)
     }
+
+    /// [`Conv1dBlock::forward`] with [`Mish::Fused`] (the same value bit for bit) and what
+    /// its input backward needs.
+    pub fn forward_taped(&self, x: &Tensor) -> Result<(Tensor, Conv1dBlockTape)> {
+        let (y, epilogue) = self.norm.mish_forward_taped(&self.conv.forward(x)?)?;
+        Ok((y, Conv1dBlockTape { input_len: x.size()[2], epilogue }))
+    }
+
+    pub fn input_backward(&self, tape: &Conv1dBlockTape, g: &Tensor) -> Result<Tensor> {
+        let g = self.norm.mish_input_backward(&tape.epilogue, g)?;
+        self.conv.input_backward(&g, tape.input_len)
+    }
+}
+
+#[derive(Debug)]
+pub struct Conv1dBlockTape {
+    input_len: i64,
+    epilogue: NormMishTape,
 }
 
 /// Diffuser's `ResidualTemporalBlock(in, out, embed_dim, kernel_size)`:
@@ -328,6 +468,35 @@ impl ResidualTemporalBlock {
             None => Ok(out.f_add(x)?),
         }
     }
+
+    /// [`ResidualTemporalBlock::forward`] with [`Mish::Fused`] (the same value bit for bit)
+    /// and what its input backward needs (the time term does not depend on `x`).
+    pub fn forward_taped(&self, x: &Tensor, t_emb: &Tensor) -> Result<(Tensor, ResidualTape)> {
+        let time = self.time_linear.forward(&Mish::Fused.forward(t_emb)?)?.f_unsqueeze(-1)?;
+        let (out, first) = self.blocks[0].forward_taped(x)?;
+        let (out, second) = self.blocks[1].forward_taped(&out.f_add(&time)?)?;
+        let out = match &self.residual_conv {
+            Some(conv) => out.f_add(&conv.forward(x)?)?,
+            None => out.f_add(x)?,
+        };
+        Ok((out, ResidualTape { input_len: x.size()[2], first, second }))
+    }
+
+    pub fn input_backward(&self, tape: &ResidualTape, g: &Tensor) -> Result<Tensor> {
+        let inner = self.blocks[1].input_backward(&tape.second, g)?;
+        let through = self.blocks[0].input_backward(&tape.first, &inner)?;
+        match &self.residual_conv {
+            Some(conv) => Ok(through.f_add(&conv.input_backward(g, tape.input_len)?)?),
+            None => Ok(through.f_add(g)?),
+        }
+    }
+}
+
+#[derive(Debug)]
+pub struct ResidualTape {
+    input_len: i64,
+    first: Conv1dBlockTape,
+    second: Conv1dBlockTape,
 }
 
 /// Diffuser's `Downsample1d(dim)`: `conv = Conv1d(dim, dim, 3, stride 2, padding 1)`; halves an
@@ -348,6 +517,10 @@ impl Downsample1d {
 
     pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
         self.conv.forward(x)
+    }
+
+    pub fn input_backward(&self, g: &Tensor, input_len: i64) -> Result<Tensor> {
+        self.conv.input_backward(g, input_len)
     }
 }
 

@@ -120,12 +120,70 @@ pub fn with_libtorch_ops<R>(f: impl FnOnce() -> R) -> R {
     f()
 }
 
+/// Buffers a thread keeps for its kernels, and the largest kept (16 MiB of floats).
+const POOLED_BUFFERS: usize = 16;
+const POOLED_FLOATS: usize = 1 << 22;
+
+thread_local! {
+    static POOL: std::cell::RefCell<Vec<Vec<f32>>> = const { std::cell::RefCell::new(Vec::new()) };
+}
+
+/// A host buffer of `len` floats from this thread's pool, back to the pool when dropped. The
+/// kernels' buffers are a few hundred kilobytes, above glibc's mmap threshold: a fresh `Vec`
+/// per call is a fresh mapping, whose page faults and zeroing cost more than the kernel's own
+/// arithmetic (a fifth of a ValueFunction gradient's time, measured with perf).
+struct Buffer(Vec<f32>);
+
+impl Buffer {
+    fn new(len: usize) -> Self {
+        let pooled = POOL.with(|pool| {
+            let mut pool = pool.borrow_mut();
+            let fit = pool.iter().position(|b| b.capacity() >= len)?;
+            Some(pool.swap_remove(fit))
+        });
+        let mut values = pooled.unwrap_or_default();
+        // Only growth is zero-filled: every user writes all `len` floats before reading any
+        // (a copy out of a tensor, a kernel's loop), so a reused buffer's old values are never
+        // read.
+        values.resize(len, 0.0);
+        Self(values)
+    }
+}
+
+impl std::ops::Deref for Buffer {
+    type Target = [f32];
+    fn deref(&self) -> &[f32] {
+        &self.0
+    }
+}
+
+impl std::ops::DerefMut for Buffer {
+    fn deref_mut(&mut self) -> &mut [f32] {
+        &mut self.0
+    }
+}
+
+impl Drop for Buffer {
+    fn drop(&mut self) {
+        let values = std::mem::take(&mut self.0);
+        if values.capacity() <= POOLED_FLOATS {
+            // try_with: a buffer dropped while the thread's locals are torn down is freed.
+            let _ = POOL.try_with(|pool| {
+                let mut pool = pool.borrow_mut();
+                if pool.len() < POOLED_BUFFERS {
+                    pool.push(values);
+                }
+            });
+        }
+    }
+}
+
 /// A float32 CPU tensor's elements in its logical order (one copy; `None` for other kinds or
 /// devices, inside [`with_libtorch_ops`], and for large tensors where libtorch runs more than
 /// [`MAX_THREADS_FOR_KERNEL`] threads). Copies rather than borrowing libtorch's memory: the
 /// workspace forbids `unsafe`, and a copy of a few hundred kilobytes costs less than one of the
 /// operations it replaces.
-fn elements(t: &Tensor) -> Result<Option<Vec<f32>>> {
+fn elements(t: &Tensor) -> Result<Option<Buffer>> {
     if t.device() != Device::Cpu || t.kind() != Kind::Float || LIBTORCH_ONLY.with(|flag| flag.get()) {
         return Ok(None);
     }
@@ -136,7 +194,7 @@ fn elements(t: &Tensor) -> Result<Option<Vec<f32>>> {
         return Ok(None);
     }
     let numel = t.numel();
-    let mut values = vec![0.0f32; numel];
+    let mut values = Buffer::new(numel);
     t.f_copy_data(&mut values, numel)?;
     Ok(Some(values))
 }
@@ -149,7 +207,7 @@ fn tensor(values: &[f32], shape: &[i64]) -> Result<Tensor> {
 /// takes it when the input needs no gradient). `None` where the kernels decline (`elements`).
 pub fn mish(a: &Tensor) -> Result<Option<Tensor>> {
     let Some(input) = elements(a)? else { return Ok(None) };
-    let mut value = vec![0.0f32; input.len()];
+    let mut value = Buffer::new(input.len());
     value_loop(&input, &mut value);
     Ok(Some(tensor(&value, &a.size())?))
 }
@@ -169,9 +227,9 @@ pub struct MishParts {
 pub fn mish_parts(a: &Tensor, second: bool) -> Result<Option<MishParts>> {
     let Some(input) = elements(a)? else { return Ok(None) };
     let shape = a.size();
-    let (mut value, mut slope) = (vec![0.0f32; input.len()], vec![0.0f32; input.len()]);
+    let (mut value, mut slope) = (Buffer::new(input.len()), Buffer::new(input.len()));
     let curvature = if second {
-        let mut curvature = vec![0.0f32; input.len()];
+        let mut curvature = Buffer::new(input.len());
         curvature_loop(&input, &mut value, &mut slope, &mut curvature);
         Some(tensor(&curvature, &shape)?)
     } else {
@@ -179,6 +237,117 @@ pub fn mish_parts(a: &Tensor, second: bool) -> Result<Option<MishParts>> {
         None
     };
     Ok(Some(MishParts { value: tensor(&value, &shape)?, slope: tensor(&slope, &shape)?, curvature }))
+}
+
+/// Sums of a and of a b, with eight accumulators so that the loop vectorises.
+#[inline(always)]
+fn sums(a: &[f32], b: &[f32]) -> (f32, f32) {
+    let (mut s1, mut s2) = ([0.0f32; 8], [0.0f32; 8]);
+    let (a8, b8) = (a.chunks_exact(8), b.chunks_exact(8));
+    let (ra, rb) = (a8.remainder(), b8.remainder());
+    for (ca, cb) in a8.zip(b8) {
+        for i in 0..8 {
+            s1[i] += ca[i];
+            s2[i] += ca[i] * cb[i];
+        }
+    }
+    let (mut t1, mut t2) = (s1.iter().sum::<f32>(), s2.iter().sum::<f32>());
+    for (&x, &y) in ra.iter().zip(rb) {
+        t1 += x;
+        t2 += x * y;
+    }
+    (t1, t2)
+}
+
+/// The shapes of one group-norm backward: `span` elements per (sample, group), `inner`
+/// positions per channel.
+struct GroupShape {
+    groups: usize,
+    channels: usize,
+    inner: usize,
+}
+
+#[multiversion(targets = "simd")]
+#[allow(clippy::too_many_arguments)]
+fn group_norm_backward_loop(
+    shape: &GroupShape,
+    g: &[f32],
+    slope: &[f32],
+    x: &[f32],
+    mean: &[f32],
+    rstd: &[f32],
+    weight: &[f32],
+    out: &mut [f32],
+) {
+    let per_group = shape.channels / shape.groups;
+    let span = per_group * shape.inner;
+    let mut g_hat = Buffer::new(span);
+    let mut x_hat = Buffer::new(span);
+    for (block, (m, r)) in mean.iter().zip(rstd).enumerate() {
+        let at = block * span;
+        let channel0 = (block % shape.groups) * per_group;
+        for c in 0..per_group {
+            let w = weight[channel0 + c];
+            let range = at + c * shape.inner..at + (c + 1) * shape.inner;
+            let local = c * shape.inner..(c + 1) * shape.inner;
+            for ((((gh, xh), &gi), &si), &xi) in g_hat[local.clone()]
+                .iter_mut()
+                .zip(&mut x_hat[local])
+                .zip(&g[range.clone()])
+                .zip(&slope[range.clone()])
+                .zip(&x[range])
+            {
+                *gh = gi * si * w;
+                *xh = (xi - m) * r;
+            }
+        }
+        let (s1, s2) = sums(&g_hat, &x_hat);
+        let (m1, m2) = (s1 / span as f32, s2 / span as f32);
+        for ((o, &gh), &xh) in out[at..at + span].iter_mut().zip(g_hat.iter()).zip(x_hat.iter()) {
+            *o = r * (gh - m1 - xh * m2);
+        }
+    }
+}
+
+/// Group norm's input backward behind Mish, d sum(g * mish(group_norm(x))) / dx, in one pass
+/// per (sample, group) instead of some ten libtorch operations: with g^ = g mish'(y) weight[c]
+/// and x^ = (x - mean) rstd, dx = rstd (g^ - mean(g^) - x^ mean(g^ x^)), the means over the
+/// group's channels and positions. `x` [B, C, ...] is the group norm's input, `mean` and `rstd`
+/// [B, groups] its statistics (`native_group_norm`'s), `slope` mish' at its output. `None` where
+/// the kernels decline (`elements`).
+pub fn mish_group_norm_backward(
+    g: &Tensor,
+    slope: &Tensor,
+    x: &Tensor,
+    (mean, rstd): (&Tensor, &Tensor),
+    weight: &Tensor,
+    groups: i64,
+) -> Result<Option<Tensor>> {
+    let size = x.size();
+    let (Some(gv), Some(sv), Some(xv), Some(mv), Some(rv), Some(wv)) =
+        (elements(g)?, elements(slope)?, elements(x)?, elements(mean)?, elements(rstd)?, elements(weight)?)
+    else {
+        return Ok(None);
+    };
+    let count = |n: i64| usize::try_from(n).unwrap_or(0);
+    let shape = GroupShape {
+        groups: count(groups),
+        channels: count(size[1]),
+        inner: size[2..].iter().map(|&n| count(n)).product(),
+    };
+    let expected = count(size[0]) * shape.channels * shape.inner;
+    if shape.groups == 0
+        || !shape.channels.is_multiple_of(shape.groups)
+        || [gv.len(), sv.len(), xv.len()] != [expected; 3]
+        || mv.len() != rv.len()
+        || mv.len() * shape.channels / shape.groups * shape.inner != expected
+        || wv.len() != shape.channels
+    {
+        return Err(crate::error::Error::internal("group norm backward", "tensors of mismatched shapes"));
+    }
+    let mut out = Buffer::new(expected);
+    group_norm_backward_loop(&shape, &gv, &sv, &xv, &mv, &rv, &wv, &mut out);
+    Ok(Some(tensor(&out, &size)?))
 }
 
 #[cfg(test)]

@@ -10,7 +10,9 @@ use tch::nn::{self, Init};
 use tch::{Kind, Tensor};
 
 use super::checks::{count, shape_text, validate_widths};
-use crate::engine::nets::blocks::{GROUPS, GroupNorm, Linear, Mish, TimeMlp, conv_params, linear_params, total};
+use crate::engine::nets::blocks::{
+    GROUPS, GroupNorm, Linear, Mish, NormMishTape, TimeMlp, conv_params, linear_params, total,
+};
 use crate::error::{Error, Result};
 
 /// The encoder's hyperparameters: the item's channels and one width per stride-2 block.
@@ -66,6 +68,15 @@ impl StridedConv2d {
     fn forward(&self, x: &Tensor) -> Result<Tensor> {
         Ok(x.f_conv2d(&self.weight, Some(&self.bias), [2, 2], [1, 1], [1, 1], 1)?)
     }
+
+    /// d sum(g * forward(x)) / dx for an input of height and width `input_hw`: the transposed
+    /// convolution, its output padding restoring what the stride rounded away.
+    fn input_backward(&self, g: &Tensor, input_hw: [i64; 2]) -> Result<Tensor> {
+        let size = g.size();
+        let padding = |input: i64, output: i64| input - ((output - 1) * 2 - 2 + 3);
+        let output_padding = [padding(input_hw[0], size[2]), padding(input_hw[1], size[3])];
+        Ok(g.f_conv_transpose2d(&self.weight, None::<&Tensor>, [2, 2], [1, 1], output_padding, 1, [1, 1])?)
+    }
 }
 
 /// One encoder level: Mish(GroupNorm(Conv2d(x))) + Linear(Mish(t_emb)) per channel.
@@ -81,6 +92,20 @@ impl EncoderBlock {
         let h = mish.forward(&self.norm.forward(&self.conv.forward(x)?)?)?;
         let time = self.time_linear.forward(&mish.forward(t_emb)?)?.f_unsqueeze(-1)?.f_unsqueeze(-1)?;
         Ok(h.f_add(&time)?)
+    }
+}
+
+impl EncoderBlock {
+    /// [`EncoderBlock::forward`] with [`Mish::Fused`] (the value bit for bit) and its tape.
+    fn forward_taped(&self, x: &Tensor, t_emb: &Tensor) -> Result<(Tensor, ([i64; 2], NormMishTape))> {
+        let (h, epilogue) = self.norm.mish_forward_taped(&self.conv.forward(x)?)?;
+        let time = self.time_linear.forward(&Mish::Fused.forward(t_emb)?)?.f_unsqueeze(-1)?.f_unsqueeze(-1)?;
+        let size = x.size();
+        Ok((h.f_add(&time)?, ([size[2], size[3]], epilogue)))
+    }
+
+    fn input_backward(&self, (input_hw, epilogue): &([i64; 2], NormMishTape), g: &Tensor) -> Result<Tensor> {
+        self.conv.input_backward(&self.norm.mish_input_backward(epilogue, g)?, *input_hw)
     }
 }
 
@@ -143,5 +168,35 @@ impl ConvEncoderNet {
         let pooled = h.f_mean_dim([2i64, 3].as_slice(), false, None::<Kind>)?;
         let out = self.final_first.forward(&Tensor::f_cat(&[&pooled, &t_emb], 1)?)?;
         Ok(self.final_second.forward(&mish.forward(&out)?)?.f_squeeze_dim(1)?)
+    }
+
+    /// (rho [B], d sum(rho) / dx [B, C, H, W]) by a hand-written backward, without autograd,
+    /// as `ValueFunctionNet::value_and_grad`: rho is [`ConvEncoderNet::forward`]'s with
+    /// [`Mish::Fused`] bit for bit, the gradient autograd's to float rounding (`tests.rs`).
+    /// Call without a graph.
+    pub(super) fn value_and_grad(&self, x: &Tensor, t: &Tensor) -> Result<(Tensor, Tensor)> {
+        let t_emb = self.time_mlp.forward(t, Mish::Fused)?;
+        let mut h = x.shallow_clone();
+        let mut tapes = Vec::with_capacity(self.blocks.len());
+        for block in &self.blocks {
+            let (next, tape) = block.forward_taped(&h, &t_emb)?;
+            tapes.push(tape);
+            h = next;
+        }
+        let pooled = h.f_mean_dim([2i64, 3].as_slice(), false, None::<Kind>)?;
+        let pre = self.final_first.forward(&Tensor::f_cat(&[&pooled, &t_emb], 1)?)?;
+        let (act, act_tape) = Mish::forward_taped(&pre)?;
+        let rho = self.final_second.forward(&act)?.f_squeeze_dim(1)?;
+
+        let g = act_tape.backward(&self.final_second.weight.f_expand_as(&act)?)?;
+        let g = g.f_matmul(&self.final_first.weight.f_narrow(1, 0, pooled.size()[1])?)?;
+        // The mean over the pixels spreads each channel's gradient evenly.
+        let size = h.size();
+        let pixels = (size[2] * size[3]) as f64;
+        let mut g = g.f_div_scalar(pixels)?.f_unsqueeze(-1)?.f_unsqueeze(-1)?.f_expand(size.as_slice(), false)?;
+        for (block, tape) in self.blocks.iter().zip(&tapes).rev() {
+            g = block.input_backward(tape, &g)?;
+        }
+        Ok((rho, g))
     }
 }

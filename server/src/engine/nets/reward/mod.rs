@@ -142,6 +142,28 @@ impl RewardNet {
         }
     }
 
+    /// The batch size to evaluate `n` items at: `n`, except for the convolutional rewards on
+    /// the CPU, padded up to the next of 1, 2, 3, 4, 6, 8, 12, 16, 24, ... (powers of two and
+    /// one and a half times them). oneDNN compiles a kernel for every convolution shape it
+    /// meets, batch size included, and keeps the last 1024: a dynamic batcher passing every
+    /// size from 1 to 256 compiled kernels all the time (an eighth of the ValueFunction's
+    /// serving thread, measured with perf). TF Serving's `allowed_batch_sizes` is the same
+    /// remedy; at most a third of a padded pass is padding.
+    pub fn padded_batch(&self, n: i64) -> i64 {
+        let compiled = matches!(self.network, Network::ValueFunction(_) | Network::ConvEncoder(_));
+        if !compiled || self.weights.var_store().device() != tch::Device::Cpu || n <= 4 {
+            return n;
+        }
+        let power = 1i64 << (63 - n.leading_zeros());
+        if n == power {
+            n
+        } else if n <= power + power / 2 {
+            power + power / 2
+        } else {
+            power * 2
+        }
+    }
+
     /// The dtype of the weights (float32 unless the store was converted); inputs must match.
     pub fn kind(&self) -> Kind {
         let output = match &self.network {
@@ -201,28 +223,29 @@ impl RewardNet {
         net.per_step(x, &t, Mish::Fused)
     }
 
-    /// (rho [B], grad_x of sum(rho), the shape of `x`), both without autograd history. Works
-    /// inside a no-grad region; parameter gradients are not accumulated. The MLP rewards take
-    /// the closed form (`closed_form.rs`: one forward keeping Mish's slopes, one backward of a
-    /// few matrix products), whose rho is the forward's bit for bit; the others autograd.
+    /// (rho [B], grad_x of sum(rho), the shape of `x`), both without autograd history and
+    /// without autograd: works inside a no-grad region, accumulates no parameter gradient.
+    /// The MLP rewards take the closed form (`closed_form.rs`: one forward keeping Mish's
+    /// slopes, one backward of a few matrix products), the convolutional ones a hand-written
+    /// backward over their blocks' tapes (`blocks.rs`: transposed convolutions, group-norm
+    /// input backwards, Mish slopes). Either way rho is the forward's bit for bit (Score's
+    /// answer) and the gradient autograd's to float rounding (`tests.rs`).
     pub fn grad(&self, x: &Tensor, t: &Tensor) -> Result<(Tensor, Tensor)> {
         let t = self.check_inputs(x, t)?;
-        if let Some((head, features)) = self.head_rows(x)? {
-            let _no_graph = tch::no_grad_guard();
-            let pass = head.pass(&features, &t, false)?;
-            // As rho_unchecked: the mean of the windows, or the flat MLP's one row.
-            let rho = match &self.network {
-                Network::WindowedMlp(_) => pass.out.f_mean_dim([1i64].as_slice(), false, None::<Kind>)?,
-                _ => pass.out.f_squeeze_dim(1)?,
-            };
-            return Ok((rho, pass.grad.f_view(x.size().as_slice())?));
-        }
-        tch::with_grad(|| {
-            let x_req = x.f_detach_copy()?.f_set_requires_grad(true)?;
-            let rho = self.rho_unchecked(&x_req, &t, Mish::Fused)?;
-            let grad_x = input_gradient(&rho, &x_req, false)?;
-            Ok((rho.f_detach()?, grad_x))
-        })
+        let _no_graph = tch::no_grad_guard();
+        let (head, features) = match &self.network {
+            Network::ValueFunction(net) => return net.value_and_grad(x, &t),
+            Network::ConvEncoder(net) => return net.value_and_grad(x, &t),
+            Network::WindowedMlp(net) => (&net.head, net.rows(x)?),
+            Network::Mlp(net) => (&net.head, mlp_rows(x)?),
+        };
+        let pass = head.pass(&features, &t, false)?;
+        // As rho_unchecked: the mean of the windows, or the flat MLP's one row.
+        let rho = match &self.network {
+            Network::WindowedMlp(_) => pass.out.f_mean_dim([1i64].as_slice(), false, None::<Kind>)?,
+            _ => pass.out.f_squeeze_dim(1)?,
+        };
+        Ok((rho, pass.grad.f_view(x.size().as_slice())?))
     }
 
     /// The MLP head and its rows [B, N, F] for the architectures with a closed form; `None`
@@ -230,7 +253,7 @@ impl RewardNet {
     fn head_rows(&self, x: &Tensor) -> Result<Option<(&mlp::MlpHead, Tensor)>> {
         Ok(match &self.network {
             Network::WindowedMlp(net) => Some((&net.head, net.rows(x)?)),
-            Network::Mlp(net) => Some((&net.head, x.f_flatten(1, -1)?.f_unsqueeze(1)?)),
+            Network::Mlp(net) => Some((&net.head, mlp_rows(x)?)),
             Network::ValueFunction(_) | Network::ConvEncoder(_) => None,
         })
     }
@@ -325,6 +348,11 @@ impl RewardNet {
         check_inputs("reward", x, t, &self.item_shape, kind)?;
         Ok(t.f_to_kind(kind)?)
     }
+}
+
+/// The flat MLP's one row [B, 1, F] per item.
+fn mlp_rows(x: &Tensor) -> Result<Tensor> {
+    Ok(x.f_flatten(1, -1)?.f_unsqueeze(1)?)
 }
 
 /// d sum(rho) / d x_req, with or without a differentiable graph (PyTorch's

@@ -633,12 +633,25 @@ fn reward_closed_form_alignment_gradients_equal_autograd() {
     }
 }
 
-/// `grad` by the closed form (the MLP heads) against autograd's input gradient of the same
-/// network, and its rho against `rho` (scored alone) bit for bit: OIP serves rho with its
+/// `grad` by the closed form (the MLP heads) and by the hand-written backward (the
+/// convolutional rewards) against autograd's input gradient of the same network, and its rho against `rho` (scored alone) bit for bit: OIP serves rho with its
 /// gradient and must answer what Score answers.
 #[test]
 fn reward_closed_form_grad_equals_autograd() {
-    for (arch, shape) in closed_form_cases() {
+    // The MLPs' closed form and the convolutional rewards' hand-written backward: horizons
+    // down to one step (every downsampling then keeps length 1), odd and even image sides
+    // (the transposed convolutions' output padding).
+    let convolutional = [
+        (value_function(&[8, 32]), vec![8, 3]),
+        (value_function(&[16, 16, 32]), vec![16, 5]),
+        (value_function(&[32]), vec![4, 2]),
+        (value_function(&[8, 32]), vec![1, 4]),
+        (value_function(&[16, 32]), vec![64, 3]),
+        (conv_encoder(&[8, 16]), vec![3, 7, 5]),
+        (conv_encoder(&[16]), vec![4, 8, 8]),
+        (conv_encoder(&[8, 8, 16]), vec![1, 1, 1]),
+    ];
+    for (arch, shape) in closed_form_cases().into_iter().chain(convolutional) {
         for seed in [0.5, 1.5, 2.5] {
             for (kind, tolerance) in [(Kind::Double, 1e-10), (Kind::Float, 1e-5)] {
                 let mut net = build(&arch, &shape);
@@ -660,6 +673,24 @@ fn reward_closed_form_grad_equals_autograd() {
             }
         }
     }
+}
+
+/// Convolutional rewards on the CPU run merged batches at a few sizes (oneDNN compiles a
+/// kernel per shape); the others at any.
+#[test]
+fn padded_batches_take_a_few_sizes_with_at_most_a_third_padding() {
+    let conv = build(&value_function(&[32]), &[8, 3]);
+    let sizes: Vec<i64> = (1..=256).map(|n| conv.padded_batch(n)).collect();
+    for (n, &rows) in (1..=256).zip(&sizes) {
+        assert!(rows >= n && (rows - n) * 3 <= rows, "{n} items ran as {rows}");
+    }
+    let mut distinct = sizes.clone();
+    distinct.dedup();
+    assert_eq!(distinct, [1, 2, 3, 4, 6, 8, 12, 16, 24, 32, 48, 64, 96, 128, 192, 256]);
+    let encoder = build(&conv_encoder(&[8]), &[1, 4, 4]);
+    assert_eq!(encoder.padded_batch(5), 6);
+    let windowed = build(&windowed(4, &[8]), &[8, 3]);
+    assert!((1..=256).all(|n| windowed.padded_batch(n) == n));
 }
 
 /// Not a test: times the closed form against autograd at the maze default size
@@ -706,4 +737,39 @@ fn time_closed_form_against_autograd() {
         let g = net.alignment_gradients(&x, &t, &target, None, 0.0).expect("closed").expect("mlp");
         let _ = g.loss.double_value(&[]);
     });
+}
+
+/// Not a test: times the ValueFunction's hand-written gradient against autograd's at the
+/// serving benchmark's size, [64, 32, 14] with widths (64, 64, 128, 128), one thread, rounds
+/// interleaved so that the machine's drift touches both alike
+/// (`cargo test --release -p relreward-server --lib time_value_function -- --ignored --nocapture`).
+#[test]
+#[ignore]
+fn time_value_function_grad_against_autograd() {
+    tch::set_num_threads(1);
+    let net = build(&value_function(&[64, 64, 128, 128]), &[32, 14]);
+    let (x, t) = inputs(&net, 64, Kind::Float);
+    let tf = t.to_kind(Kind::Float);
+    let mut hand = || drop(net.grad(&x, &t).expect("grad"));
+    let mut autograd = || {
+        let grad = tch::with_grad(|| {
+            let x_req = x.detach_copy().set_requires_grad(true);
+            let rho = net.rho_unchecked(&x_req, &tf, Mish::Fused).expect("rho");
+            Tensor::run_backward(&[rho.sum(Kind::Float)], &[&x_req], false, false)
+        });
+        drop(grad);
+    };
+    let mut rho = || drop(tch::no_grad(|| net.rho(&x, &t)).expect("rho"));
+    let mut best = [f64::INFINITY; 3];
+    let mut runs: [&mut dyn FnMut(); 3] = [&mut hand, &mut autograd, &mut rho];
+    for _ in 0..10 {
+        for (best, f) in best.iter_mut().zip(runs.iter_mut()) {
+            let start = std::time::Instant::now();
+            for _ in 0..5 {
+                f();
+            }
+            *best = best.min(start.elapsed().as_secs_f64() * 1e6 / 5.0);
+        }
+    }
+    eprintln!("grad (hand-written): {:.0} us, autograd: {:.0} us, rho alone: {:.0} us", best[0], best[1], best[2]);
 }

@@ -163,4 +163,43 @@ impl ValueFunctionNet {
         let h = self.final_first.forward(&Tensor::f_cat(&[&flat, &t_emb], 1)?)?;
         Ok(self.final_second.forward(&mish.forward(&h)?)?.f_squeeze_dim(1)?)
     }
+
+    /// (rho [B], d sum(rho) / dx [B, H, D]) by a hand-written backward, without autograd:
+    /// the forward keeps each block's tape (group-norm statistics, Mish slopes, lengths), the
+    /// backward runs transposed convolutions, group-norm input backwards and slopes, in
+    /// reverse. rho is [`ValueFunctionNet::forward`]'s with [`Mish::Fused`], bit for bit; the
+    /// gradient is autograd's to float rounding (`tests.rs`). Call without a graph.
+    pub(super) fn value_and_grad(&self, x: &Tensor, t: &Tensor) -> Result<(Tensor, Tensor)> {
+        let mut h = x.f_permute([0, 2, 1])?;
+        let t_emb = self.time_mlp.forward(t, Mish::Fused)?;
+        let mut tapes = Vec::with_capacity(self.levels.len());
+        for level in &self.levels {
+            let (a, first) = level.first.forward_taped(&h, &t_emb)?;
+            let (b, second) = level.second.forward_taped(&a, &t_emb)?;
+            h = level.downsample.forward(&b)?;
+            tapes.push((first, second, b.size()[2]));
+        }
+        let (m1, mid1) = self.mid_block1.forward_taped(&h, &t_emb)?;
+        let (m2, mid2) = self.mid_block2.forward_taped(&self.mid_down1.forward(&m1)?, &t_emb)?;
+        let last = self.mid_down2.forward(&m2)?;
+        let flat = last.f_flatten(1, -1)?;
+        let pre = self.final_first.forward(&Tensor::f_cat(&[&flat, &t_emb], 1)?)?;
+        let (act, act_tape) = Mish::forward_taped(&pre)?;
+        let rho = self.final_second.forward(&act)?.f_squeeze_dim(1)?;
+
+        // d sum(rho) / d act is the last layer's weight row for every sample.
+        let g = act_tape.backward(&self.final_second.weight.f_expand_as(&act)?)?;
+        let features = flat.size()[1];
+        let g = g.f_matmul(&self.final_first.weight.f_narrow(1, 0, features)?)?.f_view(last.size().as_slice())?;
+        let g = self.mid_down2.input_backward(&g, m2.size()[2])?;
+        let g = self.mid_block2.input_backward(&mid2, &g)?;
+        let g = self.mid_down1.input_backward(&g, m1.size()[2])?;
+        let mut g = self.mid_block1.input_backward(&mid1, &g)?;
+        for (level, (first, second, len)) in self.levels.iter().zip(tapes).rev() {
+            g = level.downsample.input_backward(&g, len)?;
+            g = level.second.input_backward(&second, &g)?;
+            g = level.first.input_backward(&first, &g)?;
+        }
+        Ok((rho, g.f_permute([0, 2, 1])?.f_contiguous()?))
+    }
 }
