@@ -260,6 +260,12 @@ impl RewardFn for RewardModel {
     fn rho(&self, x: &Tensor, t: &Tensor) -> Result<Tensor> {
         RewardModel::rho(self, x, t)
     }
+
+    /// Guidance takes the same gradient as serving: the closed form or hand-written backward
+    /// of a native network (autograd through a module).
+    fn rho_and_grad(&self, x: &Tensor, t: &Tensor) -> Result<(Tensor, Tensor)> {
+        RewardModel::grad(self, x, t)
+    }
 }
 
 #[cfg(test)]

@@ -57,6 +57,31 @@ pub trait RewardFn {
     /// requires grad when guiding); `t`: int64 `[B]`. Returns `[B]` (or `[B, 1]`),
     /// differentiable with respect to `x`.
     fn rho(&self, x: &Tensor, t: &Tensor) -> Result<Tensor>;
+
+    /// (rho(x, t), grad_x sum rho(x, t)), neither with a graph: what guidance needs at every
+    /// guided step. By default autograd through [`RewardFn::rho`] on a detached copy of `x`; a
+    /// reward with a gradient of its own overrides it (`RewardModel`: the native networks'
+    /// closed forms and hand-written backwards, issue 38).
+    fn rho_and_grad(&self, x: &Tensor, t: &Tensor) -> Result<(Tensor, Tensor)> {
+        tch::with_grad(|| {
+            let leaf = x.f_detach()?.f_set_requires_grad(true)?;
+            let y = self.rho(&leaf, t)?;
+            if !y.requires_grad() {
+                return Err(Error::FailedPrecondition(
+                    "reward output does not depend differentiably on x (was it computed without grad?)".into(),
+                ));
+            }
+            let total = y.f_sum(Kind::Float)?;
+            let mut grads = Tensor::f_run_backward(&[&total], &[&leaf], false, false)
+                .map_err(|e| Error::internal("gradient of the reward with respect to x", e))?;
+            let grad =
+                grads.pop().ok_or_else(|| Error::internal("reward gradient", "libtorch returned no gradient"))?;
+            if !grad.defined() {
+                return Err(Error::FailedPrecondition("reward output does not depend on x".into()));
+            }
+            Ok((y.f_detach()?, grad.f_detach()?))
+        })
+    }
 }
 
 /// Inpainting: the observation part of transition `index` is fixed to `state`, either one
@@ -401,25 +426,11 @@ fn reward_output(y: Tensor, n: i64) -> Result<Tensor> {
     }
 }
 
-/// (rho(x, t), grad_x sum rho(x, t)), computed in grad mode on a detached copy of `x`.
+/// (rho(x, t) as `[n]`, grad_x sum rho(x, t)): the reward's own gradient
+/// ([`RewardFn::rho_and_grad`]).
 fn reward_gradient(reward: &dyn RewardFn, x: &Tensor, t: &Tensor, n: i64) -> Result<(Tensor, Tensor)> {
-    tch::with_grad(|| {
-        let leaf = x.f_detach()?.f_set_requires_grad(true)?;
-        let y = reward_output(reward.rho(&leaf, t)?, n)?;
-        if !y.requires_grad() {
-            return Err(Error::FailedPrecondition(
-                "reward output does not depend differentiably on x (was it computed without grad?)".into(),
-            ));
-        }
-        let total = y.f_sum(Kind::Float)?;
-        let mut grads = Tensor::f_run_backward(&[&total], &[&leaf], false, false)
-            .map_err(|e| Error::internal("gradient of the reward with respect to x", e))?;
-        let grad = grads.pop().ok_or_else(|| Error::internal("reward gradient", "libtorch returned no gradient"))?;
-        if !grad.defined() {
-            return Err(Error::FailedPrecondition("reward output does not depend on x".into()));
-        }
-        Ok((y.f_detach()?, grad.f_detach()?))
-    })
+    let (y, grad) = reward.rho_and_grad(x, t)?;
+    Ok((reward_output(y, n)?, grad))
 }
 
 /// rho(x, t) without grad (for reporting at unguided steps).
@@ -488,6 +499,61 @@ mod tests {
             .with_guidance(Guidance { reward, omega, n_guide_steps: steps, t_stopgrad, scale_grad_by_std: scale })
             .sample(256, &mut Rng::new(seed))
             .expect("guided sample")
+    }
+
+    /// A native reward guides with its own gradient (`RewardModel::grad`: the MLPs' closed form,
+    /// the convolutional rewards' hand-written backward) and samples what autograd through its
+    /// rho samples, rewards included.
+    #[test]
+    fn native_rewards_guide_with_their_own_gradient_as_autograd_would() {
+        use crate::engine::nets::{RewardArchitecture, RewardNet};
+        use crate::engine::relative_reward::{Objective, RewardManifest};
+        use crate::engine::reward_model::RewardModel;
+        /// The same reward without its own gradient: the default, autograd through rho.
+        struct Autograd<'a>(&'a RewardModel);
+        impl RewardFn for Autograd<'_> {
+            fn rho(&self, x: &Tensor, t: &Tensor) -> Result<Tensor> {
+                self.0.rho(x, t)
+            }
+        }
+        let traj = traj_model();
+        for architecture in [
+            RewardArchitecture::WindowedMlp { window: 2, hidden: vec![16, 8] },
+            RewardArchitecture::ValueFunction { widths: vec![64] },
+        ] {
+            let dir = tempfile::tempdir().expect("tmp");
+            let net = RewardNet::new(&architecture, &[4, 3], Device::Cpu).expect("net");
+            let path = dir.path().join("w.safetensors");
+            net.save(&path).expect("save");
+            let manifest = RewardManifest {
+                architecture: architecture.clone().into(),
+                space: traj.manifest.space.clone(),
+                normalizer: Normalizer::Identity,
+                n_timesteps: T,
+                base_model: "b".into(),
+                expert_model: "e".into(),
+                datasets: vec![],
+                objective: Objective::Discriminator,
+                step_normalization: false,
+                inpaint_condition: false,
+                base_recipe: None,
+                expert_recipe: None,
+                final_loss: 0.0,
+                eval_loss: None,
+            };
+            let reward = RewardModel::load(manifest, &path, dir.path(), Device::Cpu).expect("load");
+            // Guided at the first step only (t_stopgrad = T - 1): fifty guided steps feed float
+            // rounding back through x, and the small ValueFunction's last group norm (two
+            // values) amplifies it past any tolerance; the gradients agree to 1e-6 relative.
+            let own = guided(&traj, &reward, 0.5, 2, T - 1, true, 8);
+            let autograd = guided(&traj, &Autograd(&reward), 0.5, 2, T - 1, true, 8);
+            let close = |a: &Tensor, b: &Tensor| a.allclose(b, 1e-4, 1e-5, false);
+            assert!(close(&own.x, &autograd.x), "{architecture}: samples");
+            let unguided = guided(&traj, &reward, 0.0, 2, T - 1, true, 8);
+            assert!(!close(&own.x, &unguided.x), "{architecture}: guidance moved the samples");
+            let (a, b) = (own.rewards.expect("rewards"), autograd.rewards.expect("rewards"));
+            assert!(close(&a, &b), "{architecture}: rewards");
+        }
     }
 
     fn bitwise_equal(a: &Tensor, b: &Tensor) -> bool {
