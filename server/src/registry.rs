@@ -96,6 +96,21 @@ pub struct ServedReward {
     model: Mutex<RewardModel>,
 }
 
+#[cfg(test)]
+impl ServedReward {
+    /// A loaded model served under the name "test", for tests of what uses one.
+    pub(crate) fn for_tests(model: RewardModel) -> Self {
+        Self {
+            name: "test".into(),
+            blob_key: "test".into(),
+            manifest: model.manifest.clone(),
+            item_shape: model.item_shape().to_vec(),
+            window: model.window(),
+            model: Mutex::new(model),
+        }
+    }
+}
+
 impl ServedReward {
     /// The model, for tensor work (blocking threads only).
     pub fn lock(&self) -> MutexGuard<'_, RewardModel> {

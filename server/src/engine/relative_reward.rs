@@ -421,6 +421,36 @@ impl RewardManifest {
     }
 }
 
+#[cfg(test)]
+impl RewardManifest {
+    /// A native reward's manifest for tests that build a `RewardModel` by hand: the network,
+    /// its space, normalizer and T as given, the rest plain (no data, a discriminator
+    /// objective, no step normalization); struct update syntax changes the rest.
+    pub(crate) fn for_tests(
+        architecture: RewardArchitecture,
+        space: Space,
+        normalizer: Normalizer,
+        n_timesteps: usize,
+    ) -> Self {
+        Self {
+            architecture: architecture.into(),
+            space,
+            normalizer,
+            n_timesteps,
+            base_model: "base".into(),
+            expert_model: "expert".into(),
+            datasets: vec![],
+            objective: Objective::Discriminator,
+            step_normalization: false,
+            inpaint_condition: false,
+            base_recipe: None,
+            expert_recipe: None,
+            final_loss: 0.0,
+            eval_loss: None,
+        }
+    }
+}
+
 /// How rho was trained.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(tag = "kind", rename_all = "snake_case")]

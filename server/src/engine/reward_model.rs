@@ -20,7 +20,7 @@ use tch::{Device, Kind, Tensor};
 use super::manifest::RewardUploadManifest;
 use super::nets::RewardNet;
 use super::relative_reward::{RewardManifest, RewardSource, UploadedReward};
-use super::sampling::RewardFn;
+use super::sampling::{RewardFn, autograd_rho_and_grad};
 use super::torchscript::TorchScriptReward;
 use crate::error::{Error, Result};
 
@@ -213,7 +213,8 @@ impl RewardModel {
     }
 
     /// (rho `[B]`, grad_x rho with respect to normalized `x`), without autograd history. Works
-    /// inside a no-grad region (grad mode is enabled locally).
+    /// inside a no-grad region (a native network's gradient needs no graph; a module's
+    /// backward enables grad mode locally).
     pub fn grad(&self, x: &Tensor, t: &Tensor) -> Result<(Tensor, Tensor)> {
         match &self.rho {
             Rho::Native { net, step_norm } => {
@@ -261,10 +262,14 @@ impl RewardFn for RewardModel {
         RewardModel::rho(self, x, t)
     }
 
-    /// Guidance takes the same gradient as serving: the closed form or hand-written backward
-    /// of a native network (autograd through a module).
+    /// Guidance takes a native network's own gradient, as serving does (the closed form or
+    /// hand-written backward); a module keeps autograd through its rho with guidance's checks
+    /// (an output that does not depend on x is refused, not a zero gradient).
     fn rho_and_grad(&self, x: &Tensor, t: &Tensor) -> Result<(Tensor, Tensor)> {
-        RewardModel::grad(self, x, t)
+        match &self.rho {
+            Rho::Native { .. } => self.grad(x, t),
+            Rho::TorchScript(_) => autograd_rho_and_grad(&|x, t| self.rho(x, t), x, t),
+        }
     }
 }
 
@@ -274,25 +279,11 @@ mod tests {
     use crate::engine::manifest::Space;
     use crate::engine::nets::RewardArchitecture;
     use crate::engine::normalizer::Normalizer;
-    use crate::engine::relative_reward::Objective;
 
     fn manifest(step_normalization: bool) -> RewardManifest {
-        RewardManifest {
-            architecture: RewardArchitecture::Mlp { hidden: vec![8] }.into(),
-            space: Space::Sample { shape: vec![3] },
-            normalizer: Normalizer::Identity,
-            n_timesteps: 4,
-            base_model: "b".into(),
-            expert_model: "e".into(),
-            datasets: vec![],
-            objective: Objective::Discriminator,
-            step_normalization,
-            inpaint_condition: false,
-            base_recipe: None,
-            expert_recipe: None,
-            final_loss: 0.0,
-            eval_loss: None,
-        }
+        let architecture = RewardArchitecture::Mlp { hidden: vec![8] };
+        let space = Space::Sample { shape: vec![3] };
+        RewardManifest { step_normalization, ..RewardManifest::for_tests(architecture, space, Normalizer::Identity, 4) }
     }
 
     /// The step-standardised gradient equals autograd through the whole composite.

@@ -117,15 +117,18 @@ async fn slot(slots: &Arc<Semaphore>, token: &CancellationToken) -> Option<Owned
     }
 }
 
-/// A reward model used for guidance: locked for each forward pass only, so that a long
-/// sampling run does not hold off the model's Score/Gradient queries. The backward pass
-/// through the returned graph only reads the weights (gradients are taken with respect to
-/// `x` alone), which libtorch allows concurrently with other readers.
+/// A reward model used for guidance: locked for each pass only (a guided step's forward and
+/// backward, as one Gradient query is), so that a long sampling run does not hold off the
+/// model's Score/Gradient queries.
 struct PerCall<'a>(&'a ServedReward);
 
 impl RewardFn for PerCall<'_> {
     fn rho(&self, x: &Tensor, t: &Tensor) -> Result<Tensor> {
         self.0.lock().rho(x, t)
+    }
+
+    fn rho_and_grad(&self, x: &Tensor, t: &Tensor) -> Result<(Tensor, Tensor)> {
+        RewardFn::rho_and_grad(&*self.0.lock(), x, t)
     }
 }
 
@@ -281,4 +284,39 @@ fn host_f32(t: &Tensor) -> Result<Vec<f32>> {
     let mut values = vec![0f32; numel];
     flat.f_copy_data(&mut values, numel).map_err(|e| Error::internal("reading a sampled batch", e))?;
     Ok(values)
+}
+
+#[cfg(test)]
+mod tests {
+    use tch::Device;
+
+    use super::*;
+    use crate::engine::manifest::Space;
+    use crate::engine::nets::{RewardArchitecture, RewardNet};
+    use crate::engine::normalizer::Normalizer;
+    use crate::engine::relative_reward::RewardManifest;
+    use crate::engine::reward_model::RewardModel;
+
+    /// A served run's guidance takes the native reward's own gradient (Gradient's, bit for
+    /// bit), not autograd through its rho.
+    #[test]
+    fn guidance_takes_the_served_rewards_own_gradient() {
+        for architecture in [
+            RewardArchitecture::WindowedMlp { window: 2, hidden: vec![16] },
+            RewardArchitecture::ValueFunction { widths: vec![32] },
+        ] {
+            let dir = tempfile::tempdir().expect("tmp");
+            let path = dir.path().join("w.safetensors");
+            RewardNet::new(&architecture, &[8, 3], Device::Cpu).expect("net").save(&path).expect("save");
+            let space = Space::Trajectory { horizon: 8, action_dim: 1, obs_dim: 2 };
+            let manifest = RewardManifest::for_tests(architecture.clone(), space, Normalizer::Identity, 10);
+            let model = RewardModel::load(manifest, &path, dir.path(), Device::Cpu).expect("load");
+            let served = ServedReward::for_tests(model);
+            let x = Tensor::randn([6, 8, 3], (Kind::Float, Device::Cpu));
+            let t = Tensor::arange(6, (Kind::Int64, Device::Cpu));
+            let (rho, grad) = PerCall(&served).rho_and_grad(&x, &t).expect("guidance");
+            let (want_rho, want_grad) = served.lock().grad(&x, &t).expect("gradient");
+            assert!(rho.equal(&want_rho) && grad.equal(&want_grad), "{architecture}");
+        }
+    }
 }

@@ -153,7 +153,7 @@ fn serve(inner: &Arc<Inner>, queue: &Arc<ModelQueue>) {
             inner.metrics.observe_queue_wait(&name, started.duration_since(p.arrived).as_secs_f64());
         }
         let items: i64 = batch.iter().map(|p| p.query.batch()).sum();
-        let result = compute(queue, kind, &batch);
+        let result = compute(queue, kind, &batch, inner.config.max_batch as i64);
         inner.metrics.observe_batch(&name, batch.len(), items as usize, started.elapsed().as_secs_f64());
         match result {
             Ok(answers) => {
@@ -267,13 +267,13 @@ fn drop_expired(inner: &Inner, model: &str, batch: Vec<Pending>, now: Instant) -
 /// queries' floats are joined into one tensor and each result is copied to the host once;
 /// everything per query (splitting, omega and variance factors, the Jacobian) is plain
 /// arithmetic on those host values, so the per-query cost is a few copies of its own rows.
-fn compute(queue: &ModelQueue, kind: BatchKind, batch: &[Pending]) -> Result<Vec<Answer>> {
+fn compute(queue: &ModelQueue, kind: BatchKind, batch: &[Pending], max_rows: i64) -> Result<Vec<Answer>> {
     let sizes: Vec<i64> = batch.iter().map(|p| p.query.batch()).collect();
     let n: i64 = sizes.iter().sum();
-    let model = queue.model.lock();
     // Padded with zero items (t = 0) where the network's kernels are compiled per batch size
-    // (`RewardNet::padded_batch`); rows are independent, and only the first n are read back.
-    let rows = model.padded_batch(n);
+    // (`RewardNet::padded_batch`), never past `max_batch` (a batch of one large query already
+    // is); rows are independent, and only the first n are read back.
+    let rows = queue.model.lock().padded_batch(n).min(max_rows.max(n));
     let mut shape = vec![rows];
     shape.extend(&queue.model.item_shape);
     // Floats per item (an item shape has no zero dimension).
@@ -293,6 +293,7 @@ fn compute(queue: &ModelQueue, kind: BatchKind, batch: &[Pending]) -> Result<Vec
     // moves are no-ops.
     let device = crate::engine::device();
     let (x, t) = (crate::engine::upload(&x_host, device)?, crate::engine::upload(&t, device)?);
+    let model = queue.model.lock();
     let real = |v: Tensor| v.f_narrow(0, 0, n);
     match kind {
         BatchKind::Score { per_window, per_step } => {

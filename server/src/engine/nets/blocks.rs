@@ -92,7 +92,7 @@ pub enum MishTape {
 
 impl Mish {
     /// [`Mish::Fused`]'s value (bit for bit) and its tape, for a pass differentiated by hand
-    /// (`Taped` below); no graph is recorded.
+    /// (the blocks' `forward_taped` and `input_backward`); no graph is recorded.
     pub fn forward_taped(x: &Tensor) -> Result<(Tensor, MishTape)> {
         if let Some(parts) = kernels::mish_parts(x, false)? {
             return Ok((parts.value, MishTape::Slope(parts.slope)));
@@ -256,10 +256,10 @@ impl GroupNorm {
         let mut channel_shape = vec![1, size[1]];
         channel_shape.resize(size.len(), 1);
         let grouped = [size[0], self.groups, -1];
-        let g_hat = g.f_mul(&self.weight.f_view(channel_shape.as_slice())?)?.f_view(grouped)?;
+        let g_hat = g.f_mul(&self.weight.f_view(channel_shape.as_slice())?)?.f_reshape(grouped)?;
         let mean = tape.mean.f_unsqueeze(-1)?;
         let rstd = tape.rstd.f_unsqueeze(-1)?;
-        let x_hat = tape.input.f_view(grouped)?.f_sub(&mean)?.f_mul(&rstd)?;
+        let x_hat = tape.input.f_reshape(grouped)?.f_sub(&mean)?.f_mul(&rstd)?;
         let last = [-1i64];
         let m1 = g_hat.f_mean_dim(last.as_slice(), true, None::<Kind>)?;
         let m2 = g_hat.f_mul(&x_hat)?.f_mean_dim(last.as_slice(), true, None::<Kind>)?;
@@ -479,14 +479,14 @@ impl ResidualTemporalBlock {
             Some(conv) => out.f_add(&conv.forward(x)?)?,
             None => out.f_add(x)?,
         };
-        Ok((out, ResidualTape { input_len: x.size()[2], first, second }))
+        Ok((out, ResidualTape { first, second }))
     }
 
     pub fn input_backward(&self, tape: &ResidualTape, g: &Tensor) -> Result<Tensor> {
         let inner = self.blocks[1].input_backward(&tape.second, g)?;
         let through = self.blocks[0].input_backward(&tape.first, &inner)?;
         match &self.residual_conv {
-            Some(conv) => Ok(through.f_add(&conv.input_backward(g, tape.input_len)?)?),
+            Some(conv) => Ok(through.f_add(&conv.input_backward(g, tape.first.input_len)?)?),
             None => Ok(through.f_add(g)?),
         }
     }
@@ -494,7 +494,6 @@ impl ResidualTemporalBlock {
 
 #[derive(Debug)]
 pub struct ResidualTape {
-    input_len: i64,
     first: Conv1dBlockTape,
     second: Conv1dBlockTape,
 }

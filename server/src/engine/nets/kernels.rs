@@ -120,9 +120,11 @@ pub fn with_libtorch_ops<R>(f: impl FnOnce() -> R) -> R {
     f()
 }
 
-/// Buffers a thread keeps for its kernels, and the largest kept (16 MiB of floats).
+/// What a thread keeps for its kernels: at most this many buffers, of 32 MiB in all (a
+/// group-norm backward holds nine at once, half a megabyte each at a ValueFunction's first
+/// level); larger buffers are freed.
 const POOLED_BUFFERS: usize = 16;
-const POOLED_FLOATS: usize = 1 << 22;
+const POOLED_FLOATS: usize = 1 << 23;
 
 thread_local! {
     static POOL: std::cell::RefCell<Vec<Vec<f32>>> = const { std::cell::RefCell::new(Vec::new()) };
@@ -138,7 +140,8 @@ impl Buffer {
     fn new(len: usize) -> Self {
         let pooled = POOL.with(|pool| {
             let mut pool = pool.borrow_mut();
-            let fit = pool.iter().position(|b| b.capacity() >= len)?;
+            // The smallest that fits, so that small requests leave the large buffers alone.
+            let fit = (0..pool.len()).filter(|&i| pool[i].capacity() >= len).min_by_key(|&i| pool[i].capacity())?;
             Some(pool.swap_remove(fit))
         });
         let mut values = pooled.unwrap_or_default();
@@ -166,15 +169,14 @@ impl std::ops::DerefMut for Buffer {
 impl Drop for Buffer {
     fn drop(&mut self) {
         let values = std::mem::take(&mut self.0);
-        if values.capacity() <= POOLED_FLOATS {
-            // try_with: a buffer dropped while the thread's locals are torn down is freed.
-            let _ = POOL.try_with(|pool| {
-                let mut pool = pool.borrow_mut();
-                if pool.len() < POOLED_BUFFERS {
-                    pool.push(values);
-                }
-            });
-        }
+        // try_with: a buffer dropped while the thread's locals are torn down is freed.
+        let _ = POOL.try_with(|pool| {
+            let mut pool = pool.borrow_mut();
+            let kept: usize = pool.iter().map(Vec::capacity).sum();
+            if pool.len() < POOLED_BUFFERS && kept + values.capacity() <= POOLED_FLOATS {
+                pool.push(values);
+            }
+        });
     }
 }
 
@@ -259,7 +261,7 @@ fn sums(a: &[f32], b: &[f32]) -> (f32, f32) {
     (t1, t2)
 }
 
-/// The shapes of one group-norm backward: `span` elements per (sample, group), `inner`
+/// The shapes of one group-norm backward: `groups` per sample, `channels` per sample, `inner`
 /// positions per channel.
 struct GroupShape {
     groups: usize,
