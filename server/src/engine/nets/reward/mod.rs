@@ -268,7 +268,7 @@ impl RewardNet {
         tch::with_grad(|| {
             let x_req = x.f_detach_copy()?.f_set_requires_grad(true)?;
             let rho = self.rho_unchecked(&x_req, &t, Mish::TwiceDifferentiable)?;
-            input_gradient(&rho, &x_req, true)
+            input_gradient_with_graph(&rho, &x_req)
         })
     }
 
@@ -355,11 +355,11 @@ fn mlp_rows(x: &Tensor) -> Result<Tensor> {
     Ok(x.f_flatten(1, -1)?.f_unsqueeze(1)?)
 }
 
-/// d sum(rho) / d x_req, with or without a differentiable graph (PyTorch's
-/// `autograd.grad(rho.sum(), x, create_graph = c, retain_graph = c)`).
-fn input_gradient(rho: &Tensor, x_req: &Tensor, create_graph: bool) -> Result<Tensor> {
+/// d sum(rho) / d x_req with its differentiable graph (PyTorch's
+/// `autograd.grad(rho.sum(), x, create_graph = True)`).
+fn input_gradient_with_graph(rho: &Tensor, x_req: &Tensor) -> Result<Tensor> {
     let sum = rho.f_sum(None::<Kind>)?;
-    let grad = Tensor::f_run_backward(&[&sum], &[x_req], create_graph, create_graph)?
+    let grad = Tensor::f_run_backward(&[&sum], &[x_req], true, true)?
         .pop()
         .ok_or_else(|| Error::internal("reward gradient", "autograd returned no gradient"))?;
     if grad.defined() { Ok(grad) } else { Ok(x_req.f_zeros_like()?) }

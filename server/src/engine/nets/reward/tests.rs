@@ -635,8 +635,9 @@ fn reward_closed_form_alignment_gradients_equal_autograd() {
 }
 
 /// `grad` by the closed form (the MLP heads) and by the hand-written backward (the
-/// convolutional rewards) against autograd's input gradient of the same network, and its rho against `rho` (scored alone) bit for bit: OIP serves rho with its
-/// gradient and must answer what Score answers.
+/// convolutional rewards) against autograd's input gradient of the same network, and its rho
+/// against `rho` (scored alone) bit for bit: OIP serves rho with its gradient and must answer
+/// what Score answers.
 #[test]
 fn reward_closed_form_grad_equals_autograd() {
     // The MLPs' closed form and the convolutional rewards' hand-written backward: horizons
