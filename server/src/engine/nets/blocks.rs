@@ -264,11 +264,9 @@ impl GroupNorm {
         let m1 = g_hat.f_mean_dim(last.as_slice(), true, None::<Kind>)?;
         let m2 = g_hat.f_mul(&x_hat)?.f_mean_dim(last.as_slice(), true, None::<Kind>)?;
         let dx = g_hat.f_sub(&m1)?.f_sub(&x_hat.f_mul(&m2)?)?.f_mul(&rstd)?;
-        Ok(dx.f_view(size.as_slice())?)
+        Ok(dx.f_reshape(size.as_slice())?)
     }
-}
 
-impl GroupNorm {
     /// Mish(GroupNorm(x)) with [`Mish::Fused`] (the value bit for bit) and its tape: the
     /// epilogue of Diffuser's convolution blocks and of the encoder's.
     pub fn mish_forward_taped(&self, x: &Tensor) -> Result<(Tensor, NormMishTape)> {

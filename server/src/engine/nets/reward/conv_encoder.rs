@@ -93,9 +93,7 @@ impl EncoderBlock {
         let time = self.time_linear.forward(&mish.forward(t_emb)?)?.f_unsqueeze(-1)?.f_unsqueeze(-1)?;
         Ok(h.f_add(&time)?)
     }
-}
 
-impl EncoderBlock {
     /// [`EncoderBlock::forward`] with [`Mish::Fused`] (the value bit for bit) and its tape.
     fn forward_taped(&self, x: &Tensor, t_emb: &Tensor) -> Result<(Tensor, ([i64; 2], NormMishTape))> {
         let (h, epilogue) = self.norm.mish_forward_taped(&self.conv.forward(x)?)?;

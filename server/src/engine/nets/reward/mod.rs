@@ -233,12 +233,13 @@ impl RewardNet {
     pub fn grad(&self, x: &Tensor, t: &Tensor) -> Result<(Tensor, Tensor)> {
         let t = self.check_inputs(x, t)?;
         let _no_graph = tch::no_grad_guard();
-        let (head, features) = match &self.network {
+        match &self.network {
             Network::ValueFunction(net) => return net.value_and_grad(x, &t),
             Network::ConvEncoder(net) => return net.value_and_grad(x, &t),
-            Network::WindowedMlp(net) => (&net.head, net.rows(x)?),
-            Network::Mlp(net) => (&net.head, mlp_rows(x)?),
-        };
+            Network::WindowedMlp(_) | Network::Mlp(_) => {}
+        }
+        let (head, features) =
+            self.head_rows(x)?.ok_or_else(|| Error::internal("reward gradient", "an MLP reward without its head"))?;
         let pass = head.pass(&features, &t, false)?;
         // As rho_unchecked: the mean of the windows, or the flat MLP's one row.
         let rho = match &self.network {
@@ -253,7 +254,7 @@ impl RewardNet {
     fn head_rows(&self, x: &Tensor) -> Result<Option<(&mlp::MlpHead, Tensor)>> {
         Ok(match &self.network {
             Network::WindowedMlp(net) => Some((&net.head, net.rows(x)?)),
-            Network::Mlp(net) => Some((&net.head, mlp_rows(x)?)),
+            Network::Mlp(net) => Some((&net.head, x.f_flatten(1, -1)?.f_unsqueeze(1)?)),
             Network::ValueFunction(_) | Network::ConvEncoder(_) => None,
         })
     }
@@ -348,11 +349,6 @@ impl RewardNet {
         check_inputs("reward", x, t, &self.item_shape, kind)?;
         Ok(t.f_to_kind(kind)?)
     }
-}
-
-/// The flat MLP's one row [B, 1, F] per item.
-fn mlp_rows(x: &Tensor) -> Result<Tensor> {
-    Ok(x.f_flatten(1, -1)?.f_unsqueeze(1)?)
 }
 
 /// d sum(rho) / d x_req with its differentiable graph (PyTorch's
