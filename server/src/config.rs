@@ -249,6 +249,12 @@ pub struct EngineConfig {
     /// Batched Score/Gradient passes and Sample runs computed at once (each on a blocking
     /// thread); more wait their turn.
     pub inference_workers: usize,
+    /// Where a training step decides whether its update applies and how clipping scales it,
+    /// and so when the loop reads its loss: `host` (each step's norm and loss read as it
+    /// runs), `device` (decided on the device, each step's figures read after the next step
+    /// is queued, so a GPU never waits for the host mid-step) or `auto` (device on CUDA, host
+    /// on the CPU, where reading costs nothing). The same weights either way.
+    pub step_checks: String,
 }
 
 /// Score and Gradient serving: dynamic batching per reward model (see `serving`).
@@ -526,6 +532,12 @@ impl Config {
         if self.engine.inference_workers == 0 || self.engine.inference_workers > 256 {
             return invalid("engine.inference_workers", "must be between 1 and 256".into());
         }
+        if !["auto", "host", "device"].contains(&self.engine.step_checks.as_str()) {
+            return invalid(
+                "engine.step_checks",
+                format!("'{}' is not one of auto, host or device", self.engine.step_checks),
+            );
+        }
         if self.engine.intra_op_threads > 1024 {
             return invalid("engine.intra_op_threads", "must be at most 1024 (0: one per core)".into());
         }
@@ -730,6 +742,7 @@ mod tests {
             // Separate roles need the shared backend: the SQLite file belongs to one process.
             (&[("RELREWARD__SERVER__ROLE", "serve")], "server.role"),
             (&[("RELREWARD__JOBS__LEASE_SECS", "1")], "jobs.lease_secs"),
+            (&[("RELREWARD__ENGINE__STEP_CHECKS", "gpu")], "engine.step_checks"),
             (&[("RELREWARD__STORAGE__BACKEND", "shared")], "storage.postgres.url"),
         ];
         for (vars, key) in cases {

@@ -405,6 +405,76 @@ async fn batches_with_non_finite_targets_are_skipped_and_a_run_of_them_fails_the
     assert_eq!(missing.expect_err("no model").code(), tonic::Code::NotFound);
 }
 
+/// `engine.step_checks = "device"` (the default on CUDA: Adam's skip and clip decided on the
+/// device, each step's loss read after the next step is queued) trains the same weights and
+/// reports the same progress, skips and divergence as the host's checks, here on the CPU: a job
+/// with rare non-finite batches, a checkpoint and evaluations (steps read at once) between
+/// deferred ones, and a job that diverges.
+#[tokio::test(flavor = "multi_thread")]
+async fn steps_checked_on_the_device_train_and_report_as_on_the_host() {
+    let tmp = tempfile::tempdir().expect("tmp");
+    let rare = export(tmp.path(), "base-rare", &[0.0; 4], Some(4.5));
+    let bad = export(tmp.path(), "base-bad", &[0.0; 4], Some(0.0));
+    let mut outcomes = Vec::new();
+    for checks in ["host", "device"] {
+        let server = TestServer::start_with_env(&[
+            ("RELREWARD__MODELS__ALLOW_TORCHSCRIPT_UPLOAD", "true"),
+            ("RELREWARD__ENGINE__STEP_CHECKS", checks),
+        ]);
+        let client = setup(&server).await;
+        upload_model(&client, &rare, "base-rare").await;
+        upload_model(&client, &bad, "base-bad").await;
+        let mut figures = Vec::new();
+        for (job, base, steps) in [("rare", "base-rare", 320), ("bad", "base-bad", 60)] {
+            let mut spec = reward_spec(job, pb::RewardTarget::Mean, pb::EvalPoint::XT, steps, 150);
+            if let Some(pb::job_spec::Kind::Reward(r)) = spec.kind.as_mut() {
+                r.base_model = base.into();
+            }
+            if let Some(o) = spec.optimization.as_mut() {
+                o.log_every = Some(1);
+                o.grad_clip = Some(5.0);
+            }
+            client
+                .jobs()
+                .submit_job(pb::SubmitJobRequest { spec: Some(spec), job_id: job.into() })
+                .await
+                .expect("submit");
+            let events = wait_done(&client, job).await;
+            // Everything but the rates and times, in order.
+            let seen: Vec<String> = events
+                .iter()
+                .filter_map(|e| match &e.event {
+                    Some(Event::Progress(p)) => {
+                        Some(format!("progress {} {:e} {:e} {:?}", p.step, p.loss, p.grad_norm, p.eval_loss))
+                    }
+                    Some(Event::Log(l)) if l.message.contains("not finite") => Some(l.message.clone()),
+                    Some(Event::Checkpoint(c)) => Some(format!("checkpoint {}", c.step)),
+                    // A running state's message names the worker, different per server.
+                    Some(Event::State(s)) if s.state() == pb::JobState::Running => Some("Running".into()),
+                    Some(Event::State(s)) => Some(format!("{:?} {}", s.state(), s.message)),
+                    _ => None,
+                })
+                .collect();
+            let model = client.models().get_model(pb::GetModelRequest { name: job.into() }).await;
+            figures.push((seen, model.ok().map(|m| m.into_inner().sha256)));
+        }
+        outcomes.push(figures);
+    }
+    let (host, device) = (&outcomes[0], &outcomes[1]);
+    let skips = host[0].0.iter().filter(|line| line.ends_with("update skipped")).count();
+    assert!((3..=100).contains(&skips), "{skips} skipped steps of 320 (about 5% expected): {:?}", host[0].0);
+    assert!(host[0].0.iter().any(|line| line == "checkpoint 300"), "{:?}", host[0].0);
+    assert!(host[0].1.is_some() && host[1].1.is_none(), "the rare job registers its reward, the bad one nothing");
+    assert!(host[1].0.iter().any(|line| line.contains("training diverged at step 10")), "{:?}", host[1].0);
+    for (job, (h, d)) in ["rare", "bad"].iter().zip(host.iter().zip(device)) {
+        assert_eq!(h.1, d.1, "{job}: the weights differ");
+        assert_eq!(h.0.len(), d.0.len(), "{job}: {} events on the host, {} on the device", h.0.len(), d.0.len());
+        for (a, b) in h.0.iter().zip(&d.0) {
+            assert_eq!(a, b, "{job}");
+        }
+    }
+}
+
 /// Amortised targets (issue 21): a pool of 2048 triples, each used about 16 times, still
 /// recovers the analytic reward, and a kill -9 in the middle resumes with the pool recomputed
 /// from the seed (the job's refresh schedule continues where it was).

@@ -165,7 +165,7 @@ fn train(params: &[(String, Tensor)], mut loss_at: impl FnMut(usize) -> StepLoss
                 let _ = adam.step_with(params, computed, None);
             }
         }
-        ema.after_step(params, step as u64);
+        ema.after_step(params, step as u64, None);
     }
     Trained { losses, grads, params: copy(params), initial, ema: copy(&ema.named(params)) }
 }

@@ -67,6 +67,20 @@ use crate::config::{ConfigError, EngineConfig};
 /// that never call `init`: the CPU).
 static DEVICE: OnceLock<Device> = OnceLock::new();
 
+/// `engine.step_checks` as set at start (unset: `auto`).
+static STEP_CHECKS: OnceLock<String> = OnceLock::new();
+
+/// Whether training on `device` decides each step's skip and clip on the device and reads its
+/// figures a step late (`engine.step_checks`: `device`, or `auto` on CUDA), rather than on the
+/// host as each step runs (see [`optim::Adam::deciding_on_device`]).
+pub fn step_checks_on_device(device: Device) -> bool {
+    match STEP_CHECKS.get().map_or("auto", String::as_str) {
+        "device" => true,
+        "host" => false,
+        _ => device.is_cuda(),
+    }
+}
+
 /// The device every computation of this process runs on (see [`init`]).
 pub fn device() -> Device {
     DEVICE.get().copied().unwrap_or(Device::Cpu)
@@ -142,11 +156,13 @@ pub fn init(config: &EngineConfig) -> Result<Device, ConfigError> {
     tch::set_num_threads(i32::try_from(threads).unwrap_or(1));
     // A second `init` in one process (tests start several servers) keeps the first device.
     let device = *DEVICE.get_or_init(|| device);
+    let _ = STEP_CHECKS.set(config.step_checks.clone());
     tracing::info!(
         intra_op_threads = tch::get_num_threads(),
         cuda_devices,
         device = ?device,
         setting = config.device,
+        step_checks_on_device = step_checks_on_device(device),
         "libtorch initialised"
     );
     Ok(device)

@@ -39,13 +39,24 @@ impl From<Tensor> for StepLoss {
 
 /// Adam (Kingma & Ba) with PyTorch's update rule and defaults (betas 0.9, 0.999, eps 1e-8,
 /// no weight decay), plus optional clipping of the global gradient norm.
+///
+/// Whether a step applies (its gradient finite) and how much clipping scales it are decided
+/// on the host by default: the norm is read before the update is queued, which costs nothing
+/// on the CPU. [`Adam::deciding_on_device`] decides both on the parameters' device instead (as
+/// PyTorch's `capturable` Adam and GradScaler's `found_inf` do), so a step never makes the host
+/// wait for a GPU: the same numbers (tested bit for bit on the CPU), the skip applied as a mask
+/// and the step count kept on the device.
 pub struct Adam {
     pub lr: f64,
     beta1: f64,
     beta2: f64,
     eps: f64,
-    /// Updates applied so far (for bias correction).
-    pub steps: u64,
+    /// Updates applied so far (for bias correction), when decided on the host.
+    steps: u64,
+    /// Decided on the device: the updates applied so far, a 0-dim double there (the count;
+    /// `steps` is then unused).
+    device_steps: Option<Tensor>,
+    device: tch::Device,
     /// The moments of all parameters, one flat tensor each (None, as `flat_params`: the
     /// parameters differ in dtype or device, and every update goes parameter by parameter), and each parameter's
     /// moments as views into them (saved and loaded by name).
@@ -55,6 +66,31 @@ pub struct Adam {
     flat_params: Option<Tensor>,
     m: Vec<Tensor>,
     v: Vec<Tensor>,
+}
+
+/// One update's coefficients: numbers decided on the host, or 0-dim tensors on the device
+/// that already fold in whether the step applies (a skipped step's are those of an update by
+/// zero that leaves the moments as they were).
+enum Coefficients {
+    Host {
+        /// Clipping's factor (1: none).
+        scale: f64,
+        step_size: f64,
+        bc2_sqrt: f64,
+    },
+    Device {
+        /// Clipping's factor; 0 for a skipped step.
+        scale: Tensor,
+        /// m's interpolation weight, 1 - beta1; 0 for a skipped step (in the parameters' kind,
+        /// as `lerp` asks).
+        m_weight: Tensor,
+        /// v's decay, beta2; 1 for a skipped step.
+        v_decay: Tensor,
+        /// lr / (1 - beta1^steps); 0 for a skipped step.
+        step_size: Tensor,
+        /// sqrt(1 - beta2^steps); 1 for a skipped step.
+        bc2_sqrt: Tensor,
+    },
 }
 
 impl Adam {
@@ -74,19 +110,44 @@ impl Adam {
                 (None, zeros(), zeros())
             }
         };
-        Self { lr, beta1: 0.9, beta2: 0.999, eps: 1e-8, steps: 0, flat, flat_params, m, v }
+        let device = params.first().map_or(tch::Device::Cpu, |(_, p)| p.device());
+        Self { lr, beta1: 0.9, beta2: 0.999, eps: 1e-8, steps: 0, device_steps: None, device, flat, flat_params, m, v }
+    }
+
+    /// Decides each step's skip and clip on the parameters' device (`on`) or on the host.
+    pub fn deciding_on_device(mut self, on: bool) -> Self {
+        let steps = self.steps();
+        self.device_steps = on.then(|| Tensor::scalar_tensor(steps as f64, (Kind::Double, self.device)));
+        self
+    }
+
+    /// Updates applied so far (read from the device when decided there).
+    pub fn steps(&self) -> u64 {
+        match &self.device_steps {
+            // A count of whole steps in a double: exact.
+            Some(t) => t.double_value(&[]) as u64,
+            None => self.steps,
+        }
+    }
+
+    /// Sets the count of updates applied (a checkpoint's, when resuming).
+    pub fn set_steps(&mut self, steps: u64) {
+        self.steps = steps;
+        if let Some(t) = self.device_steps.as_mut() {
+            let _ = t.fill_(steps as f64);
+        }
     }
 
     /// Applies one update from the parameters' gradients, then zeroes them, and returns the
-    /// global gradient norm before clipping. Parameters without a gradient are left alone.
+    /// global gradient norm before clipping (a 0-dim double on the parameters' device, not
+    /// read). Parameters without a gradient are left alone.
     ///
     /// A gradient that is not finite (an inf or NaN from one batch: Adam's moments would turn
     /// it into NaN weights for good) applies nothing: the weights, the moments and the step
     /// count stay as they were, as PyTorch's GradScaler skips such a step; the caller sees the
-    /// non-finite norm. Deciding that reads the norm before the update is queued: free on the
-    /// CPU, on a GPU the update's launches no longer overlap the end of the backward pass
-    /// (docs/architecture.md, "What keeps a GPU busy").
-    pub fn step(&mut self, params: &[(String, Tensor)], clip: Option<f64>) -> f64 {
+    /// non-finite norm. Decided on the host, that reads the norm before the update is queued;
+    /// decided on the device, nothing is read (docs/architecture.md, "What keeps a GPU busy").
+    pub fn step(&mut self, params: &[(String, Tensor)], clip: Option<f64>) -> Tensor {
         let grads: Vec<Option<Tensor>> = params.iter().map(|(_, p)| Some(p.grad()).filter(Tensor::defined)).collect();
         let norm = self.apply(params, &grads, clip);
         zero_grads(params);
@@ -95,14 +156,19 @@ impl Adam {
 
     /// [`Adam::step`] from gradients computed without autograd (a [`StepLoss::Computed`]),
     /// matched to the parameters by name; a parameter without one is left alone.
-    pub fn step_with(&mut self, params: &[(String, Tensor)], grads: Vec<(String, Tensor)>, clip: Option<f64>) -> f64 {
+    pub fn step_with(
+        &mut self,
+        params: &[(String, Tensor)],
+        grads: Vec<(String, Tensor)>,
+        clip: Option<f64>,
+    ) -> Tensor {
         let mut by_name: HashMap<String, Tensor> = grads.into_iter().collect();
         let grads: Vec<Option<Tensor>> = params.iter().map(|(name, _)| by_name.remove(name)).collect();
         self.apply(params, &grads, clip)
     }
 
     /// The update of [`Adam::step`] with the gradients given, in the parameters' order.
-    fn apply(&mut self, params: &[(String, Tensor)], grads: &[Option<Tensor>], clip: Option<f64>) -> f64 {
+    fn apply(&mut self, params: &[(String, Tensor)], grads: &[Option<Tensor>], clip: Option<f64>) -> Tensor {
         let _guard = tch::no_grad_guard();
         // Every parameter with a gradient and one flat set of moments: the update runs once over
         // all of them concatenated (the same elementwise operations on the same values, so the
@@ -117,44 +183,17 @@ impl Adam {
         };
         let norm = match (&flat_grad, grads.iter().flatten().next()) {
             (Some(g), _) => g.square().sum(Kind::Double).sqrt(),
-            (None, None) => {
-                Tensor::zeros([], (Kind::Double, params.first().map_or(tch::Device::Cpu, |(_, p)| p.device())))
-            }
+            (None, None) => Tensor::zeros([], (Kind::Double, self.device)),
             (None, Some(_)) => {
                 let squares: Vec<Tensor> = grads.iter().flatten().map(|g| g.square().sum(Kind::Double)).collect();
                 Tensor::stack(&squares, 0).sum(Kind::Double).sqrt()
             }
         };
-        let norm = norm.double_value(&[]);
-        if !norm.is_finite() {
+        let Some(coefficients) = self.coefficients(&norm, clip) else {
             return norm;
-        }
-        // torch.nn.utils.clip_grad_norm_: scale by max_norm / (norm + 1e-6) when above.
-        let scale = match clip {
-            Some(c) if norm > c => c / (norm + 1e-6),
-            _ => 1.0,
         };
-        self.steps += 1;
-        let bc1 = 1.0 - self.beta1.powf(self.steps as f64);
-        let bc2 = 1.0 - self.beta2.powf(self.steps as f64);
-        let step_size = self.lr / bc1;
-        let bc2_sqrt = bc2.sqrt();
-        // torch.optim.Adam's CPU update (`_single_tensor_adam`) op for op, so that the weights
-        // are bitwise those PyTorch would produce (server/tests/training_vs_pytorch.rs):
-        //   m.lerp_(g, 1 - beta1); v.mul_(beta2).addcmul_(g, g, value = 1 - beta2);
-        //   denom = (sqrt(v) / sqrt(bc2)).add_(eps); p.addcdiv_(m, denom, value = -lr / bc1).
-        // tch's addcmul_ / addcdiv_ take no `value`: scaling the first factor gives the same
-        // (value * t1) * t2 and (value * t1) / t2 that libtorch's kernels compute. In place, this
-        // makes four temporaries per parameter where the composed formula made eight: about
-        // 17 ms instead of 55 ms per update of the benchmark's 3.7M-parameter TemporalUnet (one
-        // thread, the same libtorch ops timed from Python), some 5% of a DDPM step.
         if let (Some(g), Some((m, v))) = (flat_grad, self.flat.as_mut()) {
-            let g = if scale == 1.0 { g } else { g * scale };
-            let _ = m.lerp_(&g, 1.0 - self.beta1);
-            let _ = v.g_mul_scalar_(self.beta2).addcmul_(&(&g * (1.0 - self.beta2)), &g);
-            let denom = v.sqrt().g_div_scalar_(bc2_sqrt).g_add_scalar_(self.eps);
-            // p.addcdiv_(m, denom, value) is p + (value m) / denom: the same sum, per parameter.
-            let update = (&*m * -step_size).g_div_(&denom);
+            let update = coefficients.update(&g, m, v, (self.beta1, self.beta2, self.eps));
             match self.flat_params.as_mut().filter(|flat| views_of(flat, params)) {
                 Some(flat) => {
                     let _ = flat.g_add_(&update);
@@ -169,14 +208,52 @@ impl Adam {
         }
         for (((_, p), g), (m, v)) in params.iter().zip(grads).zip(self.m.iter_mut().zip(self.v.iter_mut())) {
             let Some(g) = g else { continue };
-            let g = if scale == 1.0 { g.shallow_clone() } else { g * scale };
-            let _ = m.lerp_(&g, 1.0 - self.beta1);
-            let _ = v.g_mul_scalar_(self.beta2).addcmul_(&(&g * (1.0 - self.beta2)), &g);
-            let denom = v.sqrt().g_div_scalar_(bc2_sqrt).g_add_scalar_(self.eps);
-            let mut p = p.shallow_clone();
-            let _ = p.addcdiv_(&(&*m * -step_size), &denom);
+            let update = coefficients.update(g, m, v, (self.beta1, self.beta2, self.eps));
+            let _ = p.shallow_clone().g_add_(&update);
         }
         norm
+    }
+
+    /// This step's coefficients, counting it as applied; `None` when decided on the host that
+    /// it applies nothing (its gradient not finite).
+    fn coefficients(&mut self, norm: &Tensor, clip: Option<f64>) -> Option<Coefficients> {
+        let (beta1, beta2) = (self.beta1, self.beta2);
+        let Some(steps) = self.device_steps.as_mut() else {
+            let norm = norm.double_value(&[]);
+            if !norm.is_finite() {
+                return None;
+            }
+            // torch.nn.utils.clip_grad_norm_: scale by max_norm / (norm + 1e-6) when above.
+            let scale = match clip {
+                Some(c) if norm > c => c / (norm + 1e-6),
+                _ => 1.0,
+            };
+            self.steps += 1;
+            let (bc1, bc2) = (1.0 - beta1.powf(self.steps as f64), 1.0 - beta2.powf(self.steps as f64));
+            return Some(Coefficients::Host { scale, step_size: self.lr / bc1, bc2_sqrt: bc2.sqrt() });
+        };
+        // The host's formulas on 0-dim doubles, each picked by `where` between its value and
+        // what leaves the moments unchanged (never multiplied by the 0/1 mask: a skipped first
+        // step's lr / (1 - beta1^0) is an infinity, and 0 * inf a NaN).
+        let applied = norm.isfinite();
+        let scalar = |x: f64| Tensor::scalar_tensor(x, (Kind::Double, self.device));
+        let pick = |yes: &Tensor, no: f64| yes.where_self(&applied, &scalar(no));
+        let _ = steps.g_add_(&applied.to_kind(Kind::Double));
+        let scale = match clip {
+            Some(c) => (scalar(c) / (norm + 1e-6)).where_self(&norm.gt(c), &scalar(1.0)),
+            None => scalar(1.0),
+        };
+        let bc1: Tensor = 1.0 - Tensor::pow_scalar(beta1, steps);
+        let bc2: Tensor = 1.0 - Tensor::pow_scalar(beta2, steps);
+        let kind =
+            self.flat.as_ref().map_or_else(|| self.m.first().map_or(Kind::Float, Tensor::kind), |(m, _)| m.kind());
+        Some(Coefficients::Device {
+            scale: pick(&scale, 0.0),
+            m_weight: pick(&scalar(1.0 - beta1), 0.0).to_kind(kind),
+            v_decay: pick(&scalar(beta2), 1.0),
+            step_size: pick(&(scalar(self.lr) / bc1), 0.0),
+            bc2_sqrt: pick(&bc2.sqrt(), 1.0),
+        })
     }
 
     /// The parameters' flat storage when they were flattened (see [`flatten_parameters`]) and
@@ -213,6 +290,43 @@ impl Adam {
             }
         }
         Ok(())
+    }
+}
+
+impl Coefficients {
+    /// Updates the moments `m` and `v` in place from the gradient `g` and returns the step to
+    /// add to the parameters.
+    ///
+    /// torch.optim.Adam's CPU update (`_single_tensor_adam`) op for op, so that the weights
+    /// are bitwise those PyTorch would produce (server/tests/training_vs_pytorch.rs):
+    ///   m.lerp_(g, 1 - beta1); v.mul_(beta2).addcmul_(g, g, value = 1 - beta2);
+    ///   denom = (sqrt(v) / sqrt(bc2)).add_(eps); p.addcdiv_(m, denom, value = -lr / bc1).
+    /// tch's addcmul_ / addcdiv_ take no `value`: scaling the first factor gives the same
+    /// (value * t1) * t2 and (value * t1) / t2 that libtorch's kernels compute, and p + (value m)
+    /// / denom is addcdiv's sum. In place, this makes four temporaries where the composed
+    /// formula made eight: about 17 ms instead of 55 ms per update of the benchmark's
+    /// 3.7M-parameter TemporalUnet (one thread, the same libtorch ops timed from Python), some
+    /// 5% of a DDPM step. The device's coefficients are the same numbers as 0-dim tensors (a
+    /// float op with a 0-dim double rounds it to float as it does a scalar).
+    fn update(&self, g: &Tensor, m: &mut Tensor, v: &mut Tensor, (beta1, beta2, eps): (f64, f64, f64)) -> Tensor {
+        match self {
+            Self::Host { scale, step_size, bc2_sqrt } => {
+                let g = if *scale == 1.0 { g.shallow_clone() } else { g * *scale };
+                let _ = m.lerp_(&g, 1.0 - beta1);
+                let _ = v.g_mul_scalar_(beta2).addcmul_(&(&g * (1.0 - beta2)), &g);
+                let denom = v.sqrt().g_div_scalar_(*bc2_sqrt).g_add_scalar_(eps);
+                (&*m * -*step_size).g_div_(&denom)
+            }
+            Self::Device { scale, m_weight, v_decay, step_size, bc2_sqrt } => {
+                // A skipped step's gradient (inf or NaN somewhere) times its scale 0 is zeroed
+                // whole, so that it adds nothing to v; a finite one is unchanged by both.
+                let g = (g * scale).nan_to_num_(0.0, 0.0, 0.0);
+                let _ = m.lerp_tensor_(&g, m_weight);
+                let _ = v.g_mul_(v_decay).addcmul_(&(&g * (1.0 - beta2)), &g);
+                let denom = v.sqrt().g_div_(bc2_sqrt).g_add_scalar_(eps);
+                (&*m * -step_size).g_div_(&denom)
+            }
+        }
     }
 }
 
@@ -308,26 +422,38 @@ impl Ema {
         Self { decay, every, start, shadow, flat }
     }
 
-    /// Call after optimisation step `step` (1-based).
-    pub fn after_step(&mut self, params: &[(String, Tensor)], step: u64) {
+    /// Call after optimisation step `step` (1-based) if it counts (its update applied and its
+    /// loss was finite). `counts`: that decision as a 0-dim bool on the device, when Adam made
+    /// it there ([`Adam::deciding_on_device`]); the average then moves only where it is true,
+    /// with the same numbers.
+    pub fn after_step(&mut self, params: &[(String, Tensor)], step: u64, counts: Option<&Tensor>) {
         if !step.is_multiple_of(self.every) {
             return;
         }
         let _guard = tch::no_grad_guard();
-        if let Some((current, average)) = self.flat.as_mut().filter(|(current, _)| views_of(current, params)) {
-            if step < self.start {
-                average.copy_(current);
-            } else {
-                let _ = average.g_mul_scalar_(self.decay).g_add_(&(&*current * (1.0 - self.decay)));
+        let reset = step < self.start;
+        // For a skipped step: ema = 1 ema + 0 current (or, before start, ema kept).
+        let masked = counts.map(|counts| {
+            let scalar = |x: f64| Tensor::scalar_tensor(x, (Kind::Double, counts.device()));
+            let pick = |yes: f64, no: f64| scalar(yes).where_self(counts, &scalar(no));
+            (counts, pick(self.decay, 1.0), pick(1.0 - self.decay, 0.0))
+        });
+        let average_into = |average: &mut Tensor, current: &Tensor| match (&masked, reset) {
+            (None, true) => average.copy_(current),
+            (Some((applied, _, _)), true) => average.copy_(&current.where_self(applied, average)),
+            (None, false) => {
+                let _ = average.g_mul_scalar_(self.decay).g_add_(&(current * (1.0 - self.decay)));
             }
+            (Some((_, decay, rest)), false) => {
+                let _ = average.g_mul_(decay).g_add_(&(current * rest));
+            }
+        };
+        if let Some((current, average)) = self.flat.as_mut().filter(|(current, _)| views_of(current, params)) {
+            average_into(average, current);
             return;
         }
         for ((_, p), s) in params.iter().zip(self.shadow.iter_mut()) {
-            if step < self.start {
-                s.copy_(p);
-            } else {
-                let _ = s.g_mul_scalar_(self.decay).g_add_(&(p * (1.0 - self.decay)));
-            }
+            average_into(s, p);
         }
     }
 
@@ -420,11 +546,11 @@ mod tests {
         let mut ema_b = Ema::new(&params_b, 0.9, 1, 2, adam_b.flat_params(&params_b));
         for step in 1..=6 {
             loss(&lin_a).backward();
-            adam_a.step(&params_a, None);
-            ema_a.after_step(&params_a, step);
+            let _ = adam_a.step(&params_a, None);
+            ema_a.after_step(&params_a, step, None);
             loss(&lin_b).backward();
-            adam_b.step(&params_b, None);
-            ema_b.after_step(&params_b, step);
+            let _ = adam_b.step(&params_b, None);
+            ema_b.after_step(&params_b, step, None);
         }
         for (((name, a), (_, b)), ((_, ea), (_, eb))) in
             params_a.iter().zip(&params_b).zip(ema_a.named(&params_a).iter().zip(&ema_b.named(&params_b)))
@@ -443,7 +569,7 @@ mod tests {
         loss(&lin).backward();
         let before = grad_norm(&params);
         let mut adam = Adam::new(&params, 0.1);
-        let reported = adam.step(&params, Some(before / 10.0));
+        let reported = adam.step(&params, Some(before / 10.0)).double_value(&[]);
         assert!((reported - before).abs() < 1e-9);
         assert_eq!(grad_norm(&params), 0.0, "gradients are zeroed after the step");
     }
@@ -459,11 +585,11 @@ mod tests {
         let (mut skipping, mut clean) = (Adam::new(&pa, 0.01), Adam::new(&pb, 0.01));
         for bad in [f64::INFINITY, f64::NAN] {
             (loss(&lin_a) * bad).backward();
-            let norm = skipping.step(&pa, Some(1.0));
+            let norm = skipping.step(&pa, Some(1.0)).double_value(&[]);
             assert!(!norm.is_finite(), "{norm}");
             assert_eq!(grad_norm(&pa), 0.0, "gradients are zeroed after a skipped step");
         }
-        assert_eq!(skipping.steps, 0);
+        assert_eq!(skipping.steps(), 0);
         for _ in 0..3 {
             loss(&lin_a).backward();
             loss(&lin_b).backward();
@@ -471,6 +597,68 @@ mod tests {
         }
         for ((_, a), (_, b)) in pa.iter().zip(&pb) {
             assert!(a.equal(b), "the skipped steps left a trace");
+        }
+    }
+
+    /// Skip and clip decided on the device ([`Adam::deciding_on_device`]) give the weights,
+    /// moments, step count and average of the host's decisions bit for bit, through clipped,
+    /// unclipped, infinite and NaN steps (a skipped first step included), on the flat and the
+    /// per-parameter paths, and nothing is read to decide.
+    #[test]
+    fn deciding_on_the_device_updates_as_deciding_on_the_host() {
+        for flat in [true, false] {
+            let (vs_h, lin_h) = setup(13);
+            let (mut vs_d, lin_d) = setup(13);
+            vs_d.copy(&vs_h).expect("copy");
+            let (ph, pd) = (named_parameters(&vs_h), named_parameters(&vs_d));
+            let (mut host, mut device) = (Adam::new(&ph, 0.05), Adam::new(&pd, 0.05).deciding_on_device(true));
+            if !flat {
+                for params in [&ph, &pd] {
+                    tch::no_grad(|| params[0].1.shallow_clone().set_data(&params[0].1.copy()));
+                }
+            }
+            assert_eq!(host.flat_params(&ph).is_some(), flat);
+            let mut ema_h = Ema::new(&ph, 0.8, 2, 6, host.flat_params(&ph));
+            let mut ema_d = Ema::new(&pd, 0.8, 2, 6, device.flat_params(&pd));
+            // Per step: the loss's factor (inf, NaN: a skipped step) and the clip.
+            let schedule = [
+                (f64::INFINITY, None),
+                (1.0, Some(0.5)),
+                (1.0, None),
+                (f64::NAN, Some(1.0)),
+                (2.0, Some(1e6)),
+                (1.0, Some(0.1)),
+                (f64::INFINITY, None),
+                (0.5, None),
+                (f64::NAN, None),
+            ];
+            for (i, (factor, clip)) in schedule.iter().cycle().take(40).enumerate() {
+                let step = i as u64 + 1;
+                (loss(&lin_h) * *factor).backward();
+                let norm_h = host.step(&ph, *clip).double_value(&[]);
+                if norm_h.is_finite() {
+                    ema_h.after_step(&ph, step, None);
+                }
+                (loss(&lin_d) * *factor).backward();
+                let norm_d = device.step(&pd, *clip);
+                ema_d.after_step(&pd, step, Some(&norm_d.isfinite()));
+                let norm_d = norm_d.double_value(&[]);
+                assert!(norm_h == norm_d || (norm_h.is_nan() && norm_d.is_nan()), "step {step}: {norm_h} vs {norm_d}");
+                assert_eq!(host.steps(), device.steps(), "step {step}");
+            }
+            assert_eq!(host.steps(), 40 - 18, "18 of the 40 steps were not finite");
+            for (((name, h), (_, d)), ((_, eh), (_, ed))) in
+                ph.iter().zip(&pd).zip(ema_h.named(&ph).iter().zip(&ema_d.named(&pd)))
+            {
+                assert!(h.equal(d), "flat {flat}, {name}: {h:?} vs {d:?}");
+                assert!(eh.equal(ed), "flat {flat}, EMA of {name}: {eh:?} vs {ed:?}");
+            }
+            for (a, b) in host.m.iter().zip(&device.m).chain(host.v.iter().zip(&device.v)) {
+                assert!(a.equal(b), "flat {flat}: moments differ");
+            }
+            // A resumed count reaches the device's.
+            device.set_steps(7);
+            assert_eq!(device.steps(), 7);
         }
     }
 
@@ -502,10 +690,10 @@ mod tests {
             }
         };
         set(1.0);
-        ema.after_step(&params, 1); // before start: copy
+        ema.after_step(&params, 1, None); // before start: copy
         assert!(ema.named(&params).iter().all(|(_, s)| s.eq(1.0).all().int64_value(&[]) == 1));
         set(3.0);
-        ema.after_step(&params, 3); // 0.5 * 1 + 0.5 * 3
+        ema.after_step(&params, 3, None); // 0.5 * 1 + 0.5 * 3
         assert!(ema.named(&params).iter().all(|(_, s)| s.eq(2.0).all().int64_value(&[]) == 1));
     }
 }

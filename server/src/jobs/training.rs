@@ -13,6 +13,7 @@ use tch::Tensor;
 use super::context::{JobContext, StepReport, Stop};
 use crate::engine::optim::{Adam, Ema, StepLoss, named_parameters};
 use crate::engine::rng::Rng;
+use crate::engine::step_checks_on_device;
 use crate::error::{Error, Result};
 use relreward_proto::schema::job::Optimization;
 
@@ -28,8 +29,18 @@ struct TrainState {
 /// Non-finite steps in a row (each skipped, weights untouched) after which a job has diverged.
 const MAX_NON_FINITE_STEPS: u32 = 10;
 
+/// A step whose loss and gradient norm are queued but not read yet (0-dim tensors).
+struct Queued {
+    step: u64,
+    loss: Tensor,
+    grad_norm: Tensor,
+}
+
 pub struct TrainLoop {
     opt: Optimization,
+    /// Adam decides each step's skip and clip on the device, and each step's figures are read
+    /// after the next step is queued (`engine.step_checks`).
+    on_device: bool,
     /// Every variable of the network (parameters and buffers), sharing storage with it.
     vars: HashMap<String, Tensor>,
     params: Vec<(String, Tensor)>,
@@ -44,11 +55,13 @@ pub struct TrainLoop {
 impl TrainLoop {
     pub fn new(vs: &tch::nn::VarStore, opt: &Optimization, seed: u64) -> Self {
         let params = named_parameters(vs);
+        let on_device = step_checks_on_device(vs.device());
         // Adam rebinds the parameters to views of one flat tensor; the EMA averages that.
-        let adam = Adam::new(&params, opt.learning_rate);
+        let adam = Adam::new(&params, opt.learning_rate).deciding_on_device(on_device);
         let ema = Ema::new(&params, opt.ema_decay, opt.ema_every, opt.ema_start, adam.flat_params(&params));
         Self {
             opt: opt.clone(),
+            on_device,
             vars: vs.variables(),
             adam,
             ema,
@@ -108,13 +121,17 @@ impl TrainLoop {
         }
         self.step = state.step;
         self.rng = state.rng;
-        self.adam.steps = state.adam_steps;
+        self.adam.set_steps(state.adam_steps);
         self.loss = state.loss;
         Ok(())
     }
 
     /// Runs to `opt.steps`. `loss_fn` draws a batch with the loop's RNG and returns the
     /// differentiable loss; `eval_fn` returns the held-out loss (None: nothing held out).
+    ///
+    /// With the steps checked on the device, step k's loss and norm are read (reported, counted
+    /// towards a divergence) after step k + 1 is queued, except where something looks at the
+    /// weights before the next step: an evaluation, a checkpoint, the last step, a stop.
     pub fn run<L: Into<StepLoss>>(
         &mut self,
         ctx: &mut JobContext,
@@ -124,8 +141,12 @@ impl TrainLoop {
         let mut last_checkpoint = self.step;
         // Steps in a row whose loss or gradient was not finite (skipped by Adam::step).
         let mut non_finite = 0u32;
+        let mut unread: Option<Queued> = None;
         while self.step < self.opt.steps {
             if let Err(stop) = ctx.check_stop() {
+                if let Some(queued) = unread.take() {
+                    self.read(ctx, queued, &mut non_finite, &mut eval_fn)?;
+                }
                 // A shutdown keeps the job RUNNING: checkpoint first so the restart loses nothing.
                 if matches!(stop, Stop::Interrupted) && self.step > last_checkpoint {
                     self.checkpoint(ctx)?;
@@ -133,56 +154,34 @@ impl TrainLoop {
                 return Err(stop);
             }
             self.step += 1;
-            // Adam applies nothing when the gradient is not finite (as a non-finite loss makes
-            // it), so one bad batch (an inf in a double backward) costs one step, not the job; a
-            // run of them is a divergence, and fails the job before anything after its last
-            // checkpoint is kept.
             let (loss, grad_norm) = match loss_fn(&mut self.rng)?.into() {
                 StepLoss::Graph(loss) => {
                     loss.backward();
                     let norm = self.adam.step(&self.params, self.opt.grad_clip);
-                    (loss, norm)
+                    (loss.detach(), norm)
                 }
                 StepLoss::Computed { loss, grads } => {
                     let norm = self.adam.step_with(&self.params, grads, self.opt.grad_clip);
                     (loss, norm)
                 }
             };
-            let loss = loss.double_value(&[]);
-            if !(loss.is_finite() && grad_norm.is_finite()) {
-                non_finite += 1;
-                if non_finite >= MAX_NON_FINITE_STEPS {
-                    return Err(Stop::Failed(Error::FailedPrecondition(format!(
-                        "training diverged at step {} ({non_finite} steps in a row with loss {loss} or gradient norm \
-                         {grad_norm} not finite); lower spec.optimization.learning_rate or set grad_clip",
-                        self.step
-                    ))));
-                }
-                // Adam skipped the update only if the gradient was not finite.
-                let update = if grad_norm.is_finite() { "update applied" } else { "update skipped" };
-                ctx.log(format!("step {}: loss {loss}, gradient norm {grad_norm}: not finite, {update}", self.step))?;
+            if self.on_device {
+                // What `read` decides on the host: a step counts if its loss and gradient are finite.
+                let counts = grad_norm.isfinite().logical_and(&loss.isfinite());
+                self.ema.after_step(&self.params, self.step, Some(&counts));
+            }
+            let queued = Queued { step: self.step, loss, grad_norm };
+            if let Some(previous) = unread.take() {
+                self.read(ctx, previous, &mut non_finite, &mut eval_fn)?;
+            }
+            let checkpoint_due = self.step.is_multiple_of(self.opt.checkpoint_every) && self.step < self.opt.steps;
+            if self.on_device && !checkpoint_due && !self.eval_due(self.step) {
+                unread = Some(queued);
             } else {
-                non_finite = 0;
-                self.ema.after_step(&self.params, self.step);
-                self.loss = loss;
-                let eval_loss = if self.step.is_multiple_of(self.opt.eval_every) || self.step == self.opt.steps {
-                    eval_fn()?
-                } else {
-                    None
-                };
-                if eval_loss.is_some() {
-                    self.eval_loss = eval_loss;
-                }
-                ctx.progress(StepReport {
-                    step: self.step,
-                    loss: self.loss,
-                    grad_norm,
-                    learning_rate: self.opt.learning_rate,
-                    eval_loss,
-                })?;
+                self.read(ctx, queued, &mut non_finite, &mut eval_fn)?;
             }
             // A skipped step still reaches its checkpoint: the schedule is by step number.
-            if self.step.is_multiple_of(self.opt.checkpoint_every) && self.step < self.opt.steps {
+            if checkpoint_due {
                 self.checkpoint(ctx)?;
                 last_checkpoint = self.step;
             }
@@ -190,10 +189,56 @@ impl TrainLoop {
         Ok(())
     }
 
+    /// Whether step `step` is followed by an evaluation (if it applies).
+    fn eval_due(&self, step: u64) -> bool {
+        step.is_multiple_of(self.opt.eval_every) || step == self.opt.steps
+    }
+
+    /// Reads a queued step's loss and gradient norm and acts on them: progress, the EMA (when
+    /// decided on the host), the evaluation, or the count of non-finite steps.
+    ///
+    /// Adam applies nothing when the gradient is not finite (as a non-finite loss makes it), so
+    /// one bad batch (an inf in a double backward) costs one step, not the job; a run of them
+    /// is a divergence, and fails the job before anything after its last checkpoint is kept.
+    fn read(
+        &mut self,
+        ctx: &mut JobContext,
+        queued: Queued,
+        non_finite: &mut u32,
+        eval_fn: &mut impl FnMut() -> Result<Option<f64>>,
+    ) -> std::result::Result<(), Stop> {
+        let Queued { step, loss, grad_norm } = queued;
+        let (loss, grad_norm) = (loss.double_value(&[]), grad_norm.double_value(&[]));
+        if !(loss.is_finite() && grad_norm.is_finite()) {
+            *non_finite += 1;
+            if *non_finite >= MAX_NON_FINITE_STEPS {
+                return Err(Stop::Failed(Error::FailedPrecondition(format!(
+                    "training diverged at step {step} ({non_finite} steps in a row with loss {loss} or gradient norm \
+                     {grad_norm} not finite); lower spec.optimization.learning_rate or set grad_clip"
+                ))));
+            }
+            // Adam skipped the update only if the gradient was not finite.
+            let update = if grad_norm.is_finite() { "update applied" } else { "update skipped" };
+            ctx.log(format!("step {step}: loss {loss}, gradient norm {grad_norm}: not finite, {update}"))?;
+            return Ok(());
+        }
+        *non_finite = 0;
+        if !self.on_device {
+            self.ema.after_step(&self.params, step, None);
+        }
+        self.loss = loss;
+        let eval_loss = if self.eval_due(step) { eval_fn()? } else { None };
+        if eval_loss.is_some() {
+            self.eval_loss = eval_loss;
+        }
+        ctx.progress(StepReport { step, loss, grad_norm, learning_rate: self.opt.learning_rate, eval_loss })?;
+        Ok(())
+    }
+
     /// Writes a checkpoint: weights, EMA weights, Adam moments, and the step, RNG state and
     /// loss (`state.json`).
     fn checkpoint(&self, ctx: &mut JobContext) -> Result<()> {
-        let state = TrainState { step: self.step, rng: self.rng, adam_steps: self.adam.steps, loss: self.loss };
+        let state = TrainState { step: self.step, rng: self.rng, adam_steps: self.adam.steps(), loss: self.loss };
         let current: Vec<(String, Tensor)> = self.vars.iter().map(|(k, v)| (k.clone(), v.shallow_clone())).collect();
         ctx.checkpoint(self.step, |d| {
             write_weights(&current, &d.join("weights.safetensors"))?;
