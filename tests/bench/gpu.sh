@@ -9,12 +9,16 @@
 #          (or tests/bench/gpu-build.sh, which builds against that machine's older libtorch,
 #          and also carries relreward-loadgen for the serving figure below)
 #   there: tests/bench/gpu.sh            (BIN=.gpu, STEPS, WARMUP, PORT, KEEP overridable;
-#                                         KEEP=DIR keeps the server's log there)
+#                                         KEEP=DIR keeps the server's log there; HOST_CHECKS=0
+#                                         skips the per-step job's second run)
 #
 # Sizes: TemporalUnet(dim 32, dim_mults (1, 4, 8)) base and expert over [256, 6] windows,
 # T = 256, Diffuser's cosine schedule, x0 (relreward's defaults); reward ValueFunction widths
 # (32, 128, 256); batch 256. relreward's rate comes from its job's progress events between
-# steps WARMUP and WARMUP + STEPS (as tests/bench/training.sh). The server loads that
+# steps WARMUP and WARMUP + STEPS (as tests/bench/training.sh). The per-step job runs twice:
+# with the server's default step checks (on CUDA: decided on the device, each step's loss read
+# after the next is queued) and with engine.step_checks = host (the gradient norm and loss read
+# inside each step), on a second server. The server loads that
 # machine's libtorch: the binary links libtorch_cpu and libc10 only, so libtorch_cuda is
 # preloaded to make CUDA visible (docs/deployment.md, "GPU").
 set -euo pipefail
@@ -27,13 +31,22 @@ TL=$("$PY" -c 'import os, torch; print(os.path.dirname(torch.__file__))')/lib
 tmp=$(mktemp -d)
 export RELREWARD_ENDPOINT=http://127.0.0.1:$PORT
 
-LD_LIBRARY_PATH=$TL LD_PRELOAD=$TL/libtorch_cuda.so RELREWARD__ENGINE__DEVICE=cuda RELREWARD__METRICS__LISTEN= \
-  "$BIN/relreward-server" --listen 127.0.0.1:$PORT --data-dir "$tmp/data" >"$tmp/out" 2>"$tmp/log" &
-server=$!
+# start_server CHECKS: a server with engine.step_checks = CHECKS, the base and expert models
+# trained (one step each: only their sizes matter) on the maze dataset.
+start_server() {
+  LD_LIBRARY_PATH=$TL LD_PRELOAD=$TL/libtorch_cuda.so RELREWARD__ENGINE__DEVICE=cuda RELREWARD__METRICS__LISTEN= \
+    RELREWARD__ENGINE__STEP_CHECKS=$1 \
+    "$BIN/relreward-server" --listen 127.0.0.1:$PORT --data-dir "$tmp/data-$1" >"$tmp/out" 2>"$tmp/log" &
+  server=$!
+  for _ in $(seq 100); do grep -q "listening on" "$tmp/out" 2>/dev/null && break; sleep 0.2; done
+  grep -m1 "libtorch initialised" "$tmp/log" >&2 || { tail -20 "$tmp/log" >&2; exit 1; }
+  rr dataset upload "$BIN/maze.npz" --name maze >/dev/null
+  for m in base expert; do
+    rr train diffusion --name "$m" --dataset maze --config "$tmp/unet.toml" --steps 1 --batch-size 2 --watch >/dev/null
+  done
+}
+server=
 trap 'kill $server 2>/dev/null || true; wait $server 2>/dev/null || true; if [[ -n ${KEEP:-} ]]; then cp "$tmp/log" "$KEEP/server.log"; fi; rm -rf "$tmp"' EXIT
-for _ in $(seq 100); do grep -q "listening on" "$tmp/out" 2>/dev/null && break; sleep 0.2; done
-grep -m1 "libtorch initialised" "$tmp/log" >&2 || { tail -20 "$tmp/log" >&2; exit 1; }
-
 rr() { "$BIN/relreward" "$@"; }
 cat >"$tmp/unet.toml" <<TOML
 [diffusion]
@@ -41,10 +54,7 @@ horizon = 256
 n_timesteps = 256
 architecture = { kind = "temporal_unet", dim = 32, dim_mults = [1, 4, 8] }
 TOML
-rr dataset upload "$BIN/maze.npz" --name maze >/dev/null
-for m in base expert; do
-  rr train diffusion --name "$m" --dataset maze --config "$tmp/unet.toml" --steps 1 --batch-size 2 --watch >/dev/null
-done
+start_server auto
 
 rate() {
   "$PY" - "$1" "$WARMUP" "$STEPS" <<'PY'
@@ -73,6 +83,13 @@ if [[ -x $BIN/relreward-loadgen ]]; then
     --t 10 --warmup 3 --duration 10 --json | "$PY" -c 'import json, sys; print(json.dumps({"side": "relreward", "variant": "serving-64-stream", "result": json.load(sys.stdin)}))'
 fi
 kill $server; wait $server 2>/dev/null || true
+if [[ ${HOST_CHECKS:-1} == 1 ]]; then
+  start_server host
+  rr --json train reward --name r-host --base base --expert expert --dataset maze --arch value_function \
+    --widths 32,128,256 --steps "$total" --batch-size 256 --watch >"$tmp/events-host"
+  echo "{\"side\": \"relreward\", \"variant\": \"per-step-host-checks\", \"result\": $(rate "$tmp/events-host")}"
+  kill $server; wait $server 2>/dev/null || true
+fi
 
 # The reference nets come from the development package (dev/python); that machine has no
 # `make setup`, so it is read from the checkout.
