@@ -249,11 +249,11 @@ pub struct EngineConfig {
     /// Batched Score/Gradient passes and Sample runs computed at once (each on a blocking
     /// thread); more wait their turn.
     pub inference_workers: usize,
-    /// Where a training step decides whether its update applies and how clipping scales it,
-    /// and so when the loop reads its loss: `host` (each step's norm and loss read as it
-    /// runs), `device` (decided on the device, each step's figures read after the next step
-    /// is queued, so a GPU never waits for the host mid-step) or `auto` (device on CUDA, host
-    /// on the CPU, where reading costs nothing). The same weights either way.
+    /// Where a training step decides whether its update applies and how clipping scales it:
+    /// `host` (each step's norm and loss read as it runs), `device` (decided on the device,
+    /// the steps' figures read together where progress is reported, an evaluation or a
+    /// checkpoint is made: a GPU waits for the host only there) or `auto` (device on CUDA, host
+    /// on the CPU, where reading costs nothing). The same weights and events either way.
     pub step_checks: String,
 }
 

@@ -406,10 +406,10 @@ async fn batches_with_non_finite_targets_are_skipped_and_a_run_of_them_fails_the
 }
 
 /// `engine.step_checks = "device"` (the default on CUDA: Adam's skip and clip decided on the
-/// device, each step's loss read after the next step is queued) trains the same weights and
-/// reports the same progress, skips and divergence as the host's checks, here on the CPU: a job
-/// with rare non-finite batches, a checkpoint and evaluations (steps read at once) between
-/// deferred ones, and a job that diverges.
+/// device, the steps' losses read together where progress is reported) trains the same weights
+/// and reports the same progress, skips and divergence as the host's checks, here on the CPU: a
+/// job with rare non-finite batches, checkpoints and an evaluation, and a job that diverges
+/// (its tenth non-finite step found after more were queued).
 #[tokio::test(flavor = "multi_thread")]
 async fn steps_checked_on_the_device_train_and_report_as_on_the_host() {
     let tmp = tempfile::tempdir().expect("tmp");
@@ -430,8 +430,8 @@ async fn steps_checked_on_the_device_train_and_report_as_on_the_host() {
             if let Some(pb::job_spec::Kind::Reward(r)) = spec.kind.as_mut() {
                 r.base_model = base.into();
             }
+            // Progress every 50 steps (reward_spec's): on the device, up to 49 steps wait unread.
             if let Some(o) = spec.optimization.as_mut() {
-                o.log_every = Some(1);
                 o.grad_clip = Some(5.0);
             }
             client

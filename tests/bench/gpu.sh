@@ -16,8 +16,8 @@
 # T = 256, Diffuser's cosine schedule, x0 (relreward's defaults); reward ValueFunction widths
 # (32, 128, 256); batch 256. relreward's rate comes from its job's progress events between
 # steps WARMUP and WARMUP + STEPS (as tests/bench/training.sh). The per-step job runs twice:
-# with the server's default step checks (on CUDA: decided on the device, each step's loss read
-# after the next is queued) and with engine.step_checks = host (the gradient norm and loss read
+# with the server's default step checks (on CUDA: decided on the device, the losses read where
+# progress is reported) and with engine.step_checks = host (the gradient norm and loss read
 # inside each step), on a second server. The server loads that
 # machine's libtorch: the binary links libtorch_cpu and libc10 only, so libtorch_cuda is
 # preloaded to make CUDA visible (docs/deployment.md, "GPU").

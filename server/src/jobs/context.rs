@@ -158,12 +158,19 @@ impl JobContext {
         Ok(())
     }
 
-    /// Records a step. Progress events are written every `log_every` steps, at the last step
-    /// and whenever a held-out loss was evaluated; the record's step and loss follow.
-    pub fn progress(&mut self, r: StepReport) -> Result<()> {
+    /// Whether step `step`'s progress is written whatever it evaluated: the first, every
+    /// `log_every`-th and the last.
+    pub fn reports_at(&self, step: u64) -> bool {
         let o = &self.spec.optimization;
-        let total = o.steps;
-        if !(r.step.is_multiple_of(o.log_every) || r.step == total || r.eval_loss.is_some() || r.step == 1) {
+        step == 1 || step.is_multiple_of(o.log_every) || step == o.steps
+    }
+
+    /// Records a step. Progress events are written every `log_every` steps, at the first and
+    /// the last step and whenever a held-out loss was evaluated; the record's step and loss
+    /// follow.
+    pub fn progress(&mut self, r: StepReport) -> Result<()> {
+        let total = self.spec.optimization.steps;
+        if !(self.reports_at(r.step) || r.eval_loss.is_some()) {
             return Ok(());
         }
         let elapsed = self.started.0.elapsed().as_secs_f64();

@@ -8,7 +8,7 @@ use std::path::Path;
 
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
-use tch::Tensor;
+use tch::{Kind, Tensor};
 
 use super::context::{JobContext, StepReport, Stop};
 use crate::engine::optim::{Adam, Ema, StepLoss, named_parameters};
@@ -28,6 +28,9 @@ struct TrainState {
 
 /// Non-finite steps in a row (each skipped, weights untouched) after which a job has diverged.
 const MAX_NON_FINITE_STEPS: u32 = 10;
+
+/// Steps checked on the device whose figures may wait unread (each a pair of 0-dim tensors).
+const MAX_UNREAD_STEPS: usize = 100;
 
 /// A step whose loss and gradient norm are queued but not read yet (0-dim tensors).
 struct Queued {
@@ -129,9 +132,11 @@ impl TrainLoop {
     /// Runs to `opt.steps`. `loss_fn` draws a batch with the loop's RNG and returns the
     /// differentiable loss; `eval_fn` returns the held-out loss (None: nothing held out).
     ///
-    /// With the steps checked on the device, step k's loss and norm are read (reported, counted
-    /// towards a divergence) after step k + 1 is queued, except where something looks at the
-    /// weights before the next step: an evaluation, a checkpoint, the last step, a stop.
+    /// With the steps checked on the device, the steps' losses and norms are left on the device
+    /// and read together (one copy, the one wait for the device) where something looks at
+    /// them: a step that reports progress, evaluates or checkpoints, the last step, a stop, or
+    /// [`MAX_UNREAD_STEPS`] of them. Each is then acted on in order, as on the host: the same
+    /// events, written later.
     pub fn run<L: Into<StepLoss>>(
         &mut self,
         ctx: &mut JobContext,
@@ -141,12 +146,10 @@ impl TrainLoop {
         let mut last_checkpoint = self.step;
         // Steps in a row whose loss or gradient was not finite (skipped by Adam::step).
         let mut non_finite = 0u32;
-        let mut unread: Option<Queued> = None;
+        let mut unread: Vec<Queued> = Vec::new();
         while self.step < self.opt.steps {
             if let Err(stop) = ctx.check_stop() {
-                if let Some(queued) = unread.take() {
-                    self.read(ctx, queued, &mut non_finite, &mut eval_fn)?;
-                }
+                self.read(ctx, std::mem::take(&mut unread), &mut non_finite, &mut eval_fn)?;
                 // A shutdown keeps the job RUNNING: checkpoint first so the restart loses nothing.
                 if matches!(stop, Stop::Interrupted) && self.step > last_checkpoint {
                     self.checkpoint(ctx)?;
@@ -170,15 +173,11 @@ impl TrainLoop {
                 let counts = grad_norm.isfinite().logical_and(&loss.isfinite());
                 self.ema.after_step(&self.params, self.step, Some(&counts));
             }
-            let queued = Queued { step: self.step, loss, grad_norm };
-            if let Some(previous) = unread.take() {
-                self.read(ctx, previous, &mut non_finite, &mut eval_fn)?;
-            }
+            unread.push(Queued { step: self.step, loss, grad_norm });
             let checkpoint_due = self.step.is_multiple_of(self.opt.checkpoint_every) && self.step < self.opt.steps;
-            if self.on_device && !checkpoint_due && !self.eval_due(self.step) {
-                unread = Some(queued);
-            } else {
-                self.read(ctx, queued, &mut non_finite, &mut eval_fn)?;
+            let looked_at = checkpoint_due || self.eval_due(self.step) || ctx.reports_at(self.step);
+            if !self.on_device || looked_at || unread.len() >= MAX_UNREAD_STEPS {
+                self.read(ctx, std::mem::take(&mut unread), &mut non_finite, &mut eval_fn)?;
             }
             // A skipped step still reaches its checkpoint: the schedule is by step number.
             if checkpoint_due {
@@ -189,26 +188,49 @@ impl TrainLoop {
         Ok(())
     }
 
+    /// Reads queued steps' losses and gradient norms (in one copy) and acts on each in order.
+    fn read(
+        &mut self,
+        ctx: &mut JobContext,
+        queued: Vec<Queued>,
+        non_finite: &mut u32,
+        eval_fn: &mut impl FnMut() -> Result<Option<f64>>,
+    ) -> std::result::Result<(), Stop> {
+        let figures: Vec<f64> = match queued.as_slice() {
+            [] => return Ok(()),
+            [one] => vec![one.loss.double_value(&[]), one.grad_norm.double_value(&[])],
+            many => {
+                let all: Vec<Tensor> =
+                    many.iter().flat_map(|q| [q.loss.to_kind(Kind::Double), q.grad_norm.shallow_clone()]).collect();
+                Vec::<f64>::try_from(Tensor::stack(&all, 0).to_device(tch::Device::Cpu))?
+            }
+        };
+        for (q, pair) in queued.iter().zip(figures.chunks_exact(2)) {
+            self.act_on(ctx, q.step, pair[0], pair[1], non_finite, eval_fn)?;
+        }
+        Ok(())
+    }
+
     /// Whether step `step` is followed by an evaluation (if it applies).
     fn eval_due(&self, step: u64) -> bool {
         step.is_multiple_of(self.opt.eval_every) || step == self.opt.steps
     }
 
-    /// Reads a queued step's loss and gradient norm and acts on them: progress, the EMA (when
-    /// decided on the host), the evaluation, or the count of non-finite steps.
+    /// Acts on a step's loss and gradient norm: progress, the EMA (when decided on the host),
+    /// the evaluation, or the count of non-finite steps.
     ///
     /// Adam applies nothing when the gradient is not finite (as a non-finite loss makes it), so
     /// one bad batch (an inf in a double backward) costs one step, not the job; a run of them
     /// is a divergence, and fails the job before anything after its last checkpoint is kept.
-    fn read(
+    fn act_on(
         &mut self,
         ctx: &mut JobContext,
-        queued: Queued,
+        step: u64,
+        loss: f64,
+        grad_norm: f64,
         non_finite: &mut u32,
         eval_fn: &mut impl FnMut() -> Result<Option<f64>>,
     ) -> std::result::Result<(), Stop> {
-        let Queued { step, loss, grad_norm } = queued;
-        let (loss, grad_norm) = (loss.double_value(&[]), grad_norm.double_value(&[]));
         if !(loss.is_finite() && grad_norm.is_finite()) {
             *non_finite += 1;
             if *non_finite >= MAX_NON_FINITE_STEPS {
