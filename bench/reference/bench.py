@@ -5,6 +5,7 @@ tests/bench/training.sh, and prints one JSON line per run.
     bench.py ddpm   --dataset maze.npz --manifest-of B --models-dir DIR [--steps S --warmup W ...]
     bench.py sample --models-dir DIR --base B --reward R --n N [--repeats K ...]
     bench.py reward-step --horizon H --transition-dim D --n-timesteps T [--pool P --steps S ...]
+    bench.py frozen-precision --horizon H --transition-dim D [--dim-mults 1,4,8 --batch B]
 
 Models are read as relreward's API hands them out: DIR/NAME per model, as
 `relreward model download NAME --out DIR/NAME` writes it (weights.safetensors and
@@ -23,6 +24,11 @@ Diffuser's guided p_sample_loop over `--n` trajectories in one batch.
 runs it (`tests/bench/reward_step.sh`): a pool of `--pool` (point, t, target) triples made once
 (their values do not change the cost), then per step a batch gathered from the pool, the
 alignment loss through the double backward, backward, Adam, the EMA and `.item()`.
+
+`frozen-precision`: one TemporalUnet forward pass (no gradient, PyTorch's initialisation) at
+`--horizon`, `--transition-dim`, `--batch`, in float32 and under bfloat16 autocast, best of
+three rounds of ten, with the largest output difference relative to the largest output: what
+bf16 would buy the frozen models' passes, and cost their outputs, on this CPU.
 
 `--compile` (alg1, ddpm): the same reference under `torch.compile` (inductor, the default
 backend; on the CPU it generates C++/OpenMP kernels). Algorithm 1 compiles the two frozen
@@ -226,6 +232,33 @@ def run_sample(args):
             "n_timesteps": model.n_timesteps}
 
 
+def run_frozen_precision(args):
+    from relreward_dev.nets import TemporalUnet
+    torch.manual_seed(args.seed)
+    mults = tuple(int(m) for m in args.dim_mults.split(","))
+    net = TemporalUnet(args.transition_dim, dim=args.dim, dim_mults=mults).eval()
+    x = torch.randn(args.batch, args.horizon, args.transition_dim)
+    t = torch.randint(0, 20, (args.batch,))
+
+    def best_ms():
+        net(x, t)
+        best = float("inf")
+        for _ in range(3):
+            start = time.perf_counter()
+            for _ in range(10):
+                net(x, t)
+            best = min(best, (time.perf_counter() - start) / 10)
+        return 1e3 * best
+
+    with torch.no_grad():
+        exact, float32_ms = net(x, t), best_ms()
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            bf16, bf16_ms = net(x, t).float(), best_ms()
+    error = ((bf16 - exact).abs().max() / exact.abs().max()).item()
+    return {"horizon": args.horizon, "batch": args.batch, "float32_ms": float32_ms, "bf16_autocast_ms": bf16_ms,
+            "speedup": float32_ms / bf16_ms, "max_error_relative_to_max_output": error}
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="benchmark", required=True)
@@ -272,11 +305,19 @@ def main():
     step.add_argument("--lr", type=float, default=1e-3)
     step.add_argument("--steps", type=int, default=1000)
     step.add_argument("--warmup", type=int, default=100)
+    precision = sub.add_parser("frozen-precision")
+    precision.add_argument("--threads", type=int, required=True)
+    precision.add_argument("--seed", type=int, default=0)
+    precision.add_argument("--horizon", type=int, required=True)
+    precision.add_argument("--transition-dim", type=int, required=True)
+    precision.add_argument("--dim", type=int, default=32)
+    precision.add_argument("--dim-mults", default="1,2,4,8")
+    precision.add_argument("--batch", type=int, default=64)
     args = parser.parse_args()
 
     torch.set_num_threads(args.threads)
     result = {"alg1": run_alg1, "ddpm": run_ddpm, "sample": run_sample,
-              "reward-step": run_reward_step}[args.benchmark](args)
+              "reward-step": run_reward_step, "frozen-precision": run_frozen_precision}[args.benchmark](args)
     result.update({"benchmark": args.benchmark, "threads": torch.get_num_threads(), "torch": torch.__version__,
                    "peak_rss_mib": peak_rss_mib()})
     print(json.dumps(result))

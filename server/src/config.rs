@@ -250,10 +250,11 @@ pub struct EngineConfig {
     /// thread); more wait their turn.
     pub inference_workers: usize,
     /// Where a training step decides whether its update applies and how clipping scales it:
-    /// `host` (each step's norm and loss read as it runs), `device` (decided on the device,
-    /// the steps' figures read together where progress is reported, an evaluation or a
-    /// checkpoint is made: a GPU waits for the host only there) or `auto` (device on CUDA, host
-    /// on the CPU, where reading costs nothing). The same weights and events either way.
+    /// `host` (each step's norm and loss read as it runs), `device` (decided on the device, the
+    /// steps' figures read together where progress is reported, an evaluation or a checkpoint
+    /// is made, at a stop or after 100 steps: a GPU waits for the host only there) or `auto`
+    /// (device on CUDA, host on the CPU, where reading costs nothing). The same events either
+    /// way, and on the CPU the same weights bit for bit.
     pub step_checks: String,
 }
 

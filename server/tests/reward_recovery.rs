@@ -458,6 +458,9 @@ async fn steps_checked_on_the_device_train_and_report_as_on_the_host() {
             let model = client.models().get_model(pb::GetModelRequest { name: job.into() }).await;
             figures.push((seen, model.ok().map(|m| m.into_inner().sha256)));
         }
+        // Read after the jobs: the start logs it after it begins to listen.
+        let on_device = format!("step_checks_on_device={}", checks == "device");
+        assert!(server.log().contains(&on_device), "{checks}: no '{on_device}' in the log:\n{}", server.log());
         outcomes.push(figures);
     }
     let (host, device) = (&outcomes[0], &outcomes[1]);

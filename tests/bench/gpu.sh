@@ -9,7 +9,7 @@
 #          (or tests/bench/gpu-build.sh, which builds against that machine's older libtorch,
 #          and also carries relreward-loadgen for the serving figure below)
 #   there: tests/bench/gpu.sh            (BIN=.gpu, STEPS, WARMUP, PORT, KEEP overridable;
-#                                         KEEP=DIR keeps the server's log there; HOST_CHECKS=0
+#                                         KEEP=DIR keeps the servers' logs there; HOST_CHECKS=0
 #                                         skips the per-step job's second run)
 #
 # Sizes: TemporalUnet(dim 32, dim_mults (1, 4, 8)) base and expert over [256, 6] windows,
@@ -36,17 +36,17 @@ export RELREWARD_ENDPOINT=http://127.0.0.1:$PORT
 start_server() {
   LD_LIBRARY_PATH=$TL LD_PRELOAD=$TL/libtorch_cuda.so RELREWARD__ENGINE__DEVICE=cuda RELREWARD__METRICS__LISTEN= \
     RELREWARD__ENGINE__STEP_CHECKS=$1 \
-    "$BIN/relreward-server" --listen 127.0.0.1:$PORT --data-dir "$tmp/data-$1" >"$tmp/out" 2>"$tmp/log" &
+    "$BIN/relreward-server" --listen 127.0.0.1:$PORT --data-dir "$tmp/data-$1" >"$tmp/out" 2>"$tmp/log-$1" &
   server=$!
   for _ in $(seq 100); do grep -q "listening on" "$tmp/out" 2>/dev/null && break; sleep 0.2; done
-  grep -m1 "libtorch initialised" "$tmp/log" >&2 || { tail -20 "$tmp/log" >&2; exit 1; }
+  grep -m1 "libtorch initialised" "$tmp/log-$1" >&2 || { tail -20 "$tmp/log-$1" >&2; exit 1; }
   rr dataset upload "$BIN/maze.npz" --name maze >/dev/null
   for m in base expert; do
     rr train diffusion --name "$m" --dataset maze --config "$tmp/unet.toml" --steps 1 --batch-size 2 --watch >/dev/null
   done
 }
 server=
-trap 'kill $server 2>/dev/null || true; wait $server 2>/dev/null || true; if [[ -n ${KEEP:-} ]]; then cp "$tmp/log" "$KEEP/server.log"; fi; rm -rf "$tmp"' EXIT
+trap 'kill $server 2>/dev/null || true; wait $server 2>/dev/null || true; if [[ -n ${KEEP:-} ]]; then for l in "$tmp"/log-*; do cp "$l" "$KEEP/server-${l##*/log-}.log"; done; fi; rm -rf "$tmp"' EXIT
 rr() { "$BIN/relreward" "$@"; }
 cat >"$tmp/unet.toml" <<TOML
 [diffusion]

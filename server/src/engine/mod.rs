@@ -70,13 +70,15 @@ static DEVICE: OnceLock<Device> = OnceLock::new();
 /// `engine.step_checks` as set at start (unset: `auto`).
 static STEP_CHECKS: OnceLock<String> = OnceLock::new();
 
-/// Whether training on `device` decides each step's skip and clip on the device and reads its
-/// figures a step late (`engine.step_checks`: `device`, or `auto` on CUDA), rather than on the
-/// host as each step runs (see [`optim::Adam::deciding_on_device`]).
+/// Whether training on `device` decides each step's skip and clip on the device and reads the
+/// steps' figures together where they are looked at (`engine.step_checks`: `device`, or `auto`
+/// on CUDA), rather than on the host as each step runs (see
+/// [`optim::Adam::deciding_on_device`], `jobs::training::TrainLoop::run`).
 pub fn step_checks_on_device(device: Device) -> bool {
     match STEP_CHECKS.get().map_or("auto", String::as_str) {
         "device" => true,
         "host" => false,
+        // `auto`, the only other value the configuration accepts.
         _ => device.is_cuda(),
     }
 }

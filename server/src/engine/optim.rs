@@ -53,9 +53,9 @@ pub struct Adam {
     eps: f64,
     /// Updates applied so far (for bias correction), when decided on the host.
     steps: u64,
-    /// Decided on the device: the updates applied so far, a 0-dim double there (the count;
-    /// `steps` is then unused).
-    device_steps: Option<Tensor>,
+    /// Decided on the device: the count there and the constants the decisions pick from
+    /// (`steps` is then unused).
+    on_device: Option<OnDevice>,
     device: tch::Device,
     /// The moments of all parameters, one flat tensor each (None, as `flat_params`: the
     /// parameters differ in dtype or device, and every update goes parameter by parameter), and each parameter's
@@ -66,6 +66,23 @@ pub struct Adam {
     flat_params: Option<Tensor>,
     m: Vec<Tensor>,
     v: Vec<Tensor>,
+}
+
+/// What [`Adam::deciding_on_device`] keeps on the parameters' device: the updates applied so
+/// far (a 0-dim double), and the constants each step picks from, made once rather than per step
+/// (on a GPU each would be an allocation and a fill).
+struct OnDevice {
+    steps: Tensor,
+    /// 0 and 1 as 0-dim doubles.
+    zero: Tensor,
+    one: Tensor,
+    beta2: Tensor,
+    lr: Tensor,
+    /// 1 - beta1 and 0 in the moments' kind (`lerp`'s weight must be of it).
+    m_weight: Tensor,
+    m_zero: Tensor,
+    /// The last clip threshold and the 0-dim double holding it.
+    clip: Option<(f64, Tensor)>,
 }
 
 /// One update's coefficients: numbers decided on the host, or 0-dim tensors on the device
@@ -111,21 +128,33 @@ impl Adam {
             }
         };
         let device = params.first().map_or(tch::Device::Cpu, |(_, p)| p.device());
-        Self { lr, beta1: 0.9, beta2: 0.999, eps: 1e-8, steps: 0, device_steps: None, device, flat, flat_params, m, v }
+        Self { lr, beta1: 0.9, beta2: 0.999, eps: 1e-8, steps: 0, on_device: None, device, flat, flat_params, m, v }
     }
 
     /// Decides each step's skip and clip on the parameters' device (`on`) or on the host.
     pub fn deciding_on_device(mut self, on: bool) -> Self {
         let steps = self.steps();
-        self.device_steps = on.then(|| Tensor::scalar_tensor(steps as f64, (Kind::Double, self.device)));
+        let kind =
+            self.flat.as_ref().map_or_else(|| self.m.first().map_or(Kind::Float, Tensor::kind), |(m, _)| m.kind());
+        let scalar = |x: f64, kind: Kind| Tensor::scalar_tensor(x, (kind, self.device));
+        self.on_device = on.then(|| OnDevice {
+            steps: scalar(steps as f64, Kind::Double),
+            zero: scalar(0.0, Kind::Double),
+            one: scalar(1.0, Kind::Double),
+            beta2: scalar(self.beta2, Kind::Double),
+            lr: scalar(self.lr, Kind::Double),
+            m_weight: scalar(1.0 - self.beta1, kind),
+            m_zero: scalar(0.0, kind),
+            clip: None,
+        });
         self
     }
 
     /// Updates applied so far (read from the device when decided there).
     pub fn steps(&self) -> u64 {
-        match &self.device_steps {
+        match &self.on_device {
             // A count of whole steps in a double: exact.
-            Some(t) => t.double_value(&[]) as u64,
+            Some(d) => d.steps.double_value(&[]) as u64,
             None => self.steps,
         }
     }
@@ -133,8 +162,8 @@ impl Adam {
     /// Sets the count of updates applied (a checkpoint's, when resuming).
     pub fn set_steps(&mut self, steps: u64) {
         self.steps = steps;
-        if let Some(t) = self.device_steps.as_mut() {
-            let _ = t.fill_(steps as f64);
+        if let Some(d) = self.on_device.as_mut() {
+            let _ = d.steps.fill_(steps as f64);
         }
     }
 
@@ -218,7 +247,7 @@ impl Adam {
     /// it applies nothing (its gradient not finite).
     fn coefficients(&mut self, norm: &Tensor, clip: Option<f64>) -> Option<Coefficients> {
         let (beta1, beta2) = (self.beta1, self.beta2);
-        let Some(steps) = self.device_steps.as_mut() else {
+        let Some(d) = self.on_device.as_mut() else {
             let norm = norm.double_value(&[]);
             if !norm.is_finite() {
                 return None;
@@ -236,23 +265,31 @@ impl Adam {
         // what leaves the moments unchanged (never multiplied by the 0/1 mask: a skipped first
         // step's lr / (1 - beta1^0) is an infinity, and 0 * inf a NaN).
         let applied = norm.isfinite();
-        let scalar = |x: f64| Tensor::scalar_tensor(x, (Kind::Double, self.device));
-        let pick = |yes: &Tensor, no: f64| yes.where_self(&applied, &scalar(no));
-        let _ = steps.g_add_(&applied.to_kind(Kind::Double));
+        let _ = d.steps.g_add_(&applied.to_kind(Kind::Double));
         let scale = match clip {
-            Some(c) => (scalar(c) / (norm + 1e-6)).where_self(&norm.gt(c), &scalar(1.0)),
-            None => scalar(1.0),
+            Some(c) => {
+                // The clip as a tensor, made again only when it changes: c / (norm + 1e-6) is
+                // then the host's division (a scalar numerator would be 1 / ((norm + 1e-6) / c)).
+                let c_t = match &mut d.clip {
+                    Some((held, t)) if *held == c => t.shallow_clone(),
+                    slot => {
+                        let t = Tensor::scalar_tensor(c, (Kind::Double, norm.device()));
+                        *slot = Some((c, t.shallow_clone()));
+                        t
+                    }
+                };
+                (c_t / (norm + 1e-6)).where_self(&norm.gt(c), &d.one)
+            }
+            None => d.one.shallow_clone(),
         };
-        let bc1: Tensor = 1.0 - Tensor::pow_scalar(beta1, steps);
-        let bc2: Tensor = 1.0 - Tensor::pow_scalar(beta2, steps);
-        let kind =
-            self.flat.as_ref().map_or_else(|| self.m.first().map_or(Kind::Float, Tensor::kind), |(m, _)| m.kind());
+        let bc1: Tensor = 1.0 - Tensor::pow_scalar(beta1, &d.steps);
+        let bc2: Tensor = 1.0 - Tensor::pow_scalar(beta2, &d.steps);
         Some(Coefficients::Device {
-            scale: pick(&scale, 0.0),
-            m_weight: pick(&scalar(1.0 - beta1), 0.0).to_kind(kind),
-            v_decay: pick(&scalar(beta2), 1.0),
-            step_size: pick(&(scalar(self.lr) / bc1), 0.0),
-            bc2_sqrt: pick(&bc2.sqrt(), 1.0),
+            scale: scale.where_self(&applied, &d.zero),
+            m_weight: d.m_weight.where_self(&applied, &d.m_zero),
+            v_decay: d.beta2.where_self(&applied, &d.one),
+            step_size: (&d.lr / bc1).where_self(&applied, &d.zero),
+            bc2_sqrt: bc2.sqrt().where_self(&applied, &d.one),
         })
     }
 
@@ -321,7 +358,8 @@ impl Coefficients {
                 // A skipped step's gradient (inf or NaN somewhere) times its scale 0 is zeroed
                 // whole, so that it adds nothing to v; a finite one is unchanged by both.
                 let g = (g * scale).nan_to_num_(0.0, 0.0, 0.0);
-                let _ = m.lerp_tensor_(&g, m_weight);
+                // (A no-op but where parameters of several kinds are updated one by one.)
+                let _ = m.lerp_tensor_(&g, &m_weight.to_kind(m.kind()));
                 let _ = v.g_mul_(v_decay).addcmul_(&(&g * (1.0 - beta2)), &g);
                 let denom = v.sqrt().g_div_(bc2_sqrt).g_add_scalar_(eps);
                 (&*m * -step_size).g_div_(&denom)
@@ -602,8 +640,8 @@ mod tests {
 
     /// Skip and clip decided on the device ([`Adam::deciding_on_device`]) give the weights,
     /// moments, step count and average of the host's decisions bit for bit, through clipped,
-    /// unclipped, infinite and NaN steps (a skipped first step included), on the flat and the
-    /// per-parameter paths, and nothing is read to decide.
+    /// unclipped, infinite and NaN steps (a skipped first step included), on the flat path and
+    /// on the per-parameter one (a parameter without a gradient).
     #[test]
     fn deciding_on_the_device_updates_as_deciding_on_the_host() {
         for flat in [true, false] {
@@ -611,15 +649,19 @@ mod tests {
             let (mut vs_d, lin_d) = setup(13);
             vs_d.copy(&vs_h).expect("copy");
             let (ph, pd) = (named_parameters(&vs_h), named_parameters(&vs_d));
+            let bias_before = pd[0].1.copy();
             let (mut host, mut device) = (Adam::new(&ph, 0.05), Adam::new(&pd, 0.05).deciding_on_device(true));
-            if !flat {
-                for params in [&ph, &pd] {
-                    tch::no_grad(|| params[0].1.shallow_clone().set_data(&params[0].1.copy()));
-                }
-            }
-            assert_eq!(host.flat_params(&ph).is_some(), flat);
             let mut ema_h = Ema::new(&ph, 0.8, 2, 6, host.flat_params(&ph));
             let mut ema_d = Ema::new(&pd, 0.8, 2, 6, device.flat_params(&pd));
+            // Flat: every gradient, one update over all; per parameter: the bias's left out.
+            let step = |adam: &mut Adam, params: &[(String, Tensor)], clip| {
+                if flat {
+                    return adam.step(params, clip);
+                }
+                let grads = params[1..].iter().map(|(n, p)| (n.clone(), p.grad().copy())).collect();
+                zero_grads(params);
+                adam.step_with(params, grads, clip)
+            };
             // Per step: the loss's factor (inf, NaN: a skipped step) and the clip.
             let schedule = [
                 (f64::INFINITY, None),
@@ -632,21 +674,24 @@ mod tests {
                 (0.5, None),
                 (f64::NAN, None),
             ];
+            let mut clipped = 0;
             for (i, (factor, clip)) in schedule.iter().cycle().take(40).enumerate() {
-                let step = i as u64 + 1;
+                let n = i as u64 + 1;
                 (loss(&lin_h) * *factor).backward();
-                let norm_h = host.step(&ph, *clip).double_value(&[]);
+                let norm_h = step(&mut host, &ph, *clip).double_value(&[]);
                 if norm_h.is_finite() {
-                    ema_h.after_step(&ph, step, None);
+                    ema_h.after_step(&ph, n, None);
                 }
+                clipped += usize::from(clip.is_some_and(|c| norm_h.is_finite() && norm_h > c));
                 (loss(&lin_d) * *factor).backward();
-                let norm_d = device.step(&pd, *clip);
-                ema_d.after_step(&pd, step, Some(&norm_d.isfinite()));
+                let norm_d = step(&mut device, &pd, *clip);
+                ema_d.after_step(&pd, n, Some(&norm_d.isfinite()));
                 let norm_d = norm_d.double_value(&[]);
-                assert!(norm_h == norm_d || (norm_h.is_nan() && norm_d.is_nan()), "step {step}: {norm_h} vs {norm_d}");
-                assert_eq!(host.steps(), device.steps(), "step {step}");
+                assert!(norm_h == norm_d || (norm_h.is_nan() && norm_d.is_nan()), "step {n}: {norm_h} vs {norm_d}");
+                assert_eq!(host.steps(), device.steps(), "step {n}");
             }
             assert_eq!(host.steps(), 40 - 18, "18 of the 40 steps were not finite");
+            assert!(clipped >= 5, "{clipped} steps clipped");
             for (((name, h), (_, d)), ((_, eh), (_, ed))) in
                 ph.iter().zip(&pd).zip(ema_h.named(&ph).iter().zip(&ema_d.named(&pd)))
             {
@@ -655,6 +700,10 @@ mod tests {
             }
             for (a, b) in host.m.iter().zip(&device.m).chain(host.v.iter().zip(&device.v)) {
                 assert!(a.equal(b), "flat {flat}: moments differ");
+            }
+            if !flat {
+                assert_eq!(pd[0].0, "lin.bias");
+                assert!(pd[0].1.equal(&bias_before), "the bias, without a gradient, moved");
             }
             // A resumed count reaches the device's.
             device.set_steps(7);

@@ -41,8 +41,8 @@ struct Queued {
 
 pub struct TrainLoop {
     opt: Optimization,
-    /// Adam decides each step's skip and clip on the device, and each step's figures are read
-    /// after the next step is queued (`engine.step_checks`).
+    /// Adam decides each step's skip and clip on the device, and the steps' figures are read
+    /// together where something looks at them (`engine.step_checks`; see [`TrainLoop::run`]).
     on_device: bool,
     /// Every variable of the network (parameters and buffers), sharing storage with it.
     vars: HashMap<String, Tensor>,
@@ -157,7 +157,15 @@ impl TrainLoop {
                 return Err(stop);
             }
             self.step += 1;
-            let (loss, grad_norm) = match loss_fn(&mut self.rng)?.into() {
+            let step_loss = match loss_fn(&mut self.rng) {
+                Ok(step_loss) => step_loss,
+                Err(e) => {
+                    // The steps before it are acted on first, as the host's checks would have.
+                    self.read(ctx, std::mem::take(&mut unread), &mut non_finite, &mut eval_fn)?;
+                    return Err(e.into());
+                }
+            };
+            let (loss, grad_norm) = match step_loss.into() {
                 StepLoss::Graph(loss) => {
                     loss.backward();
                     let norm = self.adam.step(&self.params, self.opt.grad_clip);
@@ -200,9 +208,13 @@ impl TrainLoop {
             [] => return Ok(()),
             [one] => vec![one.loss.double_value(&[]), one.grad_norm.double_value(&[])],
             many => {
-                let all: Vec<Tensor> =
-                    many.iter().flat_map(|q| [q.loss.to_kind(Kind::Double), q.grad_norm.shallow_clone()]).collect();
-                Vec::<f64>::try_from(Tensor::stack(&all, 0).to_device(tch::Device::Cpu))?
+                let mut all = Vec::with_capacity(2 * many.len());
+                for q in many {
+                    let device = q.grad_norm.device();
+                    all.push(q.loss.f_to_kind(Kind::Double)?.f_reshape([1])?.f_to_device(device)?);
+                    all.push(q.grad_norm.f_reshape([1])?);
+                }
+                Vec::<f64>::try_from(Tensor::f_cat(&all, 0)?.f_to_device(tch::Device::Cpu)?)?
             }
         };
         for (q, pair) in queued.iter().zip(figures.chunks_exact(2)) {
