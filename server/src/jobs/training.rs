@@ -206,7 +206,7 @@ impl TrainLoop {
     ) -> std::result::Result<(), Stop> {
         let figures: Vec<f64> = match queued.as_slice() {
             [] => return Ok(()),
-            [one] => vec![one.loss.double_value(&[]), one.grad_norm.double_value(&[])],
+            [one] => vec![one.loss.f_double_value(&[])?, one.grad_norm.f_double_value(&[])?],
             many => {
                 let mut all = Vec::with_capacity(2 * many.len());
                 for q in many {
