@@ -246,3 +246,63 @@ async fn kill_9_during_a_running_job_resumes_from_its_checkpoint() {
     let job = client.jobs().get_job(pb::GetJobRequest { id: "crash".into() }).await.expect("get").into_inner();
     assert_eq!((job.state(), job.step), (pb::JobState::Succeeded, 600));
 }
+
+/// Steps checked on the device (`engine.step_checks = "device"`, CUDA's default: Adam's skip
+/// and clip decided there, the losses read where progress is reported) train a diffusion model
+/// (autograd's loss) to the same weights, with the same progress, as the host's checks; and a
+/// kill -9 in the middle of the device's run resumes with its step count restored from the
+/// checkpoint (read off the device when written) and still ends at the same weights.
+#[tokio::test(flavor = "multi_thread")]
+async fn steps_checked_on_the_device_train_alike_across_a_kill_9() {
+    let mut outcomes = Vec::new();
+    for checks in ["host", "device"] {
+        let mut server = TestServer::start_with_env(&[("RELREWARD__ENGINE__STEP_CHECKS", checks)]);
+        let mut client = server.client().await;
+        upload_lines(&client, "lines", &LINES).await;
+        let mut clipped = spec("lines", "alike", 300, 50);
+        if let Some(o) = clipped.optimization.as_mut() {
+            o.grad_clip = Some(0.5);
+        }
+        submit(&client, clipped, "alike").await.expect("submit");
+        if checks == "device" {
+            let mut stream = client
+                .jobs()
+                .watch_job(pb::WatchJobRequest { id: "alike".into(), from_seq: 0 })
+                .await
+                .expect("watch")
+                .into_inner();
+            while let Some(e) = stream.next().await {
+                if matches!(e.expect("event").event, Some(Event::Checkpoint(c)) if c.step >= 100) {
+                    break;
+                }
+            }
+            drop(stream);
+            server.kill();
+            server.restart();
+            client = server.client().await;
+        }
+        let events = watch_all(&client, "alike", 0).await;
+        assert_eq!(final_state(&events), Some(pb::JobState::Succeeded), "{checks}: {events:?}");
+        if checks == "device" {
+            assert!(
+                events
+                    .iter()
+                    .any(|e| matches!(&e.event, Some(Event::State(s)) if s.message.starts_with("resumed at step"))),
+                "the device's run was not resumed"
+            );
+        }
+        let lines: std::collections::BTreeSet<String> = progress(&events)
+            .iter()
+            .map(|p| format!("{} {:e} {:e} {:?}", p.step, p.loss, p.grad_norm, p.eval_loss))
+            .collect();
+        let model = client.models().get_model(pb::GetModelRequest { name: "alike".into() }).await.expect("model");
+        let on_device = format!("step_checks_on_device={}", checks == "device");
+        assert!(server.log().contains(&on_device), "{checks}: no '{on_device}' in the log");
+        outcomes.push((lines, model.into_inner().sha256));
+    }
+    let ((host_lines, host_sha), (device_lines, device_sha)) = (&outcomes[0], &outcomes[1]);
+    assert_eq!(host_sha, device_sha, "the weights differ");
+    // The steps between the checkpoint and the kill are reported twice on the device, alike.
+    assert_eq!(host_lines, device_lines);
+    assert!(host_lines.len() >= 30, "{host_lines:?}");
+}
