@@ -16,7 +16,7 @@ use relreward_client::{Client, MemorySource};
 use relreward_server::engine::manifest::ScheduleSpec;
 use relreward_server::engine::nets::reward::{RewardArchitecture, RewardNet};
 use relreward_server::engine::schedule::{Schedule, Table};
-use relreward_tests::{TestServer, python, repo_root};
+use relreward_tests::{TestServer, python, repo_root, wait_for_checkpoint};
 use tch::{Device, Kind, Tensor};
 use tokio_stream::StreamExt;
 
@@ -312,20 +312,7 @@ async fn kill_9_during_a_reward_job_resumes_and_still_recovers_the_reward() {
     let client = setup(&server).await;
     let spec = reward_spec("r-crash", pb::RewardTarget::Mean, pb::EvalPoint::XT, 1500, 100);
     client.jobs().submit_job(pb::SubmitJobRequest { spec: Some(spec), job_id: "crash".into() }).await.expect("submit");
-    let mut stream = client
-        .jobs()
-        .watch_job(pb::WatchJobRequest { id: "crash".into(), from_seq: 0 })
-        .await
-        .expect("watch")
-        .into_inner();
-    while let Some(e) = stream.next().await {
-        if let Some(Event::Checkpoint(c)) = e.expect("event").event
-            && c.step >= 300
-        {
-            break;
-        }
-    }
-    drop(stream);
+    wait_for_checkpoint(&client, "crash", 300).await;
     server.kill();
     server.restart();
     let client = server.client().await;

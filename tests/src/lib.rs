@@ -606,6 +606,22 @@ pub async fn watch_all(client: &Client, id: &str, from_seq: u64) -> Vec<pb::JobE
     out
 }
 
+/// Waits until job `id` writes a checkpoint at or past `step` (what a test kills the server
+/// after) and returns that checkpoint's step; panics if the job's events end first or one takes
+/// more than 5 minutes.
+pub async fn wait_for_checkpoint(client: &Client, id: &str, step: u64) -> u64 {
+    use tokio_stream::StreamExt;
+    let mut stream = client.watch_job(id, 0).await.expect("watch");
+    while let Some(e) = tokio::time::timeout(Duration::from_secs(300), stream.next()).await.expect("event in time") {
+        if let Some(pb::job_event::Event::Checkpoint(c)) = e.expect("event").event
+            && c.step >= step
+        {
+            return c.step;
+        }
+    }
+    panic!("job {id} ended before a checkpoint at step {step} or later");
+}
+
 /// The last state change among `events`.
 pub fn final_state(events: &[pb::JobEvent]) -> Option<pb::JobState> {
     events.iter().rev().find_map(|e| match &e.event {

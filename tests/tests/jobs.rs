@@ -3,7 +3,7 @@
 
 use relreward_client::Client;
 use relreward_client::pb::{self, job_event::Event};
-use relreward_tests::{Lines, TestServer, final_state, upload_lines, watch_all};
+use relreward_tests::{Lines, TestServer, final_state, upload_lines, wait_for_checkpoint, watch_all};
 use tokio_stream::StreamExt;
 use tonic::Code;
 
@@ -209,22 +209,7 @@ async fn kill_9_during_a_running_job_resumes_from_its_checkpoint() {
     submit(&client, spec("lines", "resumed", 600, 50), "crash").await.expect("submit");
 
     // Let it pass at least two checkpoints, then kill the server without warning.
-    let mut stream = client
-        .jobs()
-        .watch_job(pb::WatchJobRequest { id: "crash".into(), from_seq: 0 })
-        .await
-        .expect("watch")
-        .into_inner();
-    let mut checkpoint = 0;
-    while let Some(e) = stream.next().await {
-        if let Some(Event::Checkpoint(c)) = e.expect("event").event {
-            checkpoint = c.step;
-            if checkpoint >= 100 {
-                break;
-            }
-        }
-    }
-    drop(stream);
+    let checkpoint = wait_for_checkpoint(&client, "crash", 100).await;
     server.kill();
     server.restart();
     let client = server.client().await;
@@ -265,18 +250,7 @@ async fn steps_checked_on_the_device_train_alike_across_a_kill_9() {
         }
         submit(&client, clipped, "alike").await.expect("submit");
         if checks == "device" {
-            let mut stream = client
-                .jobs()
-                .watch_job(pb::WatchJobRequest { id: "alike".into(), from_seq: 0 })
-                .await
-                .expect("watch")
-                .into_inner();
-            while let Some(e) = stream.next().await {
-                if matches!(e.expect("event").event, Some(Event::Checkpoint(c)) if c.step >= 100) {
-                    break;
-                }
-            }
-            drop(stream);
+            wait_for_checkpoint(&client, "alike", 100).await;
             server.kill();
             server.restart();
             client = server.client().await;
