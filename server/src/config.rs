@@ -269,6 +269,15 @@ pub struct ServingConfig {
     /// How long a batch waits for more requests after its first one arrived, in microseconds
     /// (0: take whatever is queued and go).
     pub max_delay_us: u64,
+    /// After a pass of N items, the next pass waits until N items are queued again (the last
+    /// pass's callers back), for at most this fraction of that pass's time (0: never waits).
+    pub refill_fraction: f64,
+    /// Threads one pass may split its rows across (each part on its own thread), taking as
+    /// many of the free inference slots; 1: never split.
+    pub pass_threads: usize,
+    /// A model's passes are split only once one of them took at least this long, in
+    /// milliseconds of compute (the threads' handoff must stay small beside a part).
+    pub split_above_ms: f64,
     /// Requests waiting per model; more are RESOURCE_EXHAUSTED at once.
     pub queue_capacity: usize,
     /// Deadline given to Score, Gradient and OIP ModelInfer calls that carry no
@@ -551,6 +560,18 @@ impl Config {
         if self.serving.max_delay_us > 1_000_000 {
             return invalid("serving.max_delay_us", "must be at most 1000000 (one second)".into());
         }
+        if !(0.0..=1.0).contains(&self.serving.refill_fraction) {
+            return invalid(
+                "serving.refill_fraction",
+                "must be between 0 and 1 (0: never wait for returning callers)".into(),
+            );
+        }
+        if !(1..=256).contains(&self.serving.pass_threads) {
+            return invalid("serving.pass_threads", "must be between 1 and 256 (1: never split a pass)".into());
+        }
+        if !(0.0..=60_000.0).contains(&self.serving.split_above_ms) {
+            return invalid("serving.split_above_ms", "must be between 0 and 60000 (one minute)".into());
+        }
         if !(1..=1 << 20).contains(&self.serving.queue_capacity) {
             return invalid("serving.queue_capacity", "must be between 1 and 1048576".into());
         }
@@ -739,6 +760,10 @@ mod tests {
             (&[("RELREWARD__SERVER__SHUTDOWN_DRAIN_SECS", "601")], "server.shutdown_drain_secs"),
             (&[("RELREWARD__SERVER__RESPONSE_COMPRESSION", "zstd")], "server.response_compression"),
             (&[("RELREWARD__SERVING__DEFAULT_DEADLINE_MS", "3600001")], "serving.default_deadline_ms"),
+            (&[("RELREWARD__SERVING__REFILL_FRACTION", "1.5")], "serving.refill_fraction"),
+            (&[("RELREWARD__SERVING__REFILL_FRACTION", "NaN")], "serving.refill_fraction"),
+            (&[("RELREWARD__SERVING__PASS_THREADS", "0")], "serving.pass_threads"),
+            (&[("RELREWARD__SERVING__SPLIT_ABOVE_MS", "-1")], "serving.split_above_ms"),
             (&[("RELREWARD__SERVER__ROLE", "boss")], "server.role"),
             // Separate roles need the shared backend: the SQLite file belongs to one process.
             (&[("RELREWARD__SERVER__ROLE", "serve")], "server.role"),

@@ -5,7 +5,7 @@
 //!   `relreward_grpc_request_seconds{method}` when the response ends: the status code comes
 //!   from the `grpc-status` header (trailers-only errors) or from the trailers that close the
 //!   body ([`RecordedBody`]); a stream is timed to its last message.
-//! - Serving records queue time, compute time, batch sizes, queue depth and dropped queries,
+//! - Serving records queue time, compute time, batch sizes, split passes, queue depth and dropped queries,
 //!   and the outcome of every query ([`Metrics::observe_query`]); the same observations also
 //!   add up, per model, to the cumulative [`ModelStats`] the Open Inference Protocol's
 //!   ModelStatistics reports (Triton's counts and nanoseconds, which a histogram cannot give
@@ -58,6 +58,7 @@ struct Inner {
     queue_seconds: HistogramVec,
     compute_seconds: HistogramVec,
     batch_items: HistogramVec,
+    split_passes: IntCounterVec,
     queue_depth: IntGaugeVec,
     dropped: IntCounterVec,
     queries: IntCounterVec,
@@ -165,6 +166,11 @@ impl Metrics {
                 &["model"],
             )
             .expect("metric"),
+            split_passes: IntCounterVec::new(
+                Opts::new("serving_split_passes_total", "merged batches whose rows were split across threads"),
+                &["model"],
+            )
+            .expect("metric"),
             queue_depth: IntGaugeVec::new(Opts::new("serving_queue_depth", "queries waiting per model"), &["model"])
                 .expect("metric"),
             dropped: IntCounterVec::new(
@@ -190,6 +196,7 @@ impl Metrics {
             Box::new(inner.queue_seconds.clone()),
             Box::new(inner.compute_seconds.clone()),
             Box::new(inner.batch_items.clone()),
+            Box::new(inner.split_passes.clone()),
             Box::new(inner.queue_depth.clone()),
             Box::new(inner.dropped.clone()),
             Box::new(inner.queries.clone()),
@@ -222,6 +229,12 @@ impl Metrics {
             s.execution_count = s.execution_count.saturating_add(1);
             s.compute_infer.add(queries, seconds_to_ns(seconds).saturating_mul(queries));
         });
+    }
+
+    /// One merged batch computed in parts on several threads (counted beside its
+    /// [`Metrics::observe_batch`]).
+    pub fn observe_split_pass(&self, model: &str) {
+        self.inner.split_passes.with_label_values(&[model]).inc();
     }
 
     /// Time one query waited between arrival and the start of its batch's compute.

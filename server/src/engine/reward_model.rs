@@ -138,6 +138,24 @@ impl RewardModel {
         }
     }
 
+    /// Another handle on this model for a serving thread's helper (a batch's rows split across
+    /// threads): a native network shares its weights and tables ([`RewardNet::replica`]);
+    /// `None` for a TorchScript module, whose rows need not be independent (it is never split).
+    pub fn replica(&self) -> Result<Option<Self>> {
+        match &self.rho {
+            Rho::Native { net, step_norm } => Ok(Some(Self {
+                manifest: self.manifest.clone(),
+                rho: Rho::Native {
+                    net: net.replica()?,
+                    step_norm: step_norm
+                        .as_ref()
+                        .map(|s| StepNorm { mean: s.mean.shallow_clone(), std: s.std.shallow_clone() }),
+                },
+            })),
+            Rho::TorchScript(_) => Ok(None),
+        }
+    }
+
     /// The weights stop requiring gradients (a copy that is only evaluated and traced; the
     /// input gradient is unaffected). A module's parameters are left as they are: it is never
     /// traced (its file is its export).

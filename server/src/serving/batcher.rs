@@ -5,26 +5,32 @@
 //! stopped after [`IDLE`] without work, or at shutdown once its queue is empty (the threads
 //! are the `serving` group of [`crate::tasks`], woken by `Serving::stop`). The thread:
 //!
-//! 1. waits for a query, then up to `max_delay_us` after its arrival (or until `max_batch`
-//!    items of the same [`BatchKind`] are queued);
+//! 1. waits for a query, then up to `max_delay_us` after its arrival, and until as many
+//!    queries as its last pass had are queued again for at most `refill_fraction` of that
+//!    pass's time ([`wait_for_company`]; never once `max_batch` items of the same
+//!    [`BatchKind`] are queued);
 //! 2. takes queries of the first query's kind, in arrival order, up to `max_batch` items (the
 //!    first is always taken, even if larger): a query whose caller went away is skipped, one
 //!    whose deadline passed is answered DEADLINE_EXCEEDED, neither is computed;
 //! 3. takes an inference slot (shared with sampling), concatenates the items, runs one
-//!    forward (Score) or forward/backward (Gradient) pass, and splits the results back.
+//!    forward (Score) or forward/backward (Gradient) pass, and splits the results back. A
+//!    long pass ([`Split`]) is computed in parts by the thread and its [`Helpers`], one per
+//!    further slot free, up to `pass_threads`.
 //!
 //! Queries of different kinds never share a pass; gradient options (units, omega, variance)
 //! are per-item factors applied after the shared backward pass, so they do not split batches.
 
 use std::collections::{HashMap, VecDeque};
-use std::sync::{Arc, Condvar, Mutex, MutexGuard, PoisonError};
+use std::sync::{Arc, Condvar, Mutex, MutexGuard, PoisonError, mpsc};
 use std::time::{Duration, Instant};
 
 use tch::Tensor;
-use tokio::sync::oneshot;
+use tokio::sync::{OwnedSemaphorePermit, oneshot};
 
 use super::{Answer, HostTensor, Inner, Prepared};
+use crate::config::ServingConfig;
 use crate::engine::normalizer::Normalize;
+use crate::engine::reward_model::RewardModel;
 use crate::error::{Error, Result};
 use crate::registry::SharedReward;
 
@@ -136,7 +142,9 @@ fn queue_for(inner: &Arc<Inner>, model: &SharedReward) -> Result<Arc<ModelQueue>
 fn serve(inner: &Arc<Inner>, queue: &Arc<ModelQueue>) {
     let name = queue.model.name.clone();
     tracing::debug!(model = name, "serving thread started");
-    while let Some((kind, batch)) = next_batch(inner, queue) {
+    let mut last: Option<LastPass> = None;
+    let mut helpers = Helpers::default();
+    while let Some((kind, batch)) = next_batch(inner, queue, last.as_ref()) {
         // Wait for a compute slot; queries may expire or be abandoned meanwhile.
         let Ok(_slot) = futures::executor::block_on(Arc::clone(&inner.slots).acquire_owned()) else {
             for p in batch {
@@ -153,9 +161,18 @@ fn serve(inner: &Arc<Inner>, queue: &Arc<ModelQueue>) {
             inner.metrics.observe_queue_wait(&name, started.duration_since(p.arrived).as_secs_f64());
         }
         let items: i64 = batch.iter().map(|p| p.query.batch()).sum();
-        let result = compute(queue, kind, &batch, inner.config.max_batch as i64);
-        inner.metrics.observe_batch(&name, batch.len(), items as usize, started.elapsed().as_secs_f64());
-        match result {
+        let cost_per_item = last.as_ref().map_or(Duration::ZERO, |l| l.cost / l.items.max(1) as u32);
+        let split = Split { inner, helpers: &mut helpers, cost_per_item };
+        let result = compute(queue, kind, &batch, inner.config.max_batch as i64, split);
+        let took = started.elapsed();
+        inner.metrics.observe_batch(&name, batch.len(), items as usize, took.as_secs_f64());
+        let parts = result.as_ref().map_or(1, |(_, parts)| *parts);
+        if parts > 1 {
+            inner.metrics.observe_split_pass(&name);
+        }
+        // What the pass would have taken on one thread, roughly: the split's criterion.
+        let (queries, cost) = (batch.len(), took.saturating_mul(parts as u32));
+        match result.map(|(answers, _)| answers) {
             Ok(answers) => {
                 for (p, a) in batch.into_iter().zip(answers) {
                     let _ = p.reply.send(Ok(a));
@@ -169,15 +186,15 @@ fn serve(inner: &Arc<Inner>, queue: &Arc<ModelQueue>) {
                 }
             }
         }
+        last = Some(LastPass { queries, items, took, cost, ended: Instant::now() });
     }
     tracing::debug!(model = name, "serving thread idle: stopped");
 }
 
 /// Waits for work and returns the next batch, or `None` after [`IDLE`] without work or, at
 /// shutdown, once nothing is queued (the queue is then closed).
-fn next_batch(inner: &Inner, queue: &ModelQueue) -> Option<(BatchKind, Vec<Pending>)> {
+fn next_batch(inner: &Inner, queue: &ModelQueue, last: Option<&LastPass>) -> Option<(BatchKind, Vec<Pending>)> {
     let max_batch = inner.config.max_batch as i64;
-    let max_delay = Duration::from_micros(inner.config.max_delay_us);
     let mut state = lock(&queue.state);
     loop {
         while state.pending.is_empty() {
@@ -198,15 +215,14 @@ fn next_batch(inner: &Inner, queue: &ModelQueue) -> Option<(BatchKind, Vec<Pendi
             let first = state.pending.front()?;
             (first.query.kind, first.arrived)
         };
-        // Wait for company until the first query's delay is spent or the batch is full.
-        let until = first_arrived + max_delay;
         loop {
-            let queued: i64 = state.pending.iter().filter(|p| p.query.kind == kind).map(|p| p.query.batch()).sum();
-            let now = Instant::now();
-            if queued >= max_batch || now >= until {
+            let same_kind = || state.pending.iter().filter(|p| p.query.kind == kind);
+            let queued = Queued { items: same_kind().map(|p| p.query.batch()).sum(), queries: same_kind().count() };
+            let Some(wake) = wait_for_company(&inner.config, first_arrived, last, queued, Instant::now()) else {
                 break;
-            }
-            state = queue.arrived.wait_timeout(state, until - now).unwrap_or_else(PoisonError::into_inner).0;
+            };
+            let timeout = wake.saturating_duration_since(Instant::now());
+            state = queue.arrived.wait_timeout(state, timeout).unwrap_or_else(PoisonError::into_inner).0;
         }
         let now = Instant::now();
         let mut batch = Vec::new();
@@ -228,6 +244,45 @@ fn next_batch(inner: &Inner, queue: &ModelQueue) -> Option<(BatchKind, Vec<Pendi
             return Some((kind, batch));
         }
     }
+}
+
+/// Queries of the next batch's kind waiting, and their items.
+#[derive(Debug, Clone, Copy)]
+struct Queued {
+    items: i64,
+    queries: usize,
+}
+
+/// Until when the next batch waits for company (`None`: go now), its first query having
+/// arrived at `first_arrived`: until that query's `max_delay_us` is spent, and until as many
+/// queries as the last pass had are queued again (its callers back), for at most
+/// `refill_fraction` of that pass's time after it ended; never once `max_batch` items wait.
+fn wait_for_company(
+    config: &ServingConfig,
+    first_arrived: Instant,
+    last: Option<&LastPass>,
+    queued: Queued,
+    now: Instant,
+) -> Option<Instant> {
+    if queued.items >= config.max_batch as i64 {
+        return None;
+    }
+    let delay_until = first_arrived + Duration::from_micros(config.max_delay_us);
+    let refill_until =
+        last.filter(|l| queued.queries < l.queries).map(|l| l.ended + l.took.mul_f64(config.refill_fraction));
+    let until = refill_until.map_or(delay_until, |r| r.max(delay_until));
+    (now < until).then_some(until)
+}
+
+/// The pass a serving thread computed last.
+struct LastPass {
+    queries: usize,
+    items: i64,
+    /// Its wall time, from the compute slot to the answers.
+    took: Duration,
+    /// Its wall time times the threads it was split across.
+    cost: Duration,
+    ended: Instant,
 }
 
 /// `Some(p)` if its caller still waits and its deadline has not passed; otherwise it is
@@ -263,11 +318,18 @@ fn drop_expired(inner: &Inner, model: &str, batch: Vec<Pending>, now: Instant) -
     batch.into_iter().filter_map(|p| keep(inner, model, p, now)).collect()
 }
 
-/// One forward (and backward) pass over the concatenated batch, split back per query. The
-/// queries' floats are joined into one tensor and each result is copied to the host once;
-/// everything per query (splitting, omega and variance factors, the Jacobian) is plain
-/// arithmetic on those host values, so the per-query cost is a few copies of its own rows.
-fn compute(queue: &ModelQueue, kind: BatchKind, batch: &[Pending], max_rows: i64) -> Result<Vec<Answer>> {
+/// One forward (and backward) pass over the concatenated batch, split back per query, with
+/// how many threads computed it. The queries' floats are joined into one tensor and each
+/// result is copied to the host once; everything per query (splitting, omega and variance
+/// factors, the Jacobian) is plain arithmetic on those host values, so the per-query cost is a
+/// few copies of its own rows.
+fn compute(
+    queue: &ModelQueue,
+    kind: BatchKind,
+    batch: &[Pending],
+    max_rows: i64,
+    split: Split<'_>,
+) -> Result<(Vec<Answer>, usize)> {
     let sizes: Vec<i64> = batch.iter().map(|p| p.query.batch()).collect();
     let n: i64 = sizes.iter().sum();
     // Padded with zero items (t = 0) where the network's kernels are compiled per batch size
@@ -293,24 +355,15 @@ fn compute(queue: &ModelQueue, kind: BatchKind, batch: &[Pending], max_rows: i64
     // moves are no-ops.
     let device = crate::engine::device();
     let (x, t) = (crate::engine::upload(&x_host, device)?, crate::engine::upload(&t, device)?);
-    let model = queue.model.lock();
-    let real = |v: Tensor| v.f_narrow(0, 0, n);
-    match kind {
-        BatchKind::Score { per_window, per_step } => {
-            let _no_grad = tch::no_grad_guard();
-            // With per-window values, rho comes from the same pass (one network evaluation, not
-            // two: half the cost of a Score that asks for both, as an RL wrapper's every step).
-            let (rho, windows) = if per_window {
-                let (rho, windows) = model.rho_and_windows(&x, &t)?;
-                (rho, Some(real(windows)?))
-            } else {
-                (model.rho(&x, &t)?, None)
-            };
-            let rewards = split_host(&real(rho)?, &sizes)?;
-            let mut windows = windows.map(|w| split_host(&w, &sizes)).transpose()?.map(Vec::into_iter);
-            let mut steps =
-                if per_step { Some(split_host(&real(model.per_step(&x, &t)?)?, &sizes)?.into_iter()) } else { None };
-            Ok(rewards
+    let (out, parts) = split.evaluate(queue, kind, &x, &t)?;
+    let real = |v: &Tensor| v.f_narrow(0, 0, n);
+    let rewards = split_host(&real(&out.rho)?, &sizes)?;
+    let _no_grad = tch::no_grad_guard();
+    let answers = match (kind, out.grad) {
+        (BatchKind::Score { .. }, _) => {
+            let mut windows = out.windows.map(|w| split_host(&real(&w)?, &sizes)).transpose()?.map(Vec::into_iter);
+            let mut steps = out.steps.map(|s| split_host(&real(&s)?, &sizes)).transpose()?.map(Vec::into_iter);
+            rewards
                 .into_iter()
                 .map(|rewards| Answer {
                     rewards,
@@ -318,21 +371,15 @@ fn compute(queue: &ModelQueue, kind: BatchKind, batch: &[Pending], max_rows: i64
                     per_window: windows.as_mut().and_then(Iterator::next),
                     per_step: steps.as_mut().and_then(Iterator::next),
                 })
-                .collect())
+                .collect()
         }
-        BatchKind::Gradient => {
-            let (rho, grad) = model.grad(&x, &t)?;
-            let (rho, grad) = (real(rho)?, real(grad)?);
-            drop(model);
-            let _no_grad = tch::no_grad_guard();
+        (BatchKind::Gradient, Some(grad)) => {
             // The normalizer's Jacobian (one item's worth of per-element factors) only for
             // batches with a raw-unit gradient (planners ask in normalized units).
             let raw_units = batch.iter().any(|p| p.query.gradient_post.as_ref().is_some_and(|g| g.raw_units));
             let jacobian = if raw_units { Some(item_jacobian(queue, &x_host)?) } else { None };
             let mut answers = Vec::with_capacity(batch.len());
-            for ((p, rewards), mut gradient) in
-                batch.iter().zip(split_host(&rho, &sizes)?).zip(split_host(&grad, &sizes)?)
-            {
+            for ((p, rewards), mut gradient) in batch.iter().zip(rewards).zip(split_host(&real(&grad)?, &sizes)?) {
                 if let Some(post) = &p.query.gradient_post {
                     if let Some(factor) = &post.factor {
                         for (row, f) in gradient.values.chunks_mut(per_item).zip(factor) {
@@ -347,7 +394,210 @@ fn compute(queue: &ModelQueue, kind: BatchKind, batch: &[Pending], max_rows: i64
                 }
                 answers.push(Answer { rewards, gradient: Some(gradient), per_window: None, per_step: None });
             }
-            Ok(answers)
+            answers
+        }
+        (BatchKind::Gradient, None) => {
+            return Err(Error::internal("serving batch", "a gradient pass without a gradient"));
+        }
+    };
+    Ok((answers, parts))
+}
+
+/// What one pass computes: rho, and what the batch's kind asks for beside it.
+struct Outputs {
+    rho: Tensor,
+    windows: Option<Tensor>,
+    steps: Option<Tensor>,
+    grad: Option<Tensor>,
+}
+
+impl Outputs {
+    /// The pass of `kind` over rows `x`, `t` of one model (any thread's handle on it).
+    fn of(model: &RewardModel, kind: BatchKind, x: &Tensor, t: &Tensor) -> Result<Self> {
+        match kind {
+            BatchKind::Score { per_window, per_step } => {
+                let _no_grad = tch::no_grad_guard();
+                // With per-window values, rho comes from the same pass (one network evaluation,
+                // not two: half the cost of a Score that asks for both, as an RL wrapper's
+                // every step).
+                let (rho, windows) = if per_window {
+                    let (rho, windows) = model.rho_and_windows(x, t)?;
+                    (rho, Some(windows))
+                } else {
+                    (model.rho(x, t)?, None)
+                };
+                let steps = if per_step { Some(model.per_step(x, t)?) } else { None };
+                Ok(Self { rho, windows, steps, grad: None })
+            }
+            BatchKind::Gradient => {
+                let (rho, grad) = model.grad(x, t)?;
+                Ok(Self { rho, windows: None, steps: None, grad: Some(grad) })
+            }
+        }
+    }
+
+    /// The parts' outputs joined in row order.
+    fn join(parts: Vec<Self>) -> Result<Self> {
+        let cat = |pick: fn(&Self) -> Option<&Tensor>| -> Result<Option<Tensor>> {
+            let tensors: Option<Vec<&Tensor>> = parts.iter().map(pick).collect();
+            Ok(match tensors {
+                Some(ts) if !ts.is_empty() => Some(Tensor::f_cat(&ts, 0)?),
+                _ => None,
+            })
+        };
+        Ok(Self {
+            rho: cat(|o| Some(&o.rho))?
+                .ok_or_else(|| Error::internal("serving batch", "a split pass without parts"))?,
+            windows: cat(|o| o.windows.as_ref())?,
+            steps: cat(|o| o.steps.as_ref())?,
+            grad: cat(|o| o.grad.as_ref())?,
+        })
+    }
+}
+
+/// Fewest rows a split pass gives one thread: below this the fixed cost of a pass (the
+/// network's operations, oneDNN's per-call setup) outweighs the rows' share.
+const MIN_PART_ROWS: i64 = 8;
+
+/// How one pass is computed: on the serving thread alone, or with its rows split across it and
+/// its helpers (`serving.pass_threads`, `serving.split_above_ms`), one part per free
+/// inference slot. Rows are independent (the padding above relies on it too), so the joined
+/// parts are the whole pass's values (up to oneDNN's choice of kernel for the parts' batch
+/// size, as for any batch size).
+struct Split<'a> {
+    inner: &'a Inner,
+    helpers: &'a mut Helpers,
+    /// The model's last pass's compute per item on one thread (zero before the first).
+    cost_per_item: Duration,
+}
+
+impl Split<'_> {
+    fn evaluate(mut self, queue: &ModelQueue, kind: BatchKind, x: &Tensor, t: &Tensor) -> Result<(Outputs, usize)> {
+        let rows = x.size()[0];
+        let Some(slots) = self.extra_slots(queue, rows) else {
+            return Ok((Outputs::of(&queue.model.lock(), kind, x, t)?, 1));
+        };
+        let parts = slots.len() + 1;
+        let (base, rest) = (rows / parts as i64, rows % parts as i64);
+        let lens: Vec<i64> = (0..parts as i64).map(|i| base + i64::from(i < rest)).collect();
+        let mut replies = Vec::with_capacity(parts - 1);
+        let mut at = lens[0];
+        for (helper, &len) in self.helpers.threads.iter().zip(&lens[1..]) {
+            let (reply, answer) = mpsc::sync_channel(1);
+            let job = Job { kind, x: x.f_narrow(0, at, len)?, t: t.f_narrow(0, at, len)?, reply };
+            let sent = helper.jobs.as_ref().is_some_and(|jobs| jobs.send(job).is_ok());
+            replies.push(sent.then_some(answer));
+            at += len;
+        }
+        let first = Outputs::of(&queue.model.lock(), kind, &x.f_narrow(0, 0, lens[0])?, &t.f_narrow(0, 0, lens[0])?);
+        // Every helper's answer is awaited (even after a failure here), so none is still busy
+        // when the next pass starts.
+        let others: Vec<Option<Result<Outputs>>> =
+            replies.into_iter().map(|answer| answer.and_then(|a| a.recv().ok())).collect();
+        drop(slots);
+        let mut outputs = vec![first?];
+        for other in others {
+            match other {
+                Some(result) => outputs.push(result?),
+                None => {
+                    // A helper thread is gone (it cannot be while it holds its receiver,
+                    // short of a panic): start afresh next time.
+                    self.helpers.threads.clear();
+                    return Err(Error::internal("serving batch", "a helper thread of a split pass stopped"));
+                }
+            }
+        }
+        Ok((Outputs::join(outputs)?, parts))
+    }
+
+    /// The inference slots taken for the other parts of a split pass, or `None` to compute it
+    /// whole: one thread configured, a CPU pass expected to be short, too few rows, a model
+    /// that cannot be split (a TorchScript module), or no slot free.
+    fn extra_slots(&mut self, queue: &ModelQueue, rows: i64) -> Option<Vec<OwnedSemaphorePermit>> {
+        let config = &self.inner.config;
+        let expected = self.cost_per_item.saturating_mul(u32::try_from(rows).unwrap_or(u32::MAX));
+        if config.pass_threads < 2
+            || rows < 2 * MIN_PART_ROWS
+            || expected.as_secs_f64() * 1e3 < config.split_above_ms.max(f64::MIN_POSITIVE)
+            || crate::engine::device() != tch::Device::Cpu
+        {
+            return None;
+        }
+        let want = (config.pass_threads - 1).min((rows / MIN_PART_ROWS) as usize - 1);
+        let helpers = self.helpers.ensure(want, queue);
+        let mut slots = Vec::with_capacity(helpers);
+        while slots.len() < helpers {
+            match Arc::clone(&self.inner.slots).try_acquire_owned() {
+                Ok(slot) => slots.push(slot),
+                Err(_) => break,
+            }
+        }
+        (!slots.is_empty()).then_some(slots)
+    }
+}
+
+/// A serving thread's helper threads for split passes, started on the first pass worth
+/// splitting and stopped (joined) with the serving thread. Each evaluates its own handle on the
+/// model ([`RewardModel::replica`]: the same weight storage).
+#[derive(Default)]
+struct Helpers {
+    threads: Vec<Helper>,
+    /// The model has no replica (a TorchScript module), or a helper could not be started.
+    unsplittable: bool,
+}
+
+struct Helper {
+    jobs: Option<mpsc::Sender<Job>>,
+    thread: Option<std::thread::JoinHandle<()>>,
+}
+
+/// One part of a split pass.
+struct Job {
+    kind: BatchKind,
+    x: Tensor,
+    t: Tensor,
+    reply: mpsc::SyncSender<Result<Outputs>>,
+}
+
+impl Helpers {
+    /// Starts helpers until there are `want` (or none can be); returns how many there are.
+    fn ensure(&mut self, want: usize, queue: &ModelQueue) -> usize {
+        while self.threads.len() < want && !self.unsplittable {
+            match self.start(queue) {
+                Ok(Some(helper)) => self.threads.push(helper),
+                Ok(None) => self.unsplittable = true,
+                Err(e) => {
+                    tracing::warn!(model = queue.model.name, error = %e, "passes will not be split: no helper thread");
+                    self.unsplittable = true;
+                }
+            }
+        }
+        self.threads.len().min(want)
+    }
+
+    fn start(&self, queue: &ModelQueue) -> Result<Option<Helper>> {
+        let Some(model) = queue.model.lock().replica()? else {
+            return Ok(None);
+        };
+        let (jobs, inbox) = mpsc::channel::<Job>();
+        let thread = std::thread::Builder::new()
+            .name(format!("serve+{}-{}", self.threads.len() + 1, queue.model.name))
+            .spawn(move || {
+                for job in inbox {
+                    let _ = job.reply.send(Outputs::of(&model, job.kind, &job.x, &job.t));
+                }
+            })
+            .map_err(|e| Error::internal("starting a serving helper thread", e))?;
+        Ok(Some(Helper { jobs: Some(jobs), thread: Some(thread) }))
+    }
+}
+
+impl Drop for Helper {
+    fn drop(&mut self) {
+        // Closing the channel ends the helper's loop.
+        drop(self.jobs.take());
+        if let Some(thread) = self.thread.take() {
+            let _ = thread.join();
         }
     }
 }
@@ -384,4 +634,67 @@ fn split_host(v: &Tensor, sizes: &[i64]) -> Result<Vec<HostTensor>> {
         at += len;
     }
     Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn config(max_delay_us: u64, refill_fraction: f64) -> ServingConfig {
+        ServingConfig {
+            max_request_items: 4096,
+            max_batch: 256,
+            max_delay_us,
+            refill_fraction,
+            pass_threads: 2,
+            split_above_ms: 4.0,
+            queue_capacity: 1024,
+            default_deadline_ms: 0,
+        }
+    }
+
+    fn queued(queries: usize) -> Queued {
+        Queued { items: queries as i64, queries }
+    }
+
+    const MS: Duration = Duration::from_millis(1);
+
+    #[test]
+    fn the_next_batch_waits_for_the_last_passs_callers_for_a_fraction_of_its_time() {
+        let ended = Instant::now();
+        let last = LastPass { queries: 64, items: 64, took: 20 * MS, cost: 40 * MS, ended };
+        let c = config(0, 0.5);
+        let arrived = ended + MS;
+        // 10 of the 64 callers are back: wait until half the pass's 20 ms after it ended.
+        assert_eq!(wait_for_company(&c, arrived, Some(&last), queued(10), ended + 2 * MS), Some(ended + 10 * MS));
+        // All back, or the wait spent: go with what is there.
+        assert_eq!(wait_for_company(&c, arrived, Some(&last), queued(64), ended + 2 * MS), None);
+        assert_eq!(wait_for_company(&c, arrived, Some(&last), queued(10), ended + 10 * MS), None);
+        // A full batch never waits.
+        let full = Queued { items: 256, queries: 3 };
+        assert_eq!(wait_for_company(&c, arrived, Some(&last), full, ended + 2 * MS), None);
+        // Without refilling, the first query's own delay alone.
+        assert_eq!(wait_for_company(&config(0, 0.0), arrived, Some(&last), queued(10), ended + 2 * MS), None);
+        let delayed = config(50_000, 0.5);
+        assert_eq!(
+            wait_for_company(&delayed, arrived, Some(&last), queued(64), ended + 2 * MS),
+            Some(arrived + 50 * MS)
+        );
+        // Whichever ends later, when both apply.
+        assert_eq!(
+            wait_for_company(&delayed, arrived, Some(&last), queued(10), ended + 2 * MS),
+            Some(arrived + 50 * MS)
+        );
+    }
+
+    #[test]
+    fn a_lone_caller_never_waits_for_company() {
+        let ended = Instant::now();
+        let c = config(0, 0.5);
+        // Its own last pass had one query: it is back, nothing to wait for.
+        let last = LastPass { queries: 1, items: 64, took: 20 * MS, cost: 20 * MS, ended };
+        assert_eq!(wait_for_company(&c, ended + MS, Some(&last), queued(1), ended + MS), None);
+        // A model's first pass has no callers to wait for.
+        assert_eq!(wait_for_company(&c, ended, None, queued(1), ended), None);
+    }
 }

@@ -9,7 +9,9 @@
 //! - [`batcher`] queues prepared queries per loaded model (bounded: RESOURCE_EXHAUSTED when
 //!   full), and one serving thread per model merges compatible queries into one forward (and
 //!   backward) pass of at most `serving.max_batch` items, waiting at most
-//!   `serving.max_delay_us` after the first for company. A query whose deadline passed while
+//!   `serving.max_delay_us` after the first for company (and up to `serving.refill_fraction`
+//!   of the last pass's time for its callers to come back); a long pass is split by rows
+//!   across helper threads (`serving.pass_threads`). A query whose deadline passed while
 //!   queued is answered DEADLINE_EXCEEDED without being computed; one whose caller went away
 //!   (dropped its reply) is skipped.
 //! - Compute is bounded by the inference slots (`engine.inference_workers`) shared with

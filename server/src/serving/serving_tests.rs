@@ -217,19 +217,62 @@ async fn omega_and_posterior_variance_scale_the_gradient_per_item() {
 /// exactly its own rows back.
 #[tokio::test(flavor = "multi_thread")]
 async fn concurrent_queries_are_merged_and_each_caller_gets_its_own_rows() {
-    merged_callers_get_their_own_rows(windowed()).await;
+    let merged = |c: &mut ServingConfig| c.max_delay_us = 50_000;
+    merged_callers_get_their_own_rows(windowed(), merged, 1).await;
     // A convolutional reward: merged batches are padded to the next allowed size
     // (`RewardNet::padded_batch`), whose rows never reach a caller. Wide enough that its last
     // group norms span several values: over two (widths [32] here) the backward amplifies the
     // rounding that differs between batch sizes (oneDNN picks kernels per shape) past 1e-5.
-    merged_callers_get_their_own_rows(RewardArchitecture::ValueFunction { widths: vec![128] }).await;
+    merged_callers_get_their_own_rows(RewardArchitecture::ValueFunction { widths: vec![128] }, merged, 1).await;
 }
 
-async fn merged_callers_get_their_own_rows(arch: RewardArchitecture) {
-    let f = fixture_with(arch, |c| c.max_delay_us = 50_000).await;
+/// A merged pass split across threads (`serving.pass_threads`: its rows in parts, each on its
+/// own thread with its own handle on the weights) gives every caller its own rows, as one
+/// thread does.
+#[tokio::test(flavor = "multi_thread")]
+async fn split_passes_give_each_caller_its_own_rows() {
+    let split = |c: &mut ServingConfig| {
+        c.max_delay_us = 50_000;
+        c.pass_threads = 2;
+        c.split_above_ms = 0.0;
+    };
+    // Two rounds: a model's first pass is never split (nothing says yet what it costs).
+    let f = merged_callers_get_their_own_rows(RewardArchitecture::ValueFunction { widths: vec![128] }, split, 2).await;
+    let text = f.metrics.render();
+    assert!(metric(&text, "relreward_serving_split_passes_total{model=\"rho\"}") >= 1.0, "no pass was split\n{text}");
+    // With one thread, none is.
+    let one = |c: &mut ServingConfig| {
+        split(c);
+        c.pass_threads = 1;
+    };
+    let f = merged_callers_get_their_own_rows(RewardArchitecture::ValueFunction { widths: vec![128] }, one, 2).await;
+    assert!(!f.metrics.render().contains("relreward_serving_split_passes_total{"), "a pass was split on one thread");
+}
+
+/// `rounds` times, 22 concurrent callers (Score and Gradient, 1 to 3 items each) check their
+/// answers against the reference; the passes must have merged them.
+async fn merged_callers_get_their_own_rows(
+    arch: RewardArchitecture,
+    tune: impl FnOnce(&mut ServingConfig),
+    rounds: usize,
+) -> Fixture {
+    let f = fixture_with(arch, tune).await;
     // 21 and 22 items per kind: merged, neither is an allowed size, so the convolutional
     // reward's passes carry padding.
     let callers = 22usize;
+    for _ in 0..rounds {
+        merged_round(&f, callers).await;
+    }
+    let text = f.metrics.render();
+    let batches = metric(&text, "relreward_serving_batch_items_count{model=\"rho\"}");
+    assert!(
+        batches < (rounds * callers) as f64 / 2.0,
+        "{batches} passes for {rounds} x {callers} callers: not merged\n{text}"
+    );
+    f
+}
+
+async fn merged_round(f: &Fixture, callers: usize) {
     let mut tasks = Vec::new();
     for k in 0..callers {
         let serving = f.serving.clone();
@@ -259,9 +302,6 @@ async fn merged_callers_get_their_own_rows(arch: RewardArchitecture) {
             assert!(g.allclose(&want_grad, 1e-5, 1e-6, false), "caller {k}: gradient rows are not its own");
         }
     }
-    let text = f.metrics.render();
-    let batches = metric(&text, "relreward_serving_batch_items_count{model=\"rho\"}");
-    assert!(batches < callers as f64 / 2.0, "{batches} passes for {callers} callers: not merged\n{text}");
 }
 
 /// An overfull queue sheds load with RESOURCE_EXHAUSTED; the queries it accepted succeed.

@@ -112,6 +112,30 @@ impl Weights {
         Ok(())
     }
 
+    /// Makes every variable share the storage of the variable of the same name in `source`
+    /// (libtorch's `set_data`: the fresh values are freed, nothing is copied), so that another
+    /// thread can evaluate the same network through its own handles. Both must be the same
+    /// network: a name missing from `source` or a shape that differs is an internal error, with
+    /// nothing shared.
+    pub fn share_storage_of(&mut self, source: &Weights) -> Result<()> {
+        let sources = source.vs.variables();
+        let mut targets = self.vs.variables();
+        for (name, target) in &targets {
+            match sources.get(name) {
+                Some(s) if s.size() == target.size() && s.kind() == target.kind() => {}
+                _ => return Err(Error::internal("sharing weights", format!("'{name}' differs between the networks"))),
+            }
+        }
+        tch::no_grad(|| {
+            for (name, target) in &mut targets {
+                if let Some(s) = sources.get(name) {
+                    target.f_set_data(s)?;
+                }
+            }
+            Ok(())
+        })
+    }
+
     /// Writes every variable to `path` in safetensors format, sorted by name, through a synced
     /// temporary sibling renamed over `path` (never a truncated file under the final name).
     pub fn save_atomic(&self, path: &Path) -> Result<()> {

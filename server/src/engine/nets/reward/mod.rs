@@ -95,6 +95,16 @@ impl RewardNet {
         Ok(net)
     }
 
+    /// Another handle on this network for another thread: the same architecture over the same
+    /// weight storage (no copy; [`Weights::share_storage_of`]). libtorch reads a tensor from
+    /// several threads safely; tch's handles are not `Sync`, hence one per thread. Only for
+    /// evaluation: a trainer's updates through one handle would be seen by all.
+    pub fn replica(&self) -> Result<Self> {
+        let mut net = Self::new(&self.architecture, &self.item_shape, self.weights.var_store().device())?;
+        net.weights.share_storage_of(&self.weights)?;
+        Ok(net)
+    }
+
     /// Writes every weight to `path` atomically (see [`Weights::save_atomic`]).
     pub fn save(&self, path: &Path) -> Result<()> {
         self.weights.save_atomic(path)

@@ -217,6 +217,31 @@ fn reward_non_windowed_nets_have_one_window_and_no_steps() {
 
 /// Central finite differences of rho in float64 against `grad`, for every architecture,
 /// also from inside a no-grad region.
+/// A replica (another thread's handle, `RewardNet::replica`) shares the weights' storage, so it
+/// costs no copy and sees what the original holds, and evaluates to the same values bit for
+/// bit, on another thread too.
+#[test]
+fn a_replica_shares_the_weights_and_evaluates_alike_on_another_thread() {
+    for (arch, shape) in small_cases() {
+        let net = build(&arch, &shape);
+        perturb(&net);
+        let replica = net.replica().expect("replica");
+        let originals = net.weights().var_store().variables();
+        let shared = replica.weights().var_store().variables();
+        assert_eq!(originals.len(), shared.len(), "{arch:?}");
+        for (name, var) in &originals {
+            assert_eq!(var.data_ptr(), shared[name].data_ptr(), "{arch:?}: '{name}' was copied");
+        }
+        let (x, t) = inputs(&net, 5, Kind::Float);
+        let (rho, grad) = net.grad(&x, &t).expect("grad");
+        let (x2, t2) = (x.shallow_clone(), t.shallow_clone());
+        let (rho2, grad2) = std::thread::spawn(move || replica.grad(&x2, &t2).expect("replica grad"))
+            .join()
+            .expect("the replica's thread");
+        assert!(rho.equal(&rho2) && grad.equal(&grad2), "{arch:?}: the replica's values differ");
+    }
+}
+
 #[test]
 fn reward_grad_matches_finite_differences() {
     for (arch, shape) in small_cases() {
