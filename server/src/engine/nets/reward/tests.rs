@@ -806,3 +806,32 @@ fn time_value_function_grad_against_autograd() {
     }
     eprintln!("grad (hand-written): {:.0} us, autograd: {:.0} us, rho alone: {:.0} us", best[0], best[1], best[2]);
 }
+
+/// Timing harness (run by hand, `--ignored`): the ValueFunction's `grad` per item at several
+/// batch sizes on one thread, then on two threads at once (each its own network): whether a
+/// pass split by rows across two cores (`serving.pass_threads`) costs what its half does.
+#[test]
+#[ignore]
+fn time_value_function_grad_on_two_threads() {
+    tch::set_num_threads(1);
+    let per_item_us = |batch: i64| {
+        let net = build(&value_function(&[64, 64, 128, 128]), &[32, 14]);
+        let (x, t) = inputs(&net, batch, Kind::Float);
+        for _ in 0..3 {
+            drop(net.grad(&x, &t).expect("grad"));
+        }
+        let start = std::time::Instant::now();
+        for _ in 0..20 {
+            drop(net.grad(&x, &t).expect("grad"));
+        }
+        start.elapsed().as_secs_f64() * 1e6 / 20.0 / batch as f64
+    };
+    for batch in [16i64, 32, 48, 64] {
+        let one = per_item_us(batch);
+        let two: Vec<f64> = std::thread::scope(|s| {
+            let threads: Vec<_> = (0..2).map(|_| s.spawn(|| per_item_us(batch))).collect();
+            threads.into_iter().map(|h| h.join().expect("timing thread")).collect()
+        });
+        eprintln!("batch {batch}: one thread {one:.0} us/item; two at once {:.0} / {:.0} us/item", two[0], two[1]);
+    }
+}
