@@ -10,10 +10,11 @@
 //!   full), and one serving thread per model merges compatible queries into one forward (and
 //!   backward) pass of at most `serving.max_batch` items, waiting at most
 //!   `serving.max_delay_us` after the first for company (and up to `serving.refill_fraction`
-//!   of the last pass's time for its callers to come back); a long pass is split by rows
-//!   across helper threads (`serving.pass_threads`). A query whose deadline passed while
-//!   queued is answered DEADLINE_EXCEEDED without being computed; one whose caller went away
-//!   (dropped its reply) is skipped.
+//!   of the last pass's time for its callers to come back). A query whose deadline passed
+//!   while queued is answered DEADLINE_EXCEEDED without being computed; one whose caller went
+//!   away (dropped its reply) is skipped.
+//! - [`split`]: a long pass split by rows across the serving thread and helper threads, each
+//!   with its own handle on the weights (`serving.pass_threads`), and a pass's outputs.
 //! - Compute is bounded by the inference slots (`engine.inference_workers`) shared with
 //!   sampling ([`crate::sampling`]); training jobs run on their own threads and never take a
 //!   slot.
@@ -32,6 +33,7 @@
 
 mod batcher;
 pub mod query;
+mod split;
 
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex, PoisonError};
