@@ -269,8 +269,8 @@ pub struct ServingConfig {
     /// How long a batch waits for more requests after its first one arrived, in microseconds
     /// (0: take whatever is queued and go).
     pub max_delay_us: u64,
-    /// After a pass of N items, the next pass waits until N items are queued again (the last
-    /// pass's callers back), for at most this fraction of that pass's time (0: never waits).
+    /// After a pass of N queries, the next pass waits until N queries are queued again (the
+    /// last pass's callers back), for at most this fraction of that pass's time (0: never).
     pub refill_fraction: f64,
     /// Threads one pass may split its rows across (each part on its own thread), taking as
     /// many of the free inference slots; 1: never split.

@@ -5,11 +5,11 @@
 //!   `relreward_grpc_request_seconds{method}` when the response ends: the status code comes
 //!   from the `grpc-status` header (trailers-only errors) or from the trailers that close the
 //!   body ([`RecordedBody`]); a stream is timed to its last message.
-//! - Serving records queue time, compute time, batch sizes, split passes, queue depth and dropped queries,
-//!   and the outcome of every query ([`Metrics::observe_query`]); the same observations also
-//!   add up, per model, to the cumulative [`ModelStats`] the Open Inference Protocol's
-//!   ModelStatistics reports (Triton's counts and nanoseconds, which a histogram cannot give
-//!   back exactly).
+//! - Serving records queue time, compute time, batch sizes, split passes, queue depth and
+//!   dropped queries, and the outcome of every query ([`Metrics::observe_query`]); the same
+//!   observations also add up, per model, to the cumulative [`ModelStats`] the Open Inference
+//!   Protocol's ModelStatistics reports (Triton's counts and nanoseconds, which a histogram
+//!   cannot give back exactly).
 //! - The OIP over HTTP (`crate::oip_http`) counts its requests by route and HTTP status
 //!   ([`Metrics::observe_http`]); their queries count in serving's metrics like gRPC's.
 //! - [`serve_http`]: `GET /metrics` over HTTP/1.1; jobs by state and loaded models are read

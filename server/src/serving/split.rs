@@ -81,7 +81,7 @@ const MIN_PART_ROWS: i64 = 8;
 
 /// How one pass is computed: on the serving thread alone, or with its rows split across it and
 /// its helpers (`serving.pass_threads`, `serving.split_above_ms`), one part per free
-/// inference slot. Rows are independent (the padding above relies on it too), so the joined
+/// inference slot. Rows are independent (the batcher's padding relies on it too), so the joined
 /// parts are the whole pass's values (up to oneDNN's choice of kernel for the parts' batch
 /// size, as for any batch size).
 pub(super) struct Split<'a> {
