@@ -360,7 +360,10 @@ for model in ("maze-reward", "loco-reward"):
 lines += ["", "relreward against the dynamic-batching Python server (`bench/reference/grpc_batching_server.py`: grpc.aio, "
           "one batching queue per model taking whatever is queued up to 256 items (relreward's `max_batch`, "
           "`max_delay_us = 0`), one forward/backward per batch on a compute thread, the same nets, weights and checks "
-          "as the reference), measured in the same rotation. Ratio as above.", "",
+          "as the reference), measured in the same rotation. relreward runs its `[serving]` defaults unless the "
+          "environment overrides them: a batch waits for the last pass's callers (`refill_fraction`), and a long pass "
+          "(the ValueFunction's) is split by rows across up to `pass_threads` = 2 threads, so it may use both cores "
+          "where the Python server computes on one thread. Ratio as above.", "",
           "| model | configuration | metric | relreward | batching Python | ratio |", "|---|---|---|---|---|---|"]
 for model in ("maze-reward", "loco-reward"):
     for label, key, name in (("unary c=1", "p50", "p50 ms"), ("stream c=64", "items_per_s", "items/s"),
