@@ -27,6 +27,7 @@ use std::time::{Duration, Instant};
 use tch::Tensor;
 use tokio::sync::oneshot;
 
+use super::query::BatchKind;
 use super::split::{Helpers, Split};
 use super::{Answer, HostTensor, Inner, Prepared};
 use crate::config::ServingConfig;
@@ -36,13 +37,6 @@ use crate::registry::SharedReward;
 
 /// A serving thread with nothing to do for this long exits (the next query starts another).
 const IDLE: Duration = Duration::from_secs(30);
-
-/// Queries of one kind can share a forward pass.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum BatchKind {
-    Score { per_window: bool, per_step: bool },
-    Gradient,
-}
 
 /// The queues of every model with a serving thread.
 #[derive(Default)]

@@ -27,12 +27,18 @@ use std::time::Instant;
 use relreward_proto::tensor;
 use relreward_proto::v1 as pb;
 
-use super::batcher::BatchKind;
 use super::{Answer, Serving};
 use crate::engine::normalizer::Normalize;
 use crate::error::{Error, Result, brief};
 use crate::fields;
 use crate::registry::SharedReward;
+
+/// Queries of one kind can share a forward pass.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum BatchKind {
+    Score { per_window: bool, per_step: bool },
+    Gradient,
+}
 
 /// Largest |x| accepted in the model's normalized units. The normalizer maps the training data
 /// to about [-1, 1] (limits) or to z-scores (gaussian), and a noisy x_t stays within a few

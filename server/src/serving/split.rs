@@ -18,7 +18,7 @@ use tch::Tensor;
 use tokio::sync::OwnedSemaphorePermit;
 
 use super::Inner;
-use super::batcher::BatchKind;
+use super::query::BatchKind;
 use crate::engine::reward_model::RewardModel;
 use crate::error::{Error, Result};
 use crate::registry::SharedReward;
