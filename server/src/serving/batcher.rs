@@ -155,7 +155,7 @@ fn serve(inner: &Arc<Inner>, queue: &Arc<ModelQueue>) {
             inner.metrics.observe_queue_wait(&name, started.duration_since(p.arrived).as_secs_f64());
         }
         let items: i64 = batch.iter().map(|p| p.query.batch()).sum();
-        let cost_per_item = last.as_ref().map_or(Duration::ZERO, |l| l.cost / l.items.max(1) as u32);
+        let cost_per_item = last.as_ref().map_or(Duration::ZERO, |l| l.cost_per_item);
         let split = Split { inner, helpers: &mut helpers, cost_per_item };
         let result = compute(queue, kind, &batch, inner.config.max_batch as i64, split);
         let took = started.elapsed();
@@ -164,8 +164,9 @@ fn serve(inner: &Arc<Inner>, queue: &Arc<ModelQueue>) {
         if parts > 1 {
             inner.metrics.observe_split_pass(&name);
         }
-        // What the pass would have taken on one thread, roughly: the split's criterion.
-        let (queries, cost) = (batch.len(), took.saturating_mul(parts as u32));
+        // What the pass would have taken per item on one thread, roughly: the split's criterion.
+        let queries = batch.len();
+        let cost_per_item = took.saturating_mul(parts as u32) / items.clamp(1, i64::from(u32::MAX)) as u32;
         match result.map(|(answers, _)| answers) {
             Ok(answers) => {
                 for (p, a) in batch.into_iter().zip(answers) {
@@ -180,7 +181,7 @@ fn serve(inner: &Arc<Inner>, queue: &Arc<ModelQueue>) {
                 }
             }
         }
-        last = Some(LastPass { queries, items, took, cost, ended: Instant::now() });
+        last = Some(LastPass { queries, took, cost_per_item, ended: Instant::now() });
     }
     tracing::debug!(model = name, "serving thread idle: stopped");
 }
@@ -271,11 +272,10 @@ fn wait_for_company(
 /// The pass a serving thread computed last.
 struct LastPass {
     queries: usize,
-    items: i64,
     /// Its wall time, from the compute slot to the answers.
     took: Duration,
-    /// Its wall time times the threads it was split across.
-    cost: Duration,
+    /// Its wall time times the threads it was split across, per item.
+    cost_per_item: Duration,
     ended: Instant,
 }
 
@@ -457,7 +457,7 @@ mod tests {
     #[test]
     fn the_next_batch_waits_for_the_last_passs_callers_for_a_fraction_of_its_time() {
         let ended = Instant::now();
-        let last = LastPass { queries: 64, items: 64, took: 20 * MS, cost: 40 * MS, ended };
+        let last = LastPass { queries: 64, took: 20 * MS, cost_per_item: MS, ended };
         let c = config(0, 0.5);
         let arrived = ended + MS;
         // 10 of the 64 callers are back: wait until half the pass's 20 ms after it ended.
@@ -487,7 +487,7 @@ mod tests {
         let ended = Instant::now();
         let c = config(0, 0.5);
         // Its own last pass had one query: it is back, nothing to wait for.
-        let last = LastPass { queries: 1, items: 64, took: 20 * MS, cost: 20 * MS, ended };
+        let last = LastPass { queries: 1, took: 20 * MS, cost_per_item: MS, ended };
         assert_eq!(wait_for_company(&c, ended + MS, Some(&last), queued(1), ended + MS), None);
         // A model's first pass has no callers to wait for.
         assert_eq!(wait_for_company(&c, ended, None, queued(1), ended), None);
