@@ -839,7 +839,7 @@ mod tests {
         let (store, _) = open_store(tmp.path()).await;
         let arch = Architecture::Mlp { hidden: vec![16] };
         let space = Space::Sample { shape: vec![3] };
-        let net = NativeDenoiser::new(&arch, &space, None, Device::Cpu).expect("net");
+        let net = NativeDenoiser::new(&arch, &space, None, 0, Device::Cpu).expect("net");
         let weights = tmp.path().join("weights.safetensors");
         net.save(&weights).expect("save");
         let manifest = serde_json::json!({

@@ -54,7 +54,7 @@ fn nets_match_pytorch_in_both_directions() {
     let mut jobs = Vec::new();
     let mut expected = Vec::new();
     for (i, case) in cases.iter().enumerate() {
-        let d = NativeDenoiser::new(&case.architecture, &case.space, None, Device::Cpu).expect("build");
+        let d = NativeDenoiser::new(&case.architecture, &case.space, None, 0, Device::Cpu).expect("build");
         randomize(d.weights().var_store(), &mut rng);
         let weights = dir.path().join(format!("weights-{i}.safetensors"));
         d.save(&weights).expect("save weights");

@@ -89,7 +89,7 @@ fn reward_nets_match_pytorch_including_the_double_backward() {
     let mut jobs = Vec::new();
     let mut expected = Vec::new();
     for (i, case) in cases.iter().enumerate() {
-        let net = RewardNet::new(&case.architecture, &case.item_shape, Device::Cpu).expect("build");
+        let net = RewardNet::new(&case.architecture, &case.item_shape, 0, Device::Cpu).expect("build");
         perturb(&net, &mut rng);
         let weights = dir.path().join(format!("weights-{i}.safetensors"));
         net.save(&weights).expect("save weights");

@@ -85,7 +85,7 @@ fn diffusion(
     rng: &mut Rng,
 ) -> (DiffusionModel, Vec<(String, Tensor)>, serde_json::Value) {
     let arch = m.architecture.clone().expect("native");
-    let denoiser = NativeDenoiser::new(&arch, &m.space, None, Device::Cpu).expect("denoiser");
+    let denoiser = NativeDenoiser::new(&arch, &m.space, None, 0, Device::Cpu).expect("denoiser");
     randomize(denoiser.weights().var_store(), rng);
     denoiser.save(path).expect("save denoiser");
     // Shares storage with the network: what jobs/diffusion.rs hands its TrainLoop.
@@ -100,7 +100,7 @@ fn reward_net(
     path: &Path,
     rng: &mut Rng,
 ) -> (RewardNet, serde_json::Value) {
-    let net = RewardNet::new(arch, item_shape, Device::Cpu).expect("reward net");
+    let net = RewardNet::new(arch, item_shape, 0, Device::Cpu).expect("reward net");
     randomize(net.weights().var_store(), rng);
     net.save(path).expect("save reward");
     (net, json!({ "architecture": arch, "item_shape": item_shape, "weights": path }))

@@ -99,7 +99,7 @@ fn unet2d_matches_diffusers_forward_and_training_step() {
     for (i, case) in cases.iter().enumerate() {
         let space = Space::Sample { shape: case.shape.clone() };
         let conditioning = case.conditioning.as_ref();
-        let d = NativeDenoiser::new(&case.architecture, &space, conditioning, Device::Cpu).expect("build");
+        let d = NativeDenoiser::new(&case.architecture, &space, conditioning, 0, Device::Cpu).expect("build");
         randomize(d.weights().var_store(), &mut rng);
         let weights = dir.path().join(format!("weights-{i}.safetensors"));
         d.save(&weights).expect("save weights");

@@ -181,7 +181,7 @@ mod tests {
             ),
         ];
         for (architecture, space) in cases {
-            let mut net = NativeDenoiser::new(&architecture, &space, None, Device::Cpu).expect("network");
+            let mut net = NativeDenoiser::new(&architecture, &space, None, 0, Device::Cpu).expect("network");
             net.freeze();
             let dir = tempfile::tempdir().expect("tmp");
             let out = dir.path().join("model.pt");

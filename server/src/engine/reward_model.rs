@@ -309,7 +309,7 @@ mod tests {
     fn step_normalized_gradient_is_the_chain_rule() {
         let dir = tempfile::tempdir().expect("tmp");
         let m = manifest(true);
-        let net = RewardNet::new(&RewardArchitecture::Mlp { hidden: vec![8] }, &[3], Device::Cpu).expect("net");
+        let net = RewardNet::new(&RewardArchitecture::Mlp { hidden: vec![8] }, &[3], 0, Device::Cpu).expect("net");
         net.save(&dir.path().join("w.safetensors")).expect("save");
         let mean = Tensor::randn([4, 3], (Kind::Float, Device::Cpu));
         let std = Tensor::rand([4, 3], (Kind::Float, Device::Cpu)) + 0.5;
@@ -335,7 +335,7 @@ mod tests {
     fn missing_step_tables_are_data_loss() {
         let dir = tempfile::tempdir().expect("tmp");
         let m = manifest(true);
-        let net = RewardNet::new(&RewardArchitecture::Mlp { hidden: vec![8] }, &[3], Device::Cpu).expect("net");
+        let net = RewardNet::new(&RewardArchitecture::Mlp { hidden: vec![8] }, &[3], 0, Device::Cpu).expect("net");
         net.save(&dir.path().join("w.safetensors")).expect("save");
         match RewardModel::load(m, &dir.path().join("w.safetensors"), dir.path(), Device::Cpu) {
             Err(Error::DataLoss(msg)) => assert!(msg.contains(STEP_NORM_FILE), "{msg}"),

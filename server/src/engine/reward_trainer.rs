@@ -107,9 +107,8 @@ pub struct RelativeRewardTrainer {
 }
 
 impl RelativeRewardTrainer {
-    /// A freshly initialised rho (libtorch's generator seeded with `settings.seed` first, so
-    /// the same seed gives the same initial weights) for the base model's item shape, on the
-    /// engine's device.
+    /// A freshly initialised rho (drawn from `settings.seed`: the same seed gives the same
+    /// initial weights) for the base model's item shape, on the engine's device.
     pub fn new(
         base: DiffusionModel,
         expert: DiffusionModel,
@@ -118,8 +117,8 @@ impl RelativeRewardTrainer {
     ) -> Result<Self> {
         let device = device();
         let space = base.manifest.space.clone();
-        tch::manual_seed(settings.seed as i64); // initialization only; every later draw uses the caller's Rng
-        let reward = RewardNet::new(&settings.architecture, &space.item_shape(), device)?;
+        // The seed draws the first weights only; every later draw uses the caller's Rng.
+        let reward = RewardNet::new(&settings.architecture, &space.item_shape(), settings.seed, device)?;
         let entry_weights =
             entry_weights(&space, settings.action_weight, settings.condition_weight, device, settings.field)?;
         let condition = settings

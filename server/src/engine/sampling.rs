@@ -538,13 +538,20 @@ mod tests {
             RewardArchitecture::ValueFunction { widths: vec![64] },
         ] {
             let dir = tempfile::tempdir().expect("tmp");
-            let net = RewardNet::new(&architecture, &[4, 3], Device::Cpu).expect("net");
+            let net = RewardNet::new(&architecture, &[4, 3], 0, Device::Cpu).expect("net");
             let path = dir.path().join("w.safetensors");
             net.save(&path).expect("save");
             let space = traj.manifest.space.clone();
             let manifest = RewardManifest::for_tests(architecture.clone(), space, Normalizer::Identity, T);
             let reward = RewardModel::load(manifest, &path, dir.path(), Device::Cpu).expect("load");
-            let close = |a: &Tensor, b: &Tensor| a.allclose(b, 1e-5, 1e-6, false);
+            // To float rounding relative to the values' scale: an entry near zero differs by
+            // the rounding of the largest (elementwise relative tolerances fail there; the
+            // ValueFunction's group norm over two values amplifies rounding to about 1e-5 of
+            // the largest gradient entry across seeds).
+            let close = |a: &Tensor, b: &Tensor| {
+                let scale = b.abs().max().double_value(&[]).max(1e-3);
+                (a - b).abs().max().double_value(&[]) <= 5e-5 * scale
+            };
             // The guided step's gradient, at points of every scale and at several steps.
             let x = Tensor::randn([16, 4, 3], (Kind::Float, Device::Cpu)) * 2.0;
             let t = Tensor::arange(16, (Kind::Int64, Device::Cpu)) * 3;

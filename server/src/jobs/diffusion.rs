@@ -287,8 +287,8 @@ pub fn run(ctx: &mut JobContext, job: &DiffusionJob) -> std::result::Result<Stri
 
     let device = crate::engine::device();
     let arch = manifest.architecture.clone().ok_or_else(|| Error::internal("diffusion job", "no architecture"))?;
-    tch::manual_seed(spec.seed as i64); // initialization only; every later draw uses the loop's Rng
-    let denoiser = NativeDenoiser::new(&arch, &manifest.space, manifest.conditioning.as_ref(), device)?;
+    // The seed draws the first weights only; every later draw uses the loop's Rng.
+    let denoiser = NativeDenoiser::new(&arch, &manifest.space, manifest.conditioning.as_ref(), spec.seed, device)?;
     let mut train = TrainLoop::new(denoiser.weights().var_store(), opt, spec.seed);
     let model = DiffusionModel::new(manifest.clone(), Box::new(denoiser))?;
     if train.resume(ctx)?.is_none() {

@@ -472,8 +472,7 @@ pub fn run_discriminator(ctx: &mut JobContext, job: &DiscriminatorJob) -> std::r
     let normalizer = model.manifest.normalizer.clone();
     let base = dataset_union(ctx, std::slice::from_ref(&job.base_dataset), &space, &normalizer, spec.seed)?;
     let expert = dataset_union(ctx, std::slice::from_ref(&job.expert_dataset), &space, &normalizer, spec.seed ^ 1)?;
-    tch::manual_seed(spec.seed as i64);
-    let net = RewardNet::new(&job.architecture, &space.item_shape(), device)?;
+    let net = RewardNet::new(&job.architecture, &space.item_shape(), spec.seed, device)?;
     let mut train = TrainLoop::new(net.weights().var_store(), opt, spec.seed);
     if train.resume(ctx)?.is_none() {
         ctx.log(format!(

@@ -307,7 +307,7 @@ mod tests {
         ] {
             let dir = tempfile::tempdir().expect("tmp");
             let path = dir.path().join("w.safetensors");
-            RewardNet::new(&architecture, &[8, 3], Device::Cpu).expect("net").save(&path).expect("save");
+            RewardNet::new(&architecture, &[8, 3], 0, Device::Cpu).expect("net").save(&path).expect("save");
             let space = Space::Trajectory { horizon: 8, action_dim: 1, obs_dim: 2 };
             let manifest = RewardManifest::for_tests(architecture.clone(), space, Normalizer::Identity, 10);
             let model = RewardModel::load(manifest, &path, dir.path(), Device::Cpu).expect("load");

@@ -64,7 +64,7 @@ async fn fixture_with(arch: RewardArchitecture, tune: impl FnOnce(&mut ServingCo
     let store = Store::open(&config).await.expect("store");
 
     let m = manifest_with(arch.clone());
-    let net = RewardNet::new(&arch, &[H, D], Device::Cpu).expect("net");
+    let net = RewardNet::new(&arch, &[H, D], 0, Device::Cpu).expect("net");
     let weights = tmp.path().join("weights.safetensors");
     net.save(&weights).expect("save");
     register(&store, "rho", &weights, ModelKind::Reward, serde_json::to_value(&m).expect("json")).await;

@@ -18,7 +18,7 @@ use super::mlp::MlpDenoiser;
 use super::temporal_unet::TemporalUnet;
 use super::unet2d::ClassEmbedding;
 use super::unet2d::{Unet2d, Unet2dConfig};
-use super::weights::Weights;
+use super::weights::{Start, Weights};
 use crate::engine::denoiser::Denoiser;
 use crate::engine::manifest::{Architecture, Conditioning, Space};
 use crate::error::{Error, Result};
@@ -179,16 +179,27 @@ impl NativeDenoiser {
         Plan::new(architecture, space, conditioning)?.0.params()
     }
 
-    /// A freshly initialised network (PyTorch's default initialisation) on `device`, taking
-    /// `conditioning`'s input when given (unet2d only).
+    /// A freshly initialised network (PyTorch's default initialisation, drawn from `seed`) on
+    /// `device`, taking `conditioning`'s input when given (unet2d only).
     pub fn new(
         architecture: &Architecture,
         space: &Space,
         conditioning: Option<&Conditioning>,
+        seed: u64,
+        device: Device,
+    ) -> Result<Self> {
+        Self::build(architecture, space, conditioning, Start::Seeded(seed), device)
+    }
+
+    fn build(
+        architecture: &Architecture,
+        space: &Space,
+        conditioning: Option<&Conditioning>,
+        start: Start,
         device: Device,
     ) -> Result<Self> {
         let (plan, item_shape) = Plan::new(architecture, space, conditioning)?;
-        let (weights, network) = Weights::build(device, plan.params()?, "NativeDenoiser", |root| {
+        let (weights, network) = Weights::build(device, plan.params()?, "NativeDenoiser", start, |root| {
             Ok(match &plan {
                 Plan::TemporalUnet { horizon, transition_dim, dim, dim_mults } => Network::TemporalUnet(Box::new(
                     TemporalUnet::new(root, *horizon, *transition_dim, *dim, dim_mults)?,
@@ -216,7 +227,7 @@ impl NativeDenoiser {
         conditioning: Option<&Conditioning>,
         device: Device,
     ) -> Result<Self> {
-        let denoiser = Self::new(architecture, space, conditioning, device)?;
+        let denoiser = Self::build(architecture, space, conditioning, Start::Replaced, device)?;
         denoiser.weights.load_strict(path)?;
         Ok(denoiser)
     }
@@ -286,7 +297,7 @@ mod tests {
     }
 
     fn build(arch: &Architecture, space: &Space) -> NativeDenoiser {
-        NativeDenoiser::new(arch, space, None, Device::Cpu).expect("network builds")
+        NativeDenoiser::new(arch, space, None, 0, Device::Cpu).expect("network builds")
     }
 
     /// Moves every weight off its initial value (GroupNorm's ones and zeros included) so that
@@ -414,7 +425,7 @@ mod tests {
             (mlp(&[16]), Space::Sample { shape: vec![usize::MAX, 4] }, "space"),
         ];
         for (arch, space, needle) in cases {
-            let msg = invalid_message(NativeDenoiser::new(&arch, &space, None, Device::Cpu));
+            let msg = invalid_message(NativeDenoiser::new(&arch, &space, None, 0, Device::Cpu));
             assert!(msg.contains(needle), "{arch:?} {space:?}: {msg} should contain {needle}");
         }
     }

@@ -2,7 +2,8 @@
 //! networks so that both are built, checked, loaded and saved the same way:
 //!
 //! - [`Weights`]: a network's `VarStore` with its parameter count, built once and checked
-//!   against the count its plan computed without allocating.
+//!   against the count its plan computed without allocating, its first values drawn from a seed
+//!   of its own ([`Start`]).
 //! - strict safetensors loading ([`Weights::load_strict`]: exactly the network's tensor names,
 //!   shapes and dtype, or an error naming the tensor, with nothing changed) and atomic saving
 //!   ([`Weights::save_atomic`]: a synced temporary sibling renamed over the target). Loading a
@@ -10,6 +11,7 @@
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
+use std::sync::{Mutex, PoisonError};
 
 use tch::nn::{self, VarStore};
 use tch::{Device, TchError, Tensor};
@@ -21,6 +23,22 @@ const HEADER_ALLOWANCE: u64 = 1 << 20;
 /// At most this many names are listed in an error message.
 const NAMES_SHOWN: usize = 5;
 
+/// How a network's variables start.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Start {
+    /// PyTorch's default initialisation, drawn from libtorch's generator seeded with this value:
+    /// the same seed, the same first weights (a training job's `seed`).
+    Seeded(u64),
+    /// Values that are replaced at once (a load, a replica sharing another network's storage).
+    Replaced,
+}
+
+/// Held by every network build. Layers draw their first values from libtorch's generator,
+/// which is process-wide: without this lock a load or a serving helper built on another thread
+/// between a job's seeding and its build would take draws from the job's stream, and the same
+/// seed would no longer give the same first weights.
+static BUILDS: Mutex<()> = Mutex::new(());
+
 /// A network's variables (parameters and buffers, under PyTorch's state-dict names) and their
 /// number.
 #[derive(Debug)]
@@ -31,17 +49,27 @@ pub struct Weights {
 
 impl Weights {
     /// Creates the variables of a network on `device`: `build` makes its layers under the root
-    /// path. The number of values built must equal `planned`, the count the network's plan
-    /// computed without allocating (which the parameter limits were checked against); a
-    /// mismatch is an internal error of `network`'s bookkeeping.
+    /// path, from `start`'s seed or for values replaced next. The number of values built must
+    /// equal `planned`, the count the network's plan computed without allocating (which the
+    /// parameter limits were checked against); a mismatch is an internal error of `network`'s
+    /// bookkeeping.
     pub fn build<N>(
         device: Device,
         planned: u64,
         network: &str,
+        start: Start,
         build: impl FnOnce(&nn::Path) -> Result<N>,
     ) -> Result<(Self, N)> {
         let vs = VarStore::new(device);
-        let layers = build(&vs.root())?;
+        let layers = {
+            // A build that failed half way leaves nothing to protect: a poisoned lock is taken.
+            let _builds = BUILDS.lock().unwrap_or_else(PoisonError::into_inner);
+            if let Start::Seeded(seed) = start {
+                // libtorch takes the seed's bits as a u64; tch's signature is i64.
+                tch::manual_seed(seed as i64);
+            }
+            build(&vs.root())?
+        };
         let parameter_count = vs
             .variables()
             .values()

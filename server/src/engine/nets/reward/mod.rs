@@ -50,7 +50,7 @@ pub use self::architecture::RewardArchitecture;
 use self::architecture::{Network, Plan};
 use super::blocks::Mish;
 use super::inputs::check_inputs;
-use super::weights::Weights;
+use super::weights::{Start, Weights};
 use crate::error::{Error, Result};
 
 /// An alignment loss with its parameter gradients computed in closed form
@@ -79,18 +79,23 @@ impl RewardNet {
         Plan::new(architecture, item_shape)?.params()
     }
 
-    /// A freshly initialised network (PyTorch's default initialisation) on `device`, for items
-    /// of `item_shape` ([H, D] for trajectories, the sample shape otherwise).
-    pub fn new(architecture: &RewardArchitecture, item_shape: &[i64], device: Device) -> Result<Self> {
+    /// A freshly initialised network (PyTorch's default initialisation, drawn from `seed`) on
+    /// `device`, for items of `item_shape` ([H, D] for trajectories, the sample shape
+    /// otherwise).
+    pub fn new(architecture: &RewardArchitecture, item_shape: &[i64], seed: u64, device: Device) -> Result<Self> {
+        Self::build(architecture, item_shape, Start::Seeded(seed), device)
+    }
+
+    fn build(architecture: &RewardArchitecture, item_shape: &[i64], start: Start, device: Device) -> Result<Self> {
         let plan = Plan::new(architecture, item_shape)?;
-        let (weights, network) = Weights::build(device, plan.params()?, "RewardNet", |root| plan.build(root))?;
+        let (weights, network) = Weights::build(device, plan.params()?, "RewardNet", start, |root| plan.build(root))?;
         Ok(Self { weights, network, architecture: architecture.clone(), item_shape: item_shape.to_vec() })
     }
 
     /// Builds the network and loads its weights from a safetensors file (strictly, see
     /// [`Weights::load_strict`]).
     pub fn load(architecture: &RewardArchitecture, item_shape: &[i64], path: &Path, device: Device) -> Result<Self> {
-        let net = Self::new(architecture, item_shape, device)?;
+        let net = Self::build(architecture, item_shape, Start::Replaced, device)?;
         net.weights.load_strict(path)?;
         Ok(net)
     }
@@ -100,7 +105,8 @@ impl RewardNet {
     /// several threads safely; tch's handles are not `Sync`, hence one per thread. Only for
     /// evaluation: a trainer's updates through one handle would be seen by all.
     pub fn replica(&self) -> Result<Self> {
-        let mut net = Self::new(&self.architecture, &self.item_shape, self.weights.var_store().device())?;
+        let mut net =
+            Self::build(&self.architecture, &self.item_shape, Start::Replaced, self.weights.var_store().device())?;
         net.weights.share_storage_of(&self.weights)?;
         Ok(net)
     }

@@ -26,7 +26,7 @@ fn mlp(hidden: &[usize]) -> RewardArchitecture {
 }
 
 fn build(arch: &RewardArchitecture, item_shape: &[i64]) -> RewardNet {
-    RewardNet::new(arch, item_shape, CPU).expect("reward network builds")
+    RewardNet::new(arch, item_shape, 0, CPU).expect("reward network builds")
 }
 
 /// Deterministic pseudo-random values in [-1, 1) (a sine hash): the tests do not draw from
@@ -195,7 +195,7 @@ fn reward_windowed_per_step_pads_by_repeating_the_last_row() {
 
 #[test]
 fn reward_window_must_divide_the_horizon() {
-    let msg = invalid_message(RewardNet::new(&windowed(4, &[32]), &[30, 6], CPU));
+    let msg = invalid_message(RewardNet::new(&windowed(4, &[32]), &[30, 6], 0, CPU));
     assert!(msg.contains("horizon 30 is not divisible by window 4"), "{msg}");
     assert!(msg.contains("architecture.window"), "{msg}");
 }
@@ -461,7 +461,7 @@ fn reward_invalid_architectures_name_the_field() {
         (mlp(&[16]), vec![i64::MAX, 4], "item shape"),
     ];
     for (arch, shape, needle) in cases {
-        let msg = invalid_message(RewardNet::new(&arch, &shape, CPU));
+        let msg = invalid_message(RewardNet::new(&arch, &shape, 0, CPU));
         assert!(msg.contains(needle), "{arch} {shape:?}: {msg} should contain {needle}");
     }
     // Powers of two below 2^(levels + 2) are fine (HalfCheetah's horizon 4), as are multiples.
