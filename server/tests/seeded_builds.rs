@@ -1,8 +1,9 @@
 //! The same seed gives the same first weights whatever the rest of the server builds at that
-//! moment. Layers draw their first values from libtorch's process-wide generator; a training job
-//! seeds it and builds its network while loads (registry, sampling) and serving helpers
-//! (replicas) build networks on other threads. A binary of its own: the library's unit tests
-//! draw inputs from that generator without any lock, which this test would see.
+//! moment. Layers draw their first values from libtorch's process-wide generator: a training job
+//! seeds it and builds its network while other jobs start and while loads (registry, sampling)
+//! and serving helpers (replicas) build networks on other threads. A binary of its own, with one
+//! test: the library's unit tests draw inputs from that generator without any lock, and a second
+//! test here would reseed it under the first.
 
 use std::sync::Arc;
 use std::sync::atomic::{AtomicUsize, Ordering};
@@ -10,7 +11,7 @@ use std::time::{Duration, Instant};
 
 use relreward_server::engine::manifest::{Architecture, Space};
 use relreward_server::engine::nets::{NativeDenoiser, RewardArchitecture, RewardNet};
-use tch::{Device, Tensor};
+use tch::{Device, Kind, Tensor};
 
 /// Every variable of a network, in name order, flattened into one vector.
 fn values(vars: std::collections::HashMap<String, Tensor>) -> Vec<f32> {
@@ -24,8 +25,13 @@ fn seeded(seed: u64) -> Vec<f32> {
     values(RewardNet::new(&arch, &[16, 6], seed, Device::Cpu).expect("builds").weights().var_store().variables())
 }
 
+/// The generator's next draws (which a build that drew nothing leaves as they were).
+fn next_draws() -> Vec<f32> {
+    Vec::<f32>::try_from(Tensor::rand([16], (Kind::Float, Device::Cpu))).expect("float32 draws")
+}
+
 #[test]
-fn a_seeded_build_draws_the_same_weights_while_other_threads_load_networks() {
+fn seeded_builds_draw_the_same_weights_beside_other_builds_and_loads_draw_nothing() {
     let dir = tempfile::tempdir().expect("tmp");
     let reward_arch = RewardArchitecture::ValueFunction { widths: vec![16, 32] };
     let reward_path = dir.path().join("reward.safetensors");
@@ -39,38 +45,56 @@ fn a_seeded_build_draws_the_same_weights_while_other_threads_load_networks() {
         .save(&denoiser_path)
         .expect("saves");
 
-    let first = seeded(11);
-    assert_ne!(first, seeded(12), "another seed, other weights");
-    // The seeded builds go on until the other threads have built this many networks (a lock
-    // need not be fair: counting the seeded builds alone could test no contention at all).
-    const LOADS: usize = 100;
-    let loads = Arc::new(AtomicUsize::new(0));
-    let loaders: Vec<_> = (0..2)
+    // A load and a replica take no draws: the generator's stream goes on as if they had not run
+    // (and what they hold is the file's and the source's values, checked elsewhere).
+    tch::manual_seed(5);
+    let want = next_draws();
+    tch::manual_seed(5);
+    let loaded = RewardNet::load(&reward_arch, &[16, 6], &reward_path, Device::Cpu).expect("loads");
+    loaded.replica().expect("a replica");
+    NativeDenoiser::load(&denoiser_arch, &space, &denoiser_path, None, Device::Cpu).expect("loads");
+    assert_eq!(next_draws(), want, "a load or a replica drew from libtorch's generator");
+    assert_eq!(
+        values(loaded.weights().var_store().variables()),
+        values(reward.weights().var_store().variables()),
+        "the load holds the file's values"
+    );
+
+    // Seeded builds of two seeds on two threads at once, loads and replicas on a third: every
+    // build equals its seed's first. They go on until both seeds have been built this many
+    // times beside the other (a lock need not be fair: a count on one thread alone could test
+    // no contention at all).
+    const BUILDS: usize = 50;
+    let first = [seeded(11), seeded(12)];
+    assert_ne!(first[0], first[1], "another seed, other weights");
+    let counts = Arc::new([AtomicUsize::new(0), AtomicUsize::new(0)]);
+    let done = |counts: &[AtomicUsize; 2]| counts.iter().all(|c| c.load(Ordering::Relaxed) >= BUILDS);
+    let deadline = Instant::now() + Duration::from_secs(60);
+    let builders: Vec<_> = (0..2)
         .map(|i| {
-            let (loads, reward_arch, reward_path) = (loads.clone(), reward_arch.clone(), reward_path.clone());
-            let (denoiser_arch, space, denoiser_path) = (denoiser_arch.clone(), space.clone(), denoiser_path.clone());
+            let (counts, want) = (counts.clone(), first[i].clone());
             std::thread::spawn(move || {
-                while loads.load(Ordering::Relaxed) < LOADS {
-                    let net = RewardNet::load(&reward_arch, &[16, 6], &reward_path, Device::Cpu).expect("loads");
-                    if i == 0 {
-                        net.replica().expect("a replica");
-                    } else {
-                        NativeDenoiser::load(&denoiser_arch, &space, &denoiser_path, None, Device::Cpu).expect("loads");
-                    }
-                    loads.fetch_add(2, Ordering::Relaxed);
+                let mut mismatches = 0usize;
+                while !done(&counts) && Instant::now() < deadline {
+                    mismatches += usize::from(seeded(11 + i as u64) != want);
+                    counts[i].fetch_add(1, Ordering::Relaxed);
                 }
+                mismatches
             })
         })
         .collect();
-    let deadline = Instant::now() + Duration::from_secs(60);
-    let (mut builds, mut mismatches) = (0usize, 0usize);
-    while loads.load(Ordering::Relaxed) < LOADS && Instant::now() < deadline {
-        builds += 1;
-        mismatches += usize::from(seeded(11) != first);
-    }
-    for loader in loaders {
-        loader.join().expect("a loader thread");
-    }
-    assert!(builds >= 10, "only {builds} seeded builds ran beside the loads: no contention was tested");
-    assert_eq!(mismatches, 0, "{mismatches} of {builds} seeded builds drew other weights beside {LOADS} loads");
+    let loader = {
+        let counts = counts.clone();
+        std::thread::spawn(move || {
+            while !done(&counts) && Instant::now() < deadline {
+                let net = RewardNet::load(&reward_arch, &[16, 6], &reward_path, Device::Cpu).expect("loads");
+                net.replica().expect("a replica");
+                NativeDenoiser::load(&denoiser_arch, &space, &denoiser_path, None, Device::Cpu).expect("loads");
+            }
+        })
+    };
+    let mismatches: Vec<usize> = builders.into_iter().map(|h| h.join().expect("a builder thread")).collect();
+    loader.join().expect("the loader thread");
+    assert!(done(&counts), "the builds did not finish in time: {counts:?}");
+    assert_eq!(mismatches, [0, 0], "seeded builds that drew other weights, per seed, of {BUILDS} or more each");
 }

@@ -25,10 +25,12 @@ pub const TEMPORAL_KERNEL: i64 = 5;
 /// PyTorch's default for `Linear`, `Conv1d` and `ConvTranspose1d`: kaiming_uniform with
 /// a = sqrt(5) for weights, which reduces to U(-1/sqrt(fan_in), 1/sqrt(fan_in)), and the same bound
 /// for biases. Matching it keeps training behaviour comparable with the PyTorch originals
-/// (tch's own defaults differ: zero conv biases, ReLU-gain Kaiming weights).
-fn torch_default_init(fan_in: i64) -> Init {
+/// (tch's own defaults differ: zero conv biases, ReLU-gain Kaiming weights). Zeros instead,
+/// nothing drawn, while a network is built to have its values replaced
+/// ([`weights::first_values`](super::weights::first_values)).
+pub fn torch_default_init(fan_in: i64) -> Init {
     let bound = 1.0 / (fan_in.max(1) as f64).sqrt();
-    Init::Uniform { lo: -bound, up: bound }
+    super::weights::first_values(Init::Uniform { lo: -bound, up: bound })
 }
 
 /// Mish, x * tanh(softplus(x)): Diffuser's activation everywhere (smooth, as the reward

@@ -33,7 +33,8 @@
 use tch::nn::{Init, Path};
 use tch::{Kind, Tensor};
 
-use super::blocks::{GroupNorm, Linear, linear_params, total};
+use super::blocks::{GroupNorm, Linear, linear_params, torch_default_init, total};
+use super::weights::first_values;
 use crate::error::{Error, Result};
 
 /// Levels beyond this would need images of 2^15 pixels a side and more.
@@ -228,8 +229,7 @@ struct Conv2d {
 
 impl Conv2d {
     fn new(p: &Path, in_channels: i64, out_channels: i64, kernel: i64, stride: i64, padding: i64) -> Result<Self> {
-        let bound = 1.0 / ((in_channels * kernel * kernel).max(1) as f64).sqrt();
-        let init = Init::Uniform { lo: -bound, up: bound };
+        let init = torch_default_init(in_channels * kernel * kernel);
         Ok(Self {
             weight: p.f_var("weight", &[out_channels, in_channels, kernel, kernel], init)?,
             bias: p.f_var("bias", &[out_channels], init)?,
@@ -421,7 +421,7 @@ impl Unet2d {
                 Some(ClassEmbedding::Table { rows }) => Some((p / "class_embedding").f_var(
                     "weight",
                     &[rows, temb],
-                    Init::Randn { mean: 0.0, stdev: 1.0 },
+                    first_values(Init::Randn { mean: 0.0, stdev: 1.0 }),
                 )?),
                 _ => None,
             },

@@ -3,17 +3,18 @@
 //!
 //! - [`Weights`]: a network's `VarStore` with its parameter count, built once and checked
 //!   against the count its plan computed without allocating, its first values drawn from a seed
-//!   of its own ([`Start`]).
+//!   of its own, or none drawn where they are replaced at once ([`Start`], [`first_values`]).
 //! - strict safetensors loading ([`Weights::load_strict`]: exactly the network's tensor names,
 //!   shapes and dtype, or an error naming the tensor, with nothing changed) and atomic saving
 //!   ([`Weights::save_atomic`]: a synced temporary sibling renamed over the target). Loading a
 //!   safetensors file never executes code.
 
+use std::cell::Cell;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::sync::{Mutex, PoisonError};
 
-use tch::nn::{self, VarStore};
+use tch::nn::{self, Init, VarStore};
 use tch::{Device, TchError, Tensor};
 
 use crate::error::{Error, Result};
@@ -29,15 +30,31 @@ pub enum Start {
     /// PyTorch's default initialisation, drawn from libtorch's generator seeded with this value:
     /// the same seed, the same first weights (a training job's `seed`).
     Seeded(u64),
-    /// Values that are replaced at once (a load, a replica sharing another network's storage).
+    /// Values that are replaced at once (a load, a replica sharing another network's storage):
+    /// zeros, nothing drawn ([`first_values`]).
     Replaced,
 }
 
-/// Held by every network build. Layers draw their first values from libtorch's generator,
-/// which is process-wide: without this lock a load or a serving helper built on another thread
-/// between a job's seeding and its build would take draws from the job's stream, and the same
-/// seed would no longer give the same first weights.
-static BUILDS: Mutex<()> = Mutex::new(());
+/// Held by every seeded build, from its seeding to its last draw. Layers draw their first
+/// values from libtorch's generator, which is process-wide: two seeded builds at once (two jobs
+/// starting) would interleave their draws, and the same seed would no longer give the same
+/// first weights.
+static SEEDED_BUILDS: Mutex<()> = Mutex::new(());
+
+thread_local! {
+    /// Set while this thread builds a network whose values are replaced at once
+    /// ([`Start::Replaced`]): its layers start at zero and draw nothing, so a load or a serving
+    /// replica never takes draws from a job's stream and never waits for a job's build.
+    static REPLACED: Cell<bool> = const { Cell::new(false) };
+}
+
+/// A layer's first values: `init` as the layer asks, or zeros, with no draw from libtorch's
+/// generator, while this thread builds a network whose values are replaced at once. Every
+/// layer's random initialisation goes through here (`blocks::torch_default_init` and the
+/// UNet2D's class table).
+pub fn first_values(init: Init) -> Init {
+    if REPLACED.with(Cell::get) { Init::Const(0.0) } else { init }
+}
 
 /// A network's variables (parameters and buffers, under PyTorch's state-dict names) and their
 /// number.
@@ -61,14 +78,25 @@ impl Weights {
         build: impl FnOnce(&nn::Path) -> Result<N>,
     ) -> Result<(Self, N)> {
         let vs = VarStore::new(device);
-        let layers = {
-            // A build that failed half way leaves nothing to protect: a poisoned lock is taken.
-            let _builds = BUILDS.lock().unwrap_or_else(PoisonError::into_inner);
-            if let Start::Seeded(seed) = start {
+        let layers = match start {
+            Start::Seeded(seed) => {
+                // A build that failed half way leaves nothing to protect: a poisoned lock is taken.
+                let _seeded = SEEDED_BUILDS.lock().unwrap_or_else(PoisonError::into_inner);
                 // libtorch takes the seed's bits as a u64; tch's signature is i64.
                 tch::manual_seed(seed as i64);
+                build(&vs.root())?
             }
-            build(&vs.root())?
+            Start::Replaced => {
+                // Restored however the build ends (an error, a panic).
+                struct Restore(bool);
+                impl Drop for Restore {
+                    fn drop(&mut self) {
+                        REPLACED.with(|flag| flag.set(self.0));
+                    }
+                }
+                let _restore = Restore(REPLACED.with(|flag| flag.replace(true)));
+                build(&vs.root())?
+            }
         };
         let parameter_count = vs
             .variables()

@@ -6,12 +6,12 @@
 //! time embedding and `final_block = Sequential(Linear(w + d, w / 2), Mish, Linear(w / 2, 1))`.
 //! Any H, W >= 1 (each stride-2 convolution maps n to ceil(n / 2)).
 
-use tch::nn::{self, Init};
+use tch::nn;
 use tch::{Kind, Tensor};
 
 use super::checks::{count, shape_text, validate_widths};
 use crate::engine::nets::blocks::{
-    GROUPS, GroupNorm, Linear, Mish, NormMishTape, TimeMlp, conv_params, linear_params, total,
+    GROUPS, GroupNorm, Linear, Mish, NormMishTape, TimeMlp, conv_params, linear_params, torch_default_init, total,
 };
 use crate::error::{Error, Result};
 
@@ -40,13 +40,6 @@ impl ConvEncoderPlan {
     pub(super) fn build(&self, root: &nn::Path) -> Result<ConvEncoderNet> {
         ConvEncoderNet::new(root, self.channels, &self.widths)
     }
-}
-
-/// PyTorch's default initialisation for convolutions and linear layers:
-/// U(-1/sqrt(fan_in), 1/sqrt(fan_in)) for weights and biases.
-fn torch_default_init(fan_in: i64) -> Init {
-    let bound = 1.0 / (fan_in.max(1) as f64).sqrt();
-    Init::Uniform { lo: -bound, up: bound }
 }
 
 /// `nn.Conv2d(in, out, 3, stride = 2, padding = 1)`: `weight` [out, in, 3, 3], `bias` [out].
