@@ -110,14 +110,7 @@ thread_local! {
 /// libtorch's calls and a kernel's result would be recorded as a constant built from host
 /// data. Restores the previous setting however `f` ends.
 pub fn with_libtorch_ops<R>(f: impl FnOnce() -> R) -> R {
-    struct Restore(bool);
-    impl Drop for Restore {
-        fn drop(&mut self) {
-            LIBTORCH_ONLY.with(|flag| flag.set(self.0));
-        }
-    }
-    let _restore = Restore(LIBTORCH_ONLY.with(|flag| flag.replace(true)));
-    f()
+    super::with_flag_set(&LIBTORCH_ONLY, f)
 }
 
 /// What a thread keeps for its kernels: at most this many buffers, of 32 MiB in all (a

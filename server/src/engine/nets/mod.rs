@@ -35,3 +35,21 @@ pub mod weights;
 
 pub use native::NativeDenoiser;
 pub use reward::{RewardArchitecture, RewardNet};
+
+use std::cell::Cell;
+use std::thread::LocalKey;
+
+/// Runs `f` with this thread's `flag` set, restoring its previous value however `f` ends (a
+/// return, an error, a panic): the scope of a building or tracing mode that layers and kernels
+/// read without it being passed through every call (`weights::first_values`,
+/// `kernels::with_libtorch_ops`).
+fn with_flag_set<R>(flag: &'static LocalKey<Cell<bool>>, f: impl FnOnce() -> R) -> R {
+    struct Restore(&'static LocalKey<Cell<bool>>, bool);
+    impl Drop for Restore {
+        fn drop(&mut self) {
+            self.0.with(|cell| cell.set(self.1));
+        }
+    }
+    let _restore = Restore(flag, flag.with(|cell| cell.replace(true)));
+    f()
+}

@@ -86,17 +86,7 @@ impl Weights {
                 tch::manual_seed(seed as i64);
                 build(&vs.root())?
             }
-            Start::Replaced => {
-                // Restored however the build ends (an error, a panic).
-                struct Restore(bool);
-                impl Drop for Restore {
-                    fn drop(&mut self) {
-                        REPLACED.with(|flag| flag.set(self.0));
-                    }
-                }
-                let _restore = Restore(REPLACED.with(|flag| flag.replace(true)));
-                build(&vs.root())?
-            }
+            Start::Replaced => super::with_flag_set(&REPLACED, || build(&vs.root()))?,
         };
         let parameter_count = vs
             .variables()

@@ -773,38 +773,44 @@ fn time_closed_form_against_autograd() {
 }
 
 /// Not a test: times the ValueFunction's hand-written gradient against autograd's at the
-/// serving benchmark's size, [64, 32, 14] with widths (64, 64, 128, 128), one thread, rounds
-/// interleaved so that the machine's drift touches both alike
+/// serving benchmark's size, [B, 32, 14] with widths (64, 64, 128, 128), B = 64 (a merged pass)
+/// and B = 1 (a lone unary call), one thread, rounds interleaved so that the machine's drift
+/// touches both alike
 /// (`cargo test --release -p relreward-server --lib time_value_function -- --ignored --nocapture`).
 #[test]
 #[ignore]
 fn time_value_function_grad_against_autograd() {
     tch::set_num_threads(1);
     let net = build(&value_function(&[64, 64, 128, 128]), &[32, 14]);
-    let (x, t) = inputs(&net, 64, Kind::Float);
-    let tf = t.to_kind(Kind::Float);
-    let mut hand = || drop(net.grad(&x, &t).expect("grad"));
-    let mut autograd = || {
-        let grad = tch::with_grad(|| {
-            let x_req = x.detach_copy().set_requires_grad(true);
-            let rho = net.rho_unchecked(&x_req, &tf, Mish::Fused).expect("rho");
-            Tensor::run_backward(&[rho.sum(Kind::Float)], &[&x_req], false, false)
-        });
-        drop(grad);
-    };
-    let mut rho = || drop(tch::no_grad(|| net.rho(&x, &t)).expect("rho"));
-    let mut best = [f64::INFINITY; 3];
-    let mut runs: [&mut dyn FnMut(); 3] = [&mut hand, &mut autograd, &mut rho];
-    for _ in 0..10 {
-        for (best, f) in best.iter_mut().zip(runs.iter_mut()) {
-            let start = std::time::Instant::now();
-            for _ in 0..5 {
-                f();
+    for batch in [64, 1] {
+        let (x, t) = inputs(&net, batch, Kind::Float);
+        let tf = t.to_kind(Kind::Float);
+        let mut hand = || drop(net.grad(&x, &t).expect("grad"));
+        let mut autograd = || {
+            let grad = tch::with_grad(|| {
+                let x_req = x.detach_copy().set_requires_grad(true);
+                let rho = net.rho_unchecked(&x_req, &tf, Mish::Fused).expect("rho");
+                Tensor::run_backward(&[rho.sum(Kind::Float)], &[&x_req], false, false)
+            });
+            drop(grad);
+        };
+        let mut rho = || drop(tch::no_grad(|| net.rho(&x, &t)).expect("rho"));
+        let mut best = [f64::INFINITY; 3];
+        let mut runs: [&mut dyn FnMut(); 3] = [&mut hand, &mut autograd, &mut rho];
+        for _ in 0..10 {
+            for (best, f) in best.iter_mut().zip(runs.iter_mut()) {
+                let start = std::time::Instant::now();
+                for _ in 0..5 {
+                    f();
+                }
+                *best = best.min(start.elapsed().as_secs_f64() * 1e6 / 5.0);
             }
-            *best = best.min(start.elapsed().as_secs_f64() * 1e6 / 5.0);
         }
+        eprintln!(
+            "batch {batch}: grad (hand-written): {:.0} us, autograd: {:.0} us, rho alone: {:.0} us",
+            best[0], best[1], best[2]
+        );
     }
-    eprintln!("grad (hand-written): {:.0} us, autograd: {:.0} us, rho alone: {:.0} us", best[0], best[1], best[2]);
 }
 
 /// Timing harness (run by hand, `--ignored`): the ValueFunction's `grad` per item at several
