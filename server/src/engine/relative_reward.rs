@@ -235,7 +235,9 @@ pub fn noised_target_and_point(
 }
 
 /// || grad_x rho(point, t) - target ||^2 summed over an item, averaged over the batch, plus
-/// the optional rho^2 penalty. Differentiable with respect to rho's parameters.
+/// the optional rho^2 penalty, through autograd: differentiable with respect to rho's
+/// parameters by its double backward. Training takes [`alignment_step`] (no autograd); this
+/// is the reference its gradients are checked against (`nets/reward/tests.rs`).
 pub fn alignment_loss(
     reward: &RewardNet,
     point: &Tensor,
@@ -253,9 +255,8 @@ pub fn alignment_loss(
 }
 
 /// One training step's [`alignment_loss`] as the optimizer takes it: the loss and its
-/// parameter gradients in closed form where the network has one
-/// ([`RewardNet::alignment_gradients`]: the windowed and flat MLPs, no autograd graph), else the
-/// loss with its graph for autograd's double backward.
+/// parameter gradients computed without autograd ([`RewardNet::alignment_gradients`]: the MLP
+/// heads in closed form, the convolutional rewards by reverse over forward sweeps).
 pub fn alignment_step(
     reward: &RewardNet,
     point: &Tensor,
@@ -264,10 +265,8 @@ pub fn alignment_step(
     weights: Option<&Tensor>,
     rho_l2: f64,
 ) -> Result<StepLoss> {
-    match reward.alignment_gradients(point, t, target, weights, rho_l2)? {
-        Some(AlignmentGradients { loss, grads }) => Ok(StepLoss::Computed { loss, grads }),
-        None => Ok(StepLoss::Graph(alignment_loss(reward, point, t, target, weights, rho_l2)?)),
-    }
+    let AlignmentGradients { loss, grads } = reward.alignment_gradients(point, t, target, weights, rho_l2)?;
+    Ok(StepLoss::Computed { loss, grads })
 }
 
 /// What a reward model is: stored as its record's manifest and next to its weights.

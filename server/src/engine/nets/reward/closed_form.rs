@@ -23,61 +23,26 @@
 //!
 //! Mish's derivatives: with `T = tanh(softplus(a))` and `σ = sigmoid(a)`,
 //! `mish' = T + a (1 - T²) σ` and `mish'' = (1 - T²) σ (2 + a (1 - σ - 2 T σ))`, all from one
-//! exp (`mish_parts`); above 20, where T rounds to 1 in float32, mish' is 1 and mish'' is
+//! exp (`blocks::mish_parts`); above 20, where T rounds to 1 in float32, mish' is 1 and mish'' is
 //! negligible (under 4e-17 |a|), as the training pass's `Mish::TwiceDifferentiable` has them.
 //! `reward/tests.rs` checks both against autograd to 1e-5 on every architecture it applies to.
 
 use tch::{Kind, Tensor};
 
 use super::mlp::MlpHead;
-use crate::engine::nets::blocks::{Linear, MISH_PASS_THROUGH, Mish};
-use crate::engine::nets::kernels::{self, MishParts};
+use crate::engine::nets::blocks::second_order::{ParamGrads, TimeMlpPass};
+use crate::engine::nets::blocks::{Mish, mish_parts};
+use crate::engine::nets::kernels::MishParts;
 use crate::engine::nets::mlp::MLP_TIME_DIM;
 use crate::error::{Error, Result};
-
-/// mish(a) (bit for bit `Mish::Fused`'s), mish'(a) and, when asked, mish''(a): one fused loop
-/// over a float32 CPU tensor (`nets::kernels`), libtorch's elementwise operations elsewhere
-/// (float64, a GPU).
-fn mish_parts(a: &Tensor, second: bool) -> Result<MishParts> {
-    if let Some(parts) = kernels::mish_parts(a, second)? {
-        return Ok(parts);
-    }
-    // One exp where softplus, tanh and sigmoid would take three transcendental passes: with
-    // e = exp(a), tanh(softplus(a)) = n / w for n = e (e + 2) and w = n + 2, and
-    // (1 - T^2) sigmoid(a) = 4 e (1 + e) / w^2. Above the pass-through the input is clamped for
-    // e: there T rounds to 1 and the slope's correction to under 1e-16, as the training pass's
-    // pass-through has them. In place where a temporary is ours.
-    let e = a.f_clamp_max(MISH_PASS_THROUGH)?.f_exp_()?;
-    let n = e.f_add_scalar(2.0)?.f_mul_(&e)?;
-    let rw = n.f_add_scalar(2.0)?.f_reciprocal_()?;
-    let tanh = n.f_mul(&rw)?;
-    // k = (1 - T^2) sigmoid(a).
-    let one_e = e.f_add_scalar(1.0)?;
-    let k = e.f_mul(&one_e)?.f_mul_(&rw)?.f_mul_(&rw)?.f_mul_scalar_(4.0)?;
-    // mish' = T + a k.
-    let slope = a.f_mul(&k)?.f_add_(&tanh)?;
-    let curvature = if second {
-        // mish'' = k (2 + a (1 - sigmoid(a) (1 + 2 T))), sigmoid(a) = e / (1 + e).
-        let sigmoid = e.f_div(&one_e)?;
-        let mut inner = tanh.f_mul_scalar(-2.0)?.f_sub_scalar_(1.0)?.f_mul_(&sigmoid)?.f_add_scalar_(1.0)?;
-        Some(inner.f_mul_(a)?.f_add_scalar_(2.0)?.f_mul_(&k)?)
-    } else {
-        None
-    };
-    Ok(MishParts { value: Mish::Fused.forward(a)?, slope, curvature })
-}
 
 /// One pass of the head over `R = B N` rows with what the backward passes need.
 pub(super) struct HeadPass {
     rows_per_item: i64,
     features: i64,
-    /// The time MLP's sinusoidal input, first layer's pre-activation slope (training pass
-    /// only) and hidden value.
-    time_in: Tensor,
-    /// e(t), [B, 32].
+    /// e(t), [B, 32], and (training pass only) what the time MLP's backward needs.
     time_embedding: Tensor,
-    time_slope: Option<Tensor>,
-    time_hidden: Tensor,
+    time: Option<TimeMlpPass>,
     /// Each layer's row input ([R, width]): `z` (the first layer's input is `[z, e(t)]`, each
     /// row with its item's e(t)), then `h_1 .. h_{L-1}`.
     inputs: Vec<Tensor>,
@@ -99,7 +64,6 @@ impl MlpHead {
     /// hand. `features` [B, N, F], `t` [B] in the weights' float dtype; `second`: also keep
     /// mish'' and the time MLP's slope for [`MlpHead::alignment_grads`].
     pub(super) fn pass(&self, features: &Tensor, t: &Tensor, second: bool) -> Result<HeadPass> {
-        let (emb, time_first, time_out) = self.time_mlp.parts();
         let size = features.size();
         let &[_, rows, width] = size.as_slice() else {
             return Err(Error::internal("reward MLP", format!("features of shape {size:?}")));
@@ -110,17 +74,13 @@ impl MlpHead {
         }
         let c = 1.0 / rows as f64;
         // The forward's operations in its order (MlpHead::forward, TimeMlp::forward with fused
-        // Mish), keeping what the backward passes read.
-        let time_in = emb.forward(t)?;
-        let time_a = time_first.forward(&time_in)?;
-        // The time MLP's slope only for the training pass's backward through it.
-        let (time_hidden, time_slope) = if second {
-            let parts = mish_parts(&time_a, false)?;
-            (parts.value, Some(parts.slope))
+        // Mish), keeping what the backward passes read; the time MLP's only for training.
+        let (e, time) = if second {
+            let (e, time) = self.time_mlp.forward_kept(t)?;
+            (e, Some(time))
         } else {
-            (Mish::Fused.forward(&time_a)?, None)
+            (self.time_mlp.forward(t, Mish::Fused)?, None)
         };
-        let e = time_out.forward(&time_hidden)?;
         let t_emb = e.f_unsqueeze(1)?.f_expand([-1, rows, MLP_TIME_DIM], false)?;
         let mut a = self.layers[0].forward(&Tensor::f_cat(&[features, &t_emb], 2)?)?;
         let mut inputs = vec![features.f_flatten(0, 1)?];
@@ -155,10 +115,8 @@ impl MlpHead {
         Ok(HeadPass {
             rows_per_item: rows,
             features: width,
-            time_in,
-            time_slope,
-            time_hidden,
             time_embedding: e,
+            time,
             inputs,
             slopes,
             curvatures,
@@ -172,15 +130,10 @@ impl MlpHead {
     /// Every parameter's gradient of a loss of the pass's input gradient (module doc): `r`
     /// [R, F] is dL / d grad, `p_out` [R] dL / d out where the loss also reads the outputs.
     /// Pairs of (parameter, gradient) in no particular order.
-    pub(super) fn alignment_grads(
-        &self,
-        pass: &HeadPass,
-        r: &Tensor,
-        p_out: Option<&Tensor>,
-    ) -> Result<Vec<(Tensor, Tensor)>> {
+    pub(super) fn alignment_grads(&self, pass: &HeadPass, r: &Tensor, p_out: Option<&Tensor>) -> Result<ParamGrads> {
         let layers = &self.layers;
         let hidden = layers.len() - 1;
-        let (true, Some(time_slope)) = (pass.curvatures.len() == hidden, &pass.time_slope) else {
+        let (true, Some(time)) = (pass.curvatures.len() == hidden, &pass.time) else {
             return Err(Error::internal("reward MLP", "alignment gradients need the training pass (mish'')"));
         };
         let width = pass.features;
@@ -237,7 +190,7 @@ impl MlpHead {
         // The first layer's two column blocks: z's (with the tangent ḣ_0 = r) and e's, whose
         // rows share an item's e: p_1 summed over an item's rows, once per item.
         let first = &layers[0];
-        let batch = pass.time_in.size()[0];
+        let batch = pass.time_embedding.size()[0];
         let p_item = p_first.f_view([batch, pass.rows_per_item, -1])?.f_sum_dim_intlist(
             [1i64].as_slice(),
             false,
@@ -248,18 +201,8 @@ impl MlpHead {
         grads.push((first.weight.shallow_clone(), Tensor::f_cat(&[&dw_z, &dw_e], 1)?));
         grads.push((first.bias.shallow_clone(), sum_rows(&p_item, false)?));
         // The time embedding's adjoint back through the time MLP.
-        let (_, time_first, time_out) = self.time_mlp.parts();
         let adj_e = p_item.f_mm(&first.weight.f_narrow(1, width, first.weight.size()[1] - width)?)?;
-        linear_grads(time_out, &pass.time_hidden, &adj_e, &mut grads)?;
-        let adj_a = adj_e.f_mm(&time_out.weight)?.f_mul(time_slope)?;
-        linear_grads(time_first, &pass.time_in, &adj_a, &mut grads)?;
+        self.time_mlp.param_grads(time, &adj_e, &mut grads)?;
         Ok(grads)
     }
-}
-
-/// dW = adj^T input, db = sum adj, for `y = input W^T + b` with adjoint `adj` of y.
-fn linear_grads(layer: &Linear, input: &Tensor, adj: &Tensor, grads: &mut Vec<(Tensor, Tensor)>) -> Result<()> {
-    grads.push((layer.weight.shallow_clone(), adj.f_tr()?.f_mm(input)?));
-    grads.push((layer.bias.shallow_clone(), adj.f_sum_dim_intlist([0i64].as_slice(), false, None::<Kind>)?));
-    Ok(())
 }

@@ -10,8 +10,13 @@ use tch::nn;
 use tch::{Kind, Tensor};
 
 use super::checks::{count, shape_text, validate_widths};
+use super::second_order::{AlignmentTerms, top_forward, top_second_backward, top_tangent};
+use crate::engine::nets::blocks::second_order::{
+    GroupNormTangent, NormMishAdjoints, NormMishPass, ParamGrads, conv_weight_grad, sum_but_channels,
+};
 use crate::engine::nets::blocks::{
-    GROUPS, GroupNorm, Linear, Mish, NormMishTape, TimeMlp, conv_params, linear_params, torch_default_init, total,
+    GROUPS, GroupNorm, Linear, Mish, NormMishTape, TimeMlp, conv_params, linear_params, mish_parts, torch_default_init,
+    total,
 };
 use crate::error::{Error, Result};
 
@@ -70,6 +75,26 @@ impl StridedConv2d {
         let output_padding = [padding(input_hw[0], size[2]), padding(input_hw[1], size[3])];
         Ok(g.f_conv_transpose2d(&self.weight, None::<&Tensor>, [2, 2], [1, 1], output_padding, 1, [1, 1])?)
     }
+
+    /// ẏ = W * ẋ (`blocks::second_order`).
+    fn tangent(&self, x_dot: &Tensor) -> Result<Tensor> {
+        Ok(x_dot.f_conv2d(&self.weight, None::<&Tensor>, [2, 2], [1, 1], [1, 1], 1)?)
+    }
+
+    /// The reverse of (y, ẏ) (`blocks::second_order`): pushes dW and db, returns p_x.
+    fn second_backward(
+        &self,
+        (x, x_dot): (&Tensor, &Tensor),
+        g_y: &Tensor,
+        p_y: &Tensor,
+        grads: &mut ParamGrads,
+    ) -> Result<Tensor> {
+        let dw = conv_weight_grad(&self.weight, &[2, 2], &[1, 1], &[(x, p_y), (x_dot, g_y)])?;
+        grads.push((self.weight.shallow_clone(), dw));
+        grads.push((self.bias.shallow_clone(), sum_but_channels(p_y)?));
+        let size = x.size();
+        self.input_backward(p_y, [size[2], size[3]])
+    }
 }
 
 /// One encoder level: Mish(GroupNorm(Conv2d(x))) + Linear(Mish(t_emb)) per channel.
@@ -98,6 +123,56 @@ impl EncoderBlock {
     fn input_backward(&self, (input_hw, epilogue): &([i64; 2], NormMishTape), g: &Tensor) -> Result<Tensor> {
         self.conv.input_backward(&self.norm.mish_input_backward(epilogue, g)?, *input_hw)
     }
+
+    /// The forward for the four sweeps of `blocks::second_order`; `time_act` is Mish(e).
+    fn forward_second(&self, x: &Tensor, time_act: &Tensor) -> Result<(Tensor, EncoderPass)> {
+        let (h, epilogue) = self.norm.mish_forward_second(&self.conv.forward(x)?)?;
+        let time = self.time_linear.forward(time_act)?.f_unsqueeze(-1)?.f_unsqueeze(-1)?;
+        Ok((h.f_add(&time)?, EncoderPass { input: x.shallow_clone(), epilogue }))
+    }
+
+    fn adjoints(&self, pass: &EncoderPass, g: &Tensor) -> Result<(Tensor, EncoderAdjoints)> {
+        let (g_conv, epilogue) = self.norm.mish_adjoints(&pass.epilogue, g)?;
+        let size = pass.input.size();
+        Ok((self.conv.input_backward(&g_conv, [size[2], size[3]])?, EncoderAdjoints { g_conv, epilogue }))
+    }
+
+    fn tangent(&self, pass: &EncoderPass, x_dot: &Tensor) -> Result<(Tensor, EncoderTangents)> {
+        let (h_dot, norm) = self.norm.mish_tangent(&pass.epilogue, &self.conv.tangent(x_dot)?)?;
+        Ok((h_dot, EncoderTangents { input: x_dot.shallow_clone(), norm }))
+    }
+
+    /// The reverse from p (of the block's output): pushes the block's gradients, returns (p_x,
+    /// the adjoint of Mish(e) from the time projection).
+    fn second_backward(
+        &self,
+        (pass, adjoints, tangents): (&EncoderPass, &EncoderAdjoints, &EncoderTangents),
+        p: &Tensor,
+        time_act: &Tensor,
+        grads: &mut ParamGrads,
+    ) -> Result<(Tensor, Tensor)> {
+        let p_time = p.f_sum_dim_intlist([2i64, 3].as_slice(), false, None::<Kind>)?;
+        let p_time_act = self.time_linear.backward(time_act, &p_time, grads)?;
+        let p_conv = self.norm.mish_second_backward(&pass.epilogue, &adjoints.epilogue, &tangents.norm, p, grads)?;
+        let p_x = self.conv.second_backward((&pass.input, &tangents.input), &adjoints.g_conv, &p_conv, grads)?;
+        Ok((p_x, p_time_act))
+    }
+}
+
+/// What each sweep keeps of an [`EncoderBlock`].
+struct EncoderPass {
+    input: Tensor,
+    epilogue: NormMishPass,
+}
+
+struct EncoderAdjoints {
+    g_conv: Tensor,
+    epilogue: NormMishAdjoints,
+}
+
+struct EncoderTangents {
+    input: Tensor,
+    norm: GroupNormTangent,
 }
 
 /// The strided convolutional encoder over images [B, C, H, W].
@@ -189,5 +264,75 @@ impl ConvEncoderNet {
             g = block.input_backward(tape, &g)?;
         }
         Ok((rho, g))
+    }
+
+    /// The alignment loss and every parameter's gradient by the four sweeps of
+    /// `blocks::second_order` (no autograd), as `ValueFunctionNet::alignment_grads`; the mean
+    /// over the pixels is linear (its tangent the tangent's mean, its adjoints spread evenly).
+    pub(super) fn alignment_grads(
+        &self,
+        x: &Tensor,
+        t: &Tensor,
+        terms: impl FnOnce(&Tensor, &Tensor) -> Result<AlignmentTerms>,
+    ) -> Result<(Tensor, ParamGrads)> {
+        let top_layers = (&self.final_first, &self.final_second);
+        let (e, time) = self.time_mlp.forward_kept(t)?;
+        let e_parts = mish_parts(&e, false)?;
+        let e_act = &e_parts.value;
+        let pixels = [2i64, 3];
+        let mean_pixels = |t: &Tensor| t.f_mean_dim(pixels.as_slice(), false, None::<Kind>);
+        // 1. The forward.
+        let mut passes = Vec::with_capacity(self.blocks.len());
+        let mut h = x.shallow_clone();
+        for block in &self.blocks {
+            let (next, pass) = block.forward_second(&h, e_act)?;
+            passes.push(pass);
+            h = next;
+        }
+        let size = h.size();
+        let count = (size[2] * size[3]) as f64;
+        let spread = |t: &Tensor| -> Result<Tensor> {
+            Ok(t.f_div_scalar(count)?.f_unsqueeze(-1)?.f_unsqueeze(-1)?.f_expand(size.as_slice(), false)?)
+        };
+        let (rho, g_pooled, top) = top_forward(top_layers, &mean_pixels(&h)?, &e)?;
+        // 2. The input backward.
+        let mut g = spread(&g_pooled)?;
+        let mut adjoints = Vec::with_capacity(self.blocks.len());
+        for (block, pass) in self.blocks.iter().zip(&passes).rev() {
+            let (below, adjoint) = block.adjoints(pass, &g)?;
+            adjoints.push(adjoint);
+            g = below;
+        }
+        adjoints.reverse();
+        let AlignmentTerms { loss, r, p_rho } = terms(&rho, &g)?;
+        // 3. The tangent along r.
+        let mut h_dot = r;
+        let mut tangents = Vec::with_capacity(self.blocks.len());
+        for (block, pass) in self.blocks.iter().zip(&passes) {
+            let (next, tangent) = block.tangent(pass, &h_dot)?;
+            tangents.push(tangent);
+            h_dot = next;
+        }
+        let top_dot = top_tangent(&self.final_first, &top, &mean_pixels(&h_dot)?)?;
+        // 4. The reverse of the pairs.
+        let mut grads = ParamGrads::new();
+        let (p_pooled, p_e) = top_second_backward(top_layers, &top, &top_dot, p_rho.as_ref(), &mut grads)?;
+        let mut p = spread(&p_pooled)?;
+        let mut p_e_act: Option<Tensor> = None;
+        for (((block, pass), adjoint), tangent) in self.blocks.iter().zip(&passes).zip(&adjoints).zip(&tangents).rev() {
+            let (below, from_time) = block.second_backward((pass, adjoint, tangent), &p, e_act, &mut grads)?;
+            p_e_act = Some(match p_e_act {
+                Some(sum) => sum.f_add(&from_time)?,
+                None => from_time,
+            });
+            p = below;
+        }
+        // The blocks read Mish(e), the top e itself.
+        let p_e = match p_e_act {
+            Some(p_act) => p_e.f_add(&p_act.f_mul(&e_parts.slope)?)?,
+            None => p_e,
+        };
+        self.time_mlp.param_grads(&time, &p_e, &mut grads)?;
+        Ok((loss, grads))
     }
 }

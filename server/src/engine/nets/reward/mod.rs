@@ -37,6 +37,7 @@ mod checks;
 mod closed_form;
 mod conv_encoder;
 mod mlp;
+mod second_order;
 #[cfg(test)]
 mod tests;
 mod value_function;
@@ -48,6 +49,7 @@ use tch::{Device, Kind, Tensor};
 
 pub use self::architecture::RewardArchitecture;
 use self::architecture::{Network, Plan};
+use self::second_order::AlignmentTerms;
 use super::blocks::Mish;
 use super::inputs::check_inputs;
 use super::weights::{Start, Weights};
@@ -290,12 +292,11 @@ impl RewardNet {
     }
 
     /// Algorithm 1's alignment loss at (`point`, `t`) against `target` (entry `weights`, rho's
-    /// L2 penalty `rho_l2`) with every parameter's gradient, computed in closed form
-    /// (`closed_form.rs`) where the architecture allows it: the windowed MLP and the flat MLP.
-    /// None for the others, which keep autograd's double backward
-    /// ([`RewardNet::grad_create_graph`]): their convolutions and group norms would need the
-    /// same derivation per layer kind. The loss equals [`super::super::relative_reward::alignment_loss`]'s
-    /// value; the gradients equal its backward to float rounding (`tests.rs`).
+    /// L2 penalty `rho_l2`) with every parameter's gradient, without autograd: the MLP heads
+    /// in closed form (`closed_form.rs`), the convolutional rewards by the four sweeps of
+    /// `blocks::second_order` (`second_order.rs`, each network's `alignment_grads`). The loss
+    /// equals [`super::super::relative_reward::alignment_loss`]'s value; the gradients equal its
+    /// double backward to float rounding (`tests.rs`).
     pub fn alignment_gradients(
         &self,
         point: &Tensor,
@@ -303,36 +304,32 @@ impl RewardNet {
         target: &Tensor,
         weights: Option<&Tensor>,
         rho_l2: f64,
-    ) -> Result<Option<AlignmentGradients>> {
+    ) -> Result<AlignmentGradients> {
         let t = self.check_inputs(point, t)?;
-        let Some((head, features)) = self.head_rows(point)? else { return Ok(None) };
         let _no_graph = tch::no_grad_guard();
-        let pass = head.pass(&features, &t, true)?;
-        let batch = point.size()[0];
-        let grad = pass.grad.f_view(point.size().as_slice())?;
-        let diff = grad.f_sub(target)?;
-        let weighted = match weights {
-            Some(w) => diff.f_mul(w)?,
-            None => diff.shallow_clone(),
+        let terms = |rho: &Tensor, grad: &Tensor| alignment_terms(rho, grad, target, weights, rho_l2);
+        let (loss, grads) = match &self.network {
+            Network::ValueFunction(net) => net.alignment_grads(point, &t, terms)?,
+            Network::ConvEncoder(net) => net.alignment_grads(point, &t, terms)?,
+            Network::WindowedMlp(_) | Network::Mlp(_) => {
+                let (head, features) = self
+                    .head_rows(point)?
+                    .ok_or_else(|| Error::internal("reward closed form", "an MLP reward without its head"))?;
+                let pass = head.pass(&features, &t, true)?;
+                // rho is the mean of an item's rows' outputs (one row for the flat MLP).
+                let rows = pass.out.size()[1];
+                let rho = pass.out.f_mean_dim([1i64].as_slice(), false, None::<Kind>)?;
+                let grad = pass.grad.f_view(point.size().as_slice())?;
+                let AlignmentTerms { loss, r, p_rho } = terms(&rho, &grad)?;
+                let r = r.f_view(pass.grad.size().as_slice())?;
+                let p_out = p_rho
+                    .map(|p| -> Result<Tensor> {
+                        Ok(p.f_div_scalar(rows as f64)?.f_unsqueeze(1)?.f_expand_as(&pass.out)?.f_reshape([-1])?)
+                    })
+                    .transpose()?;
+                (loss, head.alignment_grads(&pass, &r, p_out.as_ref())?)
+            }
         };
-        let mut loss = weighted
-            .f_mul(&diff)?
-            .f_flatten(1, -1)?
-            .f_sum_dim_intlist([1i64].as_slice(), false, None::<Kind>)?
-            .f_mean(None::<Kind>)?;
-        // d loss / d grad = 2 w (grad - target) / B, in the rows' layout.
-        let r = weighted.f_mul_scalar(2.0 / batch as f64)?.f_view(pass.grad.size().as_slice())?;
-        let p_out = if rho_l2 > 0.0 {
-            let rows = pass.out.f_view([batch, -1])?;
-            let rho = rows.f_mean_dim([1i64].as_slice(), false, None::<Kind>)?;
-            loss = loss.f_add(&rho.f_square()?.f_mean(None::<Kind>)?.f_mul_scalar(rho_l2)?)?;
-            // d (l2 mean_b rho^2) / d out_row = 2 l2 rho / (B N).
-            let per_row = rho.f_mul_scalar(2.0 * rho_l2 / (batch * rows.size()[1]) as f64)?;
-            Some(per_row.f_unsqueeze(1)?.f_expand_as(&rows)?.f_reshape([-1])?)
-        } else {
-            None
-        };
-        let grads = head.alignment_grads(&pass, &r, p_out.as_ref())?;
         let names: std::collections::HashMap<usize, String> =
             self.weights.var_store().variables().into_iter().map(|(name, v)| (v.data_ptr() as usize, name)).collect();
         let grads = grads
@@ -341,10 +338,10 @@ impl RewardNet {
                 names
                     .get(&(param.data_ptr() as usize))
                     .map(|name| (name.clone(), grad))
-                    .ok_or_else(|| Error::internal("reward closed form", "a gradient of an unknown parameter"))
+                    .ok_or_else(|| Error::internal("reward alignment gradients", "a gradient of an unknown parameter"))
             })
             .collect::<Result<Vec<_>>>()?;
-        Ok(Some(AlignmentGradients { loss, grads }))
+        Ok(AlignmentGradients { loss, grads })
     }
 
     fn rho_unchecked(&self, x: &Tensor, t: &Tensor, mish: Mish) -> Result<Tensor> {
@@ -365,6 +362,37 @@ impl RewardNet {
         check_inputs("reward", x, t, &self.item_shape, kind)?;
         Ok(t.f_to_kind(kind)?)
     }
+}
+
+/// The alignment loss (as `relative_reward::alignment_loss` computes it) at rho [B] and grad
+/// (x's shape), with r = d loss / d grad = 2 w (grad - target) / B and, under rho's L2
+/// penalty, d loss / d rho = 2 l2 rho / B.
+fn alignment_terms(
+    rho: &Tensor,
+    grad: &Tensor,
+    target: &Tensor,
+    weights: Option<&Tensor>,
+    rho_l2: f64,
+) -> Result<AlignmentTerms> {
+    let batch = grad.size()[0] as f64;
+    let diff = grad.f_sub(target)?;
+    let weighted = match weights {
+        Some(w) => diff.f_mul(w)?,
+        None => diff.shallow_clone(),
+    };
+    let mut loss = weighted
+        .f_mul(&diff)?
+        .f_flatten(1, -1)?
+        .f_sum_dim_intlist([1i64].as_slice(), false, None::<Kind>)?
+        .f_mean(None::<Kind>)?;
+    let r = weighted.f_mul_scalar(2.0 / batch)?;
+    let p_rho = if rho_l2 > 0.0 {
+        loss = loss.f_add(&rho.f_square()?.f_mean(None::<Kind>)?.f_mul_scalar(rho_l2)?)?;
+        Some(rho.f_mul_scalar(2.0 * rho_l2 / batch)?)
+    } else {
+        None
+    };
+    Ok(AlignmentTerms { loss, r, p_rho })
 }
 
 /// d sum(rho) / d x_req with its differentiable graph (PyTorch's

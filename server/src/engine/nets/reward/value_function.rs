@@ -19,8 +19,10 @@ use tch::Tensor;
 use tch::nn;
 
 use super::checks::{count, trajectory_shape, validate_widths};
+use super::second_order::{AlignmentTerms, top_forward, top_second_backward, top_tangent};
+use crate::engine::nets::blocks::second_order::{ParamGrads, ResidualAdjoints, ResidualPass, ResidualTangents};
 use crate::engine::nets::blocks::{
-    Downsample1d, GROUPS, Linear, Mish, ResidualTemporalBlock, TEMPORAL_KERNEL, TimeMlp, total,
+    Downsample1d, GROUPS, Linear, Mish, ResidualTemporalBlock, TEMPORAL_KERNEL, TimeMlp, mish_parts, total,
 };
 use crate::engine::nets::mlp::MAX_FEATURES;
 use crate::error::{Error, Result};
@@ -202,4 +204,151 @@ impl ValueFunctionNet {
         }
         Ok((rho, g.f_permute([0, 2, 1])?.f_contiguous()?))
     }
+
+    /// The network's layers after the time MLP in their order, up to the flattening.
+    fn stages(&self) -> Vec<Stage<'_>> {
+        let mut stages = Vec::with_capacity(3 * self.levels.len() + 4);
+        for level in &self.levels {
+            stages.extend([Stage::Block(&level.first), Stage::Block(&level.second), Stage::Down(&level.downsample)]);
+        }
+        stages.extend([
+            Stage::Block(&self.mid_block1),
+            Stage::Down(&self.mid_down1),
+            Stage::Block(&self.mid_block2),
+            Stage::Down(&self.mid_down2),
+        ]);
+        stages
+    }
+
+    /// The alignment loss and every parameter's gradient by the four sweeps of
+    /// `blocks::second_order` (no autograd): `terms` gives the loss and its derivatives from
+    /// (rho, grad_x rho) once the first two sweeps have them. Call without a graph.
+    pub(super) fn alignment_grads(
+        &self,
+        x: &Tensor,
+        t: &Tensor,
+        terms: impl FnOnce(&Tensor, &Tensor) -> Result<AlignmentTerms>,
+    ) -> Result<(Tensor, ParamGrads)> {
+        let top_layers = (&self.final_first, &self.final_second);
+        let (e, time) = self.time_mlp.forward_kept(t)?;
+        let e_parts = mish_parts(&e, false)?;
+        let e_act = &e_parts.value;
+        // 1. The forward.
+        let stages = self.stages();
+        let mut passes = Vec::with_capacity(stages.len());
+        let mut h = x.f_permute([0, 2, 1])?;
+        for stage in &stages {
+            let (next, pass) = match stage {
+                Stage::Block(block) => {
+                    let (next, pass) = block.forward_second(&h, e_act)?;
+                    (next, StagePass::Block(pass))
+                }
+                Stage::Down(down) => (down.forward(&h)?, StagePass::Down(h.shallow_clone())),
+            };
+            passes.push(pass);
+            h = next;
+        }
+        let last = h.size();
+        let (rho, g_features, top) = top_forward(top_layers, &h.f_flatten(1, -1)?, &e)?;
+        // 2. The input backward, keeping each stage's adjoints (in reverse order).
+        let mut g = g_features.f_view(last.as_slice())?;
+        let mut adjoints = Vec::with_capacity(stages.len());
+        for (stage, pass) in stages.iter().zip(&passes).rev() {
+            let (below, adjoint) = match (stage, pass) {
+                (Stage::Block(block), StagePass::Block(pass)) => {
+                    let (below, adjoint) = block.adjoints(pass, &g)?;
+                    (below, StageAdjoint::Block(adjoint))
+                }
+                (Stage::Down(down), StagePass::Down(input)) => {
+                    (down.input_backward(&g, input.size()[2])?, StageAdjoint::Down(g.shallow_clone()))
+                }
+                _ => return Err(mismatch()),
+            };
+            adjoints.push(adjoint);
+            g = below;
+        }
+        adjoints.reverse();
+        let grad = g.f_permute([0, 2, 1])?.f_contiguous()?;
+        let AlignmentTerms { loss, r, p_rho } = terms(&rho, &grad)?;
+        // 3. The tangent along r.
+        let mut h_dot = r.f_permute([0, 2, 1])?;
+        let mut tangents = Vec::with_capacity(stages.len());
+        for (stage, pass) in stages.iter().zip(&passes) {
+            let (next, tangent) = match (stage, pass) {
+                (Stage::Block(block), StagePass::Block(pass)) => {
+                    let (next, tangent) = block.tangent(pass, &h_dot)?;
+                    (next, StageTangent::Block(tangent))
+                }
+                (Stage::Down(down), StagePass::Down(_)) => (down.tangent(&h_dot)?, StageTangent::Down(h_dot)),
+                _ => return Err(mismatch()),
+            };
+            tangents.push(tangent);
+            h_dot = next;
+        }
+        let top_dot = top_tangent(&self.final_first, &top, &h_dot.f_flatten(1, -1)?)?;
+        // 4. The reverse of the pairs.
+        let mut grads = ParamGrads::new();
+        let (p_features, mut p_e) = top_second_backward(top_layers, &top, &top_dot, p_rho.as_ref(), &mut grads)?;
+        let mut p = p_features.f_view(last.as_slice())?;
+        let mut p_e_act: Option<Tensor> = None;
+        for (((stage, pass), adjoint), tangent) in stages.iter().zip(&passes).zip(&adjoints).zip(&tangents).rev() {
+            p = match (stage, pass, adjoint, tangent) {
+                (
+                    Stage::Block(block),
+                    StagePass::Block(pass),
+                    StageAdjoint::Block(adjoint),
+                    StageTangent::Block(tangent),
+                ) => {
+                    let (below, from_time) = block.second_backward((pass, adjoint, tangent), &p, e_act, &mut grads)?;
+                    p_e_act = Some(match p_e_act {
+                        Some(sum) => sum.f_add(&from_time)?,
+                        None => from_time,
+                    });
+                    below
+                }
+                (
+                    Stage::Down(down),
+                    StagePass::Down(input),
+                    StageAdjoint::Down(g_out),
+                    StageTangent::Down(input_dot),
+                ) => down.second_backward((input, input_dot), g_out, &p, &mut grads)?,
+                _ => return Err(mismatch()),
+            };
+        }
+        // The blocks read Mish(e) (one slope for all), the top e itself.
+        if let Some(p_act) = p_e_act {
+            p_e = p_e.f_add(&p_act.f_mul(&e_parts.slope)?)?;
+        }
+        self.time_mlp.param_grads(&time, &p_e, &mut grads)?;
+        Ok((loss, grads))
+    }
+}
+
+/// One of the ValueFunction's layers between the time MLP and the flattening, with what each
+/// sweep keeps of it.
+enum Stage<'a> {
+    Block(&'a ResidualTemporalBlock),
+    Down(&'a Downsample1d),
+}
+
+enum StagePass {
+    Block(ResidualPass),
+    /// The downsampling's input.
+    Down(Tensor),
+}
+
+enum StageAdjoint {
+    Block(ResidualAdjoints),
+    /// Of the downsampling's output.
+    Down(Tensor),
+}
+
+enum StageTangent {
+    Block(ResidualTangents),
+    /// Of the downsampling's input.
+    Down(Tensor),
+}
+
+fn mismatch() -> Error {
+    Error::internal("value function sweeps", "a stage's records do not match its layer")
 }

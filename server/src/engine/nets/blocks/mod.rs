@@ -12,8 +12,10 @@
 use tch::nn::{Init, Path};
 use tch::{Kind, Tensor};
 
-use super::kernels;
+use super::kernels::{self, MishParts};
 use crate::error::{Error, Result};
+
+pub mod second_order;
 
 /// GroupNorm groups in every [`Conv1dBlock`] (Diffuser's `n_groups = 8`).
 pub const GROUPS: i64 = 8;
@@ -111,6 +113,38 @@ impl MishTape {
             Self::Input(x) => Ok(x.f_mish_backward(g)?),
         }
     }
+}
+
+/// mish(a) (bit for bit `Mish::Fused`'s), mish'(a) and, when asked, mish''(a): one fused loop
+/// over a float32 CPU tensor (`nets::kernels`), libtorch's elementwise operations elsewhere
+/// (float64, a GPU).
+pub fn mish_parts(a: &Tensor, second: bool) -> Result<MishParts> {
+    if let Some(parts) = kernels::mish_parts(a, second)? {
+        return Ok(parts);
+    }
+    // One exp where softplus, tanh and sigmoid would take three transcendental passes: with
+    // e = exp(a), tanh(softplus(a)) = n / w for n = e (e + 2) and w = n + 2, and
+    // (1 - T^2) sigmoid(a) = 4 e (1 + e) / w^2. Above the pass-through the input is clamped for
+    // e: there T rounds to 1 and the slope's correction to under 1e-16, as the training pass's
+    // pass-through has them. In place where a temporary is ours.
+    let e = a.f_clamp_max(MISH_PASS_THROUGH)?.f_exp_()?;
+    let n = e.f_add_scalar(2.0)?.f_mul_(&e)?;
+    let rw = n.f_add_scalar(2.0)?.f_reciprocal_()?;
+    let tanh = n.f_mul(&rw)?;
+    // k = (1 - T^2) sigmoid(a).
+    let one_e = e.f_add_scalar(1.0)?;
+    let k = e.f_mul(&one_e)?.f_mul_(&rw)?.f_mul_(&rw)?.f_mul_scalar_(4.0)?;
+    // mish' = T + a k.
+    let slope = a.f_mul(&k)?.f_add_(&tanh)?;
+    let curvature = if second {
+        // mish'' = k (2 + a (1 - sigmoid(a) (1 + 2 T))), sigmoid(a) = e / (1 + e).
+        let sigmoid = e.f_div(&one_e)?;
+        let mut inner = tanh.f_mul_scalar(-2.0)?.f_sub_scalar_(1.0)?.f_mul_(&sigmoid)?.f_add_scalar_(1.0)?;
+        Some(inner.f_mul_(a)?.f_add_scalar_(2.0)?.f_mul_(&k)?)
+    } else {
+        None
+    };
+    Ok(MishParts { value: Mish::Fused.forward(a)?, slope, curvature })
 }
 
 /// `nn.Linear(in, out)`: parameters `weight` [out, in], `bias` [out].
@@ -365,12 +399,6 @@ impl TimeMlp {
     pub fn forward(&self, t: &Tensor, mish: Mish) -> Result<Tensor> {
         let h = self.first.forward(&self.emb.forward(t)?)?;
         self.second.forward(&mish.forward(&h)?)
-    }
-
-    /// The sinusoidal embedding and the two layers, for a pass written out by hand (the
-    /// reward's closed-form gradients, `reward/closed_form.rs`).
-    pub fn parts(&self) -> (&SinusoidalPosEmb, &Linear, &Linear) {
-        (&self.emb, &self.first, &self.second)
     }
 }
 
