@@ -4,8 +4,9 @@
 //! side loads the same file with `load_state_dict(strict = True)` (so parameter names and shapes
 //! must agree exactly) and computes rho, the per-window (and per-step) values, grad_x rho, and
 //! the parameter gradient of the double-backward loss of Algorithm 1,
-//! mean_b || grad_x rho(x_b, t_b) - target_b ||^2 (`torch.autograd.grad(..., create_graph=True)`).
-//! All must agree to 1e-4 in float32, relative to the magnitude of the values when it exceeds 1.
+//! mean_b || grad_x rho(x_b, t_b) - target_b ||^2 (`torch.autograd.grad(..., create_graph=True)`),
+//! which the Rust side computes both through autograd and as training does, without it
+//! (`RewardNet::alignment_gradients`). All must agree to 1e-4 in float32, relative to the magnitude of the values when it exceeds 1.
 //! The other direction too: a fresh PyTorch state dict loads strictly here and reproduces rho.
 //!
 //! Needs the project's venv (`make setup`), which the libtorch build needs anyway.
@@ -123,9 +124,19 @@ fn reward_nets_match_pytorch_including_the_double_backward() {
                 (name, if g.defined() { g.detach().copy() } else { var.zeros_like() })
             })
             .collect();
+        // The same loss's gradients as training computes them, without autograd (the MLPs'
+        // closed form, the convolutional rewards' sweeps).
+        let computed = net.alignment_gradients(&x, &t, &target, None, 0.0).expect("alignment gradients");
+        assert!(
+            (computed.loss.double_value(&[]) - loss.double_value(&[])).abs()
+                <= 1e-6 * loss.double_value(&[]).abs().max(1.0)
+        );
+        let computed: BTreeMap<String, Tensor> = computed.grads.into_iter().collect();
+        assert_eq!(computed.len(), param_grads.len(), "case {i}: one computed gradient per parameter");
         assert!(max_abs(&rho) > 1e-3, "case {i}: rho is trivially zero");
         assert!(max_abs(&grad_x) > 1e-3, "case {i}: grad_x is trivially zero");
-        expected.push((x, t, rho, per_window, per_step, grad_x, param_grads, loss.double_value(&[])));
+        let grads = [("autograd", param_grads), ("training's", computed)];
+        expected.push((x, t, rho, per_window, per_step, grad_x, grads, loss.double_value(&[])));
         jobs.push(serde_json::json!({
             "architecture": case.architecture,
             "item_shape": case.item_shape,
@@ -137,9 +148,7 @@ fn reward_nets_match_pytorch_including_the_double_backward() {
     }
     run_reference("tests/python/reward_nets_reference.py", &jobs, dir.path());
 
-    for (i, (case, (x, t, rho, per_window, per_step, grad_x, param_grads, loss))) in
-        cases.iter().zip(&expected).enumerate()
-    {
+    for (i, (case, (x, t, rho, per_window, per_step, grad_x, grads, loss))) in cases.iter().zip(&expected).enumerate() {
         let arch = &case.architecture;
         let outputs: BTreeMap<String, Tensor> =
             Tensor::read_safetensors(dir.path().join(format!("output-{i}.safetensors")))
@@ -170,19 +179,27 @@ fn reward_nets_match_pytorch_including_the_double_backward() {
             "case {i}: loss {loss} vs {torch_loss}"
         );
 
-        // Parameter gradients of the double-backward loss, relative to the largest of them.
-        let scale = param_grads.values().map(max_abs).fold(1.0f64, f64::max);
-        let mut worst = 0.0f64;
-        let mut nonzero = 0;
-        for (name, ours) in param_grads {
-            let theirs = output(&format!("grad.{name}"));
-            let diff = max_diff(ours, theirs);
-            assert!(diff <= TOLERANCE * scale, "case {i} {arch}: d loss / d {name} differs by {diff} (scale {scale})");
-            worst = worst.max(diff);
-            nonzero += usize::from(max_abs(ours) > 0.0);
+        // Parameter gradients of the double-backward loss, relative to the largest of them:
+        // relreward's autograd and the gradients training takes, each against PyTorch's.
+        for (how, param_grads) in grads {
+            let scale = param_grads.values().map(max_abs).fold(1.0f64, f64::max);
+            let mut worst = 0.0f64;
+            let mut nonzero = 0;
+            for (name, ours) in param_grads {
+                let theirs = output(&format!("grad.{name}"));
+                let diff = max_diff(ours, theirs);
+                assert!(
+                    diff <= TOLERANCE * scale,
+                    "case {i} {arch}: {how} d loss / d {name} differs by {diff} (scale {scale})"
+                );
+                worst = worst.max(diff);
+                nonzero += usize::from(max_abs(ours) > 0.0);
+            }
+            assert!(nonzero + 1 >= param_grads.len(), "case {i}: only {nonzero} parameters receive gradients");
+            eprintln!(
+                "case {i} {arch}: {how} d loss / d theta: max |rust - pytorch| = {worst:.3e} (scale {scale:.3e})"
+            );
         }
-        assert!(nonzero + 1 >= param_grads.len(), "case {i}: only {nonzero} parameters receive gradients");
-        eprintln!("case {i} {arch}: d loss / d theta: max |rust - pytorch| = {worst:.3e} (scale {scale:.3e})");
 
         // PyTorch weights, Rust forward.
         let torch_weights = dir.path().join(format!("torch-weights-{i}.safetensors"));

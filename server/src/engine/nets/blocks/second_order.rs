@@ -38,7 +38,7 @@
 
 use tch::{Kind, Tensor};
 
-use super::{Conv1d, Conv1dBlock, Downsample1d, GroupNorm, GroupNormTape, ResidualTemporalBlock, mish_parts};
+use super::{Conv1d, Conv1dBlock, Downsample1d, GroupNorm, GroupNormTape, ResidualTemporalBlock, kernels, mish_parts};
 use crate::error::{Error, Result};
 
 /// (parameter, d loss / d parameter) pairs, in no particular order.
@@ -103,12 +103,13 @@ impl Conv1d {
     }
 }
 
-/// What the tangent sweep keeps of a group norm, grouped [B, G, M].
+/// What the tangent sweep keeps of a group norm: grouped [B, G, M] values and [B, G, 1] means.
 #[derive(Debug)]
 pub struct GroupNormTangent {
     x_hat: Tensor,
-    /// ẋ centred per group, and B = mean(x̂ ẋ).
-    x_dot_centred: Tensor,
+    x_dot: Tensor,
+    /// mean(ẋ) and B = mean(x̂ ẋ).
+    mean_dot: Tensor,
     b: Tensor,
     x_hat_dot: Tensor,
     /// ẏ = γ x̂̇ in the input's layout.
@@ -127,28 +128,27 @@ impl GroupNorm {
         Ok(self.weight.f_view(shape.as_slice())?)
     }
 
-    /// x̂ grouped [B, G, M] and rstd [B, G, 1].
-    fn normalized(&self, tape: &GroupNormTape) -> Result<(Tensor, Tensor)> {
-        let rstd = tape.rstd.f_unsqueeze(-1)?;
-        let x_hat =
-            tape.input.f_reshape(self.grouped(&tape.input.size()))?.f_sub(&tape.mean.f_unsqueeze(-1)?)?.f_mul(&rstd)?;
-        Ok((x_hat, rstd))
-    }
-
-    /// ẏ from ẋ (module doc), keeping what the reverse needs.
+    /// ẏ from ẋ (module doc), keeping what the reverse needs. As one pass per term:
+    /// `x̂̇ = rstd ẋ - (rstd B) x̂ - rstd mean(ẋ)` with per-group coefficients.
     pub fn tangent(&self, tape: &GroupNormTape, x_dot: &Tensor) -> Result<GroupNormTangent> {
         let size = x_dot.size();
-        let last = [-1i64];
-        let (x_hat, rstd) = self.normalized(tape)?;
+        let mean = |t: &Tensor| t.f_mean_dim([-1i64].as_slice(), true, None::<Kind>);
+        let rstd = tape.rstd.f_unsqueeze(-1)?;
+        let x_hat = tape.input.f_reshape(self.grouped(&size))?.f_sub(&tape.mean.f_unsqueeze(-1)?)?.f_mul(&rstd)?;
         let x_dot = x_dot.f_reshape(self.grouped(&size))?;
-        let x_dot_centred = x_dot.f_sub(&x_dot.f_mean_dim(last.as_slice(), true, None::<Kind>)?)?;
-        let b = x_hat.f_mul(&x_dot)?.f_mean_dim(last.as_slice(), true, None::<Kind>)?;
-        let x_hat_dot = x_dot_centred.f_sub(&x_hat.f_mul(&b)?)?.f_mul(&rstd)?;
+        let mean_dot = mean(&x_dot)?;
+        let b = mean(&x_hat.f_mul(&x_dot)?)?;
+        let x_hat_dot =
+            x_dot.f_mul(&rstd)?.f_addcmul_(&x_hat, &rstd.f_mul(&b)?.f_neg_()?)?.f_sub_(&rstd.f_mul(&mean_dot)?)?;
         let y_dot = x_hat_dot.f_reshape(size.as_slice())?.f_mul(&self.per_channel(size.len())?)?;
-        Ok(GroupNormTangent { x_hat, x_dot_centred, b, x_hat_dot, y_dot })
+        Ok(GroupNormTangent { x_hat, x_dot, mean_dot, b, x_hat_dot, y_dot })
     }
 
-    /// The reverse of (y, ẏ) (module doc): pushes dγ and dβ, returns p_x.
+    /// The reverse of (y, ẏ) (module doc): pushes dγ and dβ, returns p_x. With v = γ p_y, the
+    /// module doc's `P(v) + rstd² ((3 B C - A) x̂ - C ẋ_c - B u_c)` expands to
+    /// `rstd v - rstd² B u - rstd² C ẋ + c_4 x̂ + c_5` with per-group coefficients
+    /// `c_4 = rstd² (3 B C - A) - rstd mean(v x̂)` and
+    /// `c_5 = rstd² (C mean(ẋ) + B mean(u)) - rstd mean(v)`: one pass per term over the group.
     pub fn second_backward(
         &self,
         tape: &GroupNormTape,
@@ -159,28 +159,35 @@ impl GroupNorm {
     ) -> Result<Tensor> {
         let size = p_y.size();
         let grouped = self.grouped(&size);
-        let last = [-1i64];
-        let mean = |t: &Tensor| t.f_mean_dim(last.as_slice(), true, None::<Kind>);
+        let mean = |t: &Tensor| t.f_mean_dim([-1i64].as_slice(), true, None::<Kind>);
         let gamma = self.per_channel(size.len())?;
         let rstd = tape.rstd.f_unsqueeze(-1)?;
-        let GroupNormTangent { x_hat, x_dot_centred, b, x_hat_dot, .. } = tangent;
-        // The first-order part, P(γ p_y), as the input backward computes it.
-        let first = self.input_backward(tape, p_y)?.f_reshape(grouped)?;
+        let rstd2 = rstd.f_square()?;
+        let GroupNormTangent { x_hat, x_dot, mean_dot, b, x_hat_dot, .. } = tangent;
+        let v = p_y.f_mul(&gamma)?.f_reshape(grouped)?;
         let u = g_y.f_mul(&gamma)?.f_reshape(grouped)?;
-        let a = mean(&u.f_mul(x_dot_centred)?)?;
+        let mean_u = mean(&u)?;
         let c = mean(&u.f_mul(x_hat)?)?;
-        let u_centred = u.f_sub(&mean(&u)?)?;
-        let second = x_hat
-            .f_mul(&b.f_mul(&c)?.f_mul_scalar(3.0)?.f_sub(&a)?)?
-            .f_sub(&x_dot_centred.f_mul(&c)?)?
-            .f_sub(&u_centred.f_mul(b)?)?
-            .f_mul(&rstd.f_square()?)?;
-        let d_gamma = p_y
-            .f_mul(&x_hat.f_reshape(size.as_slice())?)?
-            .f_add(&g_y.f_mul(&x_hat_dot.f_reshape(size.as_slice())?)?)?;
+        // A = mean(u ẋ_c) = mean(u ẋ) - mean(u) mean(ẋ).
+        let a = mean(&u.f_mul(x_dot)?)?.f_sub_(&mean_u.f_mul(mean_dot)?)?;
+        let c4 = b
+            .f_mul(&c)?
+            .f_mul_scalar_(3.0)?
+            .f_sub_(&a)?
+            .f_mul_(&rstd2)?
+            .f_sub_(&mean(&v.f_mul(x_hat)?)?.f_mul_(&rstd)?)?;
+        let c5 = c.f_mul(mean_dot)?.f_add_(&b.f_mul(&mean_u)?)?.f_mul_(&rstd2)?.f_sub_(&mean(&v)?.f_mul_(&rstd)?)?;
+        let p_x = v
+            .f_mul(&rstd)?
+            .f_addcmul_(&u, &rstd2.f_mul(b)?.f_neg_()?)?
+            .f_addcmul_(x_dot, &rstd2.f_mul(&c)?.f_neg_()?)?
+            .f_addcmul_(x_hat, &c4)?
+            .f_add_(&c5)?;
+        let d_gamma =
+            p_y.f_mul(&x_hat.f_reshape(size.as_slice())?)?.f_addcmul_(g_y, &x_hat_dot.f_reshape(size.as_slice())?)?;
         grads.push((self.weight.shallow_clone(), sum_but_channels(&d_gamma)?));
         grads.push((self.bias.shallow_clone(), sum_but_channels(p_y)?));
-        Ok(first.f_add(&second)?.f_reshape(size.as_slice())?)
+        Ok(p_x.f_reshape(size.as_slice())?)
     }
 
     /// Mish(GroupNorm(x)) for the four sweeps: the value ([`Mish::Fused`]'s bit for bit) and
@@ -196,10 +203,23 @@ impl GroupNorm {
     }
 
     /// The input backward from g (the adjoint of Mish's output): (g_x, the adjoints kept).
+    /// Also keeps q g, the factor of the tangent in the reverse's Mish term.
     pub fn mish_adjoints(&self, pass: &NormMishPass, g: &Tensor) -> Result<(Tensor, NormMishAdjoints)> {
         let g_norm = g.f_mul(&pass.slope)?;
-        let g_x = self.input_backward(&pass.norm, &g_norm)?;
-        Ok((g_x.shallow_clone(), NormMishAdjoints { g_mish: g.shallow_clone(), g_norm }))
+        let norm = &pass.norm;
+        let fused = kernels::mish_group_norm_backward(
+            g,
+            &pass.slope,
+            &norm.input,
+            (&norm.mean, &norm.rstd),
+            &self.weight,
+            self.groups,
+        )?;
+        let g_x = match fused {
+            Some(g_x) => g_x,
+            None => self.input_backward(norm, &g_norm)?,
+        };
+        Ok((g_x, NormMishAdjoints { curvature_g: pass.curvature.f_mul(g)?, g_norm }))
     }
 
     /// The tangent of Mish's output from ẋ.
@@ -217,7 +237,7 @@ impl GroupNorm {
         p: &Tensor,
         grads: &mut ParamGrads,
     ) -> Result<Tensor> {
-        let p_norm = p.f_mul(&pass.slope)?.f_add(&pass.curvature.f_mul(&tangent.y_dot)?.f_mul(&adjoints.g_mish)?)?;
+        let p_norm = p.f_mul(&pass.slope)?.f_addcmul_(&adjoints.curvature_g, &tangent.y_dot)?;
         self.second_backward(&pass.norm, tangent, &adjoints.g_norm, &p_norm, grads)
     }
 }
@@ -230,10 +250,10 @@ pub struct NormMishPass {
     curvature: Tensor,
 }
 
-/// The input backward's adjoints of Mish's output and of the norm's.
+/// The input backward's adjoint of the norm's output, and mish'' times Mish's output's.
 #[derive(Debug)]
 pub struct NormMishAdjoints {
-    g_mish: Tensor,
+    curvature_g: Tensor,
     g_norm: Tensor,
 }
 
