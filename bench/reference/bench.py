@@ -23,7 +23,8 @@ Diffuser's guided p_sample_loop over `--n` trajectories in one batch.
 `reward-step`: the reward's training step alone, as relreward's models-free amortised recipe
 runs it (`tests/bench/reward_step.sh`): a pool of `--pool` (point, t, target) triples made once
 (their values do not change the cost), then per step a batch gathered from the pool, the
-alignment loss through the double backward, backward, Adam, the EMA and `.item()`.
+alignment loss through the double backward, backward, Adam, the EMA and `.item()`. The reward
+is the windowed MLP (`--window`, `--hidden`), or Diffuser's ValueFunction with `--widths`.
 
 `frozen-precision`: one TemporalUnet forward pass (no gradient, PyTorch's initialisation) at
 `--horizon`, `--transition-dim`, `--batch`, in float32 and under bfloat16 autocast, best of
@@ -145,7 +146,10 @@ def run_alg1(args):
 
 def run_reward_step(args):
     shape = [args.horizon, args.transition_dim]
-    arch = {"kind": "windowed_mlp", "window": args.window, "hidden": [int(h) for h in args.hidden.split(",")]}
+    if args.widths:
+        arch = {"kind": "value_function", "widths": [int(w) for w in args.widths.split(",")]}
+    else:
+        arch = {"kind": "windowed_mlp", "window": args.window, "hidden": [int(h) for h in args.hidden.split(",")]}
     torch.manual_seed(args.seed)
     reward = build_reward(arch, shape)
     optimizer = torch.optim.Adam(reward.parameters(), lr=args.lr)
@@ -300,6 +304,7 @@ def main():
     step.add_argument("--n-timesteps", type=int, required=True)
     step.add_argument("--window", type=int, default=4)
     step.add_argument("--hidden", default="128,64,32")
+    step.add_argument("--widths", default="", help="a ValueFunction reward with these widths instead of the windowed MLP")
     step.add_argument("--batch", type=int, default=64)
     step.add_argument("--pool", type=int, default=4096)
     step.add_argument("--lr", type=float, default=1e-3)

@@ -2,13 +2,15 @@
 //! parameter names so that weights move between this service and PyTorch as safetensors.
 //!
 //! - [`blocks`]: Diffuser's building blocks (sinusoidal embedding, Mish, Conv1dBlock,
-//!   ResidualTemporalBlock, Down/Upsample1d, time MLP), shared with the reward networks.
+//!   ResidualTemporalBlock, Down/Upsample1d, time MLP), shared with the reward networks;
+//!   `blocks::second_order`, their tangents and second-order reverses, by which the
+//!   convolutional rewards train without autograd.
 //! - [`temporal_unet`]: Diffuser's TemporalUnet over trajectories [B, H, D].
 //! - [`mlp`]: an MLP denoiser over samples of any shape.
 //! - [`unet2d`]: diffusers' `UNet2DModel` over images [B, C, H, W], with diffusers' parameter
 //!   names (checked against diffusers itself by `server/tests/unet2d_vs_diffusers.rs`).
 //! - [`reward`]: [`RewardNet`], the relative reward network rho(x, t) with its input gradient
-//!   and the differentiable gradient for the double backward of training; one file per
+//!   and training's parameter gradients of the alignment loss; one file per
 //!   architecture (windowed MLP, Diffuser's ValueFunction, a strided 2D conv encoder, a flat
 //!   MLP) under `reward/`.
 //! - [`native`]: [`NativeDenoiser`], the [`super::denoiser::Denoiser`] over either network.

@@ -8,6 +8,10 @@
 //!
 //! Parameter counts are also available *before* allocation (the `*_params` functions), so a
 //! constructor can refuse an architecture whose weights would not fit in memory.
+//!
+//! Besides the forward passes: `*_taped` forwards and `input_backward`s (the input gradient
+//! by hand, for serving the convolutional rewards), and in `second_order` the tangents and
+//! second-order reverses their training takes.
 
 use tch::nn::{Init, Path};
 use tch::{Kind, Tensor};

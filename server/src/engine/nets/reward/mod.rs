@@ -2,9 +2,11 @@
 //! trained to match the difference of two diffusion models (Algorithm 1 of "Extracting Reward
 //! Functions from Diffusion Models"). [`RewardNet`] owns its variables ([`Weights`]), validates
 //! its architecture against the item shape before allocating, computes rho, its input gradient
-//! (for guidance) and the same gradient with a differentiable graph (for the double backward
-//! of training), and stores its weights as strict safetensors under PyTorch module names
-//! (`tests/python/reward_nets_reference.py` is the independent PyTorch implementation).
+//! (for guidance), training's alignment loss with every parameter's gradient (without
+//! autograd) and the input gradient with a differentiable graph (autograd's double backward,
+//! the reference the tests hold training's gradients to), and stores its weights as strict
+//! safetensors under PyTorch module names (`tests/python/reward_nets_reference.py` is the
+//! independent PyTorch implementation).
 //!
 //! Module map, one file per architecture ([`RewardArchitecture`]), each with its hyperparameter
 //! checks, parameter count, layers (with their PyTorch names) and forward pass:
@@ -20,7 +22,10 @@
 //!   MLP shares;
 //! - `closed_form`: that head's input gradient and training gradient written out by hand
 //!   ([`RewardNet::grad`], [`RewardNet::alignment_gradients`]), so serving and training the
-//!   two MLP rewards skip autograd (and training its double backward).
+//!   two MLP rewards skip autograd (and training its double backward);
+//! - `second_order`: what the convolutional rewards' training gradients share (the loss's
+//!   derivatives, the final block's sweeps) around their layers' sweeps
+//!   (`blocks::second_order`), so they train without autograd too.
 //!
 //! Every activation is Mish (smooth, as the double backward and the paper's existence theorem
 //! want), every time embedding is Diffuser's
@@ -29,7 +34,7 @@
 //!
 //! All forward passes use tch's fallible operations: bad shapes are errors, never panics.
 //! Mish is [`Mish::Fused`] (libtorch's op, or the hand-fused kernel where nothing is
-//! differentiated) except in `grad_create_graph`, the pass Algorithm 1 differentiates twice
+//! differentiated) except in `grad_create_graph`, the pass autograd differentiates twice
 //! ([`Mish::TwiceDifferentiable`]).
 
 mod architecture;
@@ -245,7 +250,7 @@ impl RewardNet {
     /// without autograd: works inside a no-grad region, accumulates no parameter gradient.
     /// The MLP rewards take the closed form (`closed_form.rs`: one forward keeping Mish's
     /// slopes, one backward of a few matrix products), the convolutional ones a hand-written
-    /// backward over their blocks' tapes (`blocks.rs`: transposed convolutions, group-norm
+    /// backward over their blocks' tapes (`blocks/mod.rs`: transposed convolutions, group-norm
     /// input backwards, Mish slopes). Either way rho is the forward's bit for bit (Score's
     /// answer) and the gradient autograd's to float rounding (`tests.rs`).
     pub fn grad(&self, x: &Tensor, t: &Tensor) -> Result<(Tensor, Tensor)> {
@@ -281,7 +286,7 @@ impl RewardNet {
     /// on) backpropagates to the parameters through the double backward of Algorithm 1. The
     /// graph is built from a detached copy of `x`, so no gradient flows back into `x`. The one
     /// pass differentiated twice, hence [`Mish::TwiceDifferentiable`] (the fused op's second
-    /// derivative is NaN for inputs above about 88.7; blocks.rs).
+    /// derivative is NaN for inputs above about 88.7; `blocks/mod.rs`).
     pub fn grad_create_graph(&self, x: &Tensor, t: &Tensor) -> Result<Tensor> {
         let t = self.check_inputs(x, t)?;
         tch::with_grad(|| {
