@@ -59,12 +59,7 @@ pub fn sum_but_channels(t: &Tensor) -> Result<Tensor> {
 /// divide the padded length leaves extra positions at the end). oneDNN takes it as it takes
 /// any convolution; im2col and a matrix product ran 2x to 4x slower
 /// (`tests/bench/conv_weight_grad.py`).
-pub fn conv_weight_grad(
-    weight: &Tensor,
-    stride: &[i64],
-    padding: &[i64],
-    pairs: &[(&Tensor, &Tensor)],
-) -> Result<Tensor> {
+fn conv_weight_grad(weight: &Tensor, stride: &[i64], padding: &[i64], pairs: &[(&Tensor, &Tensor)]) -> Result<Tensor> {
     let inputs: Vec<&Tensor> = pairs.iter().map(|(x, _)| *x).collect();
     let adjoints: Vec<&Tensor> = pairs.iter().map(|(_, g)| *g).collect();
     let x = Tensor::f_cat(&inputs, 0)?.f_transpose(0, 1)?;
@@ -82,6 +77,22 @@ pub fn conv_weight_grad(
     Ok(dw.f_transpose(0, 1)?.f_contiguous()?)
 }
 
+/// A convolution's parameters' part of the reverse of (y, ẏ) (module doc): pushes
+/// `dW = wgrad(x, p_y) + wgrad(ẋ, g_y)` and `db = sum p_y`. The caller adds the input's
+/// adjoint, its transposed convolution of p_y.
+pub fn conv_param_grads(
+    (weight, bias): (&Tensor, &Tensor),
+    (stride, padding): (&[i64], &[i64]),
+    (x, x_dot): (&Tensor, &Tensor),
+    (g_y, p_y): (&Tensor, &Tensor),
+    grads: &mut ParamGrads,
+) -> Result<()> {
+    let dw = conv_weight_grad(weight, stride, padding, &[(x, p_y), (x_dot, g_y)])?;
+    grads.push((weight.shallow_clone(), dw));
+    grads.push((bias.shallow_clone(), sum_but_channels(p_y)?));
+    Ok(())
+}
+
 impl Conv1d {
     /// ẏ = W * ẋ (the bias does not move with x).
     pub fn tangent(&self, x_dot: &Tensor) -> Result<Tensor> {
@@ -96,9 +107,8 @@ impl Conv1d {
         p_y: &Tensor,
         grads: &mut ParamGrads,
     ) -> Result<Tensor> {
-        let dw = conv_weight_grad(&self.weight, &[self.stride], &[self.padding], &[(x, p_y), (x_dot, g_y)])?;
-        grads.push((self.weight.shallow_clone(), dw));
-        grads.push((self.bias.shallow_clone(), sum_but_channels(p_y)?));
+        let layer = (&self.weight, &self.bias);
+        conv_param_grads(layer, (&[self.stride], &[self.padding]), (x, x_dot), (g_y, p_y), grads)?;
         self.input_backward(p_y, x.size()[2])
     }
 }

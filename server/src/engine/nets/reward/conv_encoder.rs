@@ -10,13 +10,12 @@ use tch::nn;
 use tch::{Kind, Tensor};
 
 use super::checks::{count, shape_text, validate_widths};
-use super::second_order::{AlignmentTerms, top_forward, top_second_backward, top_tangent};
+use super::second_order::{AlignmentTerms, TimeSweep, top_forward, top_second_backward, top_tangent};
 use crate::engine::nets::blocks::second_order::{
-    GroupNormTangent, NormMishAdjoints, NormMishPass, ParamGrads, conv_weight_grad, sum_but_channels,
+    GroupNormTangent, NormMishAdjoints, NormMishPass, ParamGrads, conv_param_grads,
 };
 use crate::engine::nets::blocks::{
-    GROUPS, GroupNorm, Linear, Mish, NormMishTape, TimeMlp, conv_params, linear_params, mish_parts, torch_default_init,
-    total,
+    GROUPS, GroupNorm, Linear, Mish, NormMishTape, TimeMlp, conv_params, linear_params, torch_default_init, total,
 };
 use crate::error::{Error, Result};
 
@@ -89,9 +88,7 @@ impl StridedConv2d {
         p_y: &Tensor,
         grads: &mut ParamGrads,
     ) -> Result<Tensor> {
-        let dw = conv_weight_grad(&self.weight, &[2, 2], &[1, 1], &[(x, p_y), (x_dot, g_y)])?;
-        grads.push((self.weight.shallow_clone(), dw));
-        grads.push((self.bias.shallow_clone(), sum_but_channels(p_y)?));
+        conv_param_grads((&self.weight, &self.bias), (&[2, 2], &[1, 1]), (x, x_dot), (g_y, p_y), grads)?;
         let size = x.size();
         self.input_backward(p_y, [size[2], size[3]])
     }
@@ -276,16 +273,14 @@ impl ConvEncoderNet {
         terms: impl FnOnce(&Tensor, &Tensor) -> Result<AlignmentTerms>,
     ) -> Result<(Tensor, ParamGrads)> {
         let top_layers = (&self.final_first, &self.final_second);
-        let (e, time) = self.time_mlp.forward_kept(t)?;
-        let e_parts = mish_parts(&e, false)?;
-        let e_act = &e_parts.value;
+        let mut time = TimeSweep::forward(&self.time_mlp, t)?;
         let pixels = [2i64, 3];
         let mean_pixels = |t: &Tensor| t.f_mean_dim(pixels.as_slice(), false, None::<Kind>);
         // 1. The forward.
         let mut passes = Vec::with_capacity(self.blocks.len());
         let mut h = x.shallow_clone();
         for block in &self.blocks {
-            let (next, pass) = block.forward_second(&h, e_act)?;
+            let (next, pass) = block.forward_second(&h, &time.act)?;
             passes.push(pass);
             h = next;
         }
@@ -294,7 +289,7 @@ impl ConvEncoderNet {
         let spread = |t: &Tensor| -> Result<Tensor> {
             Ok(t.f_div_scalar(count)?.f_unsqueeze(-1)?.f_unsqueeze(-1)?.f_expand(size.as_slice(), false)?)
         };
-        let (rho, g_pooled, top) = top_forward(top_layers, &mean_pixels(&h)?, &e)?;
+        let (rho, g_pooled, top) = top_forward(top_layers, &mean_pixels(&h)?, &time.e)?;
         // 2. The input backward.
         let mut g = spread(&g_pooled)?;
         let mut adjoints = Vec::with_capacity(self.blocks.len());
@@ -318,21 +313,12 @@ impl ConvEncoderNet {
         let mut grads = ParamGrads::new();
         let (p_pooled, p_e) = top_second_backward(top_layers, &top, &top_dot, p_rho.as_ref(), &mut grads)?;
         let mut p = spread(&p_pooled)?;
-        let mut p_e_act: Option<Tensor> = None;
         for (((block, pass), adjoint), tangent) in self.blocks.iter().zip(&passes).zip(&adjoints).zip(&tangents).rev() {
-            let (below, from_time) = block.second_backward((pass, adjoint, tangent), &p, e_act, &mut grads)?;
-            p_e_act = Some(match p_e_act {
-                Some(sum) => sum.f_add(&from_time)?,
-                None => from_time,
-            });
+            let (below, from_time) = block.second_backward((pass, adjoint, tangent), &p, &time.act, &mut grads)?;
+            time.add_act_adjoint(from_time)?;
             p = below;
         }
-        // The blocks read Mish(e), the top e itself.
-        let p_e = match p_e_act {
-            Some(p_act) => p_e.f_add(&p_act.f_mul(&e_parts.slope)?)?,
-            None => p_e,
-        };
-        self.time_mlp.param_grads(&time, &p_e, &mut grads)?;
+        time.backward(&self.time_mlp, p_e, &mut grads)?;
         Ok((loss, grads))
     }
 }

@@ -16,8 +16,8 @@
 
 use tch::{Kind, Tensor};
 
-use crate::engine::nets::blocks::second_order::{ParamGrads, sum_but_channels};
-use crate::engine::nets::blocks::{Linear, mish_parts};
+use crate::engine::nets::blocks::second_order::{ParamGrads, TimeMlpPass, sum_but_channels};
+use crate::engine::nets::blocks::{Linear, TimeMlp, mish_parts};
 use crate::error::{Error, Result};
 
 /// The alignment loss at the pass's rho and input gradient, and its derivatives: `r` = d loss
@@ -27,6 +27,43 @@ pub struct AlignmentTerms {
     pub loss: Tensor,
     pub r: Tensor,
     pub p_rho: Option<Tensor>,
+}
+
+/// The time embedding through the sweeps: e(t), which the top reads, and Mish(e), which every
+/// block's time projection reads; neither depends on x, so the time MLP takes one ordinary
+/// backward at the end, from the adjoints the blocks add up here.
+pub(super) struct TimeSweep {
+    pub(super) e: Tensor,
+    pub(super) act: Tensor,
+    slope: Tensor,
+    pass: TimeMlpPass,
+    act_adjoint: Option<Tensor>,
+}
+
+impl TimeSweep {
+    pub(super) fn forward(time_mlp: &TimeMlp, t: &Tensor) -> Result<Self> {
+        let (e, pass) = time_mlp.forward_kept(t)?;
+        let parts = mish_parts(&e, false)?;
+        Ok(Self { e, act: parts.value, slope: parts.slope, pass, act_adjoint: None })
+    }
+
+    /// Adds a block's adjoint of Mish(e).
+    pub(super) fn add_act_adjoint(&mut self, adjoint: Tensor) -> Result<()> {
+        self.act_adjoint = Some(match self.act_adjoint.take() {
+            Some(sum) => sum.f_add(&adjoint)?,
+            None => adjoint,
+        });
+        Ok(())
+    }
+
+    /// The time MLP's gradients from e's adjoint at the top and the blocks' of Mish(e).
+    pub(super) fn backward(self, time_mlp: &TimeMlp, p_e: Tensor, grads: &mut ParamGrads) -> Result<()> {
+        let p_e = match &self.act_adjoint {
+            Some(p_act) => p_e.f_add(&p_act.f_mul(&self.slope)?)?,
+            None => p_e,
+        };
+        time_mlp.param_grads(&self.pass, &p_e, grads)
+    }
 }
 
 /// The top's forward for the sweeps.

@@ -19,10 +19,10 @@ use tch::Tensor;
 use tch::nn;
 
 use super::checks::{count, trajectory_shape, validate_widths};
-use super::second_order::{AlignmentTerms, top_forward, top_second_backward, top_tangent};
+use super::second_order::{AlignmentTerms, TimeSweep, top_forward, top_second_backward, top_tangent};
 use crate::engine::nets::blocks::second_order::{ParamGrads, ResidualAdjoints, ResidualPass, ResidualTangents};
 use crate::engine::nets::blocks::{
-    Downsample1d, GROUPS, Linear, Mish, ResidualTemporalBlock, TEMPORAL_KERNEL, TimeMlp, mish_parts, total,
+    Downsample1d, GROUPS, Linear, Mish, ResidualTemporalBlock, TEMPORAL_KERNEL, TimeMlp, total,
 };
 use crate::engine::nets::mlp::MAX_FEATURES;
 use crate::error::{Error, Result};
@@ -230,9 +230,7 @@ impl ValueFunctionNet {
         terms: impl FnOnce(&Tensor, &Tensor) -> Result<AlignmentTerms>,
     ) -> Result<(Tensor, ParamGrads)> {
         let top_layers = (&self.final_first, &self.final_second);
-        let (e, time) = self.time_mlp.forward_kept(t)?;
-        let e_parts = mish_parts(&e, false)?;
-        let e_act = &e_parts.value;
+        let mut time = TimeSweep::forward(&self.time_mlp, t)?;
         // 1. The forward.
         let stages = self.stages();
         let mut passes = Vec::with_capacity(stages.len());
@@ -240,7 +238,7 @@ impl ValueFunctionNet {
         for stage in &stages {
             let (next, pass) = match stage {
                 Stage::Block(block) => {
-                    let (next, pass) = block.forward_second(&h, e_act)?;
+                    let (next, pass) = block.forward_second(&h, &time.act)?;
                     (next, StagePass::Block(pass))
                 }
                 Stage::Down(down) => (down.forward(&h)?, StagePass::Down(h.shallow_clone())),
@@ -249,7 +247,7 @@ impl ValueFunctionNet {
             h = next;
         }
         let last = h.size();
-        let (rho, g_features, top) = top_forward(top_layers, &h.f_flatten(1, -1)?, &e)?;
+        let (rho, g_features, top) = top_forward(top_layers, &h.f_flatten(1, -1)?, &time.e)?;
         // 2. The input backward, keeping each stage's adjoints (in reverse order).
         let mut g = g_features.f_view(last.as_slice())?;
         let mut adjoints = Vec::with_capacity(stages.len());
@@ -288,9 +286,8 @@ impl ValueFunctionNet {
         let top_dot = top_tangent(&self.final_first, &top, &h_dot.f_flatten(1, -1)?)?;
         // 4. The reverse of the pairs.
         let mut grads = ParamGrads::new();
-        let (p_features, mut p_e) = top_second_backward(top_layers, &top, &top_dot, p_rho.as_ref(), &mut grads)?;
+        let (p_features, p_e) = top_second_backward(top_layers, &top, &top_dot, p_rho.as_ref(), &mut grads)?;
         let mut p = p_features.f_view(last.as_slice())?;
-        let mut p_e_act: Option<Tensor> = None;
         for (((stage, pass), adjoint), tangent) in stages.iter().zip(&passes).zip(&adjoints).zip(&tangents).rev() {
             p = match (stage, pass, adjoint, tangent) {
                 (
@@ -299,11 +296,9 @@ impl ValueFunctionNet {
                     StageAdjoint::Block(adjoint),
                     StageTangent::Block(tangent),
                 ) => {
-                    let (below, from_time) = block.second_backward((pass, adjoint, tangent), &p, e_act, &mut grads)?;
-                    p_e_act = Some(match p_e_act {
-                        Some(sum) => sum.f_add(&from_time)?,
-                        None => from_time,
-                    });
+                    let (below, from_time) =
+                        block.second_backward((pass, adjoint, tangent), &p, &time.act, &mut grads)?;
+                    time.add_act_adjoint(from_time)?;
                     below
                 }
                 (
@@ -315,11 +310,7 @@ impl ValueFunctionNet {
                 _ => return Err(mismatch()),
             };
         }
-        // The blocks read Mish(e) (one slope for all), the top e itself.
-        if let Some(p_act) = p_e_act {
-            p_e = p_e.f_add(&p_act.f_mul(&e_parts.slope)?)?;
-        }
-        self.time_mlp.param_grads(&time, &p_e, &mut grads)?;
+        time.backward(&self.time_mlp, p_e, &mut grads)?;
         Ok((loss, grads))
     }
 }
