@@ -8,8 +8,7 @@
 //! runs relreward's own code:
 //!
 //! - Algorithm 1: [`noised_target_and_point`] (x_t, and the target under no-grad), then
-//!   [`alignment_step`] (the loss and its parameter gradients in closed form for the MLP
-//!   rewards, grad_x rho with create_graph and a backward for the others), [`Adam`] and
+//!   [`alignment_step`] (the loss and its parameter gradients without autograd), [`Adam`] and
 //!   [`Ema::after_step`], exactly the sequence of `jobs/reward.rs` inside `jobs/training.rs`;
 //! - DDPM: [`DiffusionModel::loss`], backward, Adam, EMA (`jobs/diffusion.rs`);
 //! - guided sampling: [`GuidedSampler`] with conditions and guidance by a [`RewardModel`] (what

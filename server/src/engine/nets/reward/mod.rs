@@ -60,7 +60,7 @@ use super::inputs::check_inputs;
 use super::weights::{Start, Weights};
 use crate::error::{Error, Result};
 
-/// An alignment loss with its parameter gradients computed in closed form
+/// An alignment loss with its parameter gradients computed without autograd
 /// ([`RewardNet::alignment_gradients`]): no autograd graph behind either.
 #[derive(Debug)]
 pub struct AlignmentGradients {
