@@ -127,9 +127,10 @@ fn reward_nets_match_pytorch_including_the_double_backward() {
         // The same loss's gradients as training computes them, without autograd (the MLPs'
         // closed form, the convolutional rewards' sweeps).
         let computed = net.alignment_gradients(&x, &t, &target, None, 0.0).expect("alignment gradients");
+        let (computed_loss, autograd_loss) = (computed.loss.double_value(&[]), loss.double_value(&[]));
         assert!(
-            (computed.loss.double_value(&[]) - loss.double_value(&[])).abs()
-                <= 1e-6 * loss.double_value(&[]).abs().max(1.0)
+            (computed_loss - autograd_loss).abs() <= 1e-6 * autograd_loss.abs().max(1.0),
+            "case {i}: training's loss {computed_loss} against autograd's {autograd_loss}"
         );
         let computed: BTreeMap<String, Tensor> = computed.grads.into_iter().collect();
         assert_eq!(computed.len(), param_grads.len(), "case {i}: one computed gradient per parameter");

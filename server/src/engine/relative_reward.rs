@@ -42,6 +42,7 @@ use tch::{Device, Kind, Tensor};
 
 use super::diffusion::DiffusionModel;
 use super::manifest::{RewardSignature, RewardUploadManifest, Space};
+pub use super::nets::reward::alignment_error;
 use super::nets::reward::{AlignmentGradients, RewardArchitecture, RewardNet};
 use super::normalizer::{Normalize, Normalizer};
 use super::optim::StepLoss;
@@ -247,7 +248,7 @@ pub fn alignment_loss(
     rho_l2: f64,
 ) -> Result<Tensor> {
     let grad = reward.grad_create_graph(point, t)?;
-    let mut loss = alignment_error(&grad, target, weights);
+    let mut loss = alignment_error(&grad, target, weights)?;
     if rho_l2 > 0.0 {
         loss += reward.rho(point, t)?.square().mean(None::<Kind>) * rho_l2;
     }
@@ -307,18 +308,6 @@ pub struct RewardManifest {
     pub expert_recipe: Option<RecipeManifest>,
     pub final_loss: f64,
     pub eval_loss: Option<f64>,
-}
-
-/// mean_batch sum(weights * (grad - target)^2): the alignment term of [`alignment_loss`], and
-/// the held-out loss a job reports (from a grad computed without a graph).
-pub fn alignment_error(grad: &Tensor, target: &Tensor, weights: Option<&Tensor>) -> Tensor {
-    let squared = (grad - target).square();
-    let squared = match weights {
-        Some(w) => squared * w,
-        None => squared,
-    };
-    // In the inputs' dtype (float32 in training; float64 where a test checks derivations).
-    squared.flatten(1, -1).sum_dim_intlist(1, false, None::<Kind>).mean(None::<Kind>)
 }
 
 /// Per-entry weights [H, A + O] of the alignment loss for a trajectory space: `action_weight`

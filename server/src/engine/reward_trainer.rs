@@ -191,7 +191,7 @@ impl RelativeRewardTrainer {
         let mut eval_rng = Rng::new(self.settings.seed ^ 0xe7a1);
         let Some((t, target, point)) = self.draw(&mut eval_rng, true)? else { return Ok(None) };
         let (_, grad) = self.reward.grad(&point, &t)?;
-        Ok(Some(alignment_error(&grad, &target, self.entry_weights.as_ref()).double_value(&[])))
+        Ok(Some(alignment_error(&grad, &target, self.entry_weights.as_ref())?.double_value(&[])))
     }
 
     fn expert_mut(&self) -> Result<std::cell::RefMut<'_, DiffusionModel>> {

@@ -318,16 +318,21 @@ impl GroupNorm {
     /// d sum(g * mish(forward(x))) / dx: one kernel where Mish's slope is on the tape
     /// (`kernels::mish_group_norm_backward`), libtorch's operations otherwise.
     pub fn mish_input_backward(&self, tape: &NormMishTape, g: &Tensor) -> Result<Tensor> {
-        if let MishTape::Slope(slope) = &tape.mish {
-            let norm = &tape.norm;
-            let stats = (&norm.mean, &norm.rstd);
-            if let Some(dx) =
-                kernels::mish_group_norm_backward(g, slope, &norm.input, stats, &self.weight, self.groups)?
-            {
-                return Ok(dx);
-            }
+        match &tape.mish {
+            MishTape::Slope(slope) => self.slope_input_backward(&tape.norm, slope, g),
+            MishTape::Input(_) => self.input_backward(&tape.norm, &tape.mish.backward(g)?),
         }
-        self.input_backward(&tape.norm, &tape.mish.backward(g)?)
+    }
+
+    /// d sum(g * y) / dx for y = mish(forward(x)) given Mish's slope: one kernel where it
+    /// applies (`kernels::mish_group_norm_backward`), the input backward of `g * slope`
+    /// otherwise. Serving's backward and training's adjoint sweep (`second_order`) both.
+    pub fn slope_input_backward(&self, norm: &GroupNormTape, slope: &Tensor, g: &Tensor) -> Result<Tensor> {
+        let stats = (&norm.mean, &norm.rstd);
+        match kernels::mish_group_norm_backward(g, slope, &norm.input, stats, &self.weight, self.groups)? {
+            Some(dx) => Ok(dx),
+            None => self.input_backward(norm, &g.f_mul(slope)?),
+        }
     }
 }
 

@@ -40,7 +40,7 @@
 
 use tch::{Kind, Tensor};
 
-use super::{Conv1d, Conv1dBlock, Downsample1d, GroupNorm, GroupNormTape, ResidualTemporalBlock, kernels, mish_parts};
+use super::{Conv1d, Conv1dBlock, Downsample1d, GroupNorm, GroupNormTape, ResidualTemporalBlock, mish_parts};
 use crate::error::{Error, Result};
 
 /// (parameter, d loss / d parameter) pairs, in no particular order.
@@ -59,7 +59,7 @@ pub fn sum_but_channels(t: &Tensor) -> Result<Tensor> {
 /// s j]`: the inputs transposed to [C, N, ...] convolved with the adjoints transposed to
 /// [O, N, ...], the stride as the dilation, cut to the kernel's size (a stride that does not
 /// divide the padded length leaves extra positions at the end). oneDNN takes it as it takes
-/// any convolution; im2col and a matrix product ran 2x to 4x slower
+/// any convolution; im2col and a matrix product ran 1.7x to 2.7x slower
 /// (`tests/bench/conv_weight_grad.py`).
 fn conv_weight_grad(weight: &Tensor, stride: &[i64], padding: &[i64], pairs: &[(&Tensor, &Tensor)]) -> Result<Tensor> {
     let inputs: Vec<&Tensor> = pairs.iter().map(|(x, _)| *x).collect();
@@ -217,21 +217,9 @@ impl GroupNorm {
     /// The input backward from g (the adjoint of Mish's output): (g_x, the adjoints kept).
     /// Also keeps q g, the factor of the tangent in the reverse's Mish term.
     pub fn mish_adjoints(&self, pass: &NormMishPass, g: &Tensor) -> Result<(Tensor, NormMishAdjoints)> {
-        let g_norm = g.f_mul(&pass.slope)?;
-        let norm = &pass.norm;
-        let fused = kernels::mish_group_norm_backward(
-            g,
-            &pass.slope,
-            &norm.input,
-            (&norm.mean, &norm.rstd),
-            &self.weight,
-            self.groups,
-        )?;
-        let g_x = match fused {
-            Some(g_x) => g_x,
-            None => self.input_backward(norm, &g_norm)?,
-        };
-        Ok((g_x, NormMishAdjoints { curvature_g: pass.curvature.f_mul(g)?, g_norm }))
+        let g_x = self.slope_input_backward(&pass.norm, &pass.slope, g)?;
+        let adjoints = NormMishAdjoints { curvature_g: pass.curvature.f_mul(g)?, g_norm: g.f_mul(&pass.slope)? };
+        Ok((g_x, adjoints))
     }
 
     /// The tangent of Mish's output from ẋ.

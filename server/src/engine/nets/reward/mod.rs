@@ -369,9 +369,23 @@ impl RewardNet {
     }
 }
 
-/// The alignment loss (as `relative_reward::alignment_loss` computes it) at rho [B] and grad
-/// (x's shape), with r = d loss / d grad = 2 w (grad - target) / B and, under rho's L2
-/// penalty, d loss / d rho = 2 l2 rho / B.
+/// mean_batch sum(weights * (grad - target)^2): the alignment term of Algorithm 1's loss
+/// (`relative_reward::alignment_loss`, which re-exports this), the loss training reports
+/// ([`RewardNet::alignment_gradients`]) and the held-out loss a job reports (from a grad
+/// computed without a graph).
+pub fn alignment_error(grad: &Tensor, target: &Tensor, weights: Option<&Tensor>) -> Result<Tensor> {
+    let squared = grad.f_sub(target)?.f_square()?;
+    let squared = match weights {
+        Some(w) => squared.f_mul(w)?,
+        None => squared,
+    };
+    // In the inputs' dtype (float32 in training; float64 where a test checks derivations).
+    Ok(squared.f_flatten(1, -1)?.f_sum_dim_intlist([1i64].as_slice(), false, None::<Kind>)?.f_mean(None::<Kind>)?)
+}
+
+/// The alignment loss at rho [B] and grad (x's shape), by [`alignment_error`]
+/// (the loss every path reports), with r = d loss / d grad = 2 w (grad - target) / B and,
+/// under rho's L2 penalty, d loss / d rho = 2 l2 rho / B.
 fn alignment_terms(
     rho: &Tensor,
     grad: &Tensor,
@@ -380,17 +394,11 @@ fn alignment_terms(
     rho_l2: f64,
 ) -> Result<AlignmentTerms> {
     let batch = grad.size()[0] as f64;
-    let diff = grad.f_sub(target)?;
-    let weighted = match weights {
-        Some(w) => diff.f_mul(w)?,
-        None => diff.shallow_clone(),
-    };
-    let mut loss = weighted
-        .f_mul(&diff)?
-        .f_flatten(1, -1)?
-        .f_sum_dim_intlist([1i64].as_slice(), false, None::<Kind>)?
-        .f_mean(None::<Kind>)?;
-    let r = weighted.f_mul_scalar(2.0 / batch)?;
+    let mut loss = alignment_error(grad, target, weights)?;
+    let mut r = grad.f_sub(target)?.f_mul_scalar_(2.0 / batch)?;
+    if let Some(w) = weights {
+        r = r.f_mul_(w)?;
+    }
     let p_rho = if rho_l2 > 0.0 {
         loss = loss.f_add(&rho.f_square()?.f_mean(None::<Kind>)?.f_mul_scalar(rho_l2)?)?;
         Some(rho.f_mul_scalar(2.0 * rho_l2 / batch)?)
