@@ -20,9 +20,16 @@
 //!
 //! Tolerances: losses, gradients and sampler states to 1e-4 (relative to the values' magnitude
 //! where it exceeds 1). An Adam step moves each weight by about lr * m_hat / sqrt(v_hat), a ratio
-//! of gradients: where a weight's gradients are well above float32 rounding (at least 1e-3 of
-//! the largest in its tensor, at both steps) the moves must agree to 1e-3 * lr; elsewhere the
-//! ratio is rounding noise in both implementations, so only |move| <= lr per step is required.
+//! of gradients: where both sides' gradients of a weight agree to 1e-3 relative at every step,
+//! the moves (and their EMA) must agree to 1e-2 lr; elsewhere the gradient is at rounding level
+//! (e.g. a conv bias that a group norm cancels) and the ratio is rounding noise in both
+//! implementations, so only |move| <= lr per step is required, on at most 5% of the weights.
+//!
+//! lr is 1e-4: Adam's first move is about lr * sign(g), so a rounding-level gradient moves its
+//! weight by up to 2 lr differently on the two sides, and the second step's gradients are taken
+//! there. At 1e-3 that spread the ValueFunction's second-step disagreement to up to 10% of its
+//! weights (one of six seeds tried); at 1e-4 to at most 1.5% over the same six. Much smaller and
+//! float32's spacing at a unit weight (1.2e-7, 1.2e-3 lr here) nears the 1e-2 lr tolerance.
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -45,7 +52,7 @@ mod common;
 use common::{randomize, run_reference};
 
 const TOLERANCE: f64 = 1e-4;
-const LR: f64 = 1e-3;
+const LR: f64 = 1e-4;
 /// EMA settings that average from the first step (the defaults only copy before step 2000).
 const EMA: (f64, u64, u64) = (0.9, 1, 0);
 const STEPS: usize = 2;
@@ -264,9 +271,7 @@ fn algorithm_1_steps_match_pytorch() {
         },
         // The other options: eps nets, score target at mu_base, the rho^2 penalty, the loss's
         // entry weights (a planner's: the first action up, the inpainted state off), a flat MLP
-        // as rho (Diffuser's ValueFunction's double backward is checked against PyTorch in
-        // reward_nets_vs_pytorch.rs; over two Adam steps its GroupNorms on groups of a few
-        // elements amplify rounding beyond what an element-wise comparison of moves can use).
+        // as rho.
         Case {
             parametrization: Parametrization::Epsilon,
             reward: RewardArchitecture::Mlp { hidden: vec![64, 32] },
@@ -274,6 +279,21 @@ fn algorithm_1_steps_match_pytorch() {
             eval_point: EvalPoint::MuBase,
             rho_l2: 0.1,
             entry_weights: (10.0, 0.0),
+            horizon: 32,
+        },
+        // Diffuser's ValueFunction, trained by the four sweeps (nets/blocks/second_order.rs).
+        // Widths and horizon keep its group norms' groups at 8 values or more (mid_block2: 2
+        // channels by 4 steps): on smaller groups float32 itself is the limit (at widths
+        // (16, 32) over 16 steps, groups of 2 values, the first loss read 1.43669e1 here,
+        // 1.43607e1 by autograd in float32, 1.43722e1 in PyTorch, 1.43634e1 in float64);
+        // reward/tests.rs holds such shapes to float64 autograd.
+        Case {
+            parametrization: Parametrization::X0,
+            reward: RewardArchitecture::ValueFunction { widths: vec![32, 64] },
+            target: Target::Mean,
+            eval_point: EvalPoint::XT,
+            rho_l2: 0.0,
+            entry_weights: (1.0, 1.0),
             horizon: 32,
         },
     ];
