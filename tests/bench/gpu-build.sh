@@ -10,7 +10,8 @@
 # directory, so the project's own build is untouched.
 #
 #   tests/bench/gpu-build.sh   (TORCH_VERSION=2.11.0 WORK=/tmp/relreward-gpu-build TARGET=$WORK/target)
-# writes .gpu/relreward-server, .gpu/relreward and .gpu/maze.npz (then tests/bench/gpu.sh there).
+# writes .gpu/relreward-server, .gpu/relreward-server-tests (the server's unit tests),
+# .gpu/relreward, .gpu/relreward-loadgen and .gpu/maze.npz (then tests/bench/gpu.sh there).
 set -euo pipefail
 cd "$(dirname "$0")/../.."
 V=${TORCH_VERSION:-2.11.0}
@@ -63,6 +64,17 @@ PY
     --config "patch.crates-io.torch-sys.path=\"$W/torch-sys\""
 fi
 strip -o .gpu/relreward-server "$T/release/relreward-server"
+# The server's unit tests, for the derivation checks that gpu.sh runs on the device first (the
+# reward's gradients without autograd against autograd, on CUDA's operations).
+tests=$(LIBTORCH=$W/torch LIBTORCH_BYPASS_VERSION_CHECK=1 CARGO_TARGET_DIR=$T \
+  cargo test --release -p relreward-server --lib --no-run --message-format=json \
+  --config "patch.crates-io.torch-sys.path=\"$W/torch-sys\"" |
+  "$PY" -c 'import json, sys
+for line in sys.stdin:
+    m = json.loads(line)
+    if m.get("reason") == "compiler-artifact" and m.get("executable") and m["target"]["name"] == "relreward_server":
+        print(m["executable"])')
+strip -o .gpu/relreward-server-tests "$tests"
 cp "$W/Cargo.lock.project" Cargo.lock
 # The CLI and the load generator link no libtorch: the project's own build serves.
 cargo build --release -p relreward-cli --bin relreward -p relreward-bench --bin relreward-loadgen

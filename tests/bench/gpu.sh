@@ -12,6 +12,9 @@
 #                                         KEEP=DIR keeps the servers' logs there; HOST_CHECKS=0
 #                                         skips the per-step job's second run)
 #
+# First, when .gpu/relreward-server-tests was carried (gpu-build.sh), the reward's derivation
+# checks on CUDA (one JSON line, "cuda-derivation-checks": passed or failed; KEEP keeps the log).
+#
 # Sizes: TemporalUnet(dim 32, dim_mults (1, 4, 8)) base and expert over [256, 6] windows,
 # T = 256, Diffuser's cosine schedule, x0 (relreward's defaults); reward ValueFunction widths
 # (32, 128, 256); batch 256. relreward's rate comes from its job's progress events between
@@ -54,6 +57,20 @@ horizon = 256
 n_timesteps = 256
 architecture = { kind = "temporal_unet", dim = 32, dim_mults = [1, 4, 8] }
 TOML
+# First the derivation checks on CUDA's operations (when gpu-build.sh carried the unit tests):
+# the reward's input and training gradients without autograd against autograd, every
+# architecture, float64 to 1e-10 (float32 to 1e-2: TF32 convolutions). A failure is reported
+# and the timings still run.
+if [[ -x $BIN/relreward-server-tests ]]; then
+  checks=passed
+  LD_LIBRARY_PATH=$TL LD_PRELOAD=$TL/libtorch_cuda.so RELREWARD_TEST_DEVICE=cuda \
+    "$BIN/relreward-server-tests" --exact --test-threads 1 \
+    engine::nets::reward::tests::reward_closed_form_alignment_gradients_equal_autograd \
+    engine::nets::reward::tests::reward_closed_form_grad_equals_autograd >"$tmp/checks" 2>&1 || checks=failed
+  tail -5 "$tmp/checks" >&2
+  echo "{\"side\": \"relreward\", \"variant\": \"cuda-derivation-checks\", \"result\": \"$checks\"}"
+  if [[ -n ${KEEP:-} ]]; then cp "$tmp/checks" "$KEEP/derivation-checks.log"; fi
+fi
 start_server auto
 
 rate() {

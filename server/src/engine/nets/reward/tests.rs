@@ -26,7 +26,29 @@ fn mlp(hidden: &[usize]) -> RewardArchitecture {
 }
 
 fn build(arch: &RewardArchitecture, item_shape: &[i64]) -> RewardNet {
-    RewardNet::new(arch, item_shape, 0, CPU).expect("reward network builds")
+    build_on(arch, item_shape, CPU)
+}
+
+fn build_on(arch: &RewardArchitecture, item_shape: &[i64], device: Device) -> RewardNet {
+    RewardNet::new(arch, item_shape, 0, device).expect("reward network builds")
+}
+
+/// Where the derivation checks (`reward_closed_form_*`) run: the CPU, or the first CUDA device
+/// with RELREWARD_TEST_DEVICE=cuda (`tests/bench/gpu.sh` runs them there first: on a GPU the
+/// CPU kernels decline and the sweeps take libtorch's operations, the path its jobs use).
+fn check_device() -> Device {
+    match std::env::var("RELREWARD_TEST_DEVICE").as_deref() {
+        Err(_) | Ok("" | "cpu") => CPU,
+        Ok("cuda") => Device::Cuda(0),
+        Ok(other) => panic!("RELREWARD_TEST_DEVICE: expected cpu or cuda, got {other:?}"),
+    }
+}
+
+/// float32's tolerance in the derivation checks: 1e-5 on the CPU; on a GPU 1e-2, since libtorch
+/// runs float32 convolutions there in TF32 by default (cuDNN's allow_tf32, a 10-bit mantissa)
+/// on both sides of the comparison; float64 keeps 1e-10 everywhere.
+fn float32_tolerance(device: Device, cpu: f64) -> f64 {
+    if device == CPU { cpu } else { 1e-2 }
 }
 
 /// Deterministic pseudo-random values in [-1, 1) (a sine hash): the tests do not draw from
@@ -59,11 +81,13 @@ fn perturb(net: &RewardNet) {
     });
 }
 
+/// A batch of inputs on the net's device.
 fn inputs(net: &RewardNet, batch: i64, kind: Kind) -> (Tensor, Tensor) {
     let mut shape = vec![batch];
     shape.extend_from_slice(net.item_shape());
-    let x = pseudo_random(&shape, 0.25, kind) * 1.5;
-    let t = Tensor::arange(batch, (Kind::Int64, CPU)) * 7 + 1;
+    let device = net.weights().var_store().device();
+    let x = (pseudo_random(&shape, 0.25, kind) * 1.5).to_device(device);
+    let t = (Tensor::arange(batch, (Kind::Int64, CPU)) * 7 + 1).to_device(device);
     (x, t)
 }
 
@@ -638,12 +662,13 @@ fn convolutional_cases() -> Vec<(RewardArchitecture, Vec<i64>)> {
 /// backward is up to 8.6e-5 off there, these sweeps up to 3.2e-5, hence 1e-4 for them.
 #[test]
 fn reward_closed_form_alignment_gradients_equal_autograd() {
+    let device = check_device();
     let ill_conditioned = |shape: &[i64]| shape == [1, 4] || shape == [1, 1, 3];
     for (arch, shape) in closed_form_cases().into_iter().chain(convolutional_cases()) {
-        let float_tolerance = if ill_conditioned(&shape) { 1e-4 } else { 1e-5 };
+        let float_tolerance = float32_tolerance(device, if ill_conditioned(&shape) { 1e-4 } else { 1e-5 });
         for seed in [0.5, 1.5, 2.5] {
             for (weighted, rho_l2, raised) in [(false, 0.0, false), (true, 0.3, false), (false, 0.1, true)] {
-                let mut net = build(&arch, &shape);
+                let mut net = build_on(&arch, &shape, device);
                 perturb(&net);
                 if raised {
                     tch::no_grad(|| {
@@ -656,14 +681,16 @@ fn reward_closed_form_alignment_gradients_equal_autograd() {
                         }
                     });
                 }
-                let mut single = build(&arch, &shape);
+                let mut single = build_on(&arch, &shape, device);
                 single.weights_mut().var_store_mut().copy(net.weights().var_store()).expect("float32 copy");
                 net.weights_mut().var_store_mut().double();
                 let (x, t) = inputs(&net, 3, Kind::Double);
                 let x = x * (1.0 + seed);
-                let target = pseudo_random(&x.size(), seed, Kind::Double);
-                let weights = weighted.then(|| pseudo_random(&shape, seed + 0.1, Kind::Double).abs() + 0.5);
-                let what = format!("{arch} {shape:?} seed {seed} weights {weighted} l2 {rho_l2} raised {raised}");
+                let target = pseudo_random(&x.size(), seed, Kind::Double).to_device(device);
+                let weights =
+                    weighted.then(|| (pseudo_random(&shape, seed + 0.1, Kind::Double).abs() + 0.5).to_device(device));
+                let what =
+                    format!("{arch} {shape:?} {device:?} seed {seed} weights {weighted} l2 {rho_l2} raised {raised}");
                 let loss =
                     crate::engine::relative_reward::alignment_loss(&net, &x, &t, &target, weights.as_ref(), rho_l2)
                         .expect("autograd loss");
@@ -698,17 +725,18 @@ fn reward_closed_form_alignment_gradients_equal_autograd() {
 /// what Score answers.
 #[test]
 fn reward_closed_form_grad_equals_autograd() {
+    let device = check_device();
     for (arch, shape) in closed_form_cases().into_iter().chain(convolutional_cases()) {
         for seed in [0.5, 1.5, 2.5] {
-            for (kind, tolerance) in [(Kind::Double, 1e-10), (Kind::Float, 1e-5)] {
-                let mut net = build(&arch, &shape);
+            for (kind, tolerance) in [(Kind::Double, 1e-10), (Kind::Float, float32_tolerance(device, 1e-5))] {
+                let mut net = build_on(&arch, &shape, device);
                 perturb(&net);
                 if kind == Kind::Double {
                     net.weights_mut().var_store_mut().double();
                 }
                 let (x, t) = inputs(&net, 5, kind);
                 let x = x * (1.0 + seed);
-                let what = format!("{arch} {shape:?} seed {seed} {kind:?}");
+                let what = format!("{arch} {shape:?} {device:?} seed {seed} {kind:?}");
                 let (rho, grad) = net.grad(&x, &t).expect("closed form");
                 assert!(!grad.requires_grad() && !rho.requires_grad(), "{what}: no graph");
                 let want = net.rho(&x, &t).expect("rho");
