@@ -81,35 +81,13 @@ for b in relreward-server relreward; do
   [[ -x $BIN/$b ]] || { echo "amortised.sh: $BIN/$b is missing: cargo build --release --workspace --bins" >&2; exit 2; }
 done
 tmp=$(mktemp -d)
-server=
-stop_server() {
-  if [[ -n $server ]]; then
-    kill "$server" 2>/dev/null || true
-    wait "$server" 2>/dev/null || true
-    server=
-  fi
-}
+. tests/bench/lib.sh
 trap 'stop_server; rm -rf "$tmp"' EXIT
 started=$(date +%s)
 results=$tmp/results.jsonl
 : >"$results"
 
-start_server() {
-  : >"$tmp/out"
-  RELREWARD__METRICS__LISTEN= RELREWARD__ENGINE__INTRA_OP_THREADS="$THREADS" \
-    RELREWARD__MODELS__ALLOW_TORCHSCRIPT_UPLOAD=true \
-    "$BIN/relreward-server" --listen 127.0.0.1:0 --data-dir "$tmp/data" >"$tmp/out" 2>>"$tmp/log" &
-  server=$!
-  for _ in $(seq 600); do
-    grep -q "listening on" "$tmp/out" && break
-    kill -0 "$server" 2>/dev/null || break
-    sleep 0.1
-  done
-  grep -q "listening on" "$tmp/out" || { echo "amortised.sh: relreward-server did not start:" >&2; tail -20 "$tmp/log" >&2; exit 1; }
-  export RELREWARD_ENDPOINT="http://$(sed -n 's/.*listening on //p' "$tmp/out" | head -1)"
-}
-rr() { "$BIN/relreward" "$@"; }
-quiet() { "$@" >"$tmp/cmd.log" 2>&1 || { echo "amortised.sh: failed: $*" >&2; cat "$tmp/cmd.log" >&2; exit 1; }; }
+server_env=(RELREWARD__ENGINE__INTRA_OP_THREADS="$THREADS" RELREWARD__MODELS__ALLOW_TORCHSCRIPT_UPLOAD=true)
 
 # train_seconds EVENTS: {"steps", "seconds"} of a job from its last progress event.
 train_seconds() {

@@ -29,20 +29,9 @@ for b in relreward-server relreward relreward-loadgen; do
   [[ -x $BIN/$b ]] || { echo "byo.sh: $BIN/$b is missing: cargo build --release --workspace --bins" >&2; exit 2; }
 done
 tmp=$(mktemp -d)
-server=
-stop_server() { if [[ -n $server ]]; then kill "$server" 2>/dev/null || true; wait "$server" 2>/dev/null || true; server=; fi; }
+. tests/bench/lib.sh
 trap 'stop_server; rm -rf "$tmp"' EXIT
-start_server() {
-  env RELREWARD__METRICS__LISTEN= RELREWARD__ENGINE__INTRA_OP_THREADS="$THREADS" \
-    RELREWARD__MODELS__ALLOW_TORCHSCRIPT_UPLOAD=true "$BIN/relreward-server" --listen 127.0.0.1:0 \
-    --data-dir "$tmp/data" >"$tmp/out" 2>>"$tmp/log" &
-  server=$!
-  for _ in $(seq 600); do grep -q '^relreward-server listening on ' "$tmp/out" && break; sleep 0.1; done
-  endpoint="http://$(sed -n 's/^relreward-server listening on //p' "$tmp/out" | head -1)"
-  export RELREWARD_ENDPOINT=$endpoint
-}
-quiet() { "$@" >"$tmp/cmd.log" 2>&1 || { echo "byo.sh: failed: $*" >&2; cat "$tmp/cmd.log" >&2; exit 1; }; }
-rr() { "$BIN/relreward" "$@"; }
+server_env=(RELREWARD__ENGINE__INTRA_OP_THREADS="$THREADS" RELREWARD__MODELS__ALLOW_TORCHSCRIPT_UPLOAD=true)
 
 start_server
 "$PY" - "$tmp/loco.npz" <<'PY'

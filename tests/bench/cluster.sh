@@ -29,6 +29,8 @@ for b in relreward-server relreward relreward-loadgen; do
   [[ -x $BIN/$b ]] || { echo "cluster.sh: $BIN/$b is missing: cargo build --release --workspace --bins" >&2; exit 2; }
 done
 tmp=$(mktemp -d /tmp/relreward-bench-cluster.XXXXXX)
+# wait_line, rr and quiet (its servers are several, started by `start` below).
+. tests/bench/lib.sh
 pids=()
 cleanup() {
   for p in "${pids[@]}"; do kill "$p" 2>/dev/null || true; done
@@ -63,19 +65,12 @@ start() {
   fi
   env "${env[@]}" "$BIN/relreward-server" --listen 127.0.0.1:0 --data-dir "$tmp/$name" \
     >"$tmp/$name.out" 2>"$tmp/$name.log" &
-  pids+=($!)
-  printf -v "${name}_pid" '%s' "$!"
-  for _ in $(seq 600); do
-    if grep -q '^relreward-server listening on ' "$tmp/$name.out"; then
-      printf -v "${name}_endpoint" 'http://%s' "$(sed -n 's/^relreward-server listening on //p' "$tmp/$name.out")"
-      return
-    fi
-    sleep 0.1
-  done
-  echo "cluster.sh: $name did not start" >&2; tail -20 "$tmp/$name.log" >&2; exit 1
+  local pid=$! address
+  pids+=("$pid")
+  printf -v "${name}_pid" '%s' "$pid"
+  address=$(wait_line "$tmp/$name.out" 'relreward-server listening on ' "$pid" "$name" "$tmp/$name.log")
+  printf -v "${name}_endpoint" 'http://%s' "$address"
 }
-rr() { "$BIN/relreward" "$@"; }
-quiet() { "$@" >"$tmp/cmd.log" 2>&1 || { echo "cluster.sh: failed: $*" >&2; cat "$tmp/cmd.log" >&2; exit 1; }; }
 
 # --- Models: through replica 1, trained by the worker --------------------------------------
 start serve1 serve

@@ -20,21 +20,14 @@ for b in relreward-server relreward; do
   [[ -x $BIN/$b ]] || { echo "oip_http.sh: $BIN/$b is missing: cargo build --release --workspace --bins" >&2; exit 2; }
 done
 tmp=$(mktemp -d)
-server=
-trap '[[ -n $server ]] && { kill "$server" 2>/dev/null; wait "$server" 2>/dev/null; }; rm -rf "$tmp"' EXIT
+. tests/bench/lib.sh
+trap 'stop_server; rm -rf "$tmp"' EXIT
 
-RELREWARD__METRICS__LISTEN= RELREWARD__OIP_HTTP__LISTEN=127.0.0.1:0 RELREWARD__ENGINE__INTRA_OP_THREADS=1 \
-  "$BIN/relreward-server" --listen 127.0.0.1:0 --data-dir "$tmp/data" >"$tmp/out" 2>"$tmp/log" &
-server=$!
-for _ in $(seq 600); do grep -q "^relreward-server oip_http on " "$tmp/out" && break; sleep 0.1; done
-grpc=$(sed -n 's/^relreward-server listening on //p' "$tmp/out")
-http=$(sed -n 's/^relreward-server oip_http on //p' "$tmp/out")
-[[ -n $grpc && -n $http ]] || { echo "oip_http.sh: the server did not start:" >&2; cat "$tmp/log" >&2; exit 1; }
-export RELREWARD_ENDPOINT=http://$grpc
-rr() { "$BIN/relreward" "$@" >"$tmp/cmd.log" 2>&1 || { echo "oip_http.sh: failed: relreward $*" >&2; cat "$tmp/cmd.log" >&2; exit 1; }; }
+start_server RELREWARD__OIP_HTTP__LISTEN=127.0.0.1:0 RELREWARD__ENGINE__INTRA_OP_THREADS=1
+http=$(wait_line "$tmp/out" 'relreward-server oip_http on ' "$server" "the OIP HTTP listener")
 
 "$PY" tests/python/make_dataset.py --rows 20000 --seed 1 --out "$tmp/maze.npz" --expected "$tmp/e.json" >/dev/null
-rr dataset upload "$tmp/maze.npz" --name maze
+quiet rr dataset upload "$tmp/maze.npz" --name maze
 cat >"$tmp/unet.toml" <<TOML
 [diffusion]
 horizon = 64
@@ -42,12 +35,12 @@ n_timesteps = 20
 architecture = { kind = "temporal_unet", dim = 16, dim_mults = [1, 2] }
 TOML
 for m in base expert; do
-  rr train diffusion --name "maze-$m" --dataset maze --config "$tmp/unet.toml" --steps 1 --batch-size 2 --watch
+  quiet rr train diffusion --name "maze-$m" --dataset maze --config "$tmp/unet.toml" --steps 1 --batch-size 2 --watch
 done
-rr train reward --name maze-reward --base maze-base --expert maze-expert --dataset maze \
+quiet rr train reward --name maze-reward --base maze-base --expert maze-expert --dataset maze \
   --arch windowed_mlp --window 4 --hidden 128,64,32 --steps 1 --batch-size 2 --watch
 
-"$PY" tests/bench/oip_http.py --grpc "$grpc" --http "$http" --model maze-reward --data "$tmp/maze.npz" \
+"$PY" tests/bench/oip_http.py --grpc "${endpoint#http://}" --http "$http" --model maze-reward --data "$tmp/maze.npz" \
   --seconds "$SECONDS_PER_RUN" --reps "$REPS" >"$tmp/result.json"
 cat "$tmp/result.json"; echo
 

@@ -29,31 +29,13 @@ VF_STEPS=${VF_STEPS:-300}
 BIN=${BIN:-target/release}
 PY=.venv/bin/python
 tmp=$(mktemp -d)
-server=
-stop_server() {
-  if [[ -n $server ]]; then
-    kill "$server" 2>/dev/null || true
-    wait "$server" 2>/dev/null || true
-    server=
-  fi
-}
+. tests/bench/lib.sh
 trap 'stop_server; rm -rf "$tmp"' EXIT
 results=$tmp/results.jsonl
-rr() { "$BIN/relreward" "$@"; }
-quiet() { "$@" >"$tmp/cmd.log" 2>&1 || { echo "reward_step.sh: failed: $*" >&2; cat "$tmp/cmd.log" >&2; exit 1; }; }
 
 # A server with the two frozen models and the dataset of the value function's rotation.
 value_function_setup() {
-  RELREWARD__METRICS__LISTEN= RELREWARD__ENGINE__INTRA_OP_THREADS=1 \
-    "$BIN/relreward-server" --listen 127.0.0.1:0 --data-dir "$tmp/data" >"$tmp/out" 2>>"$tmp/log" &
-  server=$!
-  for _ in $(seq 600); do
-    grep -q "listening on" "$tmp/out" && break
-    kill -0 "$server" 2>/dev/null || break
-    sleep 0.1
-  done
-  grep -q "listening on" "$tmp/out" || { echo "reward_step.sh: relreward-server did not start:" >&2; tail -20 "$tmp/log" >&2; exit 1; }
-  export RELREWARD_ENDPOINT="http://$(sed -n 's/.*listening on //p' "$tmp/out" | head -1)"
+  start_server RELREWARD__ENGINE__INTRA_OP_THREADS=1
   "$PY" - "$tmp" <<'PY'
 import sys
 import numpy as np

@@ -58,7 +58,7 @@ for b in relreward-server relreward relreward-loadgen; do
 done
 [[ -x $PY ]] || { echo "serving.sh: $PY is missing: make setup" >&2; exit 2; }
 tmp=$(mktemp -d)
-server= reference= batching=
+reference= batching=
 stop() { # stop PID-VARIABLE
   local pid=${!1}
   if [[ -n $pid ]]; then
@@ -67,31 +67,12 @@ stop() { # stop PID-VARIABLE
     printf -v "$1" ''
   fi
 }
-trap 'stop server; stop reference; stop batching; rm -rf "$tmp"' EXIT
+. tests/bench/lib.sh
+trap 'stop_server; stop reference; stop batching; rm -rf "$tmp"' EXIT
 started=$(date +%s)
 
-# wait_line FILE PREFIX PID WHAT: waits for the line starting with PREFIX; prints the rest.
-wait_line() {
-  for _ in $(seq 600); do
-    if grep -q "^$2" "$1"; then sed -n "s/^$2//p" "$1" | head -1; return; fi
-    kill -0 "$3" 2>/dev/null || break
-    sleep 0.1
-  done
-  echo "serving.sh: $4 did not start:" >&2
-  tail -20 "$tmp/log" "$tmp/reference.log" 2>/dev/null >&2
-  exit 1
-}
-
-# start_server [ENV=VALUE...]: relreward on 127.0.0.1:0 over $tmp/data (metrics port off).
-start_server() {
-  local threads=()
-  [[ $THREADS == 0 ]] || threads=(RELREWARD__ENGINE__INTRA_OP_THREADS="$THREADS")
-  env RELREWARD__METRICS__LISTEN= "${threads[@]}" "$@" "$BIN/relreward-server" --listen 127.0.0.1:0 \
-    --data-dir "$tmp/data" >"$tmp/out" 2>>"$tmp/log" &
-  server=$!
-  endpoint="http://$(wait_line "$tmp/out" 'relreward-server listening on ' "$server" relreward-server)"
-  export RELREWARD_ENDPOINT=$endpoint
-}
+# relreward (start_server, tests/bench/lib.sh) with THREADS intra-op threads (0: its default).
+[[ $THREADS == 0 ]] || server_env=(RELREWARD__ENGINE__INTRA_OP_THREADS="$THREADS")
 
 # start_reference MODEL...: the Python server over the same models, as downloaded through the
 # API into $tmp/models (see the download after training).
@@ -101,7 +82,8 @@ start_reference() {
   "$PY" bench/reference/grpc_server.py --listen 127.0.0.1:0 --models-dir "$tmp/models" --threads "$THREADS" \
     "${models[@]}" >"$tmp/reference.out" 2>>"$tmp/reference.log" &
   reference=$!
-  ref_endpoint="http://$(wait_line "$tmp/reference.out" 'reference grpc_server listening on ' "$reference" grpc_server.py)"
+  ref_endpoint="http://$(wait_line "$tmp/reference.out" 'reference grpc_server listening on ' "$reference" grpc_server.py \
+    "$tmp/reference.log")"
 }
 
 # start_batching MODEL...: the dynamic-batching Python server over the same downloaded models.
@@ -111,13 +93,12 @@ start_batching() {
   "$PY" bench/reference/grpc_batching_server.py --listen 127.0.0.1:0 --models-dir "$tmp/models" --threads "$THREADS" \
     "${models[@]}" >"$tmp/batching.out" 2>>"$tmp/batching.log" &
   batching=$!
-  batch_endpoint="http://$(wait_line "$tmp/batching.out" 'reference grpc_batching_server listening on ' "$batching" grpc_batching_server.py)"
+  batch_endpoint="http://$(wait_line "$tmp/batching.out" 'reference grpc_batching_server listening on ' "$batching" \
+    grpc_batching_server.py "$tmp/batching.log")"
 }
 
 rss_kib() { sed -n 's/^VmRSS:[[:space:]]*\([0-9]*\) kB/\1/p' "/proc/$1/status"; }
 hwm_kib() { sed -n 's/^VmHWM:[[:space:]]*\([0-9]*\) kB/\1/p' "/proc/$1/status"; }
-rr() { "$BIN/relreward" "$@"; }
-quiet() { "$@" >"$tmp/cmd.log" 2>&1 || { echo "serving.sh: failed: $*" >&2; cat "$tmp/cmd.log" >&2; exit 1; }; }
 
 # ---------------------------------------------------------------------------------------------
 # Models
@@ -194,7 +175,7 @@ PY
 # Both servers fresh: relreward restarted after the training jobs (which loaded diffusion models).
 start_reference maze-reward loco-reward
 start_batching maze-reward loco-reward
-stop server
+stop_server
 start_server
 threads_rr=$(sed -n 's/.*intra_op_threads[=: ]*\([0-9]*\).*/\1/p' "$tmp/log" | tail -1)
 threads_ref=$(sed -n 's/.*torch intra-op threads \([0-9]*\).*/\1/p' "$tmp/reference.log" | tail -1)
@@ -222,12 +203,12 @@ for model in maze-reward loco-reward; do
     load relreward "stream c=$c" "$model" "$endpoint" '{}' --mode stream --clients "$c" --duration "$DURATION"
   done
 done
-stop server
+stop_server
 start_server RELREWARD__SERVING__MAX_BATCH=1
 for model in maze-reward loco-reward; do
   load relreward "stream c=64, max_batch=1" "$model" "$endpoint" '{}' --mode stream --clients 64 --duration "$DURATION"
 done
-stop server
+stop_server
 
 # ---------------------------------------------------------------------------------------------
 # Memory
@@ -251,7 +232,7 @@ load relreward "soak c=$SOAK_CLIENTS" maze-reward "$endpoint" '{}' --mode stream
   --duration "$SOAK_SECS" --warmup 5 --rss-pid "$server" --rss-every "$soak_every"
 cp "$tmp/run.json" "$tmp/soak.json"
 
-stop server
+stop_server
 start_reference "${ten[@]}"
 sleep 2
 ref_idle=$(rss_kib "$reference")

@@ -10,7 +10,8 @@ cd "$(dirname "$0")/../.."
 BIN=target/release
 STEPS=${STEPS:-1500}
 tmp=$(mktemp -d)
-trap 'kill $(jobs -p) 2>/dev/null || true; rm -rf "$tmp"' EXIT
+. tests/bench/lib.sh
+trap 'stop_server; rm -rf "$tmp"' EXIT
 "$BIN/relreward" maze generate --layout medium --mode base --transitions 400000 --seed 0 \
   --action-noise 0.5 --out "$tmp/base.npz" >/dev/null
 cat >"$tmp/diffusion.toml" <<'TOML'
@@ -19,24 +20,21 @@ horizon = 16
 n_timesteps = 20
 architecture = { kind = "mlp", hidden = [256, 256, 256] }
 TOML
+# run LABEL [ENV=VALUE...]: a fresh server (an empty data directory) with those settings.
 run() {
   local label=$1; shift
-  mkdir -p "$tmp/$label"
-  env "$@" RELREWARD__METRICS__LISTEN= "$BIN/relreward-server" --listen 127.0.0.1:0 \
-    --data-dir "$tmp/$label/data" >"$tmp/$label/out" 2>"$tmp/$label/log" &
-  local server=$!
-  for _ in $(seq 100); do grep -q listening "$tmp/$label/out" && break; sleep 0.1; done
-  export RELREWARD_ENDPOINT="http://$(sed -n 's/.*listening on //p' "$tmp/$label/out")"
-  "$BIN/relreward" dataset upload "$tmp/base.npz" --name base >/dev/null 2>&1
-  "$BIN/relreward" --json train diffusion --name m --dataset base --config "$tmp/diffusion.toml" \
-    --steps "$STEPS" --batch-size 64 --watch >"$tmp/$label/events" 2>/dev/null
-  python3 - "$label" "$tmp/$label/events" <<'PY'
+  rm -rf "$tmp/data"
+  start_server "$@"
+  quiet rr dataset upload "$tmp/base.npz" --name base
+  rr --json train diffusion --name m --dataset base --config "$tmp/diffusion.toml" \
+    --steps "$STEPS" --batch-size 64 --watch >"$tmp/events" 2>/dev/null
+  python3 - "$label" "$tmp/events" <<'PY'
 import json, sys
 events = [json.loads(l) for l in open(sys.argv[2]) if l.startswith("{")]
 last = [e for e in events if e.get("type") == "progress"][-1]
 print(f"{sys.argv[1]:<28} {last['steps_per_second']:8.1f} steps/s")
 PY
-  kill "$server"; wait "$server" 2>/dev/null || true
+  stop_server
 }
 run "per-core" RELREWARD__ENGINE__INTRA_OP_THREADS=0
 run "per-core, OMP passive" RELREWARD__ENGINE__INTRA_OP_THREADS=0 OMP_WAIT_POLICY=PASSIVE

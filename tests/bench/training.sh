@@ -66,14 +66,7 @@ for v in WARMUP ALG1_STEPS DDPM_STEPS; do
   (( ${!v} > 0 && ${!v} % LOG_EVERY == 0 )) || { echo "training.sh: $v must be a positive multiple of $LOG_EVERY" >&2; exit 2; }
 done
 tmp=$(mktemp -d)
-server=
-stop_server() {
-  if [[ -n $server ]]; then
-    kill "$server" 2>/dev/null || true
-    wait "$server" 2>/dev/null || true
-    server=
-  fi
-}
+. tests/bench/lib.sh
 trap 'stop_server; rm -rf "$tmp"' EXIT
 trap 'exit 130' INT
 trap 'exit 143' TERM
@@ -81,25 +74,10 @@ started=$(date +%s)
 results=$tmp/results.jsonl
 : >"$results"
 
-# start_server: relreward on 127.0.0.1:0 over $tmp/data, metrics off, THREADS intra-op threads.
-start_server() {
-  : >"$tmp/out"
-  RELREWARD__METRICS__LISTEN= RELREWARD__ENGINE__INTRA_OP_THREADS="$THREADS" \
-    "$BIN/relreward-server" --listen 127.0.0.1:0 --data-dir "$tmp/data" >"$tmp/out" 2>>"$tmp/log" &
-  server=$!
-  for _ in $(seq 600); do
-    grep -q "listening on" "$tmp/out" && break
-    kill -0 "$server" 2>/dev/null || break
-    sleep 0.1
-  done
-  grep -q "listening on" "$tmp/out" || { echo "training.sh: relreward-server did not start:" >&2; tail -20 "$tmp/log" >&2; exit 1; }
-  export RELREWARD_ENDPOINT="http://$(sed -n 's/.*listening on //p' "$tmp/out" | head -1)"
-}
+server_env=(RELREWARD__ENGINE__INTRA_OP_THREADS="$THREADS")
 
 # server_peak_mib: the running server's peak RSS (VmHWM), MiB.
 server_peak_mib() { awk '/^VmHWM:/ { printf "%.1f", $2 / 1024 }' "/proc/$server/status"; }
-
-rr() { "$BIN/relreward" "$@"; }
 
 # record BENCHMARK SIDE REP JSON: one result line, with the 1-minute load average after the run
 # (this benchmark's own process counts for about THREADS; more means others shared the CPUs).
