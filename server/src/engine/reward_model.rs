@@ -139,11 +139,11 @@ impl RewardModel {
     }
 
     /// Another handle on this model for a serving thread's helper (a batch's rows split across
-    /// threads): a native network shares its weights and tables ([`RewardNet::replica`]);
-    /// `None` for a TorchScript module, whose rows need not be independent (it is never split).
-    pub fn replica(&self) -> Result<Option<Self>> {
+    /// threads): a native network shares its weights and tables ([`RewardNet::replica`]), a
+    /// TorchScript module is shared ([`TorchScriptReward::replica`]).
+    pub fn replica(&self) -> Result<Self> {
         match &self.rho {
-            Rho::Native { net, step_norm } => Ok(Some(Self {
+            Rho::Native { net, step_norm } => Ok(Self {
                 manifest: self.manifest.clone(),
                 rho: Rho::Native {
                     net: net.replica()?,
@@ -151,8 +151,8 @@ impl RewardModel {
                         .as_ref()
                         .map(|s| StepNorm { mean: s.mean.shallow_clone(), std: s.std.shallow_clone() }),
                 },
-            })),
-            Rho::TorchScript(_) => Ok(None),
+            }),
+            Rho::TorchScript(m) => Ok(Self { manifest: self.manifest.clone(), rho: Rho::TorchScript(m.replica()) }),
         }
     }
 
@@ -166,7 +166,8 @@ impl RewardModel {
     }
 
     /// The batch size to evaluate `n` items at ([`RewardNet::padded_batch`]; a module's own
-    /// `n`, whose rows need not be independent).
+    /// `n`: what it computes is unknown, so padding might only add work, and the padded
+    /// rows' zeros are not inputs its author promised to handle).
     pub fn padded_batch(&self, n: i64) -> i64 {
         match &self.rho {
             Rho::Native { net, .. } => net.padded_batch(n),

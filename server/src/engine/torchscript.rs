@@ -16,6 +16,7 @@
 //! part of libtorch's message that concerns the module, not the C++ backtrace behind it.
 
 use std::path::Path;
+use std::sync::Arc;
 
 use tch::{CModule, Device, IValue, Kind, TchError, Tensor};
 
@@ -175,7 +176,10 @@ impl LoadedModule {
 /// `x` in normalized units. Behind [`super::reward_model::RewardModel`], so Score, Gradient,
 /// guidance and OIP serve it as they serve a trained [`super::nets::RewardNet`].
 pub struct TorchScriptReward {
-    module: CModule,
+    /// Shared with its replicas (serving's helper threads): libtorch runs one module's methods
+    /// from several threads at once (its graph executor locks what it compiles per input
+    /// shape), and tch marks `CModule` `Sync`.
+    module: Arc<CModule>,
     signature: RewardSignature,
     item_shape: Vec<i64>,
     device: Device,
@@ -199,7 +203,20 @@ impl TorchScriptReward {
     /// [`TorchScriptDenoiser::load`]).
     pub fn load(path: &Path, signature: RewardSignature, item_shape: &[i64], device: Device) -> Result<Self> {
         let LoadedModule { module, parameter_count, parameter_bytes } = LoadedModule::load(path, device)?;
+        let module = Arc::new(module);
         Ok(Self { module, signature, item_shape: item_shape.to_vec(), device, parameter_count, parameter_bytes })
+    }
+
+    /// Another handle on the same module, for another thread (no copy, nothing reloaded).
+    pub fn replica(&self) -> Self {
+        Self {
+            module: Arc::clone(&self.module),
+            signature: self.signature,
+            item_shape: self.item_shape.clone(),
+            device: self.device,
+            parameter_count: self.parameter_count,
+            parameter_bytes: self.parameter_bytes,
+        }
     }
 
     /// [`Self::load`], then on zeros `[2, *item_shape]` with `t = [0, T - 1]`: one forward
@@ -569,6 +586,37 @@ for name, m in (("rho", Rho()), ("value", Value()), ("detached", Detached()), ("
         assert!(m.contains("forward(x, cond, t)") && m.contains("raised"), "{m}");
         let m = refused("value.pt", RewardSignature::Rho);
         assert!(m.contains("forward(x, t)") && m.contains("raised"), "{m}");
+    }
+
+    /// A replica shares the module (nothing reloaded), and two threads evaluate the same
+    /// module at once, each getting the analytic answer for its own rows (serving's split
+    /// passes, `serving/split.rs`).
+    #[test]
+    fn byo_reward_replicas_evaluate_the_shared_module_on_two_threads_at_once() {
+        use crate::engine::relative_reward::RewardManifest;
+        use crate::engine::reward_model::RewardModel;
+        let dir = byo_fixtures();
+        let manifest = RewardManifest::uploaded(&upload(RewardSignature::Rho));
+        let model = RewardModel::load(manifest, &dir.path().join("rho.pt"), dir.path(), Device::Cpu).expect("load");
+        let replica = model.replica().expect("replica");
+        // (t + 1) sum x^2 and its gradient 2 (t + 1) x, on rows that differ per thread and pass.
+        let passes = |model: RewardModel, offset: f64| {
+            move || {
+                for k in 0..200i64 {
+                    let x = (Tensor::arange(18, (Kind::Float, Device::Cpu)) * 0.1 + offset + k as f64 * 0.01)
+                        .reshape([3, 2, 3]);
+                    let t = Tensor::from_slice(&[k % 5, (k + 2) % 5, (k + 4) % 5]);
+                    let t1 = (t.to_kind(Kind::Float) + 1.0).reshape([3, 1, 1]);
+                    let (rho, grad) = tch::no_grad(|| model.grad(&x, &t)).expect("grad");
+                    let want = (&x * &x * &t1).sum_dim_intlist([1i64, 2].as_slice(), false, Kind::Float);
+                    assert!(rho.allclose(&want, 1e-5, 1e-5, false), "pass {k} (offset {offset}): rho");
+                    assert!(grad.allclose(&(&x * &t1 * 2.0), 1e-5, 1e-5, false), "pass {k} (offset {offset}): grad");
+                }
+            }
+        };
+        let helper = std::thread::spawn(passes(replica, -1.0));
+        passes(model, 1.0)();
+        helper.join().expect("the helper thread's passes");
     }
 
     #[test]

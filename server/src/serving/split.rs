@@ -137,8 +137,8 @@ impl Split<'_> {
     }
 
     /// The inference slots taken for the other parts of a split pass, or `None` to compute it
-    /// whole: one thread configured, a CPU pass expected to be short, too few rows, a model
-    /// that cannot be split (a TorchScript module), or no slot free.
+    /// whole: one thread configured, a CPU pass expected to be short, too few rows, no helper
+    /// thread to be had, or no slot free.
     fn extra_slots(&mut self, model: &SharedReward, rows: i64) -> Option<Vec<OwnedSemaphorePermit>> {
         let config = &self.inner.config;
         let expected = self.cost_per_item.saturating_mul(u32::try_from(rows).unwrap_or(u32::MAX));
@@ -168,7 +168,7 @@ impl Split<'_> {
 #[derive(Default)]
 pub(super) struct Helpers {
     threads: Vec<Helper>,
-    /// The model has no replica (a TorchScript module), or a helper could not be started.
+    /// A helper could not be started (its replica or its thread).
     unsplittable: bool,
 }
 
@@ -190,8 +190,7 @@ impl Helpers {
     fn ensure(&mut self, want: usize, model: &SharedReward) -> usize {
         while self.threads.len() < want && !self.unsplittable {
             match self.start(model) {
-                Ok(Some(helper)) => self.threads.push(helper),
-                Ok(None) => self.unsplittable = true,
+                Ok(helper) => self.threads.push(helper),
                 Err(e) => {
                     tracing::warn!(model = model.name, error = %e, "passes will not be split: no helper thread");
                     self.unsplittable = true;
@@ -201,10 +200,8 @@ impl Helpers {
         self.threads.len().min(want)
     }
 
-    fn start(&self, served: &SharedReward) -> Result<Option<Helper>> {
-        let Some(model) = served.lock().replica()? else {
-            return Ok(None);
-        };
+    fn start(&self, served: &SharedReward) -> Result<Helper> {
+        let model = served.lock().replica()?;
         let (jobs, inbox) = mpsc::channel::<Job>();
         let thread = std::thread::Builder::new()
             .name(format!("serve+{}-{}", self.threads.len() + 1, served.name))
@@ -214,7 +211,7 @@ impl Helpers {
                 }
             })
             .map_err(|e| Error::internal("starting a serving helper thread", e))?;
-        Ok(Some(Helper { jobs: Some(jobs), thread: Some(thread) }))
+        Ok(Helper { jobs: Some(jobs), thread: Some(thread) })
     }
 }
 
