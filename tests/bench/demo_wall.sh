@@ -5,18 +5,16 @@
 # build --release --workspace --bins`. About two minutes for umaze.
 set -euo pipefail
 cd "$(dirname "$0")/../.."
-LAYOUT=${LAYOUT:-umaze}; SEED=${SEED:-0}; PORT=${PORT:-50071}
-out=$(mktemp -d)
-RELREWARD__METRICS__LISTEN= RELREWARD__SERVER__LISTEN=127.0.0.1:$PORT target/release/relreward-server \
-  --data-dir "$out/server-data" >"$out/server.out" 2>"$out/server.log" &
-server=$!
-trap 'kill $server 2>/dev/null || true; wait $server 2>/dev/null || true; rm -rf "$out"' EXIT
-rr() { target/release/relreward --endpoint "http://127.0.0.1:$PORT" "$@"; }
-for _ in $(seq 300); do rr health >/dev/null 2>&1 && break; sleep 0.1; done
+LAYOUT=${LAYOUT:-umaze}; SEED=${SEED:-0}
+BIN=target/release
+tmp=$(mktemp -d)
+. tests/bench/lib.sh
+trap 'stop_server; rm -rf "$tmp"' EXIT
+start_server
 start=$(date +%s.%N)
-rr demo --layout "$LAYOUT" --seed "$SEED" --out "$out/demo" --json >"$out/demo.json" 2>"$out/demo.err"
+rr demo --layout "$LAYOUT" --seed "$SEED" --out "$tmp/demo" --json >"$tmp/demo.json" 2>"$tmp/demo.err"
 end=$(date +%s.%N)
-.venv/bin/python - "$out/demo.json" "$start" "$end" <<'PY'
+.venv/bin/python - "$tmp/demo.json" "$start" "$end" <<'PY'
 import json, sys
 d = json.load(open(sys.argv[1]))
 keep = ["layout", "seed", "goals_total", "goals_recovered", "goals_steered", "mean_balanced_accuracy"]

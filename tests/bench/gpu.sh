@@ -67,9 +67,11 @@ if [[ -x $BIN/relreward-server-tests ]]; then
     "$BIN/relreward-server-tests" --exact --test-threads 1 \
     engine::nets::reward::tests::reward_closed_form_alignment_gradients_equal_autograd \
     engine::nets::reward::tests::reward_closed_form_grad_equals_autograd >"$tmp/checks" 2>&1 || checks=failed
+  # Passed only if both ran (libtest exits 0 when no name matches).
+  grep -q "test result: ok. 2 passed" "$tmp/checks" || checks=failed
   tail -5 "$tmp/checks" >&2
   echo "{\"side\": \"relreward\", \"variant\": \"cuda-derivation-checks\", \"result\": \"$checks\"}"
-  if [[ -n ${KEEP:-} ]]; then cp "$tmp/checks" "$KEEP/derivation-checks.log"; fi
+  if [[ -n ${KEEP:-} ]]; then mkdir -p "$KEEP" && cp "$tmp/checks" "$KEEP/derivation-checks.log"; fi
 fi
 start_server auto
 

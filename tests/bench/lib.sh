@@ -22,7 +22,7 @@ server_env=()
 
 wait_line() {
   for _ in $(seq 600); do
-    if grep -q "^$2" "$1"; then
+    if grep -qs "^$2" "$1"; then
       sed -n "s/^$2//p" "$1" | head -1
       return
     fi
@@ -35,6 +35,8 @@ wait_line() {
 }
 
 start_server() {
+  # Emptied first: a restart must not read the previous server's address.
+  : >"$tmp/out"
   env RELREWARD__METRICS__LISTEN= "${server_env[@]}" "$@" "$BIN/relreward-server" --listen 127.0.0.1:0 --data-dir "$tmp/data" \
     >"$tmp/out" 2>>"$tmp/log" &
   server=$!

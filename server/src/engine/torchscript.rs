@@ -178,7 +178,8 @@ impl LoadedModule {
 pub struct TorchScriptReward {
     /// Shared with its replicas (serving's helper threads): libtorch runs one module's methods
     /// from several threads at once (its graph executor locks what it compiles per input
-    /// shape), and tch marks `CModule` `Sync`.
+    /// shape), and tch marks `CModule` `Sync`. A module that changes its own attributes in
+    /// `forward` would race: the README's contract for uploads rules that out.
     module: Arc<CModule>,
     signature: RewardSignature,
     item_shape: Vec<i64>,
@@ -493,7 +494,7 @@ pub(crate) mod tests {
     /// Scripts bring-your-own reward modules with PyTorch into a fresh directory: rho(x, t) =
     /// (t + 1) sum x^2 and the value function (t + 1) sum x as [B, 1] (analytic gradients
     /// 2 (t + 1) x and t + 1), and three that must be refused.
-    fn byo_fixtures() -> tempfile::TempDir {
+    pub(crate) fn byo_fixtures() -> tempfile::TempDir {
         let dir = tempfile::tempdir().expect("tempdir");
         let script = r#"
 import sys
@@ -508,6 +509,14 @@ class Value(torch.nn.Module):
     def forward(self, x: torch.Tensor, cond: Dict[str, torch.Tensor], t: torch.Tensor) -> torch.Tensor:
         return ((t.float() + 1) * x.flatten(1).sum(1)).unsqueeze(1)
 
+class Scaled(torch.nn.Module):
+    def __init__(self):
+        super().__init__()
+        self.w = torch.nn.Parameter(torch.tensor(1.5))
+
+    def forward(self, x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+        return self.w * (t.float() + 1) * (x * x).flatten(1).sum(1)
+
 class Detached(torch.nn.Module):
     def forward(self, x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
         return x.detach().flatten(1).sum(1)
@@ -516,7 +525,8 @@ class Column(torch.nn.Module):
     def forward(self, x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
         return x.flatten(1).sum(1, keepdim=True)
 
-for name, m in (("rho", Rho()), ("value", Value()), ("detached", Detached()), ("column", Column())):
+for name, m in (("rho", Rho()), ("value", Value()), ("scaled", Scaled()), ("detached", Detached()),
+                ("column", Column())):
     torch.jit.script(m).save(f"{sys.argv[1]}/{name}.pt")
 "#;
         let path = dir.path().join("make.py");
@@ -589,17 +599,21 @@ for name, m in (("rho", Rho()), ("value", Value()), ("detached", Detached()), ("
     }
 
     /// A replica shares the module (nothing reloaded), and two threads evaluate the same
-    /// module at once, each getting the analytic answer for its own rows (serving's split
-    /// passes, `serving/split.rs`).
+    /// module, parameters and all, at once, each getting the analytic answer for its own rows
+    /// (serving's split passes, `serving/split.rs`).
     #[test]
     fn byo_reward_replicas_evaluate_the_shared_module_on_two_threads_at_once() {
         use crate::engine::relative_reward::RewardManifest;
         use crate::engine::reward_model::RewardModel;
         let dir = byo_fixtures();
+        let path = dir.path().join("scaled.pt");
+        let reward = TorchScriptReward::load(&path, RewardSignature::Rho, &[2, 3], Device::Cpu).expect("load");
+        assert!(Arc::ptr_eq(&reward.module, &reward.replica().module), "a replica shares the loaded module");
         let manifest = RewardManifest::uploaded(&upload(RewardSignature::Rho));
-        let model = RewardModel::load(manifest, &dir.path().join("rho.pt"), dir.path(), Device::Cpu).expect("load");
+        let model = RewardModel::load(manifest, &path, dir.path(), Device::Cpu).expect("load");
         let replica = model.replica().expect("replica");
-        // (t + 1) sum x^2 and its gradient 2 (t + 1) x, on rows that differ per thread and pass.
+        // 1.5 (t + 1) sum x^2 (1.5 the module's parameter) and its gradient 3 (t + 1) x, on rows
+        // that differ per thread and pass.
         let passes = |model: RewardModel, offset: f64| {
             move || {
                 for k in 0..200i64 {
@@ -608,9 +622,9 @@ for name, m in (("rho", Rho()), ("value", Value()), ("detached", Detached()), ("
                     let t = Tensor::from_slice(&[k % 5, (k + 2) % 5, (k + 4) % 5]);
                     let t1 = (t.to_kind(Kind::Float) + 1.0).reshape([3, 1, 1]);
                     let (rho, grad) = tch::no_grad(|| model.grad(&x, &t)).expect("grad");
-                    let want = (&x * &x * &t1).sum_dim_intlist([1i64, 2].as_slice(), false, Kind::Float);
+                    let want = (&x * &x * &t1).sum_dim_intlist([1i64, 2].as_slice(), false, Kind::Float) * 1.5;
                     assert!(rho.allclose(&want, 1e-5, 1e-5, false), "pass {k} (offset {offset}): rho");
-                    assert!(grad.allclose(&(&x * &t1 * 2.0), 1e-5, 1e-5, false), "pass {k} (offset {offset}): grad");
+                    assert!(grad.allclose(&(&x * &t1 * 3.0), 1e-5, 1e-5, false), "pass {k} (offset {offset}): grad");
                 }
             }
         };

@@ -3,7 +3,7 @@
 //! returns each caller its own rows, load shedding, deadlines and cancellation.
 
 use std::collections::HashMap;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
@@ -12,7 +12,7 @@ use tokio::sync::Semaphore;
 
 use super::*;
 use crate::config::{Config, Overrides};
-use crate::engine::manifest::Space;
+use crate::engine::manifest::{RewardSignature, RewardUploadManifest, Space};
 use crate::engine::nets::{RewardArchitecture, RewardNet};
 use crate::engine::normalizer::{Normalize, Normalizer};
 use crate::engine::relative_reward::{EvalPoint, Objective, RewardManifest, Target};
@@ -43,6 +43,14 @@ fn manifest_with(architecture: RewardArchitecture) -> RewardManifest {
     }
 }
 
+/// What the fixture serves as "rho".
+enum Served {
+    /// A native reward network of this architecture, at its first weights.
+    Native(RewardArchitecture),
+    /// A bring-your-own TorchScript module of signature rho over the same space and normalizer.
+    Module(PathBuf),
+}
+
 struct Fixture {
     _tmp: tempfile::TempDir,
     serving: Serving,
@@ -52,10 +60,10 @@ struct Fixture {
 }
 
 async fn fixture(tune: impl FnOnce(&mut ServingConfig)) -> Fixture {
-    fixture_with(windowed(), tune).await
+    fixture_with(Served::Native(windowed()), tune).await
 }
 
-async fn fixture_with(arch: RewardArchitecture, tune: impl FnOnce(&mut ServingConfig)) -> Fixture {
+async fn fixture_with(served: Served, tune: impl FnOnce(&mut ServingConfig)) -> Fixture {
     let tmp = tempfile::tempdir().expect("tempdir");
     let overrides = Overrides { data_dir: Some(tmp.path().join("data")), ..Overrides::default() };
     let env = config::Environment::with_prefix("RELREWARD").source(Some(HashMap::new()));
@@ -63,11 +71,26 @@ async fn fixture_with(arch: RewardArchitecture, tune: impl FnOnce(&mut ServingCo
     tune(&mut config.serving);
     let store = Store::open(&config).await.expect("store");
 
-    let m = manifest_with(arch.clone());
-    let net = RewardNet::new(&arch, &[H, D], 0, Device::Cpu).expect("net");
-    let weights = tmp.path().join("weights.safetensors");
-    net.save(&weights).expect("save");
-    register(&store, "rho", &weights, ModelKind::Reward, serde_json::to_value(&m).expect("json")).await;
+    let (m, file, format) = match served {
+        Served::Native(arch) => {
+            let net = RewardNet::new(&arch, &[H, D], 0, Device::Cpu).expect("net");
+            let weights = tmp.path().join("weights.safetensors");
+            net.save(&weights).expect("save");
+            (manifest_with(arch), weights, ModelFormat::Native)
+        }
+        Served::Module(path) => {
+            let native = manifest();
+            let upload = RewardUploadManifest {
+                signature: RewardSignature::Rho,
+                n_timesteps: T,
+                space: native.space,
+                normalizer: native.normalizer,
+                base_model: String::new(),
+            };
+            (RewardManifest::uploaded(&upload), path, ModelFormat::Torchscript)
+        }
+    };
+    register(&store, "rho", &file, format, ModelKind::Reward, serde_json::to_value(&m).expect("json")).await;
     // A diffusion record (never loaded: only its manifest's schedule is read) for the
     // posterior-variance factor.
     let diffusion = serde_json::json!({
@@ -78,31 +101,39 @@ async fn fixture_with(arch: RewardArchitecture, tune: impl FnOnce(&mut ServingCo
         "normalizer": {"kind": "identity"},
         "architecture": {"kind": "mlp", "hidden": [8]},
     });
-    register(&store, "base", &weights, ModelKind::Diffusion, diffusion).await;
+    register(&store, "base", &file, ModelFormat::Native, ModelKind::Diffusion, diffusion).await;
 
     let registry = ModelRegistry::new(store.clone(), &config.models, Device::Cpu);
     let metrics = Metrics::new();
     let slots = Arc::new(Semaphore::new(2));
     let serving =
         Serving::new(registry, config.serving.clone(), slots, metrics.clone(), Tasks::detached_for_tests("serving"));
-    let reference = RewardModel::load(m, &weights, tmp.path(), Device::Cpu).expect("reference");
+    let reference = RewardModel::load(m, &file, tmp.path(), Device::Cpu).expect("reference");
     Fixture { _tmp: tmp, serving, metrics, reference }
 }
 
-async fn register(store: &Store, name: &str, file: &Path, kind: ModelKind, manifest: serde_json::Value) {
+async fn register(
+    store: &Store,
+    name: &str,
+    file: &Path,
+    format: ModelFormat,
+    kind: ModelKind,
+    manifest: serde_json::Value,
+) {
     let staging = store.blobs.staging().expect("staging");
-    let target = staging.path().join("weights.safetensors");
+    let stored = if format == ModelFormat::Torchscript { "module.pt" } else { "weights.safetensors" };
+    let target = staging.path().join(stored);
     std::fs::copy(file, &target).expect("copy");
     let (sha256, size_bytes) = sha256_file(&target).expect("hash");
     let record = ModelRecord {
         name: name.into(),
         kind,
-        format: ModelFormat::Native,
+        format,
         manifest,
         parameter_count: 0,
         sha256,
         size_bytes,
-        file: "weights.safetensors".into(),
+        file: stored.into(),
         provenance: Provenance::Uploaded,
         created_at_ms: 0,
         description: String::new(),
@@ -218,12 +249,17 @@ async fn omega_and_posterior_variance_scale_the_gradient_per_item() {
 #[tokio::test(flavor = "multi_thread")]
 async fn concurrent_queries_are_merged_and_each_caller_gets_its_own_rows() {
     let merged = |c: &mut ServingConfig| c.max_delay_us = 50_000;
-    merged_callers_get_their_own_rows(windowed(), merged, 1).await;
+    merged_callers_get_their_own_rows(Served::Native(windowed()), merged, 1).await;
     // A convolutional reward: merged batches are padded to the next allowed size
     // (`RewardNet::padded_batch`), whose rows never reach a caller. Wide enough that its last
     // group norms span several values: over two (widths [32] here) the backward amplifies the
     // rounding that differs between batch sizes (oneDNN picks kernels per shape) past 1e-5.
-    merged_callers_get_their_own_rows(RewardArchitecture::ValueFunction { widths: vec![128] }, merged, 1).await;
+    merged_callers_get_their_own_rows(
+        Served::Native(RewardArchitecture::ValueFunction { widths: vec![128] }),
+        merged,
+        1,
+    )
+    .await;
 }
 
 /// A merged pass split across threads (`serving.pass_threads`: its rows in parts, each on its
@@ -236,8 +272,9 @@ async fn split_passes_give_each_caller_its_own_rows() {
         c.pass_threads = 2;
         c.split_above_ms = 0.0;
     };
+    let value_function = || Served::Native(RewardArchitecture::ValueFunction { widths: vec![128] });
     // Two rounds: a model's first pass is never split (nothing says yet what it costs).
-    let f = merged_callers_get_their_own_rows(RewardArchitecture::ValueFunction { widths: vec![128] }, split, 2).await;
+    let f = merged_callers_get_their_own_rows(value_function(), split, 2).await;
     let text = f.metrics.render();
     assert!(metric(&text, "relreward_serving_split_passes_total{model=\"rho\"}") >= 1.0, "no pass was split\n{text}");
     // With one thread, none is.
@@ -245,18 +282,26 @@ async fn split_passes_give_each_caller_its_own_rows() {
         split(c);
         c.pass_threads = 1;
     };
-    let f = merged_callers_get_their_own_rows(RewardArchitecture::ValueFunction { widths: vec![128] }, one, 2).await;
+    let f = merged_callers_get_their_own_rows(value_function(), one, 2).await;
     assert!(!f.metrics.render().contains("relreward_serving_split_passes_total{"), "a pass was split on one thread");
+    // A bring-your-own TorchScript module is split too, its helper sharing the loaded module.
+    let modules = crate::engine::torchscript::tests::byo_fixtures();
+    let f = merged_callers_get_their_own_rows(Served::Module(modules.path().join("scaled.pt")), split, 2).await;
+    let text = f.metrics.render();
+    assert!(
+        metric(&text, "relreward_serving_split_passes_total{model=\"rho\"}") >= 1.0,
+        "no module pass was split\n{text}"
+    );
 }
 
 /// `rounds` times, 22 concurrent callers (Score and Gradient, 1 to 3 items each) check their
 /// answers against the reference; the passes must have merged them.
 async fn merged_callers_get_their_own_rows(
-    arch: RewardArchitecture,
+    served: Served,
     tune: impl FnOnce(&mut ServingConfig),
     rounds: usize,
 ) -> Fixture {
-    let f = fixture_with(arch, tune).await;
+    let f = fixture_with(served, tune).await;
     // 21 and 22 items per kind: merged, neither is an allowed size, so the convolutional
     // reward's passes carry padding.
     let callers = 22usize;
