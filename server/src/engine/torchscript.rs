@@ -492,8 +492,9 @@ pub(crate) mod tests {
     }
 
     /// Scripts bring-your-own reward modules with PyTorch into a fresh directory: rho(x, t) =
-    /// (t + 1) sum x^2 and the value function (t + 1) sum x as [B, 1] (analytic gradients
-    /// 2 (t + 1) x and t + 1), and three that must be refused.
+    /// (t + 1) sum x^2, the same times a parameter w = 1.5 (`scaled`), and the value function
+    /// (t + 1) sum x as [B, 1] (analytic gradients 2 (t + 1) x, 2 w (t + 1) x and t + 1), and
+    /// two that must be refused (`detached`, `column`).
     pub(crate) fn byo_fixtures() -> tempfile::TempDir {
         let dir = tempfile::tempdir().expect("tempdir");
         let script = r#"
