@@ -374,7 +374,13 @@ impl RewardNet {
 /// ([`RewardNet::alignment_gradients`]) and the held-out loss a job reports (from a grad
 /// computed without a graph).
 pub fn alignment_error(grad: &Tensor, target: &Tensor, weights: Option<&Tensor>) -> Result<Tensor> {
-    let squared = grad.f_sub(target)?.f_square()?;
+    mean_weighted_square(&grad.f_sub(target)?, weights)
+}
+
+/// mean_batch sum(weights * diff^2), diff = grad - target: [`alignment_error`]'s arithmetic,
+/// for [`alignment_terms`], which needs diff for r too.
+fn mean_weighted_square(diff: &Tensor, weights: Option<&Tensor>) -> Result<Tensor> {
+    let squared = diff.f_square()?;
     let squared = match weights {
         Some(w) => squared.f_mul(w)?,
         None => squared,
@@ -383,8 +389,8 @@ pub fn alignment_error(grad: &Tensor, target: &Tensor, weights: Option<&Tensor>)
     Ok(squared.f_flatten(1, -1)?.f_sum_dim_intlist([1i64].as_slice(), false, None::<Kind>)?.f_mean(None::<Kind>)?)
 }
 
-/// The alignment loss at rho [B] and grad (x's shape), by [`alignment_error`]
-/// (the loss every path reports), with r = d loss / d grad = 2 w (grad - target) / B and,
+/// The alignment loss at rho [B] and grad (x's shape), by [`alignment_error`]'s arithmetic
+/// (the loss every path reports; grad - target computed once for it and r), with r = d loss / d grad = 2 w (grad - target) / B and,
 /// under rho's L2 penalty, d loss / d rho = 2 l2 rho / B.
 fn alignment_terms(
     rho: &Tensor,
@@ -394,8 +400,9 @@ fn alignment_terms(
     rho_l2: f64,
 ) -> Result<AlignmentTerms> {
     let batch = grad.size()[0] as f64;
-    let mut loss = alignment_error(grad, target, weights)?;
-    let mut r = grad.f_sub(target)?.f_mul_scalar_(2.0 / batch)?;
+    let diff = grad.f_sub(target)?;
+    let mut loss = mean_weighted_square(&diff, weights)?;
+    let mut r = diff.f_mul_scalar(2.0 / batch)?;
     if let Some(w) = weights {
         r = r.f_mul_(w)?;
     }
