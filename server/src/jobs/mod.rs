@@ -552,6 +552,16 @@ fn run_job(mut ctx: JobContext) -> bool {
             .unwrap_or_else(|_| Err(Stop::Failed(Error::internal("job runner", "panicked"))))
         }
     };
+    // The last progress write lands before anything else happens to the job; had it failed in
+    // line, the runner would have failed with it.
+    let outcome = match (ctx.settle(), outcome) {
+        (Err(e), Ok(_)) => Err(Stop::Failed(e)),
+        (Err(e), stopped) => {
+            tracing::warn!(job = id, error = %e, "the job's last progress event was not recorded");
+            stopped
+        }
+        (Ok(()), outcome) => outcome,
+    };
     if ctx.lease_lost() {
         // Whatever the runner ended with, another worker owns the job now.
         tracing::info!(job = id, step = ctx.record().step, "job handed over to another worker");
