@@ -328,10 +328,24 @@ impl GroupNorm {
     /// applies (`kernels::mish_group_norm_backward`), the input backward of `g * slope`
     /// otherwise. Serving's backward and training's adjoint sweep (`second_order`) both.
     pub fn slope_input_backward(&self, norm: &GroupNormTape, slope: &Tensor, g: &Tensor) -> Result<Tensor> {
+        Ok(self.slope_input_backward_parts(norm, slope, g)?.0)
+    }
+
+    /// [`GroupNorm::slope_input_backward`], and `g * slope` where the libtorch path computed it
+    /// (None where the kernel ran), for a caller that keeps that product too.
+    pub fn slope_input_backward_parts(
+        &self,
+        norm: &GroupNormTape,
+        slope: &Tensor,
+        g: &Tensor,
+    ) -> Result<(Tensor, Option<Tensor>)> {
         let stats = (&norm.mean, &norm.rstd);
         match kernels::mish_group_norm_backward(g, slope, &norm.input, stats, &self.weight, self.groups)? {
-            Some(dx) => Ok(dx),
-            None => self.input_backward(norm, &g.f_mul(slope)?),
+            Some(dx) => Ok((dx, None)),
+            None => {
+                let g_slope = g.f_mul(slope)?;
+                Ok((self.input_backward(norm, &g_slope)?, Some(g_slope)))
+            }
         }
     }
 }

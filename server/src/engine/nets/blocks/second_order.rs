@@ -217,8 +217,13 @@ impl GroupNorm {
     /// The input backward from g (the adjoint of Mish's output): (g_x, the adjoints kept).
     /// Also keeps q g, the factor of the tangent in the reverse's Mish term.
     pub fn mish_adjoints(&self, pass: &NormMishPass, g: &Tensor) -> Result<(Tensor, NormMishAdjoints)> {
-        let g_x = self.slope_input_backward(&pass.norm, &pass.slope, g)?;
-        let adjoints = NormMishAdjoints { curvature_g: pass.curvature.f_mul(g)?, g_norm: g.f_mul(&pass.slope)? };
+        // Where the kernel declines (a GPU, float64) its fallback has g * slope already.
+        let (g_x, g_norm) = self.slope_input_backward_parts(&pass.norm, &pass.slope, g)?;
+        let g_norm = match g_norm {
+            Some(g_norm) => g_norm,
+            None => g.f_mul(&pass.slope)?,
+        };
+        let adjoints = NormMishAdjoints { curvature_g: pass.curvature.f_mul(g)?, g_norm };
         Ok((g_x, adjoints))
     }
 
