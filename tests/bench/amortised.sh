@@ -52,7 +52,8 @@
 # ("1,1 3,3"), UNET_CONFIG (the [extract] table's body, "; " between keys: 'diffusion_architecture =
 # { kind = "temporal_unet", dim = 48, dim_mults = [1, 2] }; diffusion_steps = 2000'), UNET_STEPS
 # ("250 500 1000": the shorter runs of both recipes; "" for none); part 5 (ceiling):
-# CEIL_POOL (4096), CEIL_STEPS (1000, under the pool's epoch at either batch).
+# CEIL_POOL (4096), CEIL_STEPS (1000, under the pool's epoch at either batch), CEIL_LOG_EVERY (10,
+# the server's default: the jobs' progress interval; a divisor of 100 and of CEIL_STEPS).
 # Prints one JSON line per job and a markdown summary.
 #
 # Builds nothing: expects target/release/{relreward-server,relreward}. Starts its own server on
@@ -75,6 +76,7 @@ UNET_CONFIG=${UNET_CONFIG:-diffusion_architecture = $UNET_ARCH; diffusion_steps 
 UNET_STEPS=${UNET_STEPS-250 500 1000}
 CEIL_POOL=${CEIL_POOL:-4096}
 CEIL_STEPS=${CEIL_STEPS:-1000}
+CEIL_LOG_EVERY=${CEIL_LOG_EVERY:-10}
 BIN=${BIN:-target/release}
 PY=.venv/bin/python
 for b in relreward-server relreward; do
@@ -276,6 +278,8 @@ fi
 if want ceiling; then
 # Models-free only while no refresh falls inside the run: an epoch is CEIL_POOL x 1024 / batch
 # steps, shortest at the Gaussian pair's batch of 256.
+(( CEIL_LOG_EVERY > 0 && 100 % CEIL_LOG_EVERY == 0 && CEIL_STEPS % CEIL_LOG_EVERY == 0 )) ||
+  { echo "amortised.sh: CEIL_LOG_EVERY=$CEIL_LOG_EVERY must divide 100 and CEIL_STEPS=$CEIL_STEPS (the rate is read at both)" >&2; exit 2; }
 (( CEIL_STEPS < CEIL_POOL * 1024 / 256 )) ||
   { echo "amortised.sh: CEIL_STEPS=$CEIL_STEPS must stay under CEIL_POOL x 4 = $((CEIL_POOL * 4)) (an epoch)" >&2; exit 2; }
 start_server
@@ -291,7 +295,7 @@ for who in base expert; do
   quiet rr train diffusion --name "ceil-m$who" --dataset "ceil-$who" --horizon 16 --n-timesteps 20 --steps 20 \
     --batch-size 64 --config "$tmp/ceil-diffusion.toml" --watch
 done
-printf '[optimization]\neval_every = 100000\ncheckpoint_every = 100000\n' >"$tmp/opt.toml"
+printf '[optimization]\neval_every = 100000\ncheckpoint_every = 100000\nlog_every = %s\n' "$CEIL_LOG_EVERY" >"$tmp/opt.toml"
 for pair in gaussian maze-default; do
   for recipe in per-step models-free; do
     extra=()

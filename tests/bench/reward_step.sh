@@ -6,7 +6,7 @@
 # - relreward: `PARTS=ceiling tests/bench/amortised.sh`'s models-free job at the maze default
 #   size (windowed MLP h = 4, (128, 64, 32), batch 64, lr 1e-3, horizon 16, D = 6, T = 20, a pool
 #   of 4096 targets that the frozen models never refill during the run; steps/s from step 100 to
-#   1000);
+#   1000; its progress written every CEIL_LOG_EVERY steps, default 10, the server's default);
 # - PyTorch eager: `bench/reference/bench.py reward-step` with the same sizes, pool, batch, lr,
 #   Adam and EMA: per step a gather from the pool, the alignment loss through autograd's double
 #   backward, backward, Adam, the EMA and the loss read back.
