@@ -8,8 +8,9 @@
 //!
 //! Progress is written behind the job: the write (a transaction the embedded store commits
 //! with an fsync, a round trip with the shared one) runs on the runtime while training goes
-//! on, and the next write of any kind waits for it first, so events stay in order and a
-//! failed progress write fails the job at its next write as it did when written in line.
+//! on, and the next write of any kind (a checkpoint's and a model's registration included)
+//! waits for it first, so events stay in order and a failed progress write fails the job at
+//! its next write, before anything else is stored, as it did when written in line.
 //! Written in line, the embedded store's commits every `log_every` = 10 steps took about a
 //! tenth of a small reward's training time on this project's two-core machine.
 
@@ -363,6 +364,9 @@ impl JobContext {
 
     /// Registers the job's output model.
     pub fn register_model(&mut self, staging: Staging, record: ModelRecord) -> Result<ModelRecord> {
+        // A progress write that failed (the lease lost meanwhile) stops the job before its
+        // model is registered, as it did when written in line.
+        self.settle()?;
         let stored = self.rt.block_on(self.store.commit_model(staging, record))?;
         self.log(format!("registered model '{}'", stored.name))?;
         Ok(stored)
@@ -467,19 +471,39 @@ mod tests {
     }
 
     /// A progress write that fails (the lease was lost meanwhile) fails the next write with
-    /// its error, and the record is as it was before it: nothing was stored, and the sequence
-    /// numbers go on without a gap.
+    /// its error (a log line; a checkpoint, before it publishes anything), and the record is as
+    /// it was before it: nothing was stored, and the sequence numbers go on without a gap.
     #[test]
     fn a_failed_progress_write_fails_the_next_write_and_leaves_no_gap() {
-        let dir = tempfile::tempdir().expect("tempdir");
-        let (mut ctx, store, _live, rt) = context(dir.path(), Duration::ZERO);
-        // w1's lease lapsed at once: another worker takes the job over.
-        rt.block_on(store.meta.claim_job("w2", Duration::from_secs(600))).expect("claim").expect("the job again");
-        ctx.progress(report(1)).expect("written behind: no error yet");
-        let e = ctx.log("after").expect_err("the failed progress write's error");
-        assert!(e.to_string().contains("lease on it was lost"), "{e}");
-        assert_eq!((ctx.record().step, ctx.record().last_seq), (0, 0), "the record before the failed write");
-        assert!(rt.block_on(store.meta.job_events("job-1", 0, 100)).expect("events").is_empty());
-        ctx.settle().expect("nothing in flight any more");
+        for next in ["log", "checkpoint"] {
+            let dir = tempfile::tempdir().expect("tempdir");
+            let (mut ctx, store, _live, rt) = context(dir.path(), Duration::ZERO);
+            // w1's lease lapses at once (expiry is compared in milliseconds, so one passes
+            // first): another worker takes the job over.
+            std::thread::sleep(Duration::from_millis(5));
+            rt.block_on(store.meta.claim_job("w2", Duration::from_secs(600))).expect("claim").expect("the job again");
+            ctx.progress(report(1)).expect("written behind: no error yet");
+            let mut wrote = false;
+            let e = match next {
+                "log" => ctx.log("after").expect_err("the failed progress write's error"),
+                _ => ctx
+                    .checkpoint(1, |_| {
+                        wrote = true;
+                        Ok(())
+                    })
+                    .expect_err("the failed progress write's error"),
+            };
+            assert!(e.to_string().contains("lease on it was lost"), "{next}: {e}");
+            assert!(!wrote, "the checkpoint was not written");
+            assert_eq!(
+                (ctx.record().step, ctx.record().last_seq),
+                (0, 0),
+                "{next}: the record before the failed write"
+            );
+            assert!(rt.block_on(store.meta.job_events("job-1", 0, 100)).expect("events").is_empty(), "{next}");
+            let stored = rt.block_on(store.meta.get_job("job-1")).expect("get").expect("the job");
+            assert!(stored.checkpoint.is_none() && stored.last_seq == 0, "{next}: nothing recorded");
+            ctx.settle().expect("nothing in flight any more");
+        }
     }
 }
