@@ -317,7 +317,7 @@ stop_server
 fi
 
 # --- report --------------------------------------------------------------------------------------
-"$PY" - "$results" "$(($(date +%s) - started))" "GAUSS_STEPS='$GAUSS_STEPS' POOL='$POOL' MAZE_POOL='$MAZE_POOL' STEPS=$STEPS THREADS=$THREADS PARTS='$PARTS' LAYOUT=$LAYOUT MAZE_SEED=$MAZE_SEED DEMO_POOL='$DEMO_POOL' UNET_GOALS='$UNET_GOALS' UNET_CONFIG='$UNET_CONFIG' UNET_STEPS='$UNET_STEPS' CEIL_POOL=$CEIL_POOL CEIL_STEPS=$CEIL_STEPS" <<'PY'
+"$PY" - "$results" "$(($(date +%s) - started))" "GAUSS_STEPS='$GAUSS_STEPS' POOL='$POOL' MAZE_POOL='$MAZE_POOL' STEPS=$STEPS THREADS=$THREADS PARTS='$PARTS' LAYOUT=$LAYOUT MAZE_SEED=$MAZE_SEED DEMO_POOL='$DEMO_POOL' UNET_GOALS='$UNET_GOALS' UNET_CONFIG='$UNET_CONFIG' UNET_STEPS='$UNET_STEPS' CEIL_POOL=$CEIL_POOL CEIL_STEPS=$CEIL_STEPS CEIL_LOG_EVERY=$CEIL_LOG_EVERY" <<'PY'
 import json, sys, subprocess, time
 runs = [json.loads(l) for l in open(sys.argv[1])]
 cpu = [l.split(":", 1)[1].strip() for l in subprocess.run(["lscpu"], capture_output=True, text=True).stdout.splitlines()

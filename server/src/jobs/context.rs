@@ -10,7 +10,8 @@
 //! with an fsync, a round trip with the shared one) runs on the runtime while training goes
 //! on, and the next write of any kind (a checkpoint's and a model's registration included)
 //! waits for it first, so events stay in order and a failed progress write fails the job at
-//! its next write, before anything else is stored, as it did when written in line.
+//! its next write, before anything else is stored, as it did when written in line. (A job
+//! already cancelled or interrupted by then keeps that outcome, the error logged.)
 //! Written in line, the embedded store's commits every `log_every` = 10 steps took about a
 //! tenth of a small reward's training time on this project's two-core machine.
 
@@ -187,7 +188,16 @@ impl JobContext {
     /// restored to before it).
     pub(super) fn settle(&mut self) -> Result<()> {
         let Some(BehindWrite { task, before }) = self.behind.take() else { return Ok(()) };
-        let written = self.rt.block_on(task).unwrap_or_else(|e| Err(Error::internal("job progress write", e)));
+        let written = match self.rt.block_on(task) {
+            Ok(written) => written,
+            // The task was dropped (the runtime shutting down) or panicked: whether its
+            // transaction committed is the store's to say (the embedded store's blocking call
+            // runs to its end either way), so a later event never reuses a stored number.
+            Err(e) => match self.rt.block_on(self.store.meta.get_job(&self.record.id)) {
+                Ok(Some(stored)) if stored.last_seq == self.record.last_seq => Ok(()),
+                _ => Err(Error::internal("job progress write", e)),
+            },
+        };
         if written.is_err() {
             self.record = before;
         }
@@ -383,7 +393,6 @@ mod tests {
 
     use super::*;
     use crate::config::{Config, Overrides};
-    use crate::store::JobState;
 
     /// A job's context over a fresh embedded store, the job leased to "w1" for `lease`; the
     /// store, a live receiver and the runtime (kept alive) beside it.
@@ -402,24 +411,8 @@ mod tests {
             ..Default::default()
         };
         let spec = JobSpec::from_proto(proto, &Facts::Dataset { name: "d".into(), trajectories: false }).expect("spec");
-        let record = JobRecord {
-            id: "job-1".into(),
-            kind: spec.kind.name().to_owned(),
-            spec: serde_json::to_value(&spec).expect("spec json"),
-            state: JobState::Pending,
-            step: 0,
-            total_steps: spec.optimization.steps,
-            loss: None,
-            error: String::new(),
-            created_at_ms: now_ms(),
-            started_at_ms: None,
-            finished_at_ms: None,
-            last_seq: 0,
-            checkpoint: None,
-            inputs: Vec::new(),
-            output_model: "out".into(),
-        };
-        rt.block_on(store.meta.insert_job(&record, &[])).expect("insert");
+        let (record, first) = crate::jobs::pending_record("job-1".into(), &spec).expect("record");
+        rt.block_on(store.meta.insert_job(&record, &[first])).expect("insert");
         let claimed = rt.block_on(store.meta.claim_job("w1", lease)).expect("claim").expect("a job to claim");
         let (live, receiver) = broadcast::channel(16);
         let ctx = JobContext::new(
@@ -455,24 +448,25 @@ mod tests {
         let dir = tempfile::tempdir().expect("tempdir");
         let (mut ctx, store, mut live, rt) = context(dir.path(), Duration::from_secs(600));
         ctx.progress(report(1)).expect("progress 1");
-        assert_eq!((ctx.record().step, ctx.record().last_seq), (1, 1), "the record moves on at once");
+        assert_eq!((ctx.record().step, ctx.record().last_seq), (1, 2), "the record moves on at once");
         ctx.progress(report(10)).expect("progress 10");
         ctx.log("a log line").expect("log");
         ctx.progress(report(20)).expect("progress 20");
         ctx.settle().expect("the last write");
         let stored: Vec<String> =
-            rt.block_on(store.meta.job_events("job-1", 0, 100)).expect("events").iter().map(described).collect();
-        let want = ["1 progress 1", "2 progress 10", "3 log a log line", "4 progress 20"];
+            rt.block_on(store.meta.job_events("job-1", 2, 100)).expect("events").iter().map(described).collect();
+        let want = ["2 progress 1", "3 progress 10", "4 log a log line", "5 progress 20"];
         assert_eq!(stored, want);
         let heard: Vec<String> = (0..4).map(|_| described(&live.try_recv().expect("a live event"))).collect();
         assert_eq!(heard, want, "broadcast in the store's order");
         let record = rt.block_on(store.meta.get_job("job-1")).expect("get").expect("the job");
-        assert_eq!((record.step, record.loss, record.last_seq), (20, Some(20.0), 4));
+        assert_eq!((record.step, record.loss, record.last_seq), (20, Some(20.0), 5));
     }
 
     /// A progress write that fails (the lease was lost meanwhile) fails the next write with
-    /// its error (a log line; a checkpoint, before it publishes anything), and the record is as
-    /// it was before it: nothing was stored, and the sequence numbers go on without a gap.
+    /// its error (a log line; a checkpoint, before it writes anything), and the record is as it
+    /// was before it: nothing was stored, and once the job is this worker's again the next event
+    /// takes the failed one's sequence number.
     #[test]
     fn a_failed_progress_write_fails_the_next_write_and_leaves_no_gap() {
         for next in ["log", "checkpoint"] {
@@ -495,15 +489,20 @@ mod tests {
             };
             assert!(e.to_string().contains("lease on it was lost"), "{next}: {e}");
             assert!(!wrote, "the checkpoint was not written");
-            assert_eq!(
-                (ctx.record().step, ctx.record().last_seq),
-                (0, 0),
-                "{next}: the record before the failed write"
-            );
-            assert!(rt.block_on(store.meta.job_events("job-1", 0, 100)).expect("events").is_empty(), "{next}");
+            // The queued event is the job's first (sequence number 1).
+            let record = (ctx.record().step, ctx.record().last_seq);
+            assert_eq!(record, (0, 1), "{next}: the record before the failed write");
+            assert!(rt.block_on(store.meta.job_events("job-1", 2, 100)).expect("events").is_empty(), "{next}");
             let stored = rt.block_on(store.meta.get_job("job-1")).expect("get").expect("the job");
-            assert!(stored.checkpoint.is_none() && stored.last_seq == 0, "{next}: nothing recorded");
+            assert!(stored.checkpoint.is_none() && stored.last_seq == 1, "{next}: nothing recorded");
             ctx.settle().expect("nothing in flight any more");
+            // The job back with w1: its next event is number 2.
+            rt.block_on(store.meta.release_lease("job-1", "w2")).expect("release");
+            rt.block_on(store.meta.claim_job("w1", Duration::from_secs(600))).expect("claim").expect("the job");
+            ctx.log("again").expect("written");
+            let events = rt.block_on(store.meta.job_events("job-1", 0, 100)).expect("events");
+            let seqs: Vec<String> = events.iter().map(described).collect();
+            assert_eq!(seqs[1..], ["2 log again".to_owned()], "{next}");
         }
     }
 }

@@ -310,28 +310,7 @@ impl JobManager {
                 self.inner.config.queue_capacity
             )));
         }
-        let record = JobRecord {
-            id: id.clone(),
-            kind: spec.kind.name().to_owned(),
-            spec: serde_json::to_value(&spec).map_err(|e| Error::internal("encoding spec", e))?,
-            state: JobState::Pending,
-            step: 0,
-            total_steps: spec.optimization.steps,
-            loss: None,
-            error: String::new(),
-            created_at_ms: now_ms(),
-            started_at_ms: None,
-            finished_at_ms: None,
-            last_seq: 1,
-            checkpoint: None,
-            inputs: spec.inputs(),
-            output_model: spec.output_model.clone(),
-        };
-        let first = JobEvent {
-            seq: 1,
-            time_ms: record.created_at_ms,
-            event: JobEventKind::State { state: JobState::Pending, message: "queued".into() },
-        };
+        let (record, first) = pending_record(id.clone(), &spec)?;
         // The job and its first event appear together: a watcher never sees a job without it.
         self.inner.store.meta.insert_job(&record, &[first]).await?;
         self.inner.wake.notify_one();
@@ -505,6 +484,34 @@ fn process_name() -> String {
         .unwrap_or_else(|| "localhost".to_owned());
     let suffix = &uuid::Uuid::new_v4().simple().to_string()[..6];
     format!("{host}/{}/{suffix}", std::process::id())
+}
+
+/// A submitted job's record, PENDING, and its first event (sequence number 1), which the store
+/// inserts together.
+fn pending_record(id: String, spec: &JobSpec) -> Result<(JobRecord, JobEvent)> {
+    let record = JobRecord {
+        id,
+        kind: spec.kind.name().to_owned(),
+        spec: serde_json::to_value(spec).map_err(|e| Error::internal("encoding spec", e))?,
+        state: JobState::Pending,
+        step: 0,
+        total_steps: spec.optimization.steps,
+        loss: None,
+        error: String::new(),
+        created_at_ms: now_ms(),
+        started_at_ms: None,
+        finished_at_ms: None,
+        last_seq: 1,
+        checkpoint: None,
+        inputs: spec.inputs(),
+        output_model: spec.output_model.clone(),
+    };
+    let first = JobEvent {
+        seq: 1,
+        time_ms: record.created_at_ms,
+        event: JobEventKind::State { state: JobState::Pending, message: "queued".into() },
+    };
+    Ok((record, first))
 }
 
 /// The body of a job thread: RUNNING, run the kind's runner, then the terminal state. When
