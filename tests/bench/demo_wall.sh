@@ -2,11 +2,12 @@
 # Wall time and quality of `relreward demo` (LAYOUT, default size, SEED) against a fresh server
 # on a temporary data directory: the maze default pipeline's end-to-end figure (issue 38). Prints
 # one JSON line: seconds, goals recovered and steered, mean balanced accuracy. Needs `cargo
-# build --release --workspace --bins`. About two minutes for umaze.
+# build --release --workspace --bins`, or BIN (default target/release) naming another build's
+# binaries (an older commit's, for a before-and-after). About two minutes for umaze.
 set -euo pipefail
 cd "$(dirname "$0")/../.."
 LAYOUT=${LAYOUT:-umaze}; SEED=${SEED:-0}
-BIN=target/release
+BIN=${BIN:-target/release}
 tmp=$(mktemp -d)
 . tests/bench/lib.sh
 trap 'stop_server; rm -rf "$tmp"' EXIT
