@@ -390,8 +390,9 @@ fn mean_weighted_square(diff: &Tensor, weights: Option<&Tensor>) -> Result<Tenso
 }
 
 /// The alignment loss at rho [B] and grad (x's shape), by [`alignment_error`]'s arithmetic
-/// (the loss every path reports; grad - target computed once for it and r), with r = d loss / d grad = 2 w (grad - target) / B and,
-/// under rho's L2 penalty, d loss / d rho = 2 l2 rho / B.
+/// (the loss every path reports; grad - target computed once for it and r), with
+/// r = d loss / d grad = 2 w (grad - target) / B and, under rho's L2 penalty,
+/// d loss / d rho = 2 l2 rho / B.
 fn alignment_terms(
     rho: &Tensor,
     grad: &Tensor,
