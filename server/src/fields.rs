@@ -7,7 +7,9 @@
 //! - page tokens ([`name_page_token`], [`position_page_token`]): only what a List call
 //!   returned (or empty) is accepted;
 //! - diffusion times ([`diffusion_time`]): t in [0, T) of the model in question;
-//! - guidance scales ([`check_omega`]): finite, |omega| <= [`MAX_OMEGA`].
+//! - guidance scales ([`check_omega`]): finite, |omega| <= [`MAX_OMEGA`];
+//! - descriptions of datasets, models and recipes ([`check_description`]): at most
+//!   [`MAX_DESCRIPTION_BYTES`], since every List call returns them.
 //!
 //! Messages quote what the client sent with [`crate::error::quote`]: an escaped prefix, and
 //! print a client's floating-point number with [`number`]: compact at any magnitude (1e308
@@ -37,6 +39,18 @@ pub fn validate_name(field: &str, name: &str) -> Result<()> {
             quote(name)
         )))
     }
+}
+
+/// Largest description a dataset, model or recipe may carry: List calls return descriptions,
+/// so a page of unbounded ones could pass the response size limit for every caller.
+pub const MAX_DESCRIPTION_BYTES: usize = 4096;
+
+/// A description of at most [`MAX_DESCRIPTION_BYTES`].
+pub fn check_description(field: &str, description: &str) -> Result<()> {
+    if description.len() > MAX_DESCRIPTION_BYTES {
+        return Err(Error::invalid(format!("{field}: {} bytes, at most {MAX_DESCRIPTION_BYTES}", description.len())));
+    }
+    Ok(())
 }
 
 /// Each of `names` (a repeated name field) against the naming rule, as `field[i]`.

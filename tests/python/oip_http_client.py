@@ -179,6 +179,10 @@ def main():
         "unknown_field": raw(args.http, "POST", infer_path, {"inputs": [], "outptus": []}),
         "short_data": raw(args.http, "POST", infer_path,
                           {"inputs": [{"name": "x", "shape": [1, *item], "datatype": "FP32", "data": [0.5]}]}),
+        # Finite in JSON, beyond float32: refused as such, not as an infinity the client never sent.
+        "beyond_f32": raw(args.http, "POST", infer_path,
+                          {"inputs": [{"name": "x", "shape": [1, *item], "datatype": "FP32",
+                                       "data": [1e39] + [0.0] * (int(np.prod(item)) - 1)}]}),
         "unknown_route": raw(args.http, "GET", "/v2/models/x/explain"),
         "wrong_method": raw(args.http, "GET", infer_path),
         "unsupported_encoding": raw(args.http, "POST", infer_path, b"{}", {"Content-Encoding": "br"}),

@@ -202,3 +202,107 @@ async fn sample_labels_are_stored_and_checked_by_the_server() {
     assert!(err.message().contains("a samples dataset needs 'samples'"), "{}", err.message());
     assert_eq!(client.list_datasets().await.expect("list").len(), 1, "only the valid upload is stored");
 }
+
+/// A header's shapes are the client's: they are checked whole (row count, quota) before the
+/// server allocates anything for them; a float64 value beyond float32's range is refused, where
+/// its square would have made a statistic no record can hold (and every List call fail); a
+/// description is bounded as a model's is. After each refusal the server answers and lists.
+#[tokio::test(flavor = "multi_thread")]
+async fn upload_headers_values_and_descriptions_are_bounded_before_anything_is_stored() {
+    use relreward_tests::dataset_upload::{commit, sha};
+    let server = TestServer::start();
+    let client = server.client().await;
+    let huge: &[u64] = &[1, 1 << 40];
+    let err = raw_upload(&client, vec![header("wide", pb::DatasetKind::Samples, &[("samples", Dtype::Float32, huge)])])
+        .await
+        .expect_err("a 4 TiB row");
+    assert_eq!(err.code(), Code::ResourceExhausted, "{}", err.message());
+    assert!(err.message().contains("datasets.max_upload_bytes"), "{}", err.message());
+    let empty: &[u64] = &[0, 1 << 40];
+    let err =
+        raw_upload(&client, vec![header("none", pb::DatasetKind::Samples, &[("samples", Dtype::Float32, empty)])])
+            .await
+            .expect_err("no rows");
+    assert!(err.message().contains("N = 0 rows"), "{}", err.message());
+    let obs: &[u64] = &[3, 1 << 40];
+    let err = raw_upload(
+        &client,
+        vec![header(
+            "wide-obs",
+            pb::DatasetKind::Trajectories,
+            &[("observations", Dtype::Float32, obs), ("actions", Dtype::Float32, &[3, 1])],
+        )],
+    )
+    .await
+    .expect_err("wide observations");
+    assert_eq!(err.code(), Code::ResourceExhausted, "{}", err.message());
+
+    for (value, needle) in [(1e300, "1e300 at row 2, coordinate 1 is outside float32's range"), (-4e38, "-4e38")] {
+        let mut values = vec![0.25f64; 8];
+        values[5] = value;
+        let samples = relreward_client::tensor::encode_f64(&[4, 2], &values);
+        let digest = sha(&[&samples.data]);
+        let msgs = vec![
+            header("far", pb::DatasetKind::Samples, &[("samples", Dtype::Float64, &[4, 2])]),
+            chunk("samples", samples),
+            commit(&digest),
+        ];
+        let err = raw_upload(&client, msgs).await.expect_err("beyond float32");
+        assert_eq!(err.code(), Code::InvalidArgument);
+        assert!(err.message().contains(needle), "{}", err.message());
+    }
+    // float32's own largest value is a value like any other.
+    let mut values = vec![0.25f64; 8];
+    values[5] = f32::MAX as f64;
+    let samples = relreward_client::tensor::encode_f64(&[4, 2], &values);
+    let digest = sha(&[&samples.data]);
+    let msgs = vec![
+        header("edge", pb::DatasetKind::Samples, &[("samples", Dtype::Float64, &[4, 2])]),
+        chunk("samples", samples),
+        commit(&digest),
+    ];
+    raw_upload(&client, msgs).await.expect("float32's largest value");
+
+    let mut long = small_upload("described");
+    if let Some(pb::upload_dataset_request::Message::Header(h)) = long[0].message.as_mut() {
+        h.description = "d".repeat(4097);
+    }
+    let err = raw_upload(&client, long).await.expect_err("a long description");
+    assert_eq!(err.code(), Code::InvalidArgument);
+    assert!(err.message().contains("header.description: 4097 bytes, at most 4096"), "{}", err.message());
+    let listed = client.list_datasets().await.expect("list");
+    assert_eq!(listed.iter().map(|d| d.name.as_str()).collect::<Vec<_>>(), ["edge"]);
+}
+
+/// DeleteDataset and a SubmitJob that reads the same dataset, sent together: one of the two is
+/// refused every time (the job sees no dataset, or the deletion sees the job), never both
+/// accepted with the job left reading a dataset that is gone (`Store::references`).
+#[tokio::test(flavor = "multi_thread")]
+async fn a_deletion_and_a_job_on_the_same_dataset_never_both_succeed() {
+    use relreward_tests::{Lines, upload_lines};
+    let server = TestServer::start();
+    let client = server.client().await;
+    let lines = Lines { episodes: 2, seed: 3, start: [(1.0, 0.0), (1.0, 0.0)], velocity: [(0.1, 0.0), (0.1, 0.0)] };
+    let long = pb::Optimization { steps: Some(1_000_000), log_every: Some(1_000_000), ..Default::default() };
+    let (mut deleted, mut submitted) = (0, 0);
+    for i in 0..8 {
+        let name = format!("race-{i}");
+        upload_lines(&client, &name, &lines).await;
+        let spec = relreward_tests::tiny_diffusion_spec(&name, &format!("out-{i}"), 0, long.clone());
+        let (delete, submit) = tokio::join!(client.delete_dataset(&name), client.submit_job(spec, None));
+        match (delete, submit) {
+            (Ok(()), Ok(job)) => panic!("round {i}: the dataset was deleted and job {} accepted on it", job.id),
+            (Ok(()), Err(e)) => {
+                assert_eq!(relreward_tests::status_code(&e), Some(Code::NotFound), "round {i}: {e}");
+                deleted += 1;
+            }
+            (Err(e), Ok(job)) => {
+                assert_eq!(relreward_tests::status_code(&e), Some(Code::FailedPrecondition), "round {i}: {e}");
+                client.cancel_job(&job.id).await.expect("cancel");
+                submitted += 1;
+            }
+            (Err(d), Err(s)) => panic!("round {i}: both refused: {d}; {s}"),
+        }
+    }
+    assert_eq!(deleted + submitted, 8);
+}

@@ -895,6 +895,7 @@ async fn http_answers_as_grpc(server: &TestServer, client: &Client) {
         ("malformed_json", 400, "request body: not a KServe v2 inference request"),
         ("unknown_field", 400, "unknown field `outptus`"),
         ("short_data", 400, "x: data holds 1 values"),
+        ("beyond_f32", 400, "x: data[0] (1e39) is outside float32's range"),
         ("unknown_route", 404, "no endpoint"),
         ("wrong_method", 405, "takes POST"),
         ("unsupported_encoding", 415, "Content-Encoding"),

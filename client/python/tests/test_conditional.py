@@ -222,6 +222,9 @@ def test_conditioning_is_refused_by_name(client, models):
         client.sample("cond-labels", n=2, prompts=[0, 1, 2])
     with pytest.raises(InvalidArgument, match=r"prompts\.embeddings: model .cond-labels. takes class labels"):
         client.sample("cond-labels", n=1, prompts=np.zeros(4, np.float32))
+    # Checked before one prompt is repeated n times (here 10000 x 4 MB).
+    with pytest.raises(InvalidArgument, match=r"prompts\.embeddings: model .cond-labels. takes class labels"):
+        client.sample("cond-labels", n=10_000, prompts=np.zeros(1_000_000, np.float32))
     with pytest.raises(InvalidArgument, match=r"prompts\.embeddings: width 5, but model .cond-embed. takes embeddings of width 32"):
         client.sample("cond-embed", n=1, prompts=np.zeros(5, np.float32))
     with pytest.raises(InvalidArgument, match=r"guidance_scale: 2 needs the unconditional prediction"):

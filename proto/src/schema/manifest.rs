@@ -35,6 +35,12 @@ use crate::v1 as pb;
 /// that schedule tables stay small.
 pub const MAX_TIMESTEPS: usize = 100_000;
 
+/// Most elements in one item of any space (a trajectory window, an image, a latent, an
+/// autoencoder's image): 2^24 float32 values, 64 MiB, above a 3 x 2048 x 2048 image. An upload's
+/// probe runs the network on two such items, and nothing else bounds them (a net's parameter
+/// count does not grow with its items' size).
+pub const MAX_ITEM_ELEMENTS: u64 = 1 << 24;
+
 /// The cosine schedules' offset s when none is given (Nichol & Dhariwal's value; the wire
 /// sends 0 for it).
 pub const DEFAULT_COSINE_S: f64 = 0.008;
@@ -125,8 +131,8 @@ impl Space {
         }
     }
 
-    /// Positive dimensions whose element count fits tch's sizes; messages name `field` (the
-    /// space's path, e.g. "manifest.space").
+    /// Positive dimensions, at most [`MAX_ITEM_ELEMENTS`] elements per item; messages name
+    /// `field` (the space's path, e.g. "manifest.space").
     pub fn validate_at(&self, field: &str) -> Result<(), Invalid> {
         match self {
             Self::Trajectory { horizon, action_dim, obs_dim } => {
@@ -144,8 +150,8 @@ impl Space {
         }
         // Regression inputs in fuzz/regressions/manifest_parse: huge dimensions overflowed the
         // coordinate count and, cast to i64, became negative sizes.
-        if self.checked_item_elements().is_none() {
-            return invalid(format!("{field}: {self:?} has more elements per item than fit in 64 bits"));
+        if self.checked_item_elements().is_none_or(|n| n as u64 > MAX_ITEM_ELEMENTS) {
+            return invalid(format!("{field}: {self:?} has more than {MAX_ITEM_ELEMENTS} elements per item"));
         }
         Ok(())
     }
@@ -954,6 +960,19 @@ mod tests {
             let err = DiffusionManifest::parse(&text, None).expect_err(file);
             assert!(err.to_string().contains(needle), "{file}: {err} should contain {needle}");
         }
+    }
+
+    #[test]
+    fn items_are_bounded_in_size_not_only_in_bits() {
+        // 1 x 65536 x 65536 fits an i64 but is 2^32 elements: the upload's probe would allocate
+        // tens of gigabytes before any message. The bound itself is accepted.
+        let at = |shape: Vec<usize>| Space::Sample { shape }.validate_at("manifest.space");
+        let err = at(vec![1, 65536, 65536]).expect_err("too large");
+        assert!(err.to_string().contains("manifest.space") && err.to_string().contains("16777216"), "{err}");
+        assert!(at(vec![1, 4096, 4096]).is_ok());
+        assert!(at(vec![2, 4096, 4096]).is_err());
+        let traj = Space::Trajectory { horizon: 1 << 20, action_dim: 8, obs_dim: 9 };
+        assert!(traj.validate_at("manifest.space").is_err());
     }
 
     #[test]

@@ -55,6 +55,7 @@ impl Datasets {
             None => return Err(Error::invalid("upload stream was empty: expected a header, chunks and a commit")),
         };
         validate_name("header.name", &header.name)?;
+        fields::check_description("header.description", &header.description)?;
         if self.store.meta.get_dataset(&header.name).await?.is_some() {
             return Err(Error::AlreadyExists(format!("dataset '{}' already exists", header.name)));
         }
@@ -152,6 +153,7 @@ impl DatasetService for Datasets {
     ) -> Result<Response<pb::DeleteDatasetResponse>, Status> {
         let req = request.into_inner();
         validate_name("name", &req.name)?;
+        let _references = self.store.references().await;
         // A job re-reads its datasets when it resumes after a restart: keep them until it ends.
         if self.store.meta.get_dataset(&req.name).await?.is_some()
             && let Some(job) = self.jobs.job_using(&req.name).await?

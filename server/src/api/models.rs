@@ -71,9 +71,6 @@ pub const RECIPE_FILE: &str = "recipe.json";
 /// Model records read per page when looking for the recipes that sample a model.
 const RECIPE_SCAN_PAGE: usize = 256;
 
-/// Longest description accepted, in bytes.
-const MAX_DESCRIPTION_BYTES: usize = 4096;
-
 /// An upload of unknown size reserves disk budget in steps of this many bytes as it grows.
 const BUDGET_STEP: u64 = 64 << 20;
 
@@ -141,7 +138,7 @@ impl Models {
             ));
         }
         validate_name("header.name", &header.name)?;
-        check_description("header.description", &header.description)?;
+        fields::check_description("header.description", &header.description)?;
         if self.store.meta.get_model(&header.name).await?.is_some() {
             return Err(Error::AlreadyExists(format!("header.name: model '{}' already exists", header.name)));
         }
@@ -405,7 +402,7 @@ impl Models {
     /// stored as `recipe.json`, the record's manifest, with its model's sha256 pinned.
     async fn create_recipe(&self, req: pb::CreateRecipeRequest) -> Result<pb::Model> {
         validate_name("name", &req.name)?;
-        check_description("description", &req.description)?;
+        fields::check_description("description", &req.description)?;
         validate_name("model", &req.model)?;
         let mut recipe = req
             .recipe
@@ -418,6 +415,8 @@ impl Models {
             None => None,
         };
         let recipe = RecipeSpec::from_proto(&recipe, "recipe")?;
+        // From the model's lookup to the recipe's record: DeleteModel waits, then sees the recipe.
+        let _references = self.store.references().await;
         let model = self
             .store
             .meta
@@ -482,6 +481,7 @@ impl Models {
 
     async fn delete(&self, name: &str) -> Result<()> {
         validate_name("name", name)?;
+        let _references = self.store.references().await;
         if self.store.meta.get_model(name).await?.is_none() {
             return Err(Error::NotFound(format!("name: model '{name}' not found")));
         }
@@ -500,14 +500,6 @@ impl Models {
         tracing::info!(model = name, "model deleted");
         Ok(())
     }
-}
-
-/// A description of at most [`MAX_DESCRIPTION_BYTES`].
-fn check_description(field: &str, description: &str) -> Result<()> {
-    if description.len() > MAX_DESCRIPTION_BYTES {
-        return Err(Error::invalid(format!("{field}: {} bytes, at most {MAX_DESCRIPTION_BYTES}", description.len())));
-    }
-    Ok(())
 }
 
 /// What an upload registers.

@@ -297,6 +297,9 @@ impl JobManager {
                 spec.output_model
             )));
         }
+        // From the inputs' lookups to the job's record: a deletion of one of them waits, then
+        // sees the job.
+        let _references = self.inner.store.references().await;
         match &spec.kind {
             JobKind::Diffusion(d) => diffusion::validate_inputs(&self.inner.store, d).await?,
             JobKind::Reward(r) => reward::validate_inputs(&self.inner.store, r).await?,

@@ -12,6 +12,7 @@ use relreward_proto::inference::{
     self as pb, InferParameter, infer_parameter::ParameterChoice, model_infer_request::InferInputTensor,
     model_infer_request::InferRequestedOutputTensor,
 };
+use relreward_proto::tensor;
 use serde::{Deserialize, Serialize};
 use serde_json::{Map, Value};
 
@@ -107,10 +108,10 @@ fn element_bytes(datatype: &str) -> Option<usize> {
 /// `data` flattened in row-major order (nested arrays or already flat) into little-endian
 /// bytes of `datatype`.
 fn encode_data(name: &str, datatype: &str, data: &Value) -> crate::error::Result<(usize, Vec<u8>)> {
-    fn walk(v: &Value, out: &mut Vec<Value>) {
+    fn walk<'a>(v: &'a Value, out: &mut Vec<&'a Value>) {
         match v {
             Value::Array(items) => items.iter().for_each(|i| walk(i, out)),
-            other => out.push(other.clone()),
+            other => out.push(other),
         }
     }
     let mut flat = Vec::new();
@@ -122,6 +123,10 @@ fn encode_data(name: &str, datatype: &str, data: &Value) -> crate::error::Result
                 let f = v
                     .as_f64()
                     .ok_or_else(|| Error::invalid(format!("{name}: data[{i}] is {}, not a number", json_text(v))))?;
+                // Narrowed, it would reach the model's checks as an infinity the client never sent.
+                if tensor::beyond_f32(f) {
+                    return Err(Error::invalid(format!("{name}: data[{i}] ({f:e}) is {}", tensor::OUTSIDE_F32)));
+                }
                 bytes.extend_from_slice(&(f as f32).to_le_bytes());
             }
             "INT64" => {

@@ -83,11 +83,14 @@ pub(super) fn plan(
         )));
     }
     let safety = req.safety.as_ref().map(|s| SafetySpec::from_proto(s, "safety")).transpose()?;
-    let spec = RecipeSpec { prompts: broadcast(prompts, n), guidance_scale, safety };
+    // Checked against the model before one condition is repeated n times: an embedding of the
+    // wrong width would otherwise be copied n times first (a request's few megabytes, times n).
+    let mut spec = RecipeSpec { prompts, guidance_scale, safety };
     spec.check_against(Some(conditioning), "", &req.model).map_err(|e| {
         // The request's fields are top-level ("guidance_scale", "safety.concept").
         Error::invalid(e.0.trim_start_matches('.').to_string())
     })?;
+    spec.prompts = broadcast(spec.prompts, n);
     Ok(Some(RecipePlan(spec)))
 }
 

@@ -142,7 +142,10 @@ impl DatasetIngest {
         }
         let num_rows = header.arrays[0].shape.first().copied().unwrap_or(0);
         let mut total_bytes = 0u64;
-        let mut arrays = Vec::with_capacity(header.arrays.len());
+        // Every array's header is checked, and the payload against the quota, before anything
+        // is allocated or opened: the shapes are the client's, and a row's statistics cost four
+        // f64 per coordinate.
+        let mut checked = Vec::with_capacity(header.arrays.len());
         for (i, spec) in header.arrays.iter().enumerate() {
             let field = format!("header.arrays[{i}] ({})", quote(&spec.name));
             let role = role_of(kind, &spec.name).ok_or_else(|| {
@@ -172,6 +175,29 @@ impl DatasetIngest {
                 tensor::byte_len(&spec.shape[1..], dtype).map_err(|e| Error::invalid(format!("{field}.shape: {e}")))?;
             let row_elems =
                 tensor::numel(&spec.shape[1..]).map_err(|e| Error::invalid(format!("{field}.shape: {e}")))? as usize;
+            checked.push((spec, dtype, role, row_bytes, row_elems));
+        }
+        if num_rows == 0 {
+            return Err(Error::invalid("header.arrays: N = 0 rows; empty datasets are not stored"));
+        }
+        let listed = |name: &str| header.arrays.iter().any(|a| a.name == name);
+        if kind == DatasetKind::Samples && !listed("samples") {
+            return Err(Error::invalid("header.arrays: a samples dataset needs 'samples'"));
+        }
+        if kind == DatasetKind::Trajectories {
+            for required in &TRAJECTORY_ARRAYS[..2] {
+                if !listed(required) {
+                    return Err(Error::invalid(format!("header.arrays: a trajectory dataset needs '{required}'")));
+                }
+            }
+        }
+        if total_bytes > max_upload_bytes {
+            return Err(Error::ResourceExhausted(format!(
+                "header.arrays: payload of {total_bytes} bytes exceeds the upload quota of {max_upload_bytes} bytes"
+            )));
+        }
+        let mut arrays = Vec::with_capacity(checked.len());
+        for (spec, dtype, role, row_bytes, row_elems) in checked {
             let file_name = format!("{}.npy", spec.name);
             let mut file = BufWriter::with_capacity(1 << 20, File::create(staging.path().join(&file_name))?);
             file.write_all(&npy::header(dtype, &spec.shape))?;
@@ -188,24 +214,6 @@ impl DatasetIngest {
                 file,
                 moments,
             });
-        }
-        if num_rows == 0 {
-            return Err(Error::invalid("header.arrays: N = 0 rows; empty datasets are not stored"));
-        }
-        if kind == DatasetKind::Samples && !arrays.iter().any(|a| a.name == "samples") {
-            return Err(Error::invalid("header.arrays: a samples dataset needs 'samples'"));
-        }
-        if kind == DatasetKind::Trajectories {
-            for required in &TRAJECTORY_ARRAYS[..2] {
-                if !arrays.iter().any(|a| a.name == *required) {
-                    return Err(Error::invalid(format!("header.arrays: a trajectory dataset needs '{required}'")));
-                }
-            }
-        }
-        if total_bytes > max_upload_bytes {
-            return Err(Error::ResourceExhausted(format!(
-                "header.arrays: payload of {total_bytes} bytes exceeds the upload quota of {max_upload_bytes} bytes"
-            )));
         }
         Ok(Self {
             name: header.name,
@@ -287,6 +295,12 @@ impl DatasetIngest {
                         "{field}.data: value {value} at row {}, coordinate {} is not finite",
                         first_row + index / row_elems as u64,
                         index % row_elems as u64
+                    )),
+                    CodecError::OutOfF32Range { index, value } => Error::invalid(format!(
+                        "{field}.data: value {value:e} at row {}, coordinate {} is {}",
+                        first_row + index / row_elems as u64,
+                        index % row_elems as u64,
+                        tensor::OUTSIDE_F32
                     )),
                     other => Error::invalid(format!("{field}.data: {other}")),
                 })?;
@@ -418,13 +432,19 @@ fn check_array_shape(kind: DatasetKind, role: Role, field: &str, dtype: Dtype, s
     }
 }
 
-/// Feeds a float chunk row by row into `moments`, refusing non-finite values.
+/// Feeds a float chunk row by row into `moments`, refusing non-finite values and float64 values
+/// beyond float32's range (models compute in float32, and such values' squares would overflow
+/// the statistics to an infinite std, which a stored record cannot hold).
 fn push_rows(data: &pb::Tensor, row_elems: usize, moments: &mut Moments) -> std::result::Result<(), CodecError> {
     let mut row = Vec::with_capacity(row_elems);
     let mut index = 0u64;
     let mut bad = None;
     tensor::for_each_float(data, |v| {
         if bad.is_some() {
+            return;
+        }
+        if tensor::beyond_f32(v) {
+            bad = Some(CodecError::OutOfF32Range { index, value: v });
             return;
         }
         if !v.is_finite() {

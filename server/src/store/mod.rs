@@ -433,6 +433,10 @@ pub struct Store {
     /// keyed by model name can skip re-reading the record while it is unchanged (the serving
     /// hot path).
     models_generation: Arc<AtomicU64>,
+    /// Held across "nothing uses this dataset or model" and its deletion, and across "this
+    /// dataset or model exists" and the record that starts using it (a job, a recipe), so that
+    /// within this process a deletion and a new use never interleave ([`Store::references`]).
+    references: Arc<tokio::sync::Mutex<()>>,
     /// The embedded store's lock on its data directory (`relreward.lock`, held while any clone
     /// of this store lives; None for the shared backend).
     _owner: Option<Arc<std::fs::File>>,
@@ -476,8 +480,13 @@ impl Store {
         let store = if config.storage.backend == "shared" {
             let meta = postgres::PostgresMetadata::connect(&config.storage.postgres).await?;
             let blobs = s3::S3Blobs::open(&config.storage.s3, dir).await?;
-            let store =
-                Self { meta: Arc::new(meta), blobs: Arc::new(blobs), models_generation: Arc::default(), _owner: None };
+            let store = Self {
+                meta: Arc::new(meta),
+                blobs: Arc::new(blobs),
+                models_generation: Arc::default(),
+                references: Arc::default(),
+                _owner: None,
+            };
             store.follow_model_changes().await?;
             store
         } else {
@@ -494,6 +503,7 @@ impl Store {
                 meta: Arc::new(meta),
                 blobs: Arc::new(blobs),
                 models_generation: Arc::default(),
+                references: Arc::default(),
                 _owner: Some(Arc::new(owner)),
             }
         };
@@ -579,6 +589,15 @@ impl Store {
     /// Changes whenever a model record is inserted or deleted (see the field).
     pub fn models_generation(&self) -> u64 {
         self.models_generation.load(Ordering::SeqCst)
+    }
+
+    /// The lock every check of a reference and the write that acts on it take together: a
+    /// model or dataset deleted while a job or recipe that names it is being created would
+    /// leave that job or recipe pointing at nothing. It serialises within this process only;
+    /// servers sharing one metadata store can still interleave (docs/architecture.md, "The model
+    /// registry").
+    pub async fn references(&self) -> tokio::sync::MutexGuard<'_, ()> {
+        self.references.lock().await
     }
 
     /// Removes a model: record first, files second.
