@@ -288,15 +288,19 @@ pub async fn run(
     stop_accepting.cancel();
     oip_http_tasks.token().cancel();
     streams.token().cancel();
+    // Jobs checkpoint and stop while in-flight calls finish: one grace for both, so a
+    // supervisor's stop timeout of preStop + drain + grace holds (docs/deployment.md).
     let grace = Duration::from_secs(config.server.shutdown_grace_secs);
-    job_manager.shutdown(grace).await;
-    let served = match tokio::time::timeout(grace, server).await {
-        Ok(result) => result,
-        Err(_) => {
-            tracing::warn!(grace_secs = grace.as_secs(), "in-flight calls did not finish in time; exiting anyway");
-            Ok(())
+    let calls = async {
+        match tokio::time::timeout(grace, server).await {
+            Ok(result) => result,
+            Err(_) => {
+                tracing::warn!(grace_secs = grace.as_secs(), "in-flight calls did not finish in time; exiting anyway");
+                Ok(())
+            }
         }
     };
+    let ((), served) = tokio::join!(job_manager.shutdown(grace), calls);
     // After the grace, what still runs is stopped: streams (ended already, unless a client
     // never read its answers), sampling runs (at their next denoising step; queued ones are
     // answered UNAVAILABLE), Encode/Decode passes (waited for; callers still waiting for a

@@ -1,4 +1,4 @@
-"""Independent PyTorch reference for the relative reward networks (server/src/engine/nets/reward.rs),
+"""Independent PyTorch reference for the relative reward networks (server/src/engine/nets/reward/),
 driven by server/tests/reward_nets_vs_pytorch.rs.
 
 The networks are relreward_dev.reward_nets (the development package, dev/python): the windowed

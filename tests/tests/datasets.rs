@@ -288,7 +288,7 @@ async fn a_deletion_and_a_job_on_the_same_dataset_never_both_succeed() {
     for i in 0..8 {
         let name = format!("race-{i}");
         upload_lines(&client, &name, &lines).await;
-        let spec = relreward_tests::tiny_diffusion_spec(&name, &format!("out-{i}"), 0, long.clone());
+        let spec = relreward_tests::tiny_diffusion_spec(&name, &format!("out-{i}"), 0, long);
         let (delete, submit) = tokio::join!(client.delete_dataset(&name), client.submit_job(spec, None));
         match (delete, submit) {
             (Ok(()), Ok(job)) => panic!("round {i}: the dataset was deleted and job {} accepted on it", job.id),

@@ -211,3 +211,37 @@ async fn an_expert_without_a_constant_goal_fails_before_any_upload() {
     assert!(client.list_jobs(pb::JobState::Unspecified).await.expect("jobs").is_empty(), "no job submitted");
     assert!(client.list_models(pb::ModelKind::Unspecified).await.expect("models").is_empty());
 }
+
+/// Base and expert recordings whose rows differ in width (two environments) fail in seconds,
+/// naming both files and their widths, before anything is uploaded (they failed at the
+/// normalizer of the first training job, after both uploads).
+#[tokio::test(flavor = "multi_thread")]
+async fn recordings_of_different_widths_fail_before_any_upload() {
+    let server = TestServer::start();
+    let tmp = tempfile::tempdir().expect("tmp");
+    let base = data("base_d4rl.hdf5");
+    let expert = tmp.path().join("other-env.npz");
+    let n = 40u64;
+    let mut w = relreward_toolkit::npz_write::NpzWriter::create(&expert).expect("npz");
+    let obs: Vec<f32> = (0..n * 3).map(|i| (i % 7) as f32 * 0.1).collect();
+    w.add_f32("observations", &[n, 3], &obs).expect("observations");
+    w.add_f32("actions", &[n, 1], &vec![0.5; n as usize]).expect("actions");
+    w.finish().expect("npz");
+    let out = server.cli(&[
+        "extract",
+        "--base",
+        base.to_str().expect("utf8"),
+        "--expert",
+        expert.to_str().expect("utf8"),
+        "--size",
+        "tiny",
+        "--out",
+        tmp.path().join("out").to_str().expect("utf8"),
+    ]);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "should fail:\n{stderr}");
+    assert!(stderr.contains("rows of 3 observation and 1 action values, but the base data"), "{stderr}");
+    assert!(stderr.contains("has 8 and 2"), "{stderr}");
+    let client = server.client().await;
+    assert!(client.list_datasets().await.expect("datasets").is_empty(), "nothing uploaded");
+}

@@ -12,15 +12,20 @@
 //! - `health`: the server's serving status; exits 1 unless serving.
 //! - `dataset upload|list|show|delete`: uploads `.npz`/`.npy`, D4RL HDF5 or Minari recordings
 //!   (the reader by the file's signature; docs/data-formats.md) with a progress bar.
-//! - `model upload|import|list|show|delete`: TorchScript (`.pt`) or native (`.safetensors`)
-//!   diffusion models with a manifest; `import` converts a Diffuser TemporalUnet state_dict
-//!   (exported to `.npz`) into native weights, locally.
+//! - `model upload|import|list|show|download|export|delete|recipe`: TorchScript (`.pt`) or
+//!   native (`.safetensors`) diffusion models with a manifest (and bring-your-own rewards,
+//!   autoencoders); `import` converts a Diffuser TemporalUnet state_dict (exported to `.npz`) or
+//!   a diffusers folder into native weights, locally; `download` / `export` fetch a model's
+//!   files (and its traced `module.pt`); `recipe` registers a conditional model's sampling recipe.
 //! - `train diffusion|reward|discriminator`: submits a training job (flags override
 //!   `--config`), `--watch` to follow it.
 //! - `job list|show|cancel|watch|plot`: jobs, a live progress bar resuming across reconnects,
 //!   and a job's loss curve (with reward histograms over datasets' windows).
 //! - `score`, `grad`, `sample`: the RewardService over `.npz` inputs (trajectories cut into
 //!   windows; per-window and per-step values), results as `.npz`.
+//! - `relabel`: a trajectory file's rewards replaced by a reward model's (offline RL), the
+//!   originals kept.
+//! - `encode`, `decode`: an `.npz` of images to latents through an autoencoder model, and back.
 //! - `eval discriminate|heatmap`: the paper's evaluation over scores of local files.
 //! - `maze generate`: Maze2D datasets with D4RL's keys from the built-in generator (no server).
 //! - `demo`: the paper's Maze2D pipeline (data, diffusion models, rewards, heatmaps,

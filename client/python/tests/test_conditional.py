@@ -485,3 +485,19 @@ def test_algorithm_2_through_named_recipes_equals_the_jobs_own(client, server, m
     import json
     recipe = json.loads(params["expert_recipe"].string_value)
     assert recipe["model"] == "cond-labels" and recipe["recipe"]["safety"]["warmup_steps"] == 7
+
+
+def test_samples_and_their_labels_upload_alike_from_the_cli_and_the_package(server, client, tmp_path):
+    """An .npz of latents and class labels, as `relreward encode` writes one: the samples array is
+    the only one besides `labels`, and the labels travel with it (int16 sent as int64), from the
+    CLI as from the package: the same stored arrays, the same digest."""
+    path = tmp_path / "latents.npz"
+    x = np.random.default_rng(3).standard_normal((6, 1, 2, 2)).astype(np.float32)
+    np.savez(path, x=x, labels=np.array([0, 2, 1, 1, 0, 3], np.int16))
+    py = client.upload_dataset("labelled-py", path, kind="samples")
+    server.cli("dataset", "upload", str(path), "--name", "labelled-cli")
+    cli = client.get_dataset("labelled-cli")
+    assert py.sha256 == cli.sha256
+    for d in (py, cli):
+        arrays = {a.name: (a.dtype, list(a.shape)) for a in d.arrays}
+        assert arrays == {"samples": ("float32", [6, 1, 2, 2]), "labels": ("int64", [6])}, arrays

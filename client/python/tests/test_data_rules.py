@@ -1,8 +1,12 @@
 """The episode, dict-flattening and wall rules shared with the Rust toolkit
 (relreward_toolkit::episodes, docs/data-formats.md), on the same HDF5 fixtures the Rust tests
-read (client/toolkit/tests/data, made by make_fixtures.py there)."""
+read (client/toolkit/tests/data, made by make_fixtures.py there), and the refusals both readers
+must word alike, checked against the CLI's reader where it reads the file before connecting
+(:func:`cli_refusal`). Minari's Tuple and JPEG layouts: test_minari_layouts.py."""
 
 import pathlib
+import subprocess
+import zipfile
 
 import numpy as np
 import pytest
@@ -10,7 +14,38 @@ import pytest
 from relreward import datasets
 from relreward.v1 import tensor_pb2
 
+from conftest import BINARIES
+
 DATA = pathlib.Path(__file__).resolve().parents[2] / "toolkit" / "tests" / "data"
+
+
+def cli_refusal(path):
+    """What the CLI's reader says of ``path`` (its ``error:`` line, without the prefix), or None
+    when it reads the file: ``dataset upload`` reads a file before it connects, and nothing
+    listens on port 1. Skips when the CLI binary is not built."""
+    if not BINARIES.cli.is_file():
+        pytest.skip(f"no CLI binary at {BINARIES.cli}")
+    p = subprocess.run([str(BINARIES.cli), "dataset", "upload", str(path), "--name", "x", "--endpoint",
+                        "http://127.0.0.1:1"], capture_output=True, text=True, timeout=120)
+    errors = [line[len("error: "):] for line in p.stderr.splitlines() if line.startswith("error: ")]
+    assert errors, p.stderr
+    return None if "cannot connect" in errors[0] else errors[0]
+
+
+def py_refusal(path):
+    """What this package says of ``path`` (reading every value, as an upload does), or None."""
+    try:
+        src, closer = datasets.source_of(path)
+        try:
+            for _, a in src.arrays:
+                for _ in datasets.row_chunks(a, 1 << 20):
+                    pass
+        finally:
+            if closer is not None:
+                closer.close()
+    except ValueError as e:
+        return str(e)
+    return None
 
 
 def starts(src):
@@ -123,11 +158,11 @@ def test_float64_values_are_sent_as_float32_but_samples_keep_their_dtype():
 def test_values_beyond_float32_or_not_finite_are_refused_naming_the_key_and_row():
     obs = np.zeros((5, 2))
     obs[3, 1] = 1e300
-    with pytest.raises(ValueError, match=r"'observations' holds a value beyond float32's range at row 3"):
+    with pytest.raises(ValueError, match=r"^'observations': value 1e300 at row 3, coordinate 1 is outside float32's "):
         datasets.trajectories({"observations": obs, "actions": np.zeros(5)})
     act = np.zeros((5, 1), np.float32)
     act[4] = np.inf
-    with pytest.raises(ValueError, match=r"'actions' holds a value that is not finite at row 4"):
+    with pytest.raises(ValueError, match=r"^'actions': value inf at row 4, coordinate 0 is not finite$"):
         datasets.trajectories({"observations": np.zeros((5, 2)), "actions": act})
 
 
@@ -183,8 +218,9 @@ def test_a_non_finite_hdf5_value_is_refused_when_read_naming_the_key_and_row(tmp
         o = dict(src.arrays)["observations"]
         chunks = datasets.row_chunks(o, 2 * 2 * 4)
         assert [next(chunks).shape for _ in range(3)] == [(2, 2)] * 3  # rows 0..5 read fine
-        with pytest.raises(ValueError, match=r"'observations' holds a value that is not finite at row 6"):
+        with pytest.raises(ValueError) as e:
             next(chunks)
+        assert str(e.value) == f"{path}: 'observations': value NaN at row 6, coordinate 0 is not finite"
     finally:
         closer.close()
 
@@ -309,7 +345,7 @@ def test_minari_last_observation_is_dropped_before_the_finite_check(tmp_path):
     bad = o.copy()
     bad[2, 1] = np.inf  # a kept row
     minari_file(tmp_path / "bad.hdf5", h5py, {0: (o, np.zeros(4), flags, flags), 3: (bad, np.zeros(4), flags, flags)})
-    with pytest.raises(ValueError, match=r"'episode_3/observations' holds a value that is not finite at row 2"):
+    with pytest.raises(ValueError, match=r"'episode_3/observations': value inf at row 2, coordinate 1 is not finite"):
         datasets.source_of(tmp_path / "bad.hdf5")
 
 
@@ -359,3 +395,180 @@ def test_a_directory_that_is_not_a_minari_dataset_says_what_it_holds(tmp_path):
     (looped / "main_data.hdf5").symlink_to(looped / "main_data.hdf5")
     with pytest.raises(ValueError, match="symlink loop"):
         datasets.source_of(looped)
+
+
+# --- The Rust readers' refusals, word for word (docs/data-formats.md: every reader must refuse
+# the same file with the same words): 16-byte floats, values not finite as float32, no rows,
+# unreadable archives, object arrays, HDF5 soft links and HDF5 files without observations.
+
+
+def f128(shape):
+    return np.zeros(shape, np.longdouble)
+
+
+def test_a_16_byte_float_is_refused_as_the_rust_readers_refuse_it(tmp_path):
+    h5py = pytest.importorskip("h5py")
+    assert np.dtype(np.longdouble).itemsize == 16 and np.dtype(np.longdouble).str == "<f16"  # x86-64 Linux
+    words = "is a 16-byte float, which is not supported; expected integers or floats of 1, 2, 4 or 8 bytes"
+    np.savez(tmp_path / "obs.npz", observations=f128((4, 2)), actions=np.zeros(4))
+    with pytest.raises(ValueError) as e:
+        datasets.source_of(tmp_path / "obs.npz")
+    assert str(e.value) == f"{tmp_path / 'obs.npz'}: array 'observations': dtype '<f16' {words}"
+    assert cli_refusal(tmp_path / "obs.npz") == str(e.value)
+    with pytest.raises(ValueError, match=r"^array 'actions': dtype '<f16' is a 16-byte float"):
+        datasets.trajectories({"observations": np.zeros((4, 2)), "actions": f128(4)})
+    # A flag under its Minari name is named by the file's key, as the .npy reader names it.
+    with pytest.raises(ValueError, match=r"^array 'terminations': dtype '<f16' is a 16-byte float"):
+        datasets.trajectories({"observations": np.zeros((4, 2)), "actions": np.zeros(4), "terminations": f128(4)})
+    # HDF5: the HDF5 reader's words.
+    with h5py.File(tmp_path / "obs.hdf5", "w") as f:
+        f["observations"], f["actions"] = f128((4, 2)), np.zeros(4)
+    with pytest.raises(ValueError) as e:
+        datasets.source_of(tmp_path / "obs.hdf5")
+    want = "'observations' holds a 16-byte float; expected integers, floats or bool"
+    assert str(e.value) == f"{tmp_path / 'obs.hdf5'}: {want}" == cli_refusal(tmp_path / "obs.hdf5")
+    minari_file(tmp_path / "main_data.hdf5", h5py, {0: (np.zeros((3, 2)), np.zeros(2), f128(2), np.zeros(2, bool))})
+    with pytest.raises(ValueError, match=r"'episode_0/terminations' holds a 16-byte float; expected integers"):
+        datasets.source_of(tmp_path / "main_data.hdf5")
+
+
+def bad_value(shape, index, value, dtype=np.float64):
+    a = np.zeros(shape, dtype)
+    a[index] = value
+    return a
+
+
+NOT_FINITE = [
+    (bad_value((20, 3), (13, 1), np.nan), "value NaN at row 13, coordinate 1 is not finite"),
+    (bad_value((20, 3, 2), (13, 1, 1), np.inf), "value inf at row 13, flattened coordinate 3 of [3, 2] is not finite"),
+    (bad_value(20, 5, -np.inf), "value -inf at row 5, coordinate 0 is not finite"),
+    (bad_value((20, 2), (3, 1), np.inf, np.float16), "value inf at row 3, coordinate 1 is not finite"),
+    (bad_value((20, 2), (7, 0), 1e300), "value 1e300 at row 7, coordinate 0 is outside float32's range (about "
+                                        "3.4e38), the precision models compute in"),
+    (bad_value((20, 2), (7, 1), -3.5e38, ">f8"), "value -3.5e38 at row 7, coordinate 1 is outside float32's range "
+                                                 "(about 3.4e38), the precision models compute in"),
+    # Just beyond float32's largest value, it rounds to an infinity: refused, as in Rust (`v as f32`).
+    (bad_value((20, 2), (7, 1), 3.4028235677973366e38), "value 3.4028235677973366e38 at row 7, coordinate 1 is "
+                                                         "outside float32's range (about 3.4e38), the precision "
+                                                         "models compute in"),
+]
+
+
+@pytest.mark.parametrize("obs, words", NOT_FINITE)
+def test_a_value_not_finite_as_float32_is_refused_naming_value_row_and_coordinate(tmp_path, obs, words):
+    h5py = pytest.importorskip("h5py")
+    with pytest.raises(ValueError) as e:
+        datasets.trajectories({"observations": obs, "actions": np.zeros(20)})
+    assert str(e.value) == f"'observations': {words}"
+    np.savez(tmp_path / "t.npz", observations=obs, actions=np.zeros(20))
+    assert py_refusal(tmp_path / "t.npz") == f"{tmp_path / 't.npz'}: 'observations': {words}"
+    with h5py.File(tmp_path / "t.hdf5", "w") as f:
+        f["observations"], f["actions"] = obs, np.zeros(20)
+    # The HDF5 rows are read by ranges while sending: the same words, naming the file, as the CLI's.
+    want = f"{tmp_path / 't.hdf5'}: 'observations': {words}"
+    assert py_refusal(tmp_path / "t.hdf5") == want == cli_refusal(tmp_path / "t.hdf5")
+    # The same in the actions.
+    with pytest.raises(ValueError) as e:
+        datasets.trajectories({"observations": np.zeros((20, 1)), "actions": obs})
+    assert str(e.value) == f"'actions': {words}"
+
+
+def test_no_rows_are_refused_locally_naming_the_key(tmp_path):
+    h5py = pytest.importorskip("h5py")
+    words = "'observations' has no rows (N = 0); a dataset needs at least one"
+    with pytest.raises(ValueError) as e:
+        datasets.trajectories({"observations": np.zeros((0, 3)), "actions": np.zeros(0), "terminals": np.zeros(0)})
+    assert str(e.value) == words
+    np.savez(tmp_path / "t.npz", observations=np.zeros((0, 3), np.float32), actions=np.zeros((0, 1), np.float32))
+    with h5py.File(tmp_path / "t.hdf5", "w") as f:
+        f["observations"], f["actions"] = np.zeros((0, 3), np.float32), np.zeros((0, 1), np.float32)
+    for name in ("t.npz", "t.hdf5"):
+        assert py_refusal(tmp_path / name) == f"{tmp_path / name}: {words}" == cli_refusal(tmp_path / name)
+
+
+def test_a_corrupt_npz_is_refused_naming_the_file_and_keeping_the_cause(tmp_path):
+    np.savez(tmp_path / "good.npz", observations=np.arange(200, dtype=np.float32).reshape(100, 2),
+             actions=np.zeros((100, 1), np.float32))
+    data = (tmp_path / "good.npz").read_bytes()
+    (tmp_path / "cut.npz").write_bytes(data[:len(data) // 2])  # the central directory is gone
+    with pytest.raises(ValueError) as e:
+        datasets.source_of(tmp_path / "cut.npz")
+    assert str(e.value).startswith(f"{tmp_path / 'cut.npz'}: not a readable .npz archive: ")
+    assert isinstance(e.value.__cause__, zipfile.BadZipFile)
+    assert cli_refusal(tmp_path / "cut.npz").startswith(f"{tmp_path / 'cut.npz'}: not a readable .npz archive: ")
+    # A member whose bytes were damaged (its CRC no longer matches): named by its key.
+    bad = bytearray(data)
+    bad[bad.index(b"NUMPY") + 300] ^= 0xFF  # inside 'observations'' data (np.savez stores uncompressed)
+    (tmp_path / "crc.npz").write_bytes(bytes(bad))
+    with pytest.raises(ValueError) as e:
+        datasets.source_of(tmp_path / "crc.npz")
+    assert str(e.value).startswith(f"{tmp_path / 'crc.npz'}: array 'observations': cannot be read: ")
+    assert isinstance(e.value.__cause__, zipfile.BadZipFile)
+
+
+OBJECT_WORDS = "dtype '|O' is an object array (pickled Python objects), which is not supported; expected integers, " \
+               "floats or bool"
+
+
+@pytest.mark.parametrize("arrays, key", [
+    ({"observations": np.array([[1, 2], [3, 4]], object), "actions": np.zeros((2, 1))}, "observations"),
+    ({"observations": np.zeros((2, 2)), "actions": np.array([[1], [2]], object)}, "actions"),
+    ({"observations": np.zeros((2, 2)), "actions": np.zeros(2), "terminals": np.array([0, 1], object)}, "terminals"),
+    ({"samples": np.array([[1.0, 2.0]], object)}, "samples"),
+])
+def test_an_object_array_under_a_taken_key_is_refused_naming_it(tmp_path, arrays, key):
+    path = tmp_path / "o.npz"
+    np.savez(path, **arrays)
+    want = f"{path}: array '{key}': {OBJECT_WORDS}"
+    assert py_refusal(path) == want == cli_refusal(path)
+
+
+def test_an_object_array_left_out_is_never_read_and_an_npy_of_objects_is_refused(tmp_path):
+    path = tmp_path / "o.npz"
+    np.savez(path, observations=np.zeros((2, 2), np.float32), actions=np.zeros((2, 1), np.float32),
+             rewards=np.array([0.5, "x"], object))
+    src, closer = datasets.source_of(path)
+    closer.close()
+    assert src.ignored == ["rewards"] and cli_refusal(path) is None
+    np.save(tmp_path / "objs.npy", np.array([[1, 2]], object), allow_pickle=True)
+    want = f"{tmp_path / 'objs.npy'}: array 'objs': {OBJECT_WORDS}"
+    assert py_refusal(tmp_path / "objs.npy") == want == cli_refusal(tmp_path / "objs.npy")
+
+
+def test_hdf5_soft_links_are_followed_as_the_cli_follows_them(tmp_path):
+    h5py = pytest.importorskip("h5py")
+    obs = np.arange(8, dtype=np.float32).reshape(4, 2)
+    path = tmp_path / "soft.hdf5"
+    with h5py.File(path, "w") as f:
+        f["data/obs"], f["data/act"] = obs, np.ones((4, 1), np.float32)
+        f["observations"] = h5py.SoftLink("/data/obs")
+        f["actions"] = h5py.SoftLink("/data/act")
+        f["terminals"] = np.eye(1, 4, 3, dtype=bool)[0]
+        f["loop"] = h5py.SoftLink("/")  # a cycle: visited once
+        f["gone"] = h5py.SoftLink("/nowhere")  # dangling: no member
+    src, closer = datasets.source_of(path)
+    try:
+        a = arrays_of(src)
+        np.testing.assert_array_equal(a["observations"], obs)
+        np.testing.assert_array_equal(a["actions"], np.ones((4, 1)))
+        assert a["terminals"].tolist() == [False, False, False, True]
+        assert "gone" not in src.ignored
+    finally:
+        closer.close()
+    assert cli_refusal(path) is None  # the CLI reads it too
+
+
+def test_an_hdf5_file_without_observations_is_refused_not_uploaded_as_samples(tmp_path):
+    h5py = pytest.importorskip("h5py")
+    for key in ("obs", "samples"):
+        path = tmp_path / f"{key}.hdf5"
+        with h5py.File(path, "w") as f:
+            f[key] = np.zeros((4, 2), np.float32)
+        want = f"{path}: no 'observations' dataset at the top level (it holds '{key}')"
+        assert py_refusal(path) == want == cli_refusal(path)
+        # An HDF5 file is trajectories: asking for samples is refused, as the CLI's --kind / --key.
+        for ask in ({"kind": "samples"}, {"key": key}):
+            with pytest.raises(ValueError, match="an HDF5 file or Minari dataset uploads as trajectories"):
+                datasets.source_of(path, **ask)
+    with pytest.raises(ValueError, match="an HDF5 file or Minari dataset uploads as trajectories"):
+        datasets.source_of(DATA / "minari", kind="samples")

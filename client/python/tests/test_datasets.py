@@ -173,7 +173,7 @@ def test_a_non_finite_hdf5_value_stops_the_upload_and_nothing_is_stored(client, 
     path = tmp_path / "nan.h5"
     with h5py.File(path, "w") as f:
         f["observations"], f["actions"] = obs, np.zeros((40, 1), np.float32)
-    with pytest.raises(ValueError, match="'observations' holds a value that is not finite at row 33"):
+    with pytest.raises(ValueError, match="'observations': value NaN at row 33, coordinate 1 is not finite"):
         client.upload_dataset("py-nan", path, chunk_bytes=64)
     with pytest.raises(relreward.NotFound):
         client.get_dataset("py-nan")

@@ -137,13 +137,16 @@ def test_d4rl_hdf5_keeps_everything_but_rewards(client, tiny, tmp_path):
         assert dict(b["infos"].attrs) == {"note": "kept"}
 
 
-def minari_dir(tmp_path, data):
-    """A Minari dataset directory of tiny_trajectories' episodes (ids 0, 1, 2, 5, 10 and an
-    empty 3, so id order is not name order), dict observations {'a', 'b'} that flatten to the
-    rows' 2 columns, episode attributes, rewards, infos and a metadata.json."""
-    root = tmp_path / "minari-tiny"
+def minari_dir(tmp_path, data, root=None, metadata=None):
+    """A Minari dataset directory (``root``, default ``tmp_path/minari-tiny``) of
+    tiny_trajectories' episodes (ids 0, 1, 2, 5, 10 and an empty 3, so id order is not name
+    order), dict observations {'a', 'b'} that flatten to the rows' 2 columns, episode
+    attributes, rewards, infos and, where Minari keeps it, data/metadata.json (``metadata``,
+    default an id and the step count)."""
+    root = root or tmp_path / "minari-tiny"
     (root / "data").mkdir(parents=True)
-    (root / "metadata.json").write_text(json.dumps({"dataset_id": "tiny/test-v0", "total_steps": 112}))
+    metadata = metadata or {"dataset_id": "tiny/test-v0", "total_steps": 112}
+    (root / "data" / "metadata.json").write_text(json.dumps(metadata))
     ids = [0, 1, 2, 5, 10]
     bounds = np.concatenate([[0], np.cumsum(LENGTHS)])
     with h5py.File(root / "data" / "main_data.hdf5", "w") as f:
@@ -172,7 +175,9 @@ def test_minari_directory_and_file_have_each_episodes_rewards_replaced(client, t
     dst = tmp_path / "relabelled"
     done = relreward.relabel(client, tiny.reward, src, dst)
     assert (done.form, done.episodes, done.original) == ("minari-dir", 5, ORIGINAL)
-    assert json.loads((dst / "metadata.json").read_text())["dataset_id"] == "tiny/test-v0"
+    # Under no Minari root: the id is the folder's name (test_minari_metadata_names_the_copy).
+    assert json.loads((dst / "data" / "metadata.json").read_text()) == {"dataset_id": "relabelled",
+                                                                          "total_steps": 112}
     np.testing.assert_array_equal(done.rewards, window)
     bounds = np.concatenate([[0], np.cumsum(LENGTHS)])
     with h5py.File(src / "data" / "main_data.hdf5", "r") as a, h5py.File(dst / "data" / "main_data.hdf5", "r") as b:
@@ -192,6 +197,78 @@ def test_minari_directory_and_file_have_each_episodes_rewards_replaced(client, t
     assert one.form == "minari-hdf5"
     with h5py.File(out, "r") as b:
         np.testing.assert_array_equal(b["episode_10/rewards"][()], window[bounds[4]:])
+
+
+def minari_ids(root) -> dict[str, str]:
+    """{id: metadata's dataset_id} of every dataset under a Minari root, found as
+    minari.list_local_datasets finds them (a folder holding ``data`` is a dataset named by its
+    path from the root; hidden folders are skipped; others are namespaces) and which it lists
+    only where the two agree (else it warns "Misconfigured dataset" and skips it)."""
+    found = {}
+
+    def walk(folder, prefix):
+        for d in sorted(p for p in folder.iterdir() if p.is_dir() and not p.name.startswith(".")):
+            name = f"{prefix}{d.name}"
+            if (d / "data").exists():
+                found[name] = json.loads((d / "data" / "metadata.json").read_text())["dataset_id"]
+            else:
+                walk(d, name + "/")
+
+    walk(root, "")
+    return found
+
+
+def test_minari_metadata_names_the_copy_as_minari_derives_ids(client, tiny, tmp_path, monkeypatch):
+    root, other = tmp_path / "datasets", tmp_path / "elsewhere"
+    monkeypatch.setenv("MINARI_DATASETS_PATH", str(root))
+    metadata = {"dataset_id": "tiny/test-v0", "total_episodes": 6, "total_steps": 112, "dataset_size": 0.0,
+                "author": ["A"], "minari_version": "0.5.1", "ref_min_score": -1.5, "env_spec": "{}",
+                "description": "kept"}
+    src, _ = minari_dir(tmp_path, tiny_trajectories(), root / "tiny" / "test-v0", metadata)
+    wants = {root / "tiny" / "test-rho-v0": "tiny/test-rho-v0",  # a namespace of Minari's root
+             root / "plain-v0": "plain-v0",                       # no namespace
+             root / "a" / "b" / "deep-v1": "a/b/deep-v1"}         # nested namespaces
+    for dst, want in wants.items():
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        relreward.relabel(client, tiny.reward, src, dst)
+        got = json.loads((dst / "data" / "metadata.json").read_text())
+        assert got["dataset_id"] == want
+        size = sum(p.stat().st_size for p in (dst / "data").glob("**/*"))
+        assert got["dataset_size"] == round(size / 1e6, 1) and size > 0
+        assert list(got) == list(metadata)  # the keys' order too
+        assert {k: v for k, v in got.items() if k not in ("dataset_id", "dataset_size")} == \
+            {k: v for k, v in metadata.items() if k not in ("dataset_id", "dataset_size")}
+    # The data folder alone relabelled into another dataset's place: named by the folder above it.
+    (root / "tiny" / "flat-v0").mkdir()
+    relreward.relabel(client, tiny.reward, src / "data", root / "tiny" / "flat-v0" / "data")
+    # Every dataset under the root, the source included, is listed: none is misconfigured.
+    assert minari_ids(root) == {i: i for i in ["a/b/deep-v1", "plain-v0", "tiny/flat-v0", "tiny/test-rho-v0",
+                                               "tiny/test-v0"]}
+    assert json.loads((src / "data" / "metadata.json").read_text()) == metadata  # the source is untouched
+    # Minari's root moved elsewhere: the source's own root (its path ends with its id) still names it.
+    monkeypatch.setenv("MINARI_DATASETS_PATH", str(other))
+    relreward.relabel(client, tiny.reward, src, root / "tiny" / "again-v0")
+    assert minari_ids(root)["tiny/again-v0"] == "tiny/again-v0"
+    # Under no root: the folder's name, what Minari reads once the folder is moved into one.
+    loose = tmp_path / "loose" / "ns"
+    loose.mkdir(parents=True)
+    relreward.relabel(client, tiny.reward, src, loose / "x-v2")
+    assert json.loads((loose / "x-v2" / "data" / "metadata.json").read_text())["dataset_id"] == "x-v2"
+    # Under the root Minari is told now, wherever the source is.
+    (other / "ns").mkdir(parents=True)
+    relreward.relabel(client, tiny.reward, src, other / "ns" / "x-v2")
+    assert minari_ids(other) == {"ns/x-v2": "ns/x-v2"}
+    # Relabelled again (with overwrite), the copy of a copy is named by its own place.
+    relreward.relabel(client, tiny.reward, root / "plain-v0", root / "tiny" / "test-rho-v0", overwrite=True)
+    assert minari_ids(root)["tiny/test-rho-v0"] == "tiny/test-rho-v0"
+
+
+def test_minari_metadata_that_is_not_an_object_is_refused(client, tiny, tmp_path):
+    src, _ = minari_dir(tmp_path, tiny_trajectories())
+    for text in ("[1, 2]", "{not json"):
+        (src / "data" / "metadata.json").write_text(text)
+        refused(lambda: relreward.relabel(client, tiny.reward, src, tmp_path / "out"),
+                r"src: .*metadata.json: .*Minari's metadata is a JSON object", tmp_path)
 
 
 def test_relabelling_again_keeps_the_first_original_and_overwrite_replaces(client, tiny, tmp_path):
@@ -285,7 +362,7 @@ def test_a_bad_value_found_while_scoring_leaves_no_file(client, tiny, tmp_path):
         for k, v in data.items():
             f[k] = v
     refused(lambda: relreward.relabel(client, tiny.reward, src, dst, batch=5),
-            "'observations' holds a value that is not finite at row 57", tmp_path)
+            "'observations': value NaN at row 57, coordinate 1 is not finite", tmp_path)
 
 
 def test_progress_true_without_tqdm_warns(client, tiny, tmp_path, monkeypatch):

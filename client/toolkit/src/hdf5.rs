@@ -23,8 +23,15 @@
 //! `desired_goal`, `observation`) are flattened the way gymnasium's `spaces.flatten` does for
 //! a `Dict` space built from a plain dict: keys in sorted order, nested groups recursively,
 //! each entry's trailing dimensions row-major, concatenated per row. PointMaze rows are
-//! therefore `[achieved_goal (2), desired_goal (2), observation (4)]`. Dict actions are
-//! refused (no environment we know of has them).
+//! therefore `[achieved_goal (2), desired_goal (2), observation (4)]`. A **Tuple** space's
+//! parts, stored as `_index_0`, `_index_1`, ..., go by their number (`_index_10` after
+//! `_index_9`), before any other key. A `Discrete` part is read as its integer (gymnasium's
+//! `flatten` would one-hot it; the file does not say how many values it takes). Dict actions
+//! are refused (no environment we know of has them). **JPEG frames**: when the dataset's
+//! `metadata.json` says `jpeg_encoding = true` (minari 0.5's `DataCollector` default for uint8
+//! images of at least 32 x 32), observations stored as variable-length uint8 sequences, or as
+//! uint8 data that begins with JPEG's signature, are refused naming the setting; others are read
+//! as usual.
 //!
 //! Values follow the rules of [`crate::values`], as the `.npz` reader does: any integer or float
 //! type (float16 included) in either byte order, read as float32 (float64 data is rounded, as
@@ -324,7 +331,7 @@ fn flattened(
     let sub = group.group(name).map_err(|e| format!("{at}/{name}: {e}"))?;
     let (mut keys_g, keys_d) = sub.member_names().map_err(|e| format!("{at}/{name}: {e}"))?;
     keys_g.extend(keys_d);
-    keys_g.sort();
+    keys_g.sort_by(|a, b| flatten_order(a).cmp(&flatten_order(b)));
     if keys_g.is_empty() {
         return Err(format!("{at}/{name} is an empty group"));
     }
@@ -345,9 +352,67 @@ fn flattened(
     Ok((rows, width, values))
 }
 
+/// Where a member of a Dict or Tuple group goes in a flattened row: Minari stores a Tuple's
+/// parts as `_index_0`, `_index_1`, ..., which go by their number (not as strings: `_index_10`
+/// after `_index_9`), before any other key; a Dict's keys go in string order.
+fn flatten_order(key: &str) -> (u8, u64, &str) {
+    match key
+        .strip_prefix("_index_")
+        .and_then(|n| n.parse::<u64>().ok().filter(|_| n.bytes().all(|b| b.is_ascii_digit())))
+    {
+        Some(i) => (0, i, key),
+        None => (1, 0, key),
+    }
+}
+
+/// What the message for JPEG-encoded frames says after its place.
+const JPEG_ENCODED: &str = "JPEG-encoded by Minari's DataCollector (data/metadata.json: jpeg_encoding = true); \
+    relreward reads raw arrays: record with DataCollector(..., jpeg_encoding=False), or decode the frames into an .npz";
+
+/// Whether the dataset's `metadata.json` (beside `main_data.hdf5`) says Minari JPEG-encoded
+/// its image observations (minari 0.5's DataCollector does by default for uint8 images of at
+/// least 32 x 32). Absent or unreadable metadata says no: the data itself is read as it is.
+fn jpeg_encoded(file_path: &Path) -> bool {
+    let Some(text) = file_path.parent().and_then(|d| std::fs::read_to_string(d.join("metadata.json")).ok()) else {
+        return false;
+    };
+    serde_json::from_str::<serde_json::Value>(&text)
+        .ok()
+        .and_then(|m| m.get("jpeg_encoding").and_then(serde_json::Value::as_bool))
+        .unwrap_or(false)
+}
+
+/// Refuses an observations dataset (or a part of an observations group) that holds JPEG frames:
+/// variable-length uint8 sequences, or uint8 data that begins with JPEG's signature FF D8 FF.
+fn refuse_jpeg(group: &Group, name: &str, at: &str) -> std::result::Result<(), String> {
+    let (groups, datasets) = group.member_names().map_err(|e| format!("{at}: {e}"))?;
+    if groups.iter().any(|g| g == name) {
+        let sub = group.group(name).map_err(|e| format!("{at}/{name}: {e}"))?;
+        let (mut keys, keys_d) = sub.member_names().map_err(|e| format!("{at}/{name}: {e}"))?;
+        keys.extend(keys_d);
+        return keys.iter().try_for_each(|k| refuse_jpeg(&sub, k, &format!("{at}/{name}")));
+    }
+    if !datasets.iter().any(|d| d == name) {
+        return Ok(());
+    }
+    let ds = group.dataset(name).map_err(|e| format!("{at}/{name}: {e}"))?;
+    let frames = match ds.dtype() {
+        Datatype::VarLen { kind, base, .. } => {
+            *kind != hdf5_reader::VarLenKind::String
+                && matches!(**base, Datatype::FixedPoint { size: 1, signed: false, .. })
+        }
+        Datatype::FixedPoint { size: 1, signed: false, .. } => {
+            ds.read_raw_bytes().map_err(|e| format!("'{at}/{name}': {e}"))?.starts_with(&[0xff, 0xd8, 0xff])
+        }
+        _ => false,
+    };
+    if frames { Err(format!("'{at}/{name}' is {JPEG_ENCODED}")) } else { Ok(()) }
+}
+
 fn minari_from(path: &Path, root: &Group, groups: &[String], datasets: &[String]) -> Result<Trajectories> {
     let e = |m: String| err(path, m);
     let episodes = episode_groups(groups, datasets).map_err(e)?;
+    let jpeg = jpeg_encoded(path);
     let mut t = Trajectories::default();
     let mut skipped = Vec::new();
     let mut ignored: Vec<String> = Vec::new();
@@ -370,6 +435,9 @@ fn minari_from(path: &Path, root: &Group, groups: &[String], datasets: &[String]
             // No action, so no row: nothing to read (its observations are its first state only).
             skipped.push(format!("'{name}'"));
             continue;
+        }
+        if jpeg {
+            refuse_jpeg(&ep, "observations", name).map_err(e)?;
         }
         // The last observation is dropped: only the rows kept must be finite.
         let (n_obs, obs_dim, observations) = flattened(&ep, "observations", name, Some(steps)).map_err(e)?;

@@ -115,12 +115,15 @@ pub fn f16_to_f32(bits: u16) -> f32 {
 }
 
 /// `(N, width)` of an array of `shape` read as rows: `[N]` is `(N, 1)`, `[N, d]` is `(N, d)`,
-/// `[N, a, b, ...]` is `(N, a * b * ...)`. A scalar is refused naming `key` (quoted by the
-/// caller's convention: pass `'observations'`).
+/// `[N, a, b, ...]` is `(N, a * b * ...)`. A scalar, and rows of no values (`[N, 0]`), are
+/// refused naming `key` (quoted by the caller's convention: pass `'observations'`).
 pub fn row_shape(key: &str, shape: &[u64]) -> Result<(usize, usize), String> {
     let Some((&n, trailing)) = shape.split_first() else {
         return Err(format!("{key} is a scalar (shape []); expected rows [N, ...]"));
     };
+    if trailing.contains(&0) {
+        return Err(format!("{key} has shape {shape:?}: its rows hold no values"));
+    }
     let width = trailing.iter().try_fold(1u64, |a, &d| a.checked_mul(d));
     match (usize::try_from(n), width.and_then(|w| usize::try_from(w).ok())) {
         (Ok(n), Some(width)) => Ok((n, width)),
@@ -241,6 +244,8 @@ mod tests {
         assert_eq!(row_shape("'x'", &[5, 3, 2]), Ok((5, 6)));
         assert_eq!(row_shape("'x'", &[0, 3]), Ok((0, 3)));
         assert!(row_shape("'x'", &[]).expect_err("scalar").contains("'x' is a scalar"));
+        assert_eq!(row_shape("'x'", &[60, 0]), Err("'x' has shape [60, 0]: its rows hold no values".to_owned()));
+        assert!(row_shape("'x'", &[6, 2, 0]).is_err());
         assert_eq!(position(7, &[5, 3]), "row 2, coordinate 1");
         assert_eq!(position(3, &[5]), "row 3, coordinate 0");
         assert_eq!(position(8, &[5, 3, 2]), "row 1, flattened coordinate 2 of [3, 2]");

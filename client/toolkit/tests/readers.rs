@@ -273,3 +273,29 @@ fn unsupported_hdf5_types_are_named_in_words() {
     assert!(err.contains("'observations' holds a 16-byte float; expected integers, floats or bool"), "{err}");
     assert!(!err.contains("FloatingPoint"), "{err}");
 }
+
+/// A Tuple observation space, stored by Minari as parts `_index_0` .. `_index_11`, flattens by
+/// the parts' numbers (gymnasium's `spaces.flatten` order), not as strings (`_index_10` before
+/// `_index_2`).
+#[cfg(feature = "hdf5")]
+#[test]
+fn minari_tuple_parts_flatten_by_their_number() {
+    let t = read_hdf5(&rules("minari_tuple.hdf5")).expect("tuple");
+    assert_eq!((t.len(), t.obs_dim, t.act_dim), (2, 12, 1));
+    for k in 0..2 {
+        let want: Vec<f32> = (0..12).map(|i| (100 * i + k) as f32).collect();
+        assert_eq!(&t.observations[k * 12..(k + 1) * 12], want.as_slice(), "step {k}");
+    }
+}
+
+/// Frames Minari stored JPEG-encoded are refused naming the place and the setting that made
+/// them, not read as bytes; float observations under the same metadata are read as they are.
+#[cfg(feature = "hdf5")]
+#[test]
+fn minari_jpeg_frames_are_refused_by_name() {
+    let err = read_hdf5(&data("minari_jpeg")).expect_err("jpeg").to_string();
+    assert!(err.contains("'episode_0/observations' is JPEG-encoded by Minari's DataCollector"), "{err}");
+    assert!(err.contains("jpeg_encoding=False"), "{err}");
+    let t = read_hdf5(&data("minari_jpeg_floats")).expect("floats");
+    assert_eq!(t.observations, [0.0, 1.0, 2.0, 3.0]);
+}

@@ -66,7 +66,8 @@ pub const METHOD_ACCESS: &[(&str, Access)] = &[
     ("/relreward.v1.DatasetService/GetDataset", Needs(Read)),
     ("/relreward.v1.DatasetService/ListDatasets", Needs(Read)),
     ("/relreward.v1.DatasetService/DeleteDataset", Needs(Train)),
-    // UploadModel takes only TorchScript, which is code run inside the server.
+    // UploadModel takes TorchScript, which is code run inside the server, and native weights,
+    // which replace what planners are served: both registered by operators.
     ("/relreward.v1.ModelService/UploadModel", Needs(Admin)),
     ("/relreward.v1.ModelService/GetModel", Needs(Read)),
     ("/relreward.v1.ModelService/ListModels", Needs(Read)),

@@ -157,7 +157,13 @@ fn serve(inner: &Arc<Inner>, queue: &Arc<ModelQueue>) {
         let items: i64 = batch.iter().map(|p| p.query.batch()).sum();
         let cost_per_item = last.as_ref().map_or(Duration::ZERO, |l| l.cost_per_item);
         let split = Split { inner, helpers: &mut helpers, cost_per_item };
-        let result = compute(queue, kind, &batch, inner.config.max_batch as i64, split);
+        // A panic in a pass is a bug; contained here, it fails this batch's callers and the
+        // thread goes on serving (unwound, the queue would stay registered with nobody to
+        // answer it, and every later query for the model would wait out its deadline).
+        let result = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+            compute(queue, kind, &batch, inner.config.max_batch as i64, split)
+        }))
+        .unwrap_or_else(|_| Err(Error::internal("serving batch", "a pass panicked")));
         let took = started.elapsed();
         inner.metrics.observe_batch(&name, batch.len(), items as usize, took.as_secs_f64());
         let parts = result.as_ref().map_or(1, |(_, parts)| *parts);

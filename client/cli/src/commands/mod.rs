@@ -5,13 +5,16 @@
 //! status are in `main.rs`; this file holds what every command gets ([`Ctx`], [`Report`]).
 //!
 //! - [`datasets`]: `dataset upload|list|show|delete`;
-//! - [`models`]: `model upload|import|list|show|delete` (the manifest file: [`manifest`]);
+//! - [`models`]: `model upload|import|list|show|download|export|delete|recipe` (the manifest
+//!   file: [`manifest`]);
 //! - [`jobs`]: `train diffusion|reward|discriminator` (specs from [`train`]) and
 //!   `job list|show|cancel|watch`;
 //! - [`watch`]: how a job being waited for is shown ([`watch::JobView`]), by `job watch` and by
 //!   the commands that train (`extract`, `demo`);
 //! - [`score`], [`grad`], [`sample`]: the RewardService over `.npz` files, with what they share
 //!   in [`rewards`] (input flags, the request loop, the `--out` archive);
+//! - [`relabel`]: `relabel` (a trajectory file's rewards replaced by a reward model's, the
+//!   originals kept);
 //! - [`latents`]: `encode` and `decode` (an `.npz` of images to latents through an
 //!   autoencoder model, and back);
 //! - [`eval`]: `eval discriminate|heatmap` and `job plot`;

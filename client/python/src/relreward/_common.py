@@ -115,7 +115,12 @@ class TLS:
 
 def channel_args(endpoint: str, tls: TLS | bool | None) -> tuple[str, grpc.ChannelCredentials | None, list]:
     """(target, credentials or None for plaintext, channel options) for an endpoint such as
-    ``127.0.0.1:50051``, ``http://host:port`` or ``https://host:port``."""
+    ``127.0.0.1:50051``, ``http://host:port`` or ``https://host:port``; InvalidInput naming
+    ``endpoint`` for anything but a non-empty string (``Client(None)``)."""
+    if not isinstance(endpoint, str) or not endpoint.strip():
+        raise InvalidInput(f"endpoint: {endpoint!r}"
+                           + ("" if isinstance(endpoint, str) else f" is {type(endpoint).__name__}, not a string")
+                           + "; expected host:port, http://host:port or https://host:port")
     https = endpoint.startswith("https://")
     target = endpoint.split("://", 1)[1] if "://" in endpoint else endpoint
     target = target.rstrip("/")
@@ -148,11 +153,12 @@ def health_status(raw: bytes) -> str:
     return {0: "UNKNOWN", 1: "SERVING", 2: "NOT_SERVING", 3: "SERVICE_UNKNOWN"}.get(status, "UNKNOWN")
 
 
-def units(u: str) -> reward_pb2.Units:
-    try:
+def units(u: str, name: str = "units") -> reward_pb2.Units:
+    """The wire's Units for ``u``, or InvalidInput naming ``name`` (``units`` or
+    ``gradient_units``): the names are exact, so ``"Raw"`` is refused, not guessed."""
+    if isinstance(u, str) and u in _UNITS:
         return _UNITS[u]
-    except KeyError:
-        raise ValueError(f"units {u!r}: expected 'raw' or 'normalized'") from None
+    raise InvalidInput(f"{name}: {u!r}; expected 'raw' or 'normalized'")
 
 
 _U32, U64 = (1 << 32) - 1, (1 << 64) - 1
@@ -230,7 +236,7 @@ def gradient_request(model: str, x: Any, t: Any, omega: float | None, input_unit
     req = _GradientRequest(request_id=request_id, model=model if type(model) is str else text("model", model),
                            x=_tensor.encode(x),
                            t=[t] if type(t) is int and 0 <= t <= _U32 else times(t),
-                           input_units=units(input_units), gradient_units=units(gradient_units))
+                           input_units=units(input_units), gradient_units=units(gradient_units, "gradient_units"))
     if scale_by_posterior_variance_of:
         req.scale_by_posterior_variance_of = text("scale_by_posterior_variance_of", scale_by_posterior_variance_of)
     if omega is not None:
@@ -246,8 +252,11 @@ def sample_request(model: str, reward_model: str | None, omega: float, n: int, s
                    n_guide_steps: int | None, t_stopgrad: int | None, scale_grad_by_std: bool,
                    conditions: Any, input_units: str, batch_size: int, prompts: Any = None,
                    guidance_scale: float | None = None, safety: Any = None) -> reward_pb2.SampleRequest:
+    count = unsigned("n", n)
+    if count < 1:  # proto3 sends 0 as "unset", which the server reads as its default, 1
+        raise InvalidInput(f"n: {count} is below 1; expected a positive number of samples")
     req = reward_pb2.SampleRequest(model=text("model", model), reward_model=text("reward_model", reward_model or ""),
-                                   omega=omega, n=unsigned("n", n), scale_grad_by_std=scale_grad_by_std,
+                                   omega=omega, n=count, scale_grad_by_std=scale_grad_by_std,
                                    input_units=units(input_units), batch_size=unsigned("batch_size", batch_size))
     for name, v, limit in (("seed", seed, U64), ("n_guide_steps", n_guide_steps, _U32),
                            ("t_stopgrad", t_stopgrad, _U32)):

@@ -1,4 +1,5 @@
-"""numpy <-> relreward.v1.Tensor, with at most one copy each way.
+"""numpy <-> relreward.v1.Tensor, with at most one copy each way (any array-like in; a torch
+tensor is detached and brought to the CPU first, ``host``).
 
 Encoding: ``np.ascontiguousarray(x, dtype='<f4').tobytes()`` copies the array once into the
 message (no copy happens for the conversion when ``x`` is already C-contiguous little-endian
@@ -51,9 +52,18 @@ _FLOAT32 = tensor_pb2.DTYPE_FLOAT32
 _Tensor = tensor_pb2.Tensor
 
 
+def host(x: Any) -> Any:
+    """``x``, or a torch tensor detached from autograd and brought to the CPU: numpy cannot read
+    one that requires grad or lives on a GPU. torch is never imported here; a tensor is told by
+    its type's module."""
+    if type(x) is not np.ndarray and type(x).__module__.startswith("torch") and hasattr(x, "detach"):
+        return x.detach().cpu()
+    return x
+
+
 def as_f32(x: Any) -> np.ndarray:
     """``x`` as a C-contiguous little-endian float32 array (no copy when it already is one)."""
-    return np.ascontiguousarray(x, dtype=_F32)
+    return np.ascontiguousarray(host(x), dtype=_F32)
 
 
 def encode(x: Any, dtype: Any = None) -> tensor_pb2.Tensor:
@@ -62,6 +72,7 @@ def encode(x: Any, dtype: Any = None) -> tensor_pb2.Tensor:
     Float inputs other than float64 become float32; float64 stays float64 only when ``dtype``
     asks for it. One copy: the array's bytes into the message.
     """
+    x = host(x)
     if dtype is None:
         arr = np.ascontiguousarray(x, dtype=_F32)
         return _Tensor(shape=arr.shape, dtype=_FLOAT32, data=arr.tobytes())

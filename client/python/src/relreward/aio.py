@@ -345,19 +345,35 @@ class AsyncGradientStream:
     async def submit(self, x: Any, t: Any, *, model: str | None = None, omega: float | None = None,
                      units: str | None = None, gradient_units: str | None = None,
                      scale_by_posterior_variance_of: str | None = None) -> "asyncio.Future[GradientResult]":
-        """Sends a request; returns a future of its ``GradientResult``."""
+        """Sends a request; returns a future of its ``GradientResult``. An argument refused
+        before sending raises InvalidInput here, and leaves no future behind."""
         if self._call is None:
             raise ValueError("use the stream as `async with client.gradient_stream(model) as s`")
         if self._failed is not None:
             raise self._failed
         d_omega, d_units, d_gunits, d_scale = self._defaults
-        self._next_id += 1
-        rid = self._next_id
+        rid = self._next_id + 1
+        # The request first: a refusal (a bad t, units) must come before a future is registered,
+        # or the reader would later fail that orphan and asyncio log its unretrieved exception.
+        request = c.gradient_request(model or self.model, x, t, d_omega if omega is None else omega,
+                                     units or d_units, gradient_units or d_gunits,
+                                     scale_by_posterior_variance_of or d_scale, rid)
+        self._next_id = rid
         fut: asyncio.Future = asyncio.get_running_loop().create_future()
         self._pending[rid] = fut
-        await self._call.write(c.gradient_request(model or self.model, x, t, d_omega if omega is None else omega,
-                                                  units or d_units, gradient_units or d_gunits,
-                                                  scale_by_posterior_variance_of or d_scale, rid))
+        try:
+            await self._call.write(request)
+        except BaseException as e:
+            # Not sent: this future is nobody's (the reader may already have failed it).
+            self._pending.pop(rid, None)
+            if fut.done():
+                if not fut.cancelled():
+                    fut.exception()  # retrieved: the error is raised below instead
+            else:
+                fut.cancel()
+            if isinstance(e, grpc.RpcError):
+                raise from_rpc_error(e) from None
+            raise
         return fut
 
     async def gradient(self, x: Any, t: Any, **kwargs: Any) -> GradientResult:

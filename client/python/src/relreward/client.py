@@ -28,7 +28,8 @@ class Client:
     """One connection to a relreward server, with typed access to every relreward.v1 service.
 
     ``endpoint``: ``host:port`` or ``http://host:port`` (plaintext), ``https://host:port``
-    (TLS; verified against the system's roots unless ``tls`` gives a CA). ``token``: sent as
+    (TLS; verified against the system's roots unless ``tls`` gives a CA); anything but a
+    non-empty string raises InvalidInput naming ``endpoint``. ``token``: sent as
     ``authorization: Bearer <token>`` with every call (servers with access control). ``tls``:
     ``True`` or a :class:`relreward.TLS` (CA, client certificate for mutual TLS, server name).
 
@@ -366,7 +367,8 @@ class Client:
         """rho(x, t) per item.
 
         ``x``: ``[B, H, D]`` trajectories (rows ``[action | observation]``) or ``[B, *shape]``
-        samples, any float array (sent as float32); ``t``: diffusion step, one for all or one
+        samples, any float array-like (sent as float32; a torch tensor's values, detached,
+        even one that requires grad or lives on a GPU); ``t``: diffusion step, one for all or one
         per item (``[B]``), in ``[0, T)``; ``units``: "raw" (the dataset's units) or
         "normalized". Returns float32 ``rewards`` ``[B]``, and ``per_window`` ``[B, H / h]`` /
         ``per_step`` ``[B, H]`` when asked for (windowed rewards). Retried on connection failures.
@@ -410,7 +412,8 @@ class Client:
                     safety: Any = None) -> Iterator[Sample]:
         """DDPM (or DDIM) samples (:class:`relreward.Sample`) from diffusion model ``model`` as each
         finishes (any order; see ``Sample.index``), guided by ``reward_model`` with scale
-        ``omega`` (0: unguided, rewards still reported). ``conditions``: ``{horizon index:
+        ``omega`` (0: unguided, rewards still reported); ``n`` >= 1 samples (``n=0`` raises
+        InvalidInput naming ``n``: the wire reads 0 as its default, 1). ``conditions``: ``{horizon index:
         state [obs_dim]}`` inpainted after every step, in ``units``; ``n_guide_steps`` gradient
         steps per denoising step; no guidance below ``t_stopgrad``; ``seed`` makes it
         reproducible. ``sampler="ddim"`` samples with DDIM as diffusers' DDIMScheduler does

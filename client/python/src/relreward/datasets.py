@@ -5,18 +5,27 @@ A **trajectories** dataset holds ``observations`` ``[N, obs_dim]`` and ``actions
 ``episode_starts`` ``[N]``. Observations and actions of any integer or float dtype (float16
 included, either byte order) are read as float32 and sent as float32, as the Rust readers do;
 ``[N]`` is read as ``[N, 1]`` and ``[N, a, b, ...]`` flattened row-major to ``[N, a*b*...]``;
-a value that is not finite is refused naming the key and its row. Flags are sent as bool: a
-bool array, or integers/floats that are all 0 or 1 (any other value is refused naming the key
-and its row). D4RL's keys map directly; Minari's flat names ``terminations`` /
-``truncations`` are sent as ``terminals`` / ``timeouts``. Every other key (``rewards``,
-``infos/...``, ``next_observations``) is not part of a dataset and is left out (listed in
-:attr:`UploadSource.ignored`), as the CLI does.
+a value that is not finite as float32 (NaN, an infinity, or beyond float32's range) is refused
+naming the key, its value, row and coordinate in the Rust reader's words (``'observations':
+value NaN at row 13, coordinate 1 is not finite``). A float of another size than 2, 4 or 8
+bytes (``np.longdouble``) is refused as the Rust readers refuse it, and so is a dataset of no
+rows (N = 0). Flags are sent as bool: a bool array, or integers/floats that are all 0 or 1 (any
+other value is refused naming the key and its row). D4RL's keys map directly; Minari's flat
+names ``terminations`` / ``truncations`` are sent as ``terminals`` / ``timeouts``. Every other
+key (``rewards``, ``infos/...``, ``next_observations``) is not part of a dataset and is left out
+(listed in :attr:`UploadSource.ignored`), as the CLI does.
 
 A **samples** dataset holds one array ``samples`` ``[N, ...]`` (float32 or float64, at least
 2-D, sent in its own dtype), e.g. diffusion latents ``[N, C, H, W]``.
 
 A path is read by its signature (first bytes), not its suffix: HDF5 (``\\x89HDF``), a zip
-archive (``.npz``), an ``.npy`` array (``\\x93NUMPY``), or a Minari dataset directory.
+archive (``.npz``), an ``.npy`` array (``\\x93NUMPY``), or a Minari dataset directory. An
+``.npz`` archive's arrays are loaded only when taken (an array left out is never read); one
+that cannot be read (a truncated or corrupt archive) or holds pickled Python objects (an
+object array) under a key that is taken is refused naming the file and the key, with the
+Rust reader's words. An HDF5 file is always trajectories (D4RL keys or Minari), as for the CLI:
+one without a top-level ``observations`` is refused, never uploaded as samples; soft links are
+followed (a link named ``observations`` is the dataset it points to).
 
 Minari *episodes* (``observations`` with one more row than ``actions``: the state after the
 last action) are converted by :func:`from_minari_episodes`; Minari's on-disk layout
@@ -35,8 +44,17 @@ The rules shared with the Rust toolkit (``relreward_toolkit::episodes``, docs/da
   too (the server cuts at any of them).
 - Dict observations (Minari) are flattened like gymnasium's ``spaces.flatten`` for a Dict
   built from a plain dict: keys sorted, nested dicts recursively, each entry's trailing
-  dimensions row-major.
-- Minari episodes without actions are skipped; the last observation of each episode is
+  dimensions row-major. A Tuple space's parts, which Minari stores as ``_index_0``,
+  ``_index_1``, ..., go by their number (``_index_10`` after ``_index_9``) before any other
+  key (:func:`_space_order`). Values that are not finite are named in the part they are in
+  (``'episode_0/observations/achieved_goal'``).
+- Minari JPEG frames: when ``metadata.json`` beside ``main_data.hdf5`` says
+  ``"jpeg_encoding": true`` (minari 0.5's DataCollector default for uint8 images), an
+  observations dataset (or part of an observations group) of uint8 that is variable-length or
+  whose data begins with JPEG's signature ``FF D8 FF`` is refused naming the place and the
+  setting; other observations under that metadata are read as usual.
+- Minari episodes without actions are skipped (in a file, without reading their
+  observations, as the Rust reader skips them); the last observation of each episode is
   dropped before anything is checked, so a non-finite value there does not matter.
 - A D4RL-layout HDF5 file needs ``observations`` and ``actions`` as top-level datasets: a group
   there (dict observations) is refused as the Rust reader refuses it.
@@ -49,9 +67,13 @@ loaded whole.
 
 from __future__ import annotations
 
+import json
+import math
 import os
 import pathlib
 import stat
+import zipfile
+import zlib
 from dataclasses import dataclass, field
 from typing import Any, Iterable, Mapping, Sequence
 
@@ -182,6 +204,24 @@ def _array_like(a: Any) -> Any:
     return np.asarray(a)
 
 
+def _is_h5py(a: Any) -> bool:
+    return type(a).__module__.startswith("h5py")
+
+
+def _check_float_size(a: Any, shown: str) -> None:
+    """Refuses a float of another size than 2, 4 or 8 bytes (``np.longdouble``, ``'<f16'``) as the
+    Rust reader of its form does: an HDF5 dataset in the HDF5 reader's words, anything else (an
+    ``.npz`` member, an array) in the ``.npy`` reader's, naming the file's key."""
+    d = np.dtype(a.dtype)
+    if d.kind != "f" or d.itemsize in (2, 4, 8):
+        return
+    if _is_h5py(a):
+        raise ValueError(f"{shown} holds a {d.itemsize}-byte float; expected integers, floats or bool")
+    key = shown.partition(" (sent as ")[0]
+    raise ValueError(f"array {key}: dtype '{d.str}' is a {d.itemsize}-byte float, which is not supported; "
+                     "expected integers or floats of 1, 2, 4 or 8 bytes")
+
+
 def _value_dims(a: Any, shown: str) -> tuple[int, int]:
     """``(N, dim)`` of a values array (observations/actions) by the module's rule: any integer
     or float dtype; ``[N]`` is ``[N, 1]``, ``[N, a, b, ...]`` is ``[N, a*b*...]``."""
@@ -190,35 +230,58 @@ def _value_dims(a: Any, shown: str) -> tuple[int, int]:
         raise ValueError(f"{shown} is bool; expected numbers (any integer or float type, read as float32)")
     if d.kind not in "iuf":
         raise ValueError(f"{shown} has dtype {d}; expected numbers (any integer or float type, read as float32)")
+    _check_float_size(a, shown)
     shape = tuple(int(s) for s in a.shape)
     if not shape:
         raise ValueError(f"{shown} is a scalar; expected [N, dim]")
     return shape[0], int(np.prod(shape[1:], dtype=np.int64))
 
 
-def _check_finite(out: np.ndarray, raw: Any, shown: str, first_row: int = 0) -> None:
-    """ValueError naming ``shown`` and the first row of ``out`` (float32 ``[n, d]``) holding a
-    value that is not finite; ``raw`` is what it was converted from (same rows)."""
+# The Rust readers' words for a finite value that float32 cannot hold (relreward_proto::tensor).
+_OUTSIDE_F32 = "outside float32's range (about 3.4e38), the precision models compute in"
+
+
+def _place(row: int, col: int, trailing: tuple[int, ...]) -> str:
+    """Where a value is, as the Rust readers say it (``values::position``): ``row R, coordinate
+    C`` for ``[N]`` and ``[N, d]``; beyond 2-D the flattened (row-major) coordinate within the
+    row: ``row R, flattened coordinate C of [a, b]``."""
+    if len(trailing) <= 1:
+        return f"row {row}, coordinate {col}"
+    return f"row {row}, flattened coordinate {col} of [{', '.join(str(int(t)) for t in trailing)}]"
+
+
+def _not_f32(shown: str, value: float, place: str) -> ValueError:
+    """The refusal of a value that is not finite as float32, in the Rust readers' words
+    (``values::to_f32``): the value as Rust prints an f64 (``NaN``, ``inf``, ``-inf``; one beyond
+    float32's range in shortest exponent form, ``1e300``)."""
+    if math.isfinite(value):
+        mantissa, _, exponent = np.format_float_scientific(value, unique=True, trim="-").partition("e")
+        return ValueError(f"{shown}: value {mantissa}e{int(exponent)} at {place} is {_OUTSIDE_F32}")
+    text = "NaN" if math.isnan(value) else ("inf" if value > 0 else "-inf")
+    return ValueError(f"{shown}: value {text} at {place} is not finite")
+
+
+def _check_finite(out: np.ndarray, raw: np.ndarray, shown: str, first_row: int, trailing: tuple[int, ...]) -> None:
+    """ValueError naming ``shown``, the value, its row (``first_row`` + its row in ``out``) and
+    coordinate (within a row of ``trailing`` dimensions), for the first value of ``out`` (float32
+    ``[n, d]``) that is not finite; ``raw`` is what it was converted from (``[n, d]``, its dtype)."""
     step = max(1, _CHECK_ELEMENTS // max(1, out.shape[1] if out.ndim == 2 else 1))
     for start in range(0, out.shape[0], step):
         bad = ~np.isfinite(out[start:start + step])
         if bad.any():
-            r = start + int(np.flatnonzero(bad.reshape(bad.shape[0], -1).any(axis=1))[0])
-            src = np.asarray(raw[r]).reshape(-1)
-            if np.dtype(src.dtype).kind == "f" and np.isfinite(src).all():
-                raise ValueError(f"{shown} holds a value beyond float32's range at row {first_row + r} "
-                                 "(values are read as float32)")
-            raise ValueError(f"{shown} holds a value that is not finite at row {first_row + r}")
+            r, c = divmod(int(np.flatnonzero(bad.reshape(-1))[0]), bad.shape[1])
+            raise _not_f32(shown, float(raw[start + r, c]), _place(first_row + start + r, c, trailing))
 
 
 def _to_f32(part: Any, rows: int, dim: int, shown: str, first_row: int = 0) -> np.ndarray:
-    """``part`` as C-contiguous little-endian float32 ``[rows, dim]``, checked finite (no copy
-    when it already is one)."""
-    raw = np.asarray(part).reshape(rows, dim)
+    """``part`` (rows as stored, ``[rows, ...]``) as C-contiguous little-endian float32 ``[rows,
+    dim]``, checked finite (no copy when it already is one)."""
+    stored = np.asarray(part)
+    raw = stored.reshape(rows, dim)
     with np.errstate(over="ignore", invalid="ignore"):  # overflow is reported below, naming the row
         out = np.ascontiguousarray(raw, dtype=_F32)
     if np.dtype(raw.dtype).kind == "f":
-        _check_finite(out, raw, shown, first_row)
+        _check_finite(out, raw, shown, first_row, tuple(stored.shape[1:]))
     return out
 
 
@@ -272,6 +335,7 @@ def _flags(a: Any, shown: str) -> np.ndarray:
     d = np.dtype(a.dtype)
     if d.kind not in "biuf":
         raise ValueError(f"{shown} has dtype {d}; episode flags must be bool, or integers or floats that are 0 or 1")
+    _check_float_size(a, shown)
     if len(a.shape) != 1:
         raise ValueError(f"{shown} has shape {tuple(a.shape)}; episode flags must be 1-D [N]")
     v = np.asarray(a if isinstance(a, np.ndarray) else a[()])
@@ -286,7 +350,7 @@ def _flags(a: Any, shown: str) -> np.ndarray:
 
 def trajectories(data: Mapping[str, Any]) -> UploadSource:
     """A trajectories upload from a D4RL-style mapping (a dict, ``np.load(...)`` of an
-    ``.npz``, an ``h5py.File``). Checks shapes, dtypes, flags and (for in-memory arrays)
+    ``.npz``, an ``h5py.File``). Checks shapes, dtypes, flags, N > 0 and (for in-memory arrays)
     finiteness locally (ValueError naming the key) so a bad input fails before anything is
     sent; ``observations`` / ``actions`` are sent as float32 ``[N, dim]``, flags as bool."""
     keys = list(data.keys())
@@ -312,6 +376,8 @@ def trajectories(data: Mapping[str, Any]) -> UploadSource:
     for name, a in arrays[1:]:
         if a.shape[0] != rows:
             raise ValueError(f"'{name}' has {a.shape[0]} rows but 'observations' has {rows}")
+    if rows == 0:  # the Rust readers' words; the server would refuse it only after the upload
+        raise ValueError("'observations' has no rows (N = 0); a dataset needs at least one")
     used = {key for _, key in chosen}
     starts = episode_starts_flags(int(rows), data.get("episode_starts"), data.get("episode_lengths"))
     if starts is not None:
@@ -359,7 +425,7 @@ def _minari_flat(episodes: Iterable[tuple[str, Any]]) -> dict[str, np.ndarray]:
             if key == "actions":
                 raise ValueError(f"'{label}/actions' is a dict (dict actions are not supported)")
             raise ValueError(f"'{label}/{key}' is a dict; flatten it to an array first")
-        return np.asarray(v)
+        return _array_like(v)  # an h5py dataset stays one: a refusal then speaks as the HDF5 reader
 
     obs, act, term, trunc, starts = [], [], [], [], []
     dims: tuple[int, int, str] | None = None
@@ -421,14 +487,30 @@ def from_minari_episodes(episodes: Iterable[Any]) -> dict[str, np.ndarray]:
     return _minari_flat((f"episode[{i}]", ep) for i, ep in enumerate(episodes))
 
 
-def _flatten_dict(value: Any, where: str) -> np.ndarray:
-    """A dataset as float32 ``[N, d]``, or a dict/group flattened by gymnasium's rule (sorted
-    keys, recursively)."""
+def _space_order(keys: Iterable[str]) -> list[str]:
+    """The members of an observations group in gymnasium's ``spaces.flatten`` order (the Rust
+    reader's ``flatten_order``): a Tuple's parts, which Minari stores as ``_index_<n>`` (n in
+    decimal digits), by their number (``_index_10`` after ``_index_9``) and before any other
+    key; a Dict's keys as strings."""
+
+    def rank(key: str) -> tuple[int, int, str]:
+        n = key[len("_index_"):] if key.startswith("_index_") else ""
+        if n and n.isascii() and n.isdigit() and int(n) < 1 << 64:
+            return (0, int(n), key)
+        return (1, 0, key)
+
+    return sorted(keys, key=rank)
+
+
+def _flatten_dict(value: Any, where: str, keep: int | None = None) -> np.ndarray:
+    """A dataset as float32 ``[N, d]``, or a dict/group flattened by gymnasium's rule (keys in
+    :func:`_space_order`, recursively). Values must be finite as float32 in the first ``keep``
+    rows (all when None), each refusal naming the dataset it is in, as the Rust reader's."""
     if _is_group(value):
-        keys = sorted(value.keys())
+        keys = _space_order(value.keys())
         if not keys:
             raise ValueError(f"'{where}' is an empty group")
-        parts = [_flatten_dict(value[k], f"{where}/{k}") for k in keys]
+        parts = [_flatten_dict(value[k], f"{where}/{k}", keep) for k in keys]
         n = parts[0].shape[0]
         for k, p in zip(keys, parts):
             if p.shape[0] != n:
@@ -436,7 +518,49 @@ def _flatten_dict(value: Any, where: str) -> np.ndarray:
         return np.concatenate(parts, axis=1)
     rows, dim = _value_dims(value, f"'{where}'")
     a = np.asarray(value[()] if not isinstance(value, np.ndarray) else value)
-    return np.ascontiguousarray(a.reshape(rows, dim), dtype=_F32)
+    kept = rows if keep is None else min(keep, rows)
+    with np.errstate(over="ignore", invalid="ignore"):  # the rows after ``keep`` are dropped unchecked
+        rest = np.asarray(a[kept:], dtype=_F32).reshape(rows - kept, dim)
+    return np.concatenate([_to_f32(a[:kept], kept, dim, f"'{where}'"), rest])
+
+
+_JPEG_SIGNATURE = b"\xff\xd8\xff"
+# What the refusal of JPEG frames says after its place (the Rust reader's JPEG_ENCODED).
+_JPEG_ENCODED = ("JPEG-encoded by Minari's DataCollector (data/metadata.json: jpeg_encoding = true); relreward "
+                 "reads raw arrays: record with DataCollector(..., jpeg_encoding=False), or decode the frames "
+                 "into an .npz")
+
+
+def _jpeg_encoding(main_data: pathlib.Path) -> bool:
+    """Whether ``metadata.json`` beside ``main_data.hdf5`` says ``"jpeg_encoding": true`` (minari
+    0.5's DataCollector JPEG-encodes uint8 image observations of at least 32 x 32 by default).
+    Absent, unreadable or other metadata says no: the data is read as it is."""
+    try:
+        meta = json.loads((main_data.parent / "metadata.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return False
+    return isinstance(meta, dict) and meta.get("jpeg_encoding") is True
+
+
+def _refuse_jpeg(value: Any, where: str) -> None:
+    """Refuses JPEG frames in an observations dataset or group (every part, in
+    :func:`_space_order`): uint8 of variable length, or uint8 whose data begins with JPEG's
+    signature ``FF D8 FF``. Only asked when the metadata says ``jpeg_encoding`` (module docs)."""
+    if _is_group(value):
+        for k in _space_order(value.keys()):
+            _refuse_jpeg(value[k], f"{where}/{k}")
+        return
+    import h5py
+
+    d = np.dtype(value.dtype)
+    base = h5py.check_vlen_dtype(d)
+    if base is not None:
+        frames = np.dtype(base) == np.uint8
+    else:
+        first = np.asarray(value[:3]) if len(value.shape) else np.zeros(0, np.uint8)  # 3 rows hold 3 bytes
+        frames = d == np.uint8 and first.reshape(-1)[:3].tobytes() == _JPEG_SIGNATURE
+    if frames:
+        raise ValueError(f"'{where}' is {_JPEG_ENCODED}")
 
 
 def _minari_file(path: pathlib.Path) -> pathlib.Path | None:
@@ -487,8 +611,11 @@ def _episode_groups(root: Any) -> list[tuple[int, str]]:
 def from_minari_hdf5(path: str | os.PathLike) -> dict[str, np.ndarray]:
     """A Minari dataset on disk (``main_data.hdf5``, or its dataset directory) as a D4RL-style
     dict for :func:`trajectories`: episodes in id order (``episode_2`` before ``episode_10``),
-    dict observations flattened by the module's rule, then :func:`from_minari_episodes`'s rule
-    (empty episodes skipped, the last observation of each dropped)."""
+    dict and tuple observations flattened by the module's rule, then :func:`from_minari_episodes`'s
+    rule (empty episodes skipped, the last observation of each dropped). Each episode is read
+    in the Rust reader's order: its actions (every row checked), then, unless it has none, its
+    observations (JPEG frames refused when ``metadata.json`` says ``jpeg_encoding``; the rows
+    kept checked), so both readers refuse a file for the same first fault."""
     import h5py
 
     p = pathlib.Path(path)
@@ -497,6 +624,7 @@ def from_minari_hdf5(path: str | os.PathLike) -> dict[str, np.ndarray]:
         if found is None:
             raise ValueError(f"{path}: a directory without data/main_data.hdf5 (not a Minari dataset)")
         p = found
+    jpeg = _jpeg_encoding(p)
     with h5py.File(p, "r") as f:
         try:
             names = _episode_groups(f)
@@ -511,12 +639,20 @@ def from_minari_hdf5(path: str | os.PathLike) -> dict[str, np.ndarray]:
                 for key in ("observations", "terminations", "truncations"):
                     if key not in g:
                         raise ValueError(f"no '{name}/{key}'")
+                steps, act_dim = _value_dims(g["actions"], f"'{name}/actions'")
+                actions = _to_f32(g["actions"][()], steps, act_dim, f"'{name}/actions'")
+                if steps == 0:
+                    continue  # no action, so no row: its observations (the first state only) are not read
+                if jpeg:
+                    _refuse_jpeg(g["observations"], f"{name}/observations")
                 episodes.append((name, {
-                    "observations": _flatten_dict(g["observations"], f"{name}/observations"),
-                    "actions": np.asarray(g["actions"][()]),
-                    "terminations": np.asarray(g["terminations"][()]),
-                    "truncations": np.asarray(g["truncations"][()]),
+                    "observations": _flatten_dict(g["observations"], f"{name}/observations", steps),
+                    "actions": actions,
+                    "terminations": g["terminations"],
+                    "truncations": g["truncations"],
                 }))
+            if not episodes:
+                raise ValueError("every episode is empty (no actions)")
             return _minari_flat(episodes)
         except ValueError as e:
             raise ValueError(f"{p}: {e}") from None
@@ -550,27 +686,49 @@ def _form_of(path: pathlib.Path) -> str:
 
 
 def _hdf5_arrays(f: Any) -> dict[str, Any]:
-    """The top-level datasets of an HDF5 file (groups such as ``infos/`` listed by path)."""
+    """The datasets of an HDF5 file by path (top-level ones by name, those of groups such as
+    ``infos/`` by their path). Soft links are followed, as the Rust reader follows them: a link
+    is the dataset (or group) it points to, under the link's name; a dangling one is no member.
+    External links are not followed, and each group is visited once (links may form cycles)."""
+    import h5py
+
     out: dict[str, Any] = {}
+    seen: set[Any] = set()
 
-    def visit(name: str, obj: Any) -> None:
-        if hasattr(obj, "shape") and hasattr(obj, "dtype"):
-            out[name] = obj
+    def walk(group: Any, prefix: str) -> None:
+        for name in group.keys():
+            if isinstance(group.get(name, getlink=True), h5py.ExternalLink):
+                continue
+            obj = group.get(name)  # follows a soft link; None when it dangles
+            if isinstance(obj, h5py.Dataset):
+                out[prefix + name] = obj
+            elif isinstance(obj, h5py.Group) and obj.id not in seen:
+                seen.add(obj.id)
+                walk(obj, f"{prefix}{name}/")
 
-    f.visititems(visit)
+    seen.add(f.id)
+    walk(f, "")
     return out
+
+
+# The CLI's refusal of ``--kind samples`` / ``--key`` for these forms, in this package's words.
+_TRAJECTORIES_ONLY = "kind 'samples' / key: an HDF5 file or Minari dataset uploads as trajectories"
 
 
 def _open_hdf5(path: pathlib.Path, kind: str | None, key: str | None) -> tuple[str, Any]:
     """``("minari", None)`` for a Minari ``main_data.hdf5`` (by the rule of the Rust reader: no
     top-level ``observations`` dataset and some ``episode_*`` group), else ``("arrays", file)``
-    with the file open. A trajectories upload (asked for, or a file with a top-level
-    ``observations``) needs ``observations`` and ``actions`` as top-level datasets, as D4RL
-    stores them: a group there (dict observations) is refused as the Rust reader refuses it."""
+    with the file open. An HDF5 file is trajectories, whatever it holds (the CLI's rule): ``kind``
+    ``"samples"`` or a ``key`` is refused, and a D4RL-layout file needs ``observations`` and
+    ``actions`` as top-level datasets, as D4RL stores them: a file without them (one holding only
+    ``obs``, or ``samples``) is refused naming what it holds, never uploaded as samples, and a
+    group there (dict observations) is refused as the Rust reader refuses it."""
     try:
         import h5py
     except ImportError:
         raise ImportError("reading HDF5 needs h5py: pip install 'relreward[hdf5]'") from None
+    if kind == "samples" or key is not None:
+        raise ValueError(_TRAJECTORIES_ONLY)
     f = h5py.File(path, "r")
     try:
         members = {k: f.get(k) for k in f.keys()}
@@ -579,16 +737,66 @@ def _open_hdf5(path: pathlib.Path, kind: str | None, key: str | None) -> tuple[s
         if "observations" not in datasets and any(g.startswith("episode_") for g in groups):
             f.close()
             return "minari", None
-        if kind == "trajectories" or (kind is None and key is None and "observations" in members):
-            for required in ("observations", "actions"):
-                if required not in datasets:
-                    held = [f"'{d}'" for d in datasets] + [f"group '{g}'" for g in groups]
-                    raise ValueError(f"{path}: no '{required}' dataset at the top level (it holds "
-                                     f"{', '.join(held) or 'nothing'})")
+        for required in ("observations", "actions"):
+            if required not in datasets:
+                held = [f"'{d}'" for d in datasets] + [f"group '{g}'" for g in groups]
+                raise ValueError(f"{path}: no '{required}' dataset at the top level (it holds "
+                                 f"{', '.join(held) or 'nothing'})")
         return "arrays", f
     except BaseException:
         f.close()
         raise
+
+
+def _npy_dtype(fp: Any) -> np.dtype | None:
+    """The dtype an ``.npy`` header declares (``fp`` at its first byte), or None when it is no
+    header numpy reads (numpy's own load then says what is wrong)."""
+    fmt = np.lib.format
+    try:
+        version = fmt.read_magic(fp)
+        read = fmt.read_array_header_1_0 if version == (1, 0) else fmt.read_array_header_2_0
+        return np.dtype(read(fp)[2])
+    except (ValueError, OSError, EOFError, SyntaxError, TypeError):
+        return None
+
+
+def _refuse_object_array(dtype: np.dtype | None, key: str) -> None:
+    """An object array (pickled Python objects) refused naming its key in the Rust reader's
+    words, where numpy would say only that ``allow_pickle`` is off."""
+    if dtype is not None and dtype.hasobject and dtype.names is None:
+        raise ValueError(f"array '{key}': dtype '{dtype.str}' is an object array (pickled Python objects), which is "
+                         "not supported; expected integers, floats or bool")
+
+
+class _NpzArrays(Mapping):
+    """The arrays of an open ``np.load`` archive by key, each loaded when it is asked for, so an
+    array the upload does not take (``rewards``, ``infos``) is never read, as the Rust reader
+    reads only the arrays it takes. An object array, and a member that cannot be read (a corrupt
+    archive: bad CRC, a truncated member), are refused naming the key (ValueError, numpy's or
+    zipfile's error kept as its cause)."""
+
+    def __init__(self, npz: Any) -> None:
+        self.npz = npz
+
+    def __getitem__(self, key: str) -> np.ndarray:
+        if key not in self.npz.files:
+            raise KeyError(key)
+        member = f"{key}.npy" if f"{key}.npy" in self.npz.zip.namelist() else key
+        try:
+            with self.npz.zip.open(member) as fp:
+                _refuse_object_array(_npy_dtype(fp), key)
+            return self.npz[key]
+        except (zipfile.BadZipFile, zlib.error, EOFError) as e:
+            raise ValueError(f"array '{key}': cannot be read: {e}") from e
+
+    def __contains__(self, key: object) -> bool:
+        return key in self.npz.files
+
+    def __iter__(self) -> Any:
+        return iter(self.npz.files)
+
+    def __len__(self) -> int:
+        return len(self.npz.files)
 
 
 def source_of(data: Any, kind: str | None = None, key: str | None = None) -> tuple[UploadSource, Any]:
@@ -599,7 +807,10 @@ def source_of(data: Any, kind: str | None = None, key: str | None = None) -> tup
     (D4RL keys or a Minari ``main_data.hdf5``; needs h5py, ``pip install relreward[hdf5]``) or
     a Minari dataset directory. A file's form is told by its signature (first bytes), not its
     suffix. ``kind`` ("trajectories" or "samples") overrides the detection: a mapping holding
-    ``observations`` is trajectories, anything else samples.
+    ``observations`` is trajectories, anything else samples; an HDF5 file or a Minari dataset
+    is always trajectories (``kind="samples"`` or ``key`` is refused, as by the CLI).
+    A refusal reading a file is a ValueError naming the file (any error it came from kept as
+    its ``__cause__``).
     """
     closer: Any = None
     path: pathlib.Path | None = None
@@ -610,26 +821,40 @@ def source_of(data: Any, kind: str | None = None, key: str | None = None) -> tup
             form, closer = _open_hdf5(path, kind, key)
         if form in ("minari", "minari-dir"):
             if kind == "samples" or key is not None:
-                raise ValueError("a Minari dataset uploads as trajectories")
+                raise ValueError(_TRAJECTORIES_ONLY)
             return trajectories(from_minari_hdf5(path)), None
         if form == "arrays":
             data = _hdf5_arrays(closer)
         elif form == "npy":
+            with open(path, "rb") as fp:
+                try:
+                    _refuse_object_array(_npy_dtype(fp), path.stem)
+                except ValueError as e:
+                    raise ValueError(f"{path}: {e}") from None
             data = np.load(path, mmap_mode="r")
         else:
-            closer = np.load(path)
+            try:
+                closer = np.load(path)
+            except (zipfile.BadZipFile, EOFError) as e:
+                raise ValueError(f"{path}: not a readable .npz archive: {e}") from e
             data = closer
     try:
-        return _source_of_loaded(data, kind, key), closer
+        src = _source_of_loaded(data, kind, key)
+        for _, a in src.arrays:  # values read (and checked) later, by row ranges: their refusal names the file too
+            if path is not None and isinstance(a, _Float32Rows):
+                a.shown = f"{path}: {a.shown}"
+        return src, closer
     except BaseException as e:
         if closer is not None:
             closer.close()
         if path is not None and type(e) is ValueError:
-            raise ValueError(f"{path}: {e}") from None
+            raise ValueError(f"{path}: {e}") from e.__cause__
         raise
 
 
 def _source_of_loaded(data: Any, kind: str | None, key: str | None) -> UploadSource:
+    if isinstance(data, np.lib.npyio.NpzFile):  # an archive: arrays loaded only when taken, and checked
+        data = _NpzArrays(data)
     if isinstance(data, Mapping) or hasattr(data, "files"):
         mapping: Mapping[str, Any] = data if isinstance(data, Mapping) else {k: data[k] for k in data.files}
         detected = "trajectories" if "observations" in mapping and key is None else "samples"
@@ -641,7 +866,9 @@ def _source_of_loaded(data: Any, kind: str | None, key: str | None) -> UploadSou
         if kind != "samples":
             raise ValueError(f"kind {kind!r}: expected 'trajectories' or 'samples'")
         names = list(mapping.keys())
-        pick = key or ("samples" if "samples" in mapping else (names[0] if len(names) == 1 else None))
+        # Labels travel beside the samples, so they do not count as a second candidate.
+        candidates = [k for k in names if k != "labels"]
+        pick = key or ("samples" if "samples" in mapping else (candidates[0] if len(candidates) == 1 else None))
         if pick is None or pick not in mapping:
             raise ValueError(f"which array? pass key= (the input holds {', '.join(map(repr, names))})")
         # A "labels" array beside the samples travels with them (class-conditional training).

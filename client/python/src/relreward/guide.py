@@ -10,7 +10,9 @@ trained ``ValueGuide(value_function)`` for a relreward reward is one line::
 
 It keeps one GradientStream open (the request of every step goes over it), accepts numpy
 arrays or torch tensors and returns the same kind (a torch tensor on the input's device and
-dtype). Units are normalized on both sides, as in Diffuser.
+dtype). Units are normalized on both sides, as in Diffuser. When the stream's call fails as a
+whole (the server restarted, the connection dropped), that step raises the failure and the
+guide drops the stream, so the next step opens a new one.
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ from typing import Any
 import numpy as np
 
 from relreward.client import Client, GradientStream
+from relreward.errors import RelrewardError
 
 
 def _is_torch(x: Any) -> bool:
@@ -64,8 +67,17 @@ class RewardGuide:
         steps ``t`` (an int or ``[B]``); torch in, torch out (on ``x``'s device and dtype).
         Both are writable arrays the caller owns (unlike the client's read-only views), so a
         sampler may edit them in place."""
-        result = self.stream.gradient(self._numpy(x), self._numpy(t).astype(np.int64).reshape(-1)
-                                      if not isinstance(t, (int, np.integer)) else int(t))
+        stream = self.stream
+        try:
+            result = stream.gradient(self._numpy(x), self._numpy(t).astype(np.int64).reshape(-1)
+                                     if not isinstance(t, (int, np.integer)) else int(t))
+        except RelrewardError:
+            # A failure of the whole call stays with its stream (every later request on it
+            # raises it): drop that stream so the next step opens a new one. A request refused
+            # on its own (a bad t, a server's per-request error) leaves the stream as it is.
+            if stream._failed is not None and self._stream is stream:
+                self.close()
+            raise
         # The client's arrays are read-only views of the response bytes; Diffuser's sampler edits
         # what the guide returns in place (``grad[t < t_stopgrad] = 0``), so hand out owned,
         # writable copies (torch.from_numpy also warns on a read-only array).
@@ -83,7 +95,8 @@ class RewardGuide:
         return self.gradients(x, cond, t)[0]
 
     def close(self) -> None:
-        """Closes the stream (a new one opens on the next call)."""
+        """Closes the stream (a new one opens on the next call; the guide does this itself
+        after the stream's call failed)."""
         if self._stream is not None:
             self._stream.close()
             self._stream = None

@@ -27,7 +27,10 @@ non-windowed rewards.)
 ``.npz`` with D4RL keys, a D4RL-layout HDF5 file, a Minari ``main_data.hdf5``, or a Minari
 dataset directory. The output has the input's form; everything but ``rewards`` is copied
 unchanged (HDF5 objects with their attributes, dtypes and filters; ``.npz`` members byte for
-byte once extracted; a Minari directory's other files). ``rewards`` becomes float32 ``[N]``
+byte once extracted; a Minari directory's other files), except a Minari directory's
+``metadata.json`` (beside ``main_data.hdf5``): its ``dataset_id`` becomes the output's id as
+Minari derives it (:func:`_minari_id`) and ``dataset_size`` is measured again; every other key
+is kept as it was. ``rewards`` becomes float32 ``[N]``
 (per Minari episode ``[T]``); the input's ``rewards`` is kept as ``rewards_original`` beside it,
 unless the input already holds a ``rewards_original`` (a relabelled file relabelled again:
 the first original stays, the previous relabelling is dropped). HDF5 ``rewards`` carry the
@@ -38,13 +41,15 @@ ranges; an ``.npz`` or Minari file in memory), plus ``batch`` items ``[H, D]`` a
 the float32 rewards; never all ``[N, H, D]`` windows.
 
 Everything that can be refused is refused before anything is written (InvalidInput naming
-``src``, ``dst``, ``model``, ``t`` or ``batch``), and the output is written to a temporary
+``src``, ``dst``, ``model``, ``t`` or ``batch``; a Minari ``metadata.json`` that is not a JSON
+object is refused naming ``src``), and the output is written to a temporary
 name beside ``dst`` and renamed into place once complete: a failure at any point, a server
 error during scoring included, leaves no ``dst``.
 """
 
 from __future__ import annotations
 
+import json
 import os
 import pathlib
 import secrets
@@ -256,6 +261,98 @@ def _form(path: pathlib.Path) -> str:
     return form
 
 
+#: Minari's metadata file, beside ``main_data.hdf5`` in the dataset's ``data`` folder.
+METADATA = "metadata.json"
+
+
+@dataclass(frozen=True)
+class _MinariMetadata:
+    """A Minari directory's ``metadata.json``: its path inside the directory and its keys."""
+
+    inner: pathlib.Path
+    keys: dict
+
+
+def _minari_metadata(src: pathlib.Path) -> _MinariMetadata | None:
+    """The ``metadata.json`` beside the Minari directory ``src``'s ``main_data.hdf5`` (None when
+    there is none); ValueError when it is not a JSON object (Minari could not read it either)."""
+    main = _ds._minari_file(src)
+    assert main is not None  # _form found it
+    path = main.parent / METADATA
+    if not path.is_file():
+        return None
+    try:
+        keys = json.loads(path.read_bytes())
+    except (ValueError, UnicodeDecodeError) as e:
+        raise ValueError(f"{path}: not JSON ({e}); Minari's metadata is a JSON object") from None
+    if not isinstance(keys, dict):
+        raise ValueError(f"{path}: a JSON {type(keys).__name__}; Minari's metadata is a JSON object")
+    return _MinariMetadata(path.relative_to(src), keys)
+
+
+def _minari_root() -> pathlib.Path:
+    """Minari's datasets root, as ``minari.storage.get_dataset_path`` finds it:
+    ``$MINARI_DATASETS_PATH``, else ``~/.minari/datasets``."""
+    root = os.environ.get("MINARI_DATASETS_PATH")
+    return pathlib.Path(root) if root is not None else pathlib.Path.home() / ".minari" / "datasets"
+
+
+def _dataset_folder(directory: pathlib.Path, inner: pathlib.Path) -> pathlib.Path:
+    """The folder Minari names a dataset by: the one holding the ``data`` folder. ``inner`` is
+    ``metadata.json``'s path inside ``directory``: ``data/metadata.json`` (Minari's layout:
+    ``directory`` itself), or ``metadata.json`` when ``directory`` is the data folder (its
+    parent when it is named ``data``)."""
+    if len(inner.parts) == 1 and directory.name == "data":
+        return directory.parent
+    return directory
+
+
+def _minari_id(dst: pathlib.Path, src: pathlib.Path, src_id: Any) -> str:
+    """The id Minari gives the dataset folder ``dst``: its path relative to the datasets root
+    that holds it, ``/``-separated (``namespace/name-v0``; ``name-v0`` directly in the root),
+    as ``minari.list_local_datasets`` derives ids and checks them against ``dataset_id``.
+
+    The root is Minari's (:func:`_minari_root`) when ``dst`` lies under it, else the root the
+    source sits in when its path ends with its own ``dataset_id`` (``src_id``: ``ns/a-v0`` at
+    ``R/ns/a-v0`` gives ``R``) and ``dst`` lies under that; otherwise (no root holds ``dst``)
+    the id is ``dst``'s folder name, what Minari reads when the folder is moved into a root."""
+    d = dst.resolve()
+    roots = [_minari_root()]
+    if isinstance(src_id, str) and src_id.strip("/"):
+        parts = tuple(pathlib.PurePosixPath(src_id.strip("/")).parts)
+        s = src.resolve().parts
+        if len(s) > len(parts) and s[-len(parts):] == parts:
+            roots.append(pathlib.Path(*s[:-len(parts)]))
+    for root in roots:
+        try:
+            rel = d.relative_to(root.resolve())
+        except ValueError:
+            continue
+        if rel.parts:
+            return "/".join(rel.parts)
+    return d.name
+
+
+def _data_size_mb(folder: pathlib.Path) -> float:
+    """``dataset_size`` as Minari measures it (``MinariStorage.get_size``): the bytes of
+    everything under the data folder, in MB (10^6 bytes), rounded to one decimal."""
+    return round(sum(p.stat().st_size for p in folder.glob("**/*")) / 1e6, 1)
+
+
+def _write_metadata(tmp: pathlib.Path, dst: pathlib.Path, src: pathlib.Path, meta: _MinariMetadata) -> None:
+    """Rewrites the copied ``metadata.json`` in ``tmp`` (the output, to be renamed ``dst``):
+    ``dataset_id`` becomes ``dst``'s id, ``dataset_size`` (when present) the output's size;
+    every other key as it was, in its order. Written as Minari writes it (``json.dump``)."""
+    keys = dict(meta.keys)
+    keys["dataset_id"] = _minari_id(_dataset_folder(dst, meta.inner), _dataset_folder(src, meta.inner),
+                                    meta.keys.get("dataset_id"))
+    path = tmp / meta.inner
+    if "dataset_size" in keys:
+        keys["dataset_size"] = _data_size_mb(path.parent)
+    path.unlink()  # a copied link would otherwise be written through
+    path.write_text(json.dumps(keys))
+
+
 def _check_paths(src: pathlib.Path, dst: pathlib.Path, form: str, overwrite: bool) -> None:
     s = src.resolve()
     d = dst.resolve()
@@ -367,7 +464,8 @@ def relabel(client: Any, model: str, src: str | os.PathLike, dst: str | os.PathL
     reward ``model``'s value of every transition at diffusion step ``t`` (the module's rule:
     the last window of the ``H`` rows ending at the transition, padded before the episode's
     first row with its first observation and a zero action), the input's ``rewards`` kept as
-    ``rewards_original`` and everything else copied unchanged.
+    ``rewards_original`` and everything else copied unchanged (but a Minari directory's
+    ``metadata.json``, whose ``dataset_id`` becomes ``dst``'s id and ``dataset_size`` its size).
 
     ``client``: a :class:`relreward.Client`; ``batch``: items per Score request (default: up to
     1024, at most 8 MiB); ``overwrite``: replace an existing ``dst``; ``progress``: ``True`` for
@@ -387,6 +485,10 @@ def relabel(client: Any, model: str, src: str | os.PathLike, dst: str | os.PathL
     except ValueError as e:
         raise InvalidInput(f"src: {e}") from None
     _check_paths(src_p, dst_p, form, overwrite)
+    try:
+        meta = _minari_metadata(src_p) if form == "minari-dir" else None
+    except ValueError as e:
+        raise InvalidInput(f"src: {e}") from None
     rows, closer = _read(src_p, "src")
     try:
         rewards = _rewards(client, model, rows, t, batch, progress, "src")
@@ -395,7 +497,7 @@ def relabel(client: Any, model: str, src: str | os.PathLike, dst: str | os.PathL
             closer.close()
     episodes = rows.episodes
     del rows
-    kept = _publish(src_p, dst_p, form, rewards, model, int(t))
+    kept = _publish(src_p, dst_p, form, rewards, model, int(t), meta)
     return Relabelled(dst_p, form, rewards, episodes, ORIGINAL if kept else None)
 
 
@@ -415,9 +517,11 @@ def _temporary(dst: pathlib.Path, directory: bool) -> pathlib.Path:
     raise FileExistsError(f"{dst.parent}: no free temporary name for {dst.name}")
 
 
-def _publish(src: pathlib.Path, dst: pathlib.Path, form: str, rewards: np.ndarray, model: str, t: int) -> bool:
+def _publish(src: pathlib.Path, dst: pathlib.Path, form: str, rewards: np.ndarray, model: str, t: int,
+             meta: _MinariMetadata | None = None) -> bool:
     """Writes the output under a temporary name beside ``dst`` and renames it into place (an
-    existing ``dst`` is replaced only then)."""
+    existing ``dst`` is replaced only then); ``meta``: a Minari directory's metadata, rewritten
+    for ``dst``."""
     tmp = _temporary(dst, form == "minari-dir")
     try:
         if form == "minari-dir":
@@ -427,6 +531,8 @@ def _publish(src: pathlib.Path, dst: pathlib.Path, form: str, rewards: np.ndarra
             shutil.copytree(src, tmp, symlinks=True, dirs_exist_ok=True,
                             ignore=lambda d, names: [main.name] if pathlib.Path(d) == main.parent else [])
             kept = _write_hdf5(main, tmp / inner, True, rewards, model, t)
+            if meta is not None:
+                _write_metadata(tmp, dst, src, meta)
         elif form == "npz":
             kept = _write_npz(src, tmp, rewards)
         else:

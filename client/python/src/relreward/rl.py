@@ -35,6 +35,8 @@ stable-baselines3 for ``SB3RewardWrapper``; neither is needed to import this mod
 from __future__ import annotations
 
 import copy
+import math
+import numbers
 from typing import Any, Callable, Sequence
 
 import numpy as np
@@ -210,7 +212,10 @@ def _mix(rho: np.ndarray, env_reward: np.ndarray, env_weight: float) -> np.ndarr
 
 
 def _weight(env_weight: float) -> float:
-    if isinstance(env_weight, bool) or not isinstance(env_weight, (int, float)) or not np.isfinite(env_weight):
+    """``env_weight`` as a float: any real number (a Python or numpy integer or float, e.g.
+    ``np.float32(0.5)``) that is finite; bools are refused (a flag passed in the wrong place)."""
+    if (isinstance(env_weight, (bool, np.bool_)) or not isinstance(env_weight, numbers.Real)
+            or not math.isfinite(float(env_weight))):
         raise InvalidInput(f"env_weight: {env_weight!r} is not a finite number")
     return float(env_weight)
 

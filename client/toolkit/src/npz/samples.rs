@@ -1,6 +1,7 @@
 //! A samples dataset: one float array `[N, ...]` of an `.npy` file or an `.npz` archive (chosen
 //! by key, by the name `samples`, or as the only array), sent as stored under the name
-//! `samples`, so only little-endian (or byte-order-free) float32 and float64 are taken.
+//! `samples`, so only little-endian (or byte-order-free) float32 and float64 are taken; an
+//! archive's `labels` `[N]` beside them (class labels, integers) travel with them.
 
 use std::fs::File;
 use std::io::BufReader;
@@ -8,7 +9,9 @@ use std::path::Path;
 
 use relreward_proto::v1::{DatasetKind, Dtype};
 
-use super::archive::{FileFormat, check_complete, list_keys, member_header, open_archive, sniff};
+use super::archive::{
+    Archive, FileFormat, Member, check_complete, list_keys, member_header, member_values, open_archive, sniff,
+};
 use super::error::{NpzError, Result, describe_key};
 use super::npy::{Header, read_header};
 use super::source::{Entry, NpzSource};
@@ -41,11 +44,12 @@ fn require_float(path: &Path, shown: &str, header: &Header) -> Result<Dtype> {
 /// `samples`.
 ///
 /// From a plain `.npy` file, or from an `.npz` archive: the array named `key`, else the one
-/// named `samples`, else the only array. Other arrays of the archive are left out and listed by
-/// [`NpzSource::ignored_keys`].
+/// named `samples`, else the only array besides `labels`. An array `labels` is sent beside the
+/// samples as their class labels ([`labels_entry`]); other arrays of the archive are left out
+/// and listed by [`NpzSource::ignored_keys`].
 pub fn samples_from_npz_or_npy(path: impl AsRef<Path>, key: Option<&str>) -> Result<NpzSource> {
     let path = path.as_ref();
-    let (entry, ignored, archive) = match sniff(path)? {
+    let (entry, ignored, archive, labels) = match sniff(path)? {
         FileFormat::Npy => {
             if let Some(key) = key {
                 return Err(NpzError::new(
@@ -59,7 +63,7 @@ pub fn samples_from_npz_or_npy(path: impl AsRef<Path>, key: Option<&str>) -> Res
             let stem = path.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
             let header = read_header(&mut reader).map_err(|m| NpzError::new(path, format!("array '{stem}': {m}")))?;
             check_complete(path, &stem, &header, stored)?;
-            (Entry::as_stored(stem, None, header), Vec::new(), None)
+            (Entry::as_stored(stem, None, header), Vec::new(), None, None)
         }
         FileFormat::Npz => {
             let (mut archive, members) = open_archive(path)?;
@@ -67,16 +71,22 @@ pub fn samples_from_npz_or_npy(path: impl AsRef<Path>, key: Option<&str>) -> Res
                 Some(key) => members.iter().find(|m| m.key == key).ok_or_else(|| {
                     NpzError::new(path, format!("no array '{key}' (the archive holds {})", list_keys(&members)))
                 })?,
+                // Labels travel beside the samples, so they do not count as a second candidate.
                 None => match members.iter().find(|m| m.key == "samples") {
                     Some(m) => m,
-                    None => match members.as_slice() {
+                    None => match members.iter().filter(|m| m.key != "labels").collect::<Vec<_>>().as_slice() {
                         [only] => only,
-                        [] => return Err(NpzError::new(path, "the archive holds no arrays")),
+                        [] if members.is_empty() => return Err(NpzError::new(path, "the archive holds no arrays")),
+                        [] => {
+                            return Err(NpzError::new(path, "the archive holds only 'labels'; no samples beside them"));
+                        }
                         _ => {
                             return Err(NpzError::new(
                                 path,
                                 format!(
-                                    "the archive holds {} and none is named 'samples'; choose one by key (CLI: --key)",
+                                    "the archive holds {} and none is named 'samples'; choose one by key (CLI: \
+                                     --key), or, for trajectories, name the arrays 'observations' and 'actions' \
+                                     (D4RL's keys)",
                                     list_keys(&members)
                                 ),
                             ));
@@ -85,8 +95,14 @@ pub fn samples_from_npz_or_npy(path: impl AsRef<Path>, key: Option<&str>) -> Res
                 },
             };
             let header = member_header(path, &mut archive, member)?;
-            let ignored = members.iter().filter(|m| m.index != member.index).map(|m| m.key.clone()).collect();
-            (Entry::as_stored(member.key.clone(), Some(member.index), header), ignored, Some(archive))
+            // A `labels` array beside the samples travels with them (class-conditional training).
+            let labels = match members.iter().find(|m| m.key == "labels" && m.index != member.index) {
+                Some(m) => Some(labels_entry(path, &mut archive, m)?),
+                None => None,
+            };
+            let sent = |m: &&Member| m.index != member.index && (labels.is_none() || m.key != "labels");
+            let ignored = members.iter().filter(sent).map(|m| m.key.clone()).collect();
+            (Entry::as_stored(member.key.clone(), Some(member.index), header), ignored, Some(archive), labels)
         }
     };
     let shown = describe_key(&entry.key, "samples");
@@ -102,9 +118,45 @@ pub fn samples_from_npz_or_npy(path: impl AsRef<Path>, key: Option<&str>) -> Res
             ),
         ));
     }
+    let rows = stored.shape[0];
     let mut source = NpzSource::new(path, DatasetKind::Samples, ignored, archive);
     source.push("samples", dtype, stored.shape, entry);
+    if let Some((dtype, shape, labels)) = labels {
+        if shape != [rows] {
+            return Err(NpzError::new(
+                path,
+                format!("'labels' has shape {shape:?}; expected [{rows}] (one per sample)"),
+            ));
+        }
+        source.push("labels", dtype, shape, labels);
+    }
     Ok(source)
+}
+
+/// Class labels `[N]` beside the samples: integers >= 0, sent as stored when int32, int64 or
+/// uint8 (little-endian), else as int64 (the Python package's rule); the server checks their
+/// range and row count.
+fn labels_entry(path: &Path, archive: &mut Archive, member: &Member) -> Result<(Dtype, Vec<u64>, Entry)> {
+    let (header, values) = member_values(path, archive, member)?;
+    if !matches!(header.element.kind, Kind::Int | Kind::Uint | Kind::Bool) {
+        return Err(NpzError::new(
+            path,
+            format!("'labels' has dtype {}; class labels must be integers", header.element),
+        ));
+    }
+    if let Some(min) = values.iter().copied().reduce(f64::min).filter(|&m| m < 0.0) {
+        return Err(NpzError::new(path, format!("'labels' hold {min}; class labels must be >= 0")));
+    }
+    let shape = header.shape.clone();
+    Ok(match header.wire_dtype() {
+        Some(dtype @ (Dtype::Int32 | Dtype::Int64 | Dtype::Uint8)) => {
+            (dtype, shape, Entry::as_stored("labels".into(), Some(member.index), header))
+        }
+        _ => {
+            let bytes = values.iter().flat_map(|&v| (v as i64).to_le_bytes()).collect();
+            (Dtype::Int64, shape, Entry::in_memory("labels".into(), bytes))
+        }
+    })
 }
 
 #[cfg(test)]
@@ -135,13 +187,14 @@ mod tests {
         assert_eq!(source.arrays(), &[spec("samples", Dtype::Float32, &[6, 4])]);
         assert_eq!(read_all(&mut source, 0).expect("read"), bytes);
 
-        // 'samples' by default, another by key; the rest are ignored.
+        // 'samples' by default, another by key; 'labels' travel with them, the rest are ignored.
         let path = dir.path().join("many.npz");
         let other = f64_bytes(&[1.0, 2.0]);
+        let labels: Vec<u8> = (0..12i64).flat_map(|l| (l % 3).to_le_bytes()).collect();
         write_npz(
             &path,
             &[
-                ("labels", npy("<i8", false, &[2], &[0; 16])),
+                ("labels", npy("<i8", false, &[12], &labels)),
                 ("samples", npy("<f4", false, &[12, 2], &bytes)),
                 ("other", npy("<f8", false, &[1, 2], &other)),
             ],
@@ -149,16 +202,35 @@ mod tests {
         );
         assert_eq!(detect_kind(&path).expect("kind"), DatasetKind::Samples);
         assert_eq!(npz_keys(&path).expect("keys"), ["labels", "samples", "other"]);
-        let source = samples_from_npz_or_npy(&path, None).expect("default key");
-        assert_eq!(source.arrays(), &[spec("samples", Dtype::Float32, &[12, 2])]);
-        assert_eq!(source.ignored_keys(), &["labels".to_owned(), "other".to_owned()]);
-        let mut source = samples_from_npz_or_npy(&path, Some("other")).expect("by key");
-        assert_eq!(source.arrays(), &[spec("samples", Dtype::Float64, &[1, 2])]);
-        assert_eq!(read_all(&mut source, 0).expect("read"), other);
+        let mut source = samples_from_npz_or_npy(&path, None).expect("default key");
+        assert_eq!(source.arrays(), &[spec("samples", Dtype::Float32, &[12, 2]), spec("labels", Dtype::Int64, &[12])]);
+        assert_eq!(source.ignored_keys(), &["other".to_owned()]);
+        assert_eq!(read_all(&mut source, 1).expect("read"), labels);
+        // Labels belong to every sample: a choice of another array of another row count is refused.
+        let err = samples_from_npz_or_npy(&path, Some("other")).expect_err("labels of 12 for 1 sample").to_string();
+        assert!(err.contains("'labels' has shape [12]; expected [1]"), "{err}");
         let err = samples_from_npz_or_npy(&path, Some("missing")).expect_err("must fail").to_string();
         assert!(err.contains("'missing'") && err.contains("'labels'"), "{err}");
         let err = samples_from_npz_or_npy(&path, Some("labels")).expect_err("must fail").to_string();
         assert!(err.contains("'labels'") && err.contains("int64"), "{err}");
+
+        // Labels of another integer type are sent as int64 (the Python package's rule); the only
+        // array besides them is the samples, whatever its name; floats or negatives are refused.
+        let path = dir.path().join("latents.npz");
+        let x = npy("<f4", false, &[3, 2], &bytes[..24]);
+        write_npz(&path, &[("x", x.clone()), ("labels", npy(">i2", false, &[3], &[0, 1, 0, 0, 0, 2]))], false);
+        let mut source = samples_from_npz_or_npy(&path, None).expect("x with labels");
+        assert_eq!(source.arrays(), &[spec("samples", Dtype::Float32, &[3, 2]), spec("labels", Dtype::Int64, &[3])]);
+        let want: Vec<u8> = [1i64, 0, 2].iter().flat_map(|l| l.to_le_bytes()).collect();
+        assert_eq!(read_all(&mut source, 1).expect("read"), want);
+        for (labels, needle) in [
+            (npy("<f4", false, &[3], &f32_bytes(&[0.0, 1.0, 2.0])), "class labels must be integers"),
+            (npy("<i4", false, &[3], &[0, 0, 0, 0, 255, 255, 255, 255, 1, 0, 0, 0]), "'labels' hold -1"),
+        ] {
+            write_npz(&path, &[("x", x.clone()), ("labels", labels)], false);
+            let err = samples_from_npz_or_npy(&path, None).expect_err(needle).to_string();
+            assert!(err.contains(needle), "{err}");
+        }
 
         // Several arrays, none named samples: ambiguous.
         let path = dir.path().join("ambiguous.npz");
@@ -168,7 +240,7 @@ mod tests {
             false,
         );
         let err = samples_from_npz_or_npy(&path, None).expect_err("must fail").to_string();
-        assert!(err.contains("'a', 'b'") && err.contains("key"), "{err}");
+        assert!(err.contains("'a', 'b'") && err.contains("key") && err.contains("'observations'"), "{err}");
 
         // 1-D samples are refused.
         let path = dir.path().join("flat.npy");

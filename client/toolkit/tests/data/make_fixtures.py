@@ -33,9 +33,18 @@ the row index, so the Rust tests check them without reading this file.
     dropped); observations = 10 * episode + step (both columns), actions = step, terminations
     uint8, truncations float64 0/1.
   - f128.hdf5: observations of 16-byte floats (np.longdouble): refused, named in words.
+  - minari_tuple.hdf5: Minari layout, one episode of 2 steps whose observations are a Tuple of
+    twelve Box(1) parts stored as `_index_0` .. `_index_11` (written out of order), part i =
+    100 * i + step: flattened by number, so a row is [0, 100, ..., 1100] + step.
+- minari_jpeg/: a Minari directory whose data/metadata.json says jpeg_encoding = true and whose
+  observations are uint8 rows that begin with JPEG's signature: refused, named.
+- minari_jpeg_floats/: the same metadata over float32 observations [3, 2] = 0..6: read as they are.
 The .npz files are written with fixed zip timestamps, so every file is byte-for-byte the same
 at each run.
 """
+
+import json
+import os
 
 import h5py
 import numpy as np
@@ -55,7 +64,6 @@ with h5py.File("d4rl.hdf5", "w") as f:
     f.create_dataset("infos/goal", data=np.zeros((n, 2), np.float32))
     f.create_dataset("wall_map", data=np.array([[1, 1, 1, 1], [1, 0, 0, 1], [1, 1, 1, 1]], np.int64))
 
-import os
 
 os.makedirs("minari/data", exist_ok=True)
 with h5py.File("minari/data/main_data.hdf5", "w") as f:
@@ -218,3 +226,32 @@ for name, groups in (("minari_bad_group", ("episode_1", "episode_abc")), ("minar
             g.create_dataset("actions", data=np.zeros((2, 1), np.float32))
             g.create_dataset("terminations", data=np.array([False, True]))
             g.create_dataset("truncations", data=np.zeros(2, bool))
+
+# Minari's Tuple observations (parts `_index_0` .. `_index_11`, which flatten by number, not as
+# strings) and JPEG-encoded frames (data/metadata.json: jpeg_encoding = true): the frames are
+# refused by name; float observations under the same metadata are read as they are.
+def minari_episode(g, observations, steps):
+    if isinstance(observations, dict):
+        obs = g.create_group("observations")
+        for key, value in observations.items():
+            obs.create_dataset(key, data=value)
+    else:
+        g.create_dataset("observations", data=observations)
+    g.create_dataset("actions", data=np.arange(steps, dtype=np.float32)[:, None])
+    g.create_dataset("terminations", data=np.arange(steps) == steps - 1)
+    g.create_dataset("truncations", data=np.zeros(steps, bool))
+
+
+with h5py.File("rules/minari_tuple.hdf5", "w", libver="latest") as f:
+    # Part i at step k holds 100 * i + k: a row reads 0 + k, 100 + k, ..., 1100 + k.
+    parts = {f"_index_{i}": (100 * i + np.arange(3, dtype=np.float32))[:, None] for i in (3, 11, 0, 10, 2, 1, 9, 4, 8, 5, 7, 6)}
+    minari_episode(f.create_group("episode_0"), parts, 2)
+for name, observations in (
+    ("minari_jpeg", np.array([[0xFF, 0xD8, 0xFF, 0xE0, 0, 16, 74, 70]] * 3, np.uint8)),
+    ("minari_jpeg_floats", np.arange(6, dtype=np.float32).reshape(3, 2)),
+):
+    os.makedirs(f"{name}/data", exist_ok=True)
+    with h5py.File(f"{name}/data/main_data.hdf5", "w", libver="latest") as f:
+        minari_episode(f.create_group("episode_0"), observations, 2)
+    with open(f"{name}/data/metadata.json", "w") as m:
+        json.dump({"dataset_id": f"test/{name}-v0", "jpeg_encoding": True, "total_episodes": 1, "total_steps": 2}, m)

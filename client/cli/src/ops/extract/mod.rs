@@ -178,16 +178,27 @@ pub async fn pipeline(progress: &dyn Progress, client: &Client, inputs: &Inputs,
 
     // ---- sizes from the data
     let mut profiles = Vec::new();
-    let mut base_obs_dim = 0;
+    let (mut base_obs_dim, mut base_act_dim) = (0, 0);
     for path in std::iter::once(&inputs.base).chain(&inputs.experts) {
         let p = path.clone();
-        let (profile, obs_dim) = tokio::task::spawn_blocking(move || -> Result<(DataProfile, usize)> {
-            let t = Trajectories::from_npz(&p)?;
-            Ok((profile::profile(&t.observations, t.obs_dim, &t.episodes()), t.obs_dim))
-        })
-        .await??;
+        let (profile, obs_dim, act_dim) =
+            tokio::task::spawn_blocking(move || -> Result<(DataProfile, usize, usize)> {
+                let t = Trajectories::from_npz(&p)?;
+                Ok((profile::profile(&t.observations, t.obs_dim, &t.episodes()), t.obs_dim, t.act_dim))
+            })
+            .await??;
         if profiles.is_empty() {
-            base_obs_dim = obs_dim;
+            (base_obs_dim, base_act_dim) = (obs_dim, act_dim);
+        } else if (obs_dim, act_dim) != (base_obs_dim, base_act_dim) {
+            // One normalizer and one pair of models per expert: the rows must be alike. Said
+            // now, before anything is uploaded or trained.
+            return Err(UsageError(format!(
+                "{}: rows of {obs_dim} observation and {act_dim} action values, but the base data ({}) has \
+                 {base_obs_dim} and {base_act_dim}; base and expert recordings must come from the same environment",
+                path.display(),
+                inputs.base.display()
+            ))
+            .into());
         }
         profiles.push(profile);
     }

@@ -5,8 +5,9 @@
 //! (for guidance), training's alignment loss with every parameter's gradient (without
 //! autograd) and the input gradient with a differentiable graph (autograd's double backward,
 //! the reference the tests hold training's gradients to), and stores its weights as strict
-//! safetensors under PyTorch module names (`tests/python/reward_nets_reference.py` is the
-//! independent PyTorch implementation).
+//! safetensors under PyTorch module names (the independent PyTorch implementation is
+//! `relreward_dev.reward_nets` in `dev/python`, which `tests/python/reward_nets_reference.py`
+//! drives for the tests).
 //!
 //! Module map, one file per architecture ([`RewardArchitecture`]), each with its hyperparameter
 //! checks, parameter count, layers (with their PyTorch names) and forward pass:
