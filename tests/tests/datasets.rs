@@ -237,31 +237,25 @@ async fn upload_headers_values_and_descriptions_are_bounded_before_anything_is_s
     .expect_err("wide observations");
     assert_eq!(err.code(), Code::ResourceExhausted, "{}", err.message());
 
-    for (value, needle) in [(1e300, "1e300 at row 2, coordinate 1 is outside float32's range"), (-4e38, "-4e38")] {
+    // Float64 samples [4, 2], 0.25 but for `value` at row 2, coordinate 1.
+    let far = |name: &str, value: f64| {
         let mut values = vec![0.25f64; 8];
         values[5] = value;
         let samples = relreward_client::tensor::encode_f64(&[4, 2], &values);
         let digest = sha(&[&samples.data]);
-        let msgs = vec![
-            header("far", pb::DatasetKind::Samples, &[("samples", Dtype::Float64, &[4, 2])]),
+        vec![
+            header(name, pb::DatasetKind::Samples, &[("samples", Dtype::Float64, &[4, 2])]),
             chunk("samples", samples),
             commit(&digest),
-        ];
-        let err = raw_upload(&client, msgs).await.expect_err("beyond float32");
+        ]
+    };
+    for (value, needle) in [(1e300, "1e300 at row 2, coordinate 1 is outside float32's range"), (-4e38, "-4e38")] {
+        let err = raw_upload(&client, far("far", value)).await.expect_err("beyond float32");
         assert_eq!(err.code(), Code::InvalidArgument);
         assert!(err.message().contains(needle), "{}", err.message());
     }
     // float32's own largest value is a value like any other.
-    let mut values = vec![0.25f64; 8];
-    values[5] = f32::MAX as f64;
-    let samples = relreward_client::tensor::encode_f64(&[4, 2], &values);
-    let digest = sha(&[&samples.data]);
-    let msgs = vec![
-        header("edge", pb::DatasetKind::Samples, &[("samples", Dtype::Float64, &[4, 2])]),
-        chunk("samples", samples),
-        commit(&digest),
-    ];
-    raw_upload(&client, msgs).await.expect("float32's largest value");
+    raw_upload(&client, far("edge", f32::MAX as f64)).await.expect("float32's largest value");
 
     let mut long = small_upload("described");
     if let Some(pb::upload_dataset_request::Message::Header(h)) = long[0].message.as_mut() {

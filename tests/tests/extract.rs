@@ -4,7 +4,7 @@
 //! evaluation with the file's own `wall_map`, report and pictures. A second run reuses every
 //! dataset and model by name (fingerprints of the files and sizes).
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 use relreward_client::pb;
 use relreward_tests::TestServer;
@@ -172,6 +172,14 @@ async fn absorbing_keeps_the_goals_the_evaluation_reads() {
     }
 }
 
+/// `relreward extract --size tiny` of one base and one expert file into `out`, with `extra` flags.
+fn tiny_extract(server: &TestServer, base: &Path, expert: &Path, out: &Path, extra: &[&str]) -> std::process::Output {
+    let paths = [base, expert, out].map(|p| p.to_str().expect("utf8").to_owned());
+    let mut args = vec!["extract", "--base", &paths[0], "--expert", &paths[1], "--size", "tiny", "--out", &paths[2]];
+    args.extend_from_slice(extra);
+    server.cli(&args)
+}
+
 /// Issue 34 item 4: an expert whose goal the maze evaluation cannot know (no `goals`, or goals
 /// that are not one constant goal, and no `--goal`) fails in seconds, naming the flag and the
 /// file, before anything is uploaded or trained.
@@ -188,19 +196,7 @@ async fn an_expert_without_a_constant_goal_fails_before_any_upload() {
         [(&varying, "8", "not one constant goal"), (&missing, "0", "no 'goals' array"), (&varying, "0", "constant")]
     {
         let started = std::time::Instant::now();
-        let out = server.cli(&[
-            "extract",
-            "--base",
-            base.to_str().expect("utf8"),
-            "--expert",
-            expert.to_str().expect("utf8"),
-            "--absorbing",
-            absorbing,
-            "--size",
-            "tiny",
-            "--out",
-            tmp.path().join("out").to_str().expect("utf8"),
-        ]);
+        let out = tiny_extract(&server, &base, expert, &tmp.path().join("out"), &["--absorbing", absorbing]);
         let stderr = String::from_utf8_lossy(&out.stderr);
         assert!(!out.status.success(), "{}: should fail:\n{stderr}", expert.display());
         assert!(stderr.contains("--goal") && stderr.contains(why), "{stderr}");
@@ -227,17 +223,7 @@ async fn recordings_of_different_widths_fail_before_any_upload() {
     w.add_f32("observations", &[n, 3], &obs).expect("observations");
     w.add_f32("actions", &[n, 1], &vec![0.5; n as usize]).expect("actions");
     w.finish().expect("npz");
-    let out = server.cli(&[
-        "extract",
-        "--base",
-        base.to_str().expect("utf8"),
-        "--expert",
-        expert.to_str().expect("utf8"),
-        "--size",
-        "tiny",
-        "--out",
-        tmp.path().join("out").to_str().expect("utf8"),
-    ]);
+    let out = tiny_extract(&server, &base, &expert, &tmp.path().join("out"), &[]);
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(!out.status.success(), "should fail:\n{stderr}");
     assert!(stderr.contains("rows of 3 observation and 1 action values, but the base data"), "{stderr}");
