@@ -52,6 +52,12 @@ def test_digest_does_not_depend_on_chunking_and_matches_the_cli(client, server, 
     assert a.sha256 == b.sha256 == cli["sha256"]
     c = client.upload_dataset("py-npz", path)
     assert c.sha256 == a.sha256
+    # Column-major arrays (np.save of a transposed array) are the same rows to both readers.
+    fortran = tmp_path / "f.npz"
+    np.savez(fortran, **{k: np.asfortranarray(v) for k, v in data.items()})
+    assert np.load(fortran)["observations"].flags.f_contiguous
+    cli = server.cli_json("dataset", "upload", str(fortran), "--name", "py-fortran-cli")
+    assert cli["sha256"] == client.upload_dataset("py-fortran", fortran).sha256 == a.sha256
 
 
 def test_samples_from_array_and_npy(client, tmp_path):

@@ -133,8 +133,8 @@ pub fn npz_keys(path: impl AsRef<Path>) -> Result<Vec<String>> {
 
 /// One numeric array of an `.npz` (or of a plain `.npy`, whatever `key`) as f64 with its
 /// shape; `None` when an archive has no such array. Any integer, bool or float dtype in either
-/// byte order ([`crate::values::Element`]); C order only. Errors do not name the file; callers
-/// add it.
+/// byte order ([`crate::values::Element`]), in C order whatever the stored order. Errors do not
+/// name the file; callers add it.
 pub fn read_numbers(path: &Path, key: &str) -> io::Result<Option<(Vec<u64>, Vec<f64>)>> {
     if path.extension().is_some_and(|e| e.eq_ignore_ascii_case("npy")) {
         let mut reader = BufReader::new(File::open(path)?);

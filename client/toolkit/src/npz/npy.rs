@@ -3,8 +3,10 @@
 //!
 //! Two judges of a dtype: [`read_npy_header`] takes only what the wire carries as stored
 //! ([`map_dtype`]: samples, model inputs), the crate's [`Header`] reader takes any integer,
-//! float or bool in either byte order ([`element_of`], decoded by [`crate::values`]). Both refuse
-//! Fortran order where it changes the layout, and both check the header text
+//! float or bool in either byte order ([`element_of`], decoded by [`crate::values`]). The first
+//! refuses Fortran order where it changes the layout (its bytes are sent as they are); the
+//! second reads it, marking the header ([`Header::fortran`]) so that the data is put in C order
+//! ([`c_order`]) before it is decoded or sent. Both check the header text
 //! ([`precheck_header_text`]) before `npyz` parses it, so hostile headers are errors, not panics.
 
 use std::io::{self, Read};
@@ -60,6 +62,9 @@ pub(super) struct Header {
     pub(super) descr: String,
     pub(super) header_len: u64,
     pub(super) data_len: u64,
+    /// Stored in Fortran (column-major) order where that changes the layout (two or more
+    /// dimensions above 1): the data is reordered in memory ([`c_order`]) before use.
+    pub(super) fortran: bool,
 }
 
 impl Header {
@@ -100,14 +105,42 @@ fn kind_of(type_char: TypeChar) -> Option<Kind> {
 pub(super) fn read_header(reader: &mut dyn Read) -> Result<Header, String> {
     let parsed = parse_header(reader)?;
     let element = element_of(&parsed.dtype)?;
-    check_order(&parsed)?;
+    let fortran = check_order(&parsed).is_err();
     let descr = parsed.dtype.descr();
     let data_len = parsed
         .shape
         .iter()
         .try_fold(element.size as u64, |a, &d| a.checked_mul(d))
         .ok_or("npy header declares a shape with more bytes than fit in 64 bits")?;
-    Ok(Header { element, shape: parsed.shape, descr, header_len: parsed.header_len, data_len })
+    Ok(Header { element, shape: parsed.shape, descr, header_len: parsed.header_len, data_len, fortran })
+}
+
+/// `data`, the elements of an array of `shape` stored in Fortran (column-major) order, `size`
+/// bytes each, in C (row-major) order: what numpy's `np.ascontiguousarray` gives. Arrays are
+/// read row by row everywhere else, so a Fortran-order array is reordered whole, in memory.
+pub(super) fn c_order(data: &[u8], size: usize, shape: &[u64]) -> Vec<u8> {
+    let dims: Vec<usize> = shape.iter().map(|&d| d as usize).collect();
+    // Fortran strides, in elements: the first index varies fastest.
+    let mut strides = vec![1usize; dims.len()];
+    for k in 1..dims.len() {
+        strides[k] = strides[k - 1] * dims[k - 1];
+    }
+    let n: usize = dims.iter().product();
+    let mut out = Vec::with_capacity(n * size);
+    let mut index = vec![0usize; dims.len()];
+    for _ in 0..n {
+        let at = index.iter().zip(&strides).map(|(i, s)| i * s).sum::<usize>() * size;
+        out.extend_from_slice(&data[at..at + size]);
+        // The next C-order index: the last dimension varies fastest.
+        for k in (0..dims.len()).rev() {
+            index[k] += 1;
+            if index[k] < dims[k] {
+                break;
+            }
+            index[k] = 0;
+        }
+    }
+    out
 }
 
 /// A header's fields before its dtype is judged.
@@ -310,6 +343,9 @@ pub(super) fn read_values(reader: &mut dyn Read, header: &Header) -> Result<Vec<
     if data.len() != len {
         return Err(format!("ends after {} of its {len} data bytes (truncated file?)", data.len()));
     }
+    if header.fortran {
+        data = c_order(&data, header.element.size, &header.shape);
+    }
     Ok(header.element.decode_all(&data))
 }
 
@@ -342,7 +378,7 @@ pub(crate) fn write_npy_header(descr: &str, fortran_order: bool, shape: &[u64]) 
 mod tests {
     use super::*;
     use crate::npz::samples_from_npz_or_npy;
-    use crate::npz::test_files::{f64_bytes, npy, scratch, trajectories_error, write_npz};
+    use crate::npz::test_files::{f32_bytes, f64_bytes, npy, read_all, scratch, trajectories_error, write_npz};
     use crate::npz::trajectories_from_npz;
 
     fn npy_error(descr: &str, fortran: bool, shape: &[u64], data: &[u8]) -> String {
@@ -354,8 +390,6 @@ mod tests {
 
     #[test]
     fn unsupported_layouts_and_dtypes_are_refused_naming_array_and_dtype() {
-        let err = npy_error("<f4", true, &[2, 2], &[0; 16]);
-        assert!(err.contains("'observations'") && err.contains("Fortran"), "{err}");
         let err = npy_error("<c8", false, &[2, 2], &[0; 32]);
         assert!(err.contains("'observations'") && err.contains("'<c8'") && err.contains("complex"), "{err}");
         let err = npy_error("<f16", false, &[2, 2], &[0; 64]);
@@ -370,8 +404,28 @@ mod tests {
         let err = npy_error("[('a', '<f4')]", false, &[2, 2], &[0; 16]);
         assert!(err.contains("'observations'") && err.contains("structured"), "{err}");
 
+        // Fortran order is read as numpy reads it: the trajectories' rows, and samples sent as
+        // stored, are the C-order array's (np.ascontiguousarray), for any number of dimensions.
+        let (dir, path) = scratch("fortran.npz");
+        let column_major: Vec<f32> = vec![0.0, 10.0, 20.0, 1.0, 11.0, 21.0]; // [[0, 1], [10, 11], [20, 21]]
+        let act = npy("<f8", true, &[3, 2], &f64_bytes(&[0.5, 1.5, 2.5, -0.5, -1.5, -2.5]));
+        write_npz(
+            &path,
+            &[("observations", npy("<f4", true, &[3, 2], &f32_bytes(&column_major))), ("actions", act)],
+            true,
+        );
+        let mut source = trajectories_from_npz(&path).expect("fortran trajectories");
+        assert_eq!(read_all(&mut source, 0).expect("obs"), f32_bytes(&[0.0, 1.0, 10.0, 11.0, 20.0, 21.0]));
+        assert_eq!(read_all(&mut source, 1).expect("act"), f32_bytes(&[0.5, -0.5, 1.5, -1.5, 2.5, -2.5]));
+        // [2, 3, 2] column-major: element (i, j, k) at i + 2 j + 6 k.
+        let cube: Vec<f32> = (0..12).map(|f| f as f32).collect();
+        let c: Vec<f32> = (0..12).map(|c| ((c / 6) + 2 * ((c / 2) % 3) + 6 * (c % 2)) as f32).collect();
+        let path = dir.path().join("cube.npy");
+        std::fs::write(&path, npy("<f4", true, &[2, 3, 2], &f32_bytes(&cube))).expect("write");
+        let mut source = samples_from_npz_or_npy(&path, None).expect("fortran samples");
+        assert_eq!(read_all(&mut source, 0).expect("samples"), f32_bytes(&c));
         // Fortran order with one non-trivial dimension is the same layout: accepted.
-        let (dir, path) = scratch("f.npy");
+        let path = dir.path().join("f.npy");
         std::fs::write(&path, npy("<f8", true, &[3, 1], &f64_bytes(&[1.0, 2.0, 3.0]))).expect("write");
         samples_from_npz_or_npy(&path, None).expect("trivial fortran order");
         // '>u1' has no byte order to swap.

@@ -188,6 +188,15 @@ impl UploadSource for NpzSource {
             }
             _ => return Err(io::Error::other("npz source is inconsistent")),
         };
+        // Arrays stream row by row; one stored column-major is put in row order first, whole.
+        let data: Box<dyn Read + '_> = if stored.fortran {
+            let mut bytes = Vec::new();
+            let mut data = data;
+            data.read_to_end(&mut bytes)?;
+            Box::new(io::Cursor::new(super::npy::c_order(&bytes, stored.element.size, &stored.shape)))
+        } else {
+            data
+        };
         if entry.to_f32 {
             let label = format!("{path}: '{key}'");
             Ok(Box::new(F32Reader::new(data, stored.element, stored.shape.clone(), label)))
