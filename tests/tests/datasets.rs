@@ -203,22 +203,30 @@ async fn sample_labels_are_stored_and_checked_by_the_server() {
     assert_eq!(client.list_datasets().await.expect("list").len(), 1, "only the valid upload is stored");
 }
 
-/// A header's shapes are the client's: they are checked whole (row count, quota) before the
-/// server allocates anything for them; a float64 value beyond float32's range is refused, where
-/// its square would have made a statistic no record can hold (and every List call fail); a
-/// description is bounded as a model's is. After each refusal the server answers and lists.
+/// A header's shapes are the client's: they are checked whole (row count, elements per row,
+/// quota) before the server allocates anything for them; a float64 value beyond float32's range
+/// is refused, where its square would have made a statistic no record can hold (and every List
+/// call fail); a description is bounded as a model's is. After each refusal the server answers and lists.
 #[tokio::test(flavor = "multi_thread")]
 async fn upload_headers_values_and_descriptions_are_bounded_before_anything_is_stored() {
     use relreward_tests::dataset_upload::{commit, sha};
     let server = TestServer::start();
     let client = server.client().await;
-    let huge: &[u64] = &[1, 1 << 40];
-    let err = raw_upload(&client, vec![header("wide", pb::DatasetKind::Samples, &[("samples", Dtype::Float32, huge)])])
+    // A row beyond an item's bound (its statistics alone would be 32 TiB), and a payload beyond
+    // the quota whose rows are small.
+    let wide: &[u64] = &[1, 1 << 40];
+    let err = raw_upload(&client, vec![header("wide", pb::DatasetKind::Samples, &[("samples", Dtype::Float32, wide)])])
         .await
         .expect_err("a 4 TiB row");
+    assert_eq!(err.code(), Code::InvalidArgument, "{}", err.message());
+    assert!(err.message().contains("elements per row, more than the 16777216"), "{}", err.message());
+    let long: &[u64] = &[1 << 40, 4];
+    let err = raw_upload(&client, vec![header("long", pb::DatasetKind::Samples, &[("samples", Dtype::Float32, long)])])
+        .await
+        .expect_err("16 TiB of rows");
     assert_eq!(err.code(), Code::ResourceExhausted, "{}", err.message());
     assert!(err.message().contains("datasets.max_upload_bytes"), "{}", err.message());
-    let empty: &[u64] = &[0, 1 << 40];
+    let empty: &[u64] = &[0, 4];
     let err =
         raw_upload(&client, vec![header("none", pb::DatasetKind::Samples, &[("samples", Dtype::Float32, empty)])])
             .await
@@ -235,7 +243,7 @@ async fn upload_headers_values_and_descriptions_are_bounded_before_anything_is_s
     )
     .await
     .expect_err("wide observations");
-    assert_eq!(err.code(), Code::ResourceExhausted, "{}", err.message());
+    assert_eq!(err.code(), Code::InvalidArgument, "{}", err.message());
 
     // Float64 samples [4, 2], 0.25 but for `value` at row 2, coordinate 1.
     let far = |name: &str, value: f64| {

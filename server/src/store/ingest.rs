@@ -10,6 +10,7 @@
 use std::fs::File;
 use std::io::{BufWriter, Write};
 
+use relreward_proto::schema::manifest::MAX_ITEM_ELEMENTS;
 use relreward_proto::tensor::{self, CodecError};
 use relreward_proto::v1::{self as pb, Dtype};
 use sha2::{Digest, Sha256};
@@ -175,6 +176,15 @@ impl DatasetIngest {
                 tensor::byte_len(&spec.shape[1..], dtype).map_err(|e| Error::invalid(format!("{field}.shape: {e}")))?;
             let row_elems =
                 tensor::numel(&spec.shape[1..]).map_err(|e| Error::invalid(format!("{field}.shape: {e}")))? as usize;
+            // A row is one item of a model's space, bounded as those are; its statistics hold
+            // eight times its float32 bytes, so the quota alone would not bound them.
+            if row_elems as u64 > MAX_ITEM_ELEMENTS {
+                return Err(Error::invalid(format!(
+                    "{field}.shape: {} has {row_elems} elements per row, more than the {MAX_ITEM_ELEMENTS} an item \
+                     may have",
+                    brief(&spec.shape)
+                )));
+            }
             checked.push((spec, dtype, role, row_bytes, row_elems));
         }
         if num_rows == 0 {
