@@ -195,6 +195,11 @@ def test_request_builders_take_tensors_that_require_grad():
     state = torch.ones(3, requires_grad=True)
     req = _common.sample_request("m", None, 0.0, 1, None, None, None, False, {0: state}, "raw", 0)
     assert np.frombuffer(req.conditions[0].state.data, np.float32).tolist() == [1.0, 1.0, 1.0]
+    # Prompt embeddings and images for an autoencoder go through the same conversion.
+    from relreward import _tensor
+    from relreward.specs import prompts_message
+    assert np.frombuffer(prompts_message("prompts", state * 2).embeddings.data, np.float32).tolist() == [2.0] * 3
+    np.testing.assert_array_equal(_tensor.as_f32(x), expect)
 
 
 def test_score_and_gradient_take_tensors_that_require_grad(client, tiny):

@@ -390,7 +390,7 @@ def prompts_message(field: str, value: Any) -> reward_pb2.Prompts:
     :class:`SamplingRecipe`); errors name ``field``."""
     if isinstance(value, str):
         return reward_pb2.Prompts(dataset=value)
-    arr = np.asarray(value)
+    arr = np.asarray(_tensor.host(value))
     if arr.dtype.kind in "iub":
         if arr.ndim > 1:
             raise InvalidInput(f"{field}: labels must be an int or a 1-D sequence, got shape {arr.shape}")
