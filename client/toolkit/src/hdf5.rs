@@ -312,18 +312,28 @@ fn list(datasets: &[String], groups: &[String]) -> String {
 }
 
 /// A dataset or a (dict) group, flattened per row by the module's rule: `(rows, width,
-/// values)`, finite as float32 in the first `keep` rows (all when `None`). `at` names the place
-/// in errors.
+/// values)`, finite as float32 in the first `keep` rows (all when `None`); with `jpeg` (Minari's
+/// metadata says `jpeg_encoding`), a dataset of JPEG frames is refused ([`jpeg_frames`]). `at`
+/// names the place in errors.
 fn flattened(
     group: &Group,
     name: &str,
     at: &str,
     keep: Option<usize>,
+    jpeg: bool,
 ) -> std::result::Result<(usize, usize, Vec<f32>), String> {
     let (groups, datasets) = group.member_names().map_err(|e| format!("{at}: {e}"))?;
     if datasets.iter().any(|d| d == name) {
         let ds = group.dataset(name).map_err(|e| format!("{at}/{name}: {e}"))?;
-        return rows_of(&ds, &format!("{at}/{name}"), keep);
+        let refused = || format!("'{at}/{name}' is {JPEG_ENCODED}");
+        if jpeg && jpeg_frames(ds.dtype(), None) {
+            return Err(refused());
+        }
+        let rows = rows_of(&ds, &format!("{at}/{name}"), keep)?;
+        if jpeg && jpeg_frames(ds.dtype(), Some(&rows.2)) {
+            return Err(refused());
+        }
+        return Ok(rows);
     }
     if !groups.iter().any(|g| g == name) {
         return Err(format!("no '{name}' in {at}"));
@@ -337,7 +347,7 @@ fn flattened(
     }
     let here = format!("{at}/{name}");
     let parts: Vec<(usize, usize, Vec<f32>)> =
-        keys_g.iter().map(|k| flattened(&sub, k, &here, keep)).collect::<std::result::Result<_, _>>()?;
+        keys_g.iter().map(|k| flattened(&sub, k, &here, keep, jpeg)).collect::<std::result::Result<_, _>>()?;
     let rows = parts[0].0;
     if let Some((k, p)) = keys_g.iter().zip(&parts).find(|(_, p)| p.0 != rows) {
         return Err(format!("{here}/{k} has {} rows but {here}/{} has {rows}", p.0, keys_g[0]));
@@ -382,31 +392,16 @@ fn jpeg_encoded(file_path: &Path) -> bool {
         .unwrap_or(false)
 }
 
-/// Refuses an observations dataset (or a part of an observations group) that holds JPEG frames:
-/// variable-length uint8 sequences, or uint8 data that begins with JPEG's signature FF D8 FF.
-fn refuse_jpeg(group: &Group, name: &str, at: &str) -> std::result::Result<(), String> {
-    let (groups, datasets) = group.member_names().map_err(|e| format!("{at}: {e}"))?;
-    if groups.iter().any(|g| g == name) {
-        let sub = group.group(name).map_err(|e| format!("{at}/{name}: {e}"))?;
-        let (mut keys, keys_d) = sub.member_names().map_err(|e| format!("{at}/{name}: {e}"))?;
-        keys.extend(keys_d);
-        return keys.iter().try_for_each(|k| refuse_jpeg(&sub, k, &format!("{at}/{name}")));
-    }
-    if !datasets.iter().any(|d| d == name) {
-        return Ok(());
-    }
-    let ds = group.dataset(name).map_err(|e| format!("{at}/{name}: {e}"))?;
-    let frames = match ds.dtype() {
-        Datatype::VarLen { kind, base, .. } => {
-            *kind != hdf5_reader::VarLenKind::String
-                && matches!(**base, Datatype::FixedPoint { size: 1, signed: false, .. })
-        }
-        Datatype::FixedPoint { size: 1, signed: false, .. } => {
-            ds.read_raw_bytes().map_err(|e| format!("'{at}/{name}': {e}"))?.starts_with(&[0xff, 0xd8, 0xff])
-        }
+/// Whether a dataset read under Minari's `jpeg_encoding` holds JPEG frames: variable-length
+/// uint8 sequences (told by the type, before any read), or uint8 data whose first values are
+/// JPEG's signature FF D8 FF (told from the values [`flattened`] read anyway).
+fn jpeg_frames(dtype: &Datatype, values: Option<&[f32]>) -> bool {
+    let byte = |t: &Datatype| matches!(t, Datatype::FixedPoint { size: 1, signed: false, .. });
+    match (dtype, values) {
+        (Datatype::VarLen { kind, base, .. }, _) => *kind != hdf5_reader::VarLenKind::String && byte(base),
+        (t, Some(v)) => byte(t) && v.starts_with(&[255.0, 216.0, 255.0]),
         _ => false,
-    };
-    if frames { Err(format!("'{at}/{name}' is {JPEG_ENCODED}")) } else { Ok(()) }
+    }
 }
 
 fn minari_from(path: &Path, root: &Group, groups: &[String], datasets: &[String]) -> Result<Trajectories> {
@@ -430,17 +425,14 @@ fn minari_from(path: &Path, root: &Group, groups: &[String], datasets: &[String]
         if !ep_datasets.iter().any(|d| d == "actions") {
             return Err(err(path, format!("'{name}/actions' is missing or a group (dict actions are not supported)")));
         }
-        let (steps, act_dim, actions) = flattened(&ep, "actions", name, None).map_err(e)?;
+        let (steps, act_dim, actions) = flattened(&ep, "actions", name, None, false).map_err(e)?;
         if steps == 0 {
             // No action, so no row: nothing to read (its observations are its first state only).
             skipped.push(format!("'{name}'"));
             continue;
         }
-        if jpeg {
-            refuse_jpeg(&ep, "observations", name).map_err(e)?;
-        }
         // The last observation is dropped: only the rows kept must be finite.
-        let (n_obs, obs_dim, observations) = flattened(&ep, "observations", name, Some(steps)).map_err(e)?;
+        let (n_obs, obs_dim, observations) = flattened(&ep, "observations", name, Some(steps), jpeg).map_err(e)?;
         if n_obs != steps + 1 {
             return Err(err(
                 path,
