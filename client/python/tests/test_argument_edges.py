@@ -200,6 +200,10 @@ def test_request_builders_take_tensors_that_require_grad():
     from relreward.specs import prompts_message
     assert np.frombuffer(prompts_message("prompts", state * 2).embeddings.data, np.float32).tolist() == [2.0] * 3
     np.testing.assert_array_equal(_tensor.as_f32(x), expect)
+    # And a dataset dict of tensors.
+    from relreward.datasets import trajectories
+    arrays = dict(trajectories({"observations": x.reshape(8, 3), "actions": torch.zeros(8, 1)}).arrays)
+    np.testing.assert_array_equal(arrays["observations"], expect.reshape(8, 3))
 
 
 def test_score_and_gradient_take_tensors_that_require_grad(client, tiny):

@@ -52,13 +52,15 @@ _FLOAT32 = tensor_pb2.DTYPE_FLOAT32
 _Tensor = tensor_pb2.Tensor
 
 
+def is_torch(x: Any) -> bool:
+    """Whether ``x`` is a torch tensor, told by its type's module: torch is never imported here."""
+    return type(x) is not np.ndarray and type(x).__module__.startswith("torch") and hasattr(x, "detach")
+
+
 def host(x: Any) -> Any:
     """``x``, or a torch tensor detached from autograd and brought to the CPU: numpy cannot read
-    one that requires grad or lives on a GPU. torch is never imported here; a tensor is told by
-    its type's module."""
-    if type(x) is not np.ndarray and type(x).__module__.startswith("torch") and hasattr(x, "detach"):
-        return x.detach().cpu()
-    return x
+    one that requires grad or lives on a GPU."""
+    return x.detach().cpu() if is_torch(x) else x
 
 
 def as_f32(x: Any) -> np.ndarray:

@@ -507,6 +507,12 @@ class GradientStream:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
+    @property
+    def failed(self) -> RelrewardError | None:
+        """The failure of the whole call, once it failed (every later request raises it), else
+        None: a request refused on its own leaves the stream usable."""
+        return self._failed
+
     def submit(self, x: Any, t: int | Sequence[int] | np.ndarray | None, *, model: str | None = None,
                omega: float | None = None, units: str | None = None, gradient_units: str | None = None,
                scale_by_posterior_variance_of: str | None = None) -> PendingGradient:

@@ -80,6 +80,7 @@ from typing import Any, Iterable, Mapping, Sequence
 import numpy as np
 
 from relreward.v1 import datasets_pb2
+from relreward import _tensor
 from relreward._tensor import wire_dtype
 
 TRAJECTORIES = datasets_pb2.DATASET_KIND_TRAJECTORIES
@@ -194,14 +195,14 @@ def _is_group(value: Any) -> bool:
 
 def _array_like(a: Any) -> Any:
     """``a`` itself when it has a numpy ``shape`` and ``dtype`` (an ndarray, an h5py dataset),
-    else ``np.asarray(a)`` (a list, a torch tensor)."""
+    else ``np.asarray(a)`` (a list; a torch tensor detached and on the CPU, ``_tensor.host``)."""
     if hasattr(a, "shape") and hasattr(a, "dtype"):
         try:
             np.dtype(a.dtype)
             return a
         except TypeError:
             pass
-    return np.asarray(a)
+    return np.asarray(_tensor.host(a))
 
 
 def _is_h5py(a: Any) -> bool:

@@ -21,12 +21,9 @@ from typing import Any
 
 import numpy as np
 
+from relreward import _tensor
 from relreward.client import Client, GradientStream
 from relreward.errors import RelrewardError
-
-
-def _is_torch(x: Any) -> bool:
-    return type(x).__module__.startswith("torch")
 
 
 class RewardGuide:
@@ -58,7 +55,7 @@ class RewardGuide:
 
     @staticmethod
     def _numpy(x: Any) -> np.ndarray:
-        if _is_torch(x):
+        if _tensor.is_torch(x):
             return x.detach().to("cpu").float().numpy()
         return np.asarray(x)
 
@@ -75,14 +72,14 @@ class RewardGuide:
             # A failure of the whole call stays with its stream (every later request on it
             # raises it): drop that stream so the next step opens a new one. A request refused
             # on its own (a bad t, a server's per-request error) leaves the stream as it is.
-            if stream._failed is not None and self._stream is stream:
+            if stream.failed is not None and self._stream is stream:
                 self.close()
             raise
         # The client's arrays are read-only views of the response bytes; Diffuser's sampler edits
         # what the guide returns in place (``grad[t < t_stopgrad] = 0``), so hand out owned,
         # writable copies (torch.from_numpy also warns on a read-only array).
         rewards, gradient = result.rewards.copy(), result.gradient.copy()
-        if _is_torch(x):
+        if _tensor.is_torch(x):
             import torch
 
             y = torch.from_numpy(rewards).to(device=x.device, dtype=x.dtype)
