@@ -15,7 +15,6 @@
 
 use serde::{Deserialize, Serialize};
 
-use super::manifest::MAX_ITEM_ELEMENTS;
 use super::{Invalid, invalid};
 use crate::given_number;
 use crate::v1 as pb;
@@ -24,6 +23,9 @@ use crate::v1 as pb;
 pub const DEFAULT_SCALING_FACTOR: f64 = 1.0;
 /// `shift_factor` when none is given.
 pub const DEFAULT_SHIFT_FACTOR: f64 = 0.0;
+/// Most elements in one image or one latent (2^28 float32 values, 1 GiB): far above any
+/// autoencoder this service runs, low enough that the upload's zeros probe stays small.
+pub const MAX_ITEM_ELEMENTS: u64 = 1 << 28;
 
 fn default_scaling_factor() -> f64 {
     DEFAULT_SCALING_FACTOR

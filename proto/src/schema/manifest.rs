@@ -35,10 +35,12 @@ use crate::v1 as pb;
 /// that schedule tables stay small.
 pub const MAX_TIMESTEPS: usize = 100_000;
 
-/// Most elements in one item of any space (a trajectory window, an image, a latent, an
-/// autoencoder's image): 2^24 float32 values, 64 MiB, above a 3 x 2048 x 2048 image. An upload's
-/// probe runs the network on two such items, and nothing else bounds them (a net's parameter
-/// count does not grow with its items' size).
+/// Most elements in one item of a model uploaded now, or in one row of a dataset (a trajectory
+/// window, an image, a latent): 2^24 float32 values, 64 MiB, above a 3 x 2048 x 2048 image. An
+/// upload's probe runs the network on two such items, and nothing else bounds them (a net's
+/// parameter count does not grow with its items' size). Checked where a manifest arrives
+/// ([`Space::check_new_item`]), not where a stored one is read: what was stored before the bound
+/// stays readable.
 pub const MAX_ITEM_ELEMENTS: u64 = 1 << 24;
 
 /// The cosine schedules' offset s when none is given (Nichol & Dhariwal's value; the wire
@@ -131,8 +133,8 @@ impl Space {
         }
     }
 
-    /// Positive dimensions, at most [`MAX_ITEM_ELEMENTS`] elements per item; messages name
-    /// `field` (the space's path, e.g. "manifest.space").
+    /// Positive dimensions whose element count fits tch's sizes; messages name `field` (the
+    /// space's path, e.g. "manifest.space").
     pub fn validate_at(&self, field: &str) -> Result<(), Invalid> {
         match self {
             Self::Trajectory { horizon, action_dim, obs_dim } => {
@@ -150,6 +152,15 @@ impl Space {
         }
         // Regression inputs in fuzz/regressions/manifest_parse: huge dimensions overflowed the
         // coordinate count and, cast to i64, became negative sizes.
+        if self.checked_item_elements().is_none() {
+            return invalid(format!("{field}: {self:?} has more elements per item than fit in 64 bits"));
+        }
+        Ok(())
+    }
+
+    /// [`MAX_ITEM_ELEMENTS`], for a manifest that arrives (an upload), after
+    /// [`Space::validate_at`].
+    pub fn check_new_item(&self, field: &str) -> Result<(), Invalid> {
         if self.checked_item_elements().is_none_or(|n| n as u64 > MAX_ITEM_ELEMENTS) {
             return invalid(format!("{field}: {self:?} has more than {MAX_ITEM_ELEMENTS} elements per item"));
         }
@@ -745,6 +756,7 @@ impl DiffusionManifest {
                 .transpose()?,
         };
         manifest.validate_at(field)?;
+        manifest.space.check_new_item(&format!("{field}.space"))?;
         Ok(manifest)
     }
 }
@@ -869,6 +881,7 @@ impl RewardUploadManifest {
             base_model: m.base_model,
         };
         manifest.validate_at(field)?;
+        manifest.space.check_new_item(&format!("{field}.space"))?;
         Ok(manifest)
     }
 }
@@ -963,16 +976,32 @@ mod tests {
     }
 
     #[test]
-    fn items_are_bounded_in_size_not_only_in_bits() {
+    fn uploaded_items_are_bounded_in_size_not_only_in_bits() {
         // 1 x 65536 x 65536 fits an i64 but is 2^32 elements: the upload's probe would allocate
         // tens of gigabytes before any message. The bound itself is accepted.
-        let at = |shape: Vec<usize>| Space::Sample { shape }.validate_at("manifest.space");
+        let at = |shape: Vec<usize>| Space::Sample { shape }.check_new_item("manifest.space");
         let err = at(vec![1, 65536, 65536]).expect_err("too large");
         assert!(err.to_string().contains("manifest.space") && err.to_string().contains("16777216"), "{err}");
         assert!(at(vec![1, 4096, 4096]).is_ok());
         assert!(at(vec![2, 4096, 4096]).is_err());
         let traj = Space::Trajectory { horizon: 1 << 20, action_dim: 8, obs_dim: 9 };
-        assert!(traj.validate_at("manifest.space").is_err());
+        assert!(traj.check_new_item("manifest.space").is_err());
+        // A stored manifest from before the bound is still valid where it is read.
+        let stored = Space::Sample { shape: vec![3, 4096, 4096] };
+        assert!(stored.validate_at("manifest.space").is_ok() && stored.check_new_item("m").is_err());
+        // Both uploads' wire forms are bounded.
+        let wire = |shape: Vec<u64>| pb::DiffusionManifest {
+            parametrization: pb::Parametrization::Epsilon as i32,
+            schedule: Some(ScheduleSpec::DiffuserCosine { s: 0.008 }.to_proto()),
+            n_timesteps: 10,
+            space: Some(pb::diffusion_manifest::Space::Sample(pb::diffusion_manifest::Sample { shape })),
+            normalizer: Some(Normalizer::Identity.to_proto()),
+            ..Default::default()
+        };
+        let err = DiffusionManifest::from_proto(Some(wire(vec![1, 65536, 65536])), "header.manifest")
+            .expect_err("an upload of 2^32 elements per item");
+        assert!(err.to_string().contains("header.manifest.space") && err.to_string().contains("16777216"), "{err}");
+        DiffusionManifest::from_proto(Some(wire(vec![1, 64, 64])), "header.manifest").expect("a small item");
     }
 
     #[test]
