@@ -60,10 +60,23 @@ pub enum DatasetKind {
 /// Per-coordinate statistics of one float array (population std).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct ArrayStats {
+    #[serde(deserialize_with = "stored_floats")]
     pub min: Vec<f64>,
+    #[serde(deserialize_with = "stored_floats")]
     pub max: Vec<f64>,
+    #[serde(deserialize_with = "stored_floats")]
     pub mean: Vec<f64>,
+    #[serde(deserialize_with = "stored_floats")]
     pub std: Vec<f64>,
+}
+
+/// Statistics as stored, a `null` read as NaN: JSON has no infinity, so a statistic that
+/// overflowed (a float64 upload beyond float32's range, before ingestion refused those) was
+/// written as `null`, and a strict read made the record, and every List that met it,
+/// unreadable, its dataset impossible even to delete.
+fn stored_floats<'de, D: serde::Deserializer<'de>>(d: D) -> std::result::Result<Vec<f64>, D::Error> {
+    let values: Vec<Option<f64>> = Deserialize::deserialize(d)?;
+    Ok(values.into_iter().map(|v| v.unwrap_or(f64::NAN)).collect())
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

@@ -464,6 +464,42 @@ mod tests {
         assert_eq!(db.job_events("j", 2, 100).await.expect("events").len(), 2);
     }
 
+    /// A record whose statistics overflowed (written before ingestion refused values beyond
+    /// float32's range: an infinite std became JSON `null`) reads, lists and deletes.
+    #[tokio::test(flavor = "multi_thread")]
+    async fn a_dataset_whose_statistics_overflowed_is_still_read_and_deleted() {
+        use crate::store::{ArrayRecord, ArrayStats, DatasetKind, DatasetRecord};
+        let dir = tempfile::tempdir().expect("tmp");
+        let db = SqliteMetadata::open(&dir.path().join("m.sqlite3")).expect("open");
+        let stats = ArrayStats { min: vec![0.25], max: vec![1e300], mean: vec![2.5e299], std: vec![f64::INFINITY] };
+        let record = DatasetRecord {
+            name: "far".into(),
+            kind: DatasetKind::Samples,
+            num_rows: 4,
+            arrays: vec![ArrayRecord {
+                name: "samples".into(),
+                dtype: "float64".into(),
+                shape: vec![4, 1],
+                file: "samples.npy".into(),
+                stats: Some(stats),
+            }],
+            episodes: None,
+            sha256: "0".repeat(64),
+            size_bytes: 32,
+            created_at_ms: 0,
+            description: String::new(),
+            blob_key: "k".into(),
+        };
+        db.insert_dataset(&record).await.expect("insert");
+        let read = db.get_dataset("far").await.expect("readable").expect("stored");
+        let stats = read.arrays[0].stats.as_ref().expect("stats");
+        assert_eq!((stats.min[0], stats.max[0]), (0.25, 1e300));
+        assert!(stats.std[0].is_nan(), "the lost value reads as NaN: {:?}", stats.std);
+        assert_eq!(db.list_datasets("", 10).await.expect("listed").len(), 1);
+        assert!(db.delete_dataset("far").await.expect("deleted").is_some());
+        assert!(db.get_dataset("far").await.expect("read").is_none());
+    }
+
     #[tokio::test(flavor = "multi_thread")]
     async fn leases_lapse_renew_release_and_carry_cancellation() {
         let dir = tempfile::tempdir().expect("tmp");
